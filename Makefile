@@ -1,0 +1,62 @@
+# s2camp-ns developer commands. `make demo` and `make test` are the two a newcomer needs.
+# Everything runs inside $(VENV); it is created and installed on first use and reused afterwards
+# (the editable install is redone only when pyproject.toml or setup.py is newer than the stamp file).
+
+VENV ?= .venv
+# Prefer python3.11: the pinned torch 2.14.1 / torchvision 0.29.1 wheels are cached locally for 3.11.
+PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3 2>/dev/null)
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.s2camp-installed
+# Installed first, on their own, so resolving the package cannot pull in a different torch.
+TORCH_PINS := torch==2.14.1 torchvision==0.29.1
+
+.PHONY: help venv demo test lint bench clean
+
+help:
+	@echo "make demo   generate a synthetic scene and run the S2CamP demo (creates $(VENV) on first use)"
+	@echo "make test   ruff + the whole pytest suite, end-to-end tests included"
+	@echo "make lint   ruff only"
+	@echo "make bench  all benchmarks (s2camp-bench all)"
+	@echo "make venv   create/refresh $(VENV) (VENV=path to use another one, PYTHON=python3.x to pick the interpreter)"
+	@echo "make clean  remove caches, build outputs and generated scenes (keeps $(VENV))"
+
+venv: $(STAMP)
+
+$(BIN)/python:
+	@test -n "$(PYTHON)" || { echo "error: no python3 found; install Python >= 3.10 or pass PYTHON=..."; exit 1; }
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 10) else 1)' || \
+		{ echo "error: $(PYTHON) is older than Python 3.10; pass PYTHON=python3.11"; exit 1; }
+	@echo ">>> creating virtual environment $(VENV) with $$($(PYTHON) --version) ($(PYTHON))"
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --upgrade pip setuptools wheel
+
+$(STAMP): pyproject.toml setup.py | $(BIN)/python
+	@echo ">>> installing the pinned torch pair first: $(TORCH_PINS)"
+	$(BIN)/python -m pip install $(TORCH_PINS)
+	@echo ">>> installing s2camp-ns (editable) with test extras"
+	$(BIN)/python -m pip install -e '.[test]'
+	@touch $(STAMP)
+	@echo ">>> $(VENV) is ready"
+
+demo: venv
+	@echo ">>> running the demo"
+	$(BIN)/python -m s2camp_ns.demo
+
+lint: venv
+	@echo ">>> ruff check ."
+	$(BIN)/ruff check .
+
+test: lint
+	@echo ">>> pytest (whole suite, slow end-to-end tests included)"
+	@$(BIN)/python -m pytest -q; rc=$$?; \
+		if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests"; fi; \
+		exit $$rc
+
+bench: venv
+	@echo ">>> s2camp-bench all"
+	$(BIN)/s2camp-bench all
+
+clean:
+	@echo ">>> removing caches, build outputs and generated scenes"
+	rm -rf build dist *.egg-info .pytest_cache .ruff_cache scenes demo_scene outputs
+	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -exec rm -rf {} +

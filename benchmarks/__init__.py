@@ -1,0 +1,4 @@
+"""Benchmarks that reproduce the paper's claims next to their baselines (installed as ``s2camp_ns.benchmarks``).
+
+Run them with ``s2camp-bench <name>``; each writes a markdown table and PNG plots under ``docs/benchmarks/``.
+"""

@@ -1,0 +1,64 @@
+"""``s2camp-bench``: run a benchmark, write its report under docs/benchmarks/, optionally print JSON rows."""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Union
+
+import tyro
+
+from .common import DEFAULT_OUTPUT_DIR, emit_json, log
+from .dispersion import DispersionConfig
+from .gram_error import GramErrorConfig
+from .speed import SpeedConfig
+
+MODULES = {
+    DispersionConfig: "dispersion",
+    GramErrorConfig: "gram_error",
+    SpeedConfig: "speed",
+}
+
+
+@dataclass
+class AllConfig:
+    """Every benchmark in turn, each writing its own report."""
+
+    quick: bool = False
+    output_dir: Path = DEFAULT_OUTPUT_DIR
+
+
+Command = Union[
+    Annotated[DispersionConfig, tyro.conf.subcommand("dispersion")],
+    Annotated[GramErrorConfig, tyro.conf.subcommand("gram-error")],
+    Annotated[SpeedConfig, tyro.conf.subcommand("speed")],
+    Annotated[AllConfig, tyro.conf.subcommand("all")],
+]
+
+
+def run_benchmark(config) -> list[dict]:
+    module = importlib.import_module(f"{__package__}.{MODULES[type(config)]}")
+    rows = module.run(config)
+    if config.write:
+        log(f"wrote {module.report(rows, config)}")
+    return rows
+
+
+def main(config) -> list[dict]:
+    if isinstance(config, AllConfig):
+        rows = []
+        for config_type in MODULES:
+            rows.extend(run_benchmark(config_type(quick=config.quick, output_dir=config.output_dir)))
+        return rows
+    rows = run_benchmark(config)
+    if config.json:
+        emit_json(rows)
+    return rows
+
+
+def entrypoint() -> None:
+    main(tyro.cli(Command, description=__doc__))
+
+
+__all__ = ["entrypoint", "main"]

@@ -1,0 +1,230 @@
+"""Tier 1 of the camera-recovery benchmark: first-order refinement of perturbed cameras on reprojection error.
+
+The scene's 3D points are projected by the true cameras (with their radial distortion); the cameras are perturbed
+with CamP's protocol (distortion zeroed) and refined by Adam on the mean squared reprojection error, pixels divided
+by max(W, H). Nothing but the parameterization differs between the variants, so this isolates the conditioning
+that the preconditioner is meant to fix:
+
+- ``none``: no refinement (the perturbed cameras);
+- ``so3xr3``: nerfstudio's stock pose optimizer (SO3xR3 pose adjustment right-multiplied on c2w, its L2 penalties,
+  nerfacto's camera learning rate 1e-3 decaying to 1e-4);
+- ``raw``: the 12 raw deltas, same optimizer and schedule as ``s2camp``;
+- ``camp``: whitened deltas, P from 5000 CamP random points, computed once (averaged over seeds);
+- ``s2camp``: whitened deltas, P from 500 deterministic lattice points, refreshed on schedule;
+- ``s2camp-once``: as ``s2camp`` with P computed once.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import torch
+
+from s2camp_ns.core.alignment import camera_errors
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout, apply_pose_delta, in_image, project, se3_exp
+from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
+from s2camp_ns.core.preconditioner import (
+    DampingConfig,
+    Preconditioner,
+    SamplingConfig,
+    compute_preconditioner,
+    reexpress_latent,
+)
+
+VARIANTS = ("none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once")
+
+
+@dataclass
+class GeometricScene:
+    """True cameras (OpenCV c2w, normalized scene units), their intrinsics and the scene's 3D points."""
+
+    name: str
+    c2w: torch.Tensor
+    intrinsics: Intrinsics
+    points: torch.Tensor
+
+
+@dataclass
+class GeometricConfig:
+    """Optimizer settings of tier 1."""
+
+    iterations: int = 1500
+    lr: float = 1e-3
+    """Initial learning rate of the camera parameters (whitened units for the preconditioned variants)."""
+    lr_final: float = 1e-4
+    """Learning rate reached by exponential decay at the last iteration."""
+    so3xr3_lr: float = 1e-3
+    so3xr3_lr_final: float = 1e-4
+    refresh_every: int = 100
+    """Refresh interval of P for ``s2camp``, in iterations."""
+    camp_seeds: tuple[int, ...] = (0, 1, 2)
+    perturbation_seed: int = 0
+    log_every: int = 10
+    thresholds: dict[str, float] = field(
+        default_factory=lambda: {"rot_err": 1e-3, "pos_err": 1e-3, "focal_err": 1.0}
+    )
+    """Error levels for the iterations-to-threshold columns (rad, scene units, pixels)."""
+    sampling: SamplingConfig = SamplingConfig()
+    damping: DampingConfig = DampingConfig()
+
+
+def load_scene(path: Path, name: str) -> GeometricScene:
+    """Cameras and points of a COLMAP model under ``path/sparse/0``, normalized like nerfstudio's data parser
+    (centred on the mean camera centre, scaled so the largest centre coordinate is 1)."""
+    reconstruction = pycolmap.Reconstruction(str(path / "sparse" / "0"))
+    images = sorted(reconstruction.images.values(), key=lambda image: image.name)
+    c2w, params = [], []
+    for image in images:
+        cam_from_world = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+        matrix = np.asarray(cam_from_world.matrix())
+        rotation = matrix[:, :3].T
+        c2w.append(np.concatenate([rotation, -rotation @ matrix[:, 3:]], axis=1))
+        camera = reconstruction.cameras[image.camera_id]
+        extra = [camera.params[i] for i in camera.extra_params_idxs()]
+        k1 = extra[0] if extra else 0.0
+        k2 = extra[1] if len(extra) > 1 and camera.model.name in ("RADIAL", "OPENCV") else 0.0
+        fx, fy = camera.focal_length_x, camera.focal_length_y
+        cx, cy = camera.principal_point_x, camera.principal_point_y
+        params.append((fx, fy, cx, cy, camera.width, camera.height, k1, k2))
+    c2w_t = torch.tensor(np.stack(c2w), dtype=torch.float64)
+    centre = c2w_t[:, :, 3].mean(dim=0)
+    scale = 1.0 / float((c2w_t[:, :, 3] - centre).abs().max())
+    c2w_t[:, :, 3] = (c2w_t[:, :, 3] - centre) * scale
+    points = torch.tensor(np.stack([p.xyz for p in reconstruction.points3D.values()]), dtype=torch.float64)
+    points = (points - centre) * scale
+    p = torch.tensor(params, dtype=torch.float64)
+    intrinsics = Intrinsics.create(fx=p[:, 0], fy=p[:, 1], cx=p[:, 2], cy=p[:, 3], width=p[:, 4], height=p[:, 5],
+                                   k1=p[:, 6], k2=p[:, 7])
+    return GeometricScene(name=name, c2w=c2w_t, intrinsics=intrinsics, points=points)
+
+
+def world_to_camera(points: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor:
+    """Camera-frame coordinates [N, P, 3] of world points [P, 3] for OpenCV c2w [N, 3, 4]."""
+    return torch.einsum("nji,npj->npi", c2w[:, :, :3], points[None] - c2w[:, None, :, 3])
+
+
+class Refinement:
+    """One variant's parameterization of the camera deltas, its optimizer and learning-rate schedule."""
+
+    def __init__(self, variant: str, start: Intrinsics, num_cameras: int, config: GeometricConfig, seed: int = 0):
+        self.variant = variant
+        self.config = config
+        self.layout = ParameterLayout.from_preset("pose" if variant == "so3xr3" else "all")
+        k = self.layout.num_params
+        self.latent = torch.zeros(num_cameras, k, dtype=torch.float64, requires_grad=True)
+        self.preconditioner: Preconditioner | None = None
+        if variant in ("camp", "s2camp", "s2camp-once"):
+            sampling = config.sampling
+            if variant == "camp":
+                sampling = SamplingConfig(sampler="camp-random", num_points=5000, t_near=sampling.t_near,
+                                          t_far=sampling.t_far, seed=seed)
+            self.sampling = sampling
+            self.preconditioner = compute_preconditioner(start, self.layout, sampling, config.damping)
+        lr, lr_final = (config.so3xr3_lr, config.so3xr3_lr_final) if variant == "so3xr3" else (config.lr,
+                                                                                             config.lr_final)
+        self.optimizer = torch.optim.Adam([self.latent], lr=lr, betas=(0.9, 0.99), eps=1e-15)
+        gamma = (lr_final / lr) ** (1.0 / max(config.iterations, 1))
+        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma)
+
+    def deltas(self) -> torch.Tensor:
+        """Full 12-column camera deltas phi (paper eq. 15: phi = P^-1 phi_hat for the whitened variants)."""
+        latent = self.latent
+        if self.preconditioner is not None:
+            latent = (self.preconditioner.inverse @ latent[..., None])[..., 0]
+        return self.layout.expand(latent)
+
+    def regularizer(self) -> torch.Tensor:
+        if self.variant != "so3xr3":
+            return self.latent.new_zeros(())
+        # nerfstudio's CameraOptimizer defaults: trans_l2_penalty 1e-2, rot_l2_penalty 1e-3 (on the norms).
+        return 1e-2 * self.latent[:, :3].norm(dim=-1).mean() + 1e-3 * self.latent[:, 3:].norm(dim=-1).mean()
+
+    def maybe_refresh(self, iteration: int, current: Intrinsics) -> None:
+        every = self.config.refresh_every
+        if self.variant != "s2camp" or every <= 0 or iteration == 0 or iteration % every:
+            return
+        new = compute_preconditioner(current.detach(), self.layout, self.sampling, self.config.damping)
+        reexpress_latent(self.latent, self.preconditioner, new, self.optimizer.state.get(self.latent))
+        self.preconditioner = new
+
+
+def refined_cameras(
+    base_c2w: torch.Tensor, base: Intrinsics, deltas: torch.Tensor, variant: str
+) -> tuple[torch.Tensor, Intrinsics]:
+    """c2w' = c2w exp(xi) (SO3xR3: translation not coupled to rotation) and Phi' = Phi + dPhi."""
+    if variant == "so3xr3":
+        transform = se3_exp(torch.cat([torch.zeros_like(deltas[:, :3]), deltas[:, 3:6]], dim=-1))
+        transform = torch.cat([transform[:, :, :3], deltas[:, :3, None]], dim=-1)
+    else:
+        transform = se3_exp(deltas[:, :6])
+    rotation = base_c2w[:, :, :3] @ transform[:, :, :3]
+    translation = base_c2w[:, :, 3:] + base_c2w[:, :, :3] @ transform[:, :, 3:]
+    return torch.cat([rotation, translation], dim=-1), base.with_delta(deltas)
+
+
+def reprojection_loss(
+    base_c2w: torch.Tensor, base: Intrinsics, deltas: torch.Tensor, variant: str, points: torch.Tensor,
+    observed: torch.Tensor, visible: torch.Tensor,
+) -> torch.Tensor:
+    points_cam = world_to_camera(points, base_c2w)
+    if variant == "so3xr3":
+        c2w, intrinsics = refined_cameras(base_c2w, base, deltas, variant)
+        points_cam = world_to_camera(points, c2w)
+    else:
+        points_cam = apply_pose_delta(points_cam, deltas[:, :6])
+        intrinsics = base.with_delta(deltas)
+    pixels, _ = project(points_cam, intrinsics)
+    residual = (pixels - observed) / base.image_scale()[:, None, None]
+    return (residual.pow(2).sum(dim=-1) * visible).sum() / visible.sum()
+
+
+def errors(c2w: torch.Tensor, intrinsics: Intrinsics, scene: GeometricScene) -> dict[str, float]:
+    result = camera_errors(c2w.detach(), scene.c2w, intrinsics.fx.detach(), scene.intrinsics.fx, align=True)
+    return {"rot_err": result["rot_err_mean"], "pos_err": result["pos_err_mean"], "focal_err": result["focal_err_mean"]}
+
+
+def perturbed_start(scene: GeometricScene, seed: int) -> tuple[torch.Tensor, Intrinsics]:
+    perturbed = perturb_cameras(scene.c2w, scene.intrinsics.fx, scene.intrinsics.fy,
+                                PerturbationConfig(enabled=True), seed=seed)
+    start = Intrinsics.create(fx=perturbed.fx, fy=perturbed.fy, cx=scene.intrinsics.cx, cy=scene.intrinsics.cy,
+                              width=scene.intrinsics.width, height=scene.intrinsics.height)
+    return perturbed.c2w, start
+
+
+def run_variant(scene: GeometricScene, variant: str, config: GeometricConfig, seed: int = 0) -> dict:
+    """Refine the perturbed cameras of ``scene`` with ``variant``; return final errors and the error history."""
+    observed, depth = project(world_to_camera(scene.points, scene.c2w), scene.intrinsics)
+    visible = in_image(observed, depth, scene.intrinsics).to(torch.float64)
+    base_c2w, start = perturbed_start(scene, config.perturbation_seed)
+    history = [{"iteration": 0, **errors(base_c2w, start, scene)}]
+    if variant == "none":
+        return {"history": history, "final": history[-1], "sec_per_iter": 0.0}
+    refinement = Refinement(variant, start, scene.c2w.shape[0], config, seed=seed)
+    began = time.perf_counter()
+    for iteration in range(1, config.iterations + 1):
+        deltas = refinement.deltas()
+        loss = reprojection_loss(base_c2w, start, deltas, variant, scene.points, observed, visible)
+        refinement.optimizer.zero_grad(set_to_none=True)
+        (loss + refinement.regularizer()).backward()
+        refinement.optimizer.step()
+        refinement.scheduler.step()
+        if iteration % config.log_every == 0 or iteration == config.iterations:
+            with torch.no_grad():
+                c2w, intrinsics = refined_cameras(base_c2w, start, refinement.deltas(), variant)
+            history.append({"iteration": iteration, "loss": float(loss), **errors(c2w, intrinsics, scene)})
+        if variant == "s2camp":
+            with torch.no_grad():
+                _, current = refined_cameras(base_c2w, start, refinement.deltas(), variant)
+            refinement.maybe_refresh(iteration, current)
+    seconds = time.perf_counter() - began
+    return {"history": history, "final": history[-1], "sec_per_iter": seconds / config.iterations}
+
+
+def iterations_to(history: list[dict], key: str, threshold: float) -> float:
+    """First logged iteration whose error is below ``threshold`` (nan if never)."""
+    return next((float(h["iteration"]) for h in history if h[key] <= threshold), math.nan)

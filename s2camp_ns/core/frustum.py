@@ -1,0 +1,263 @@
+"""Inverse transforms from the unit cube to the normalized (contracted) camera view frustum (paper eqs. 6-14).
+
+A point ``u = (u1, u2, u3)`` of ``[0, 1]^3`` is mapped to contracted radius ``r = Q_r(u1)`` (paper eq. 12,
+cube root, so that equal volumes get equal mass), a vertical coordinate from ``u2`` and a horizontal one from
+``u3``, then to the Euclidean camera frame through the inverse contraction (paper eq. 10). The camera frame is
+OpenCV (x right, y down, z forward); the angular extent is given per camera as ``tangent_bounds [N, 4] =
+(a_min, a_max, b_min, b_max)`` of the image-plane tangents ``a = x/z``, ``b = y/z``.
+
+Two angular transforms, both volume preserving up to the constant frustum volume (uniform in ``u`` means
+uniform in the contracted frustum):
+
+``"spherical"``
+    The paper's separable transform (eqs. 11-12) written with a well-defined angle pair. Eq. 14 takes the polar
+    angle theta in ``[-alpha_y, alpha_y]``, which makes the eq. 11 denominator ``cos(theta_min) - cos(theta_max)``
+    zero; we use azimuth ``az`` about the y axis and elevation ``el`` from the x-z plane instead, with volume
+    element ``r^2 cos(el) dr d(el) d(az)``: ``az = Q_az(u3)`` uniform in ``[atan a_min, atan a_max]``,
+    ``el = Q_el(u2) = asin(sin e0 + u2 (sin e1 - sin e0))`` with ``e = atan b``. This region is a latitude-longitude
+    rectangle, not the pinhole pyramid: near the left and right image edges some samples project above or below
+    the image (a few percent of the volume for typical cameras).
+``"pyramid"``
+    The exact pinhole pyramid. On tangents the solid-angle density is ``(1 + a^2 + b^2)^(-3/2)``; a conditional
+    (Rosenblatt) transform samples ``a`` from its marginal and ``b`` given ``a``:
+
+    - marginal CDF of ``a`` is proportional to ``c(a) = G(a, b1) - G(a, b0)`` with
+      ``G(a, b) = atan(a b / sqrt(1 + a^2 + b^2)) = asin(sin(atan a) sin(atan b))``. Writing
+      ``x = sin(atan a)`` and ``s_j = sin(atan b_j)``, ``c = asin(x s1) - asin(x s0)`` inverts in closed form for
+      any (also asymmetric) b range: ``x = sin c / sqrt((s1 - s0)^2 + 4 s0 s1 sin^2(c/2))`` (take the cosine of
+      both sides; the ``x^4`` terms cancel), then ``a = x / sqrt(1 - x^2)``.
+    - conditional CDF of ``b`` given ``a`` is proportional to ``h(b) = b / sqrt(1 + a^2 + b^2)``, inverted by
+      ``b = h sqrt(1 + a^2) / sqrt(1 - h^2)``.
+
+    Every sample lies inside the tangent box, so every sample projects into the image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from s2camp_ns.core.contraction import uncontract_radius
+from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
+
+__all__ = [
+    "TRANSFORMS",
+    "FrustumSamples",
+    "Transform",
+    "camp_random_points",
+    "directions_from_unit",
+    "frustum_to_unit",
+    "map_unit_to_frustum",
+    "radius_from_unit",
+    "sample_frustum",
+    "unit_from_directions",
+    "unit_from_radius",
+    "validate_frustum",
+]
+
+Transform = Literal["pyramid", "spherical"]
+TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical")
+
+
+@dataclass(frozen=True)
+class FrustumSamples:
+    """Frustum samples per camera: contracted points (radius in ``[t_near, t_far]``) and their Euclidean preimages."""
+
+    contracted: Float[Tensor, "n l 3"]
+    camera: Float[Tensor, "n l 3"]
+
+
+def validate_frustum(
+    tangent_bounds: Float[Tensor, "n 4"], t_near: float, t_far: float, transform: str = "pyramid"
+) -> Float[Tensor, "n 4"]:
+    """Check the frustum description and return the bounds as float64 on their own device."""
+    check_choice("transform", transform, TRANSFORMS)
+    check_range("t_far", t_far, low=0.0, high=2.0, low_inclusive=False, high_inclusive=False)
+    check_range("t_near", t_near, low=0.0, high=float(t_far), high_inclusive=False)
+    if not isinstance(tangent_bounds, Tensor) or tangent_bounds.ndim != 2 or tangent_bounds.shape[-1] != 4:
+        shape = tuple(tangent_bounds.shape) if isinstance(tangent_bounds, Tensor) else type(tangent_bounds).__name__
+        raise ValueError(f"tangent_bounds must have shape [N, 4] (a_min, a_max, b_min, b_max), got {shape}")
+    bounds = tangent_bounds.detach().to(torch.float64)
+    # Finite tangents also exclude fields of view of 180 degrees or more.
+    check_finite("tangent_bounds", bounds)
+    check_range("tangent_bounds a_max - a_min", bounds[:, 1] - bounds[:, 0], low=0.0, low_inclusive=False)
+    check_range("tangent_bounds b_max - b_min", bounds[:, 3] - bounds[:, 2], low=0.0, low_inclusive=False)
+    return bounds
+
+
+def radius_from_unit(u1: Tensor, t_near: float, t_far: float) -> Tensor:
+    """Radial inverse CDF ``Q_r(u1) = [t0^3 + u1 (t1^3 - t0^3)]^(1/3)`` (paper eq. 12)."""
+    cube = t_near**3 + u1 * (t_far**3 - t_near**3)
+    return cube.clamp_min(0.0).pow(1.0 / 3.0)
+
+
+def unit_from_radius(radius: Tensor, t_near: float, t_far: float) -> Tensor:
+    """Radial CDF ``F_r(r) = (r^3 - t0^3) / (t1^3 - t0^3)`` (paper eq. 11)."""
+    return (radius**3 - t_near**3) / (t_far**3 - t_near**3)
+
+
+def _column(bounds: Tensor, index: int, like: Tensor) -> Tensor:
+    """Bound ``index`` of each camera, shaped to broadcast against ``like`` of shape [N, ...]."""
+    return bounds[:, index].reshape((-1,) + (1,) * (like.ndim - 1))
+
+
+def _pyramid_strip(a: Tensor, s0: Tensor, s1: Tensor) -> Tensor:
+    """Solid angle ``c(a) = G(a, b1) - G(a, b0)`` of ``[0, a] x [b0, b1]``, with ``s_j = sin(atan b_j)``."""
+    x = a / torch.sqrt(1.0 + a * a)
+    return torch.asin(x * s1) - torch.asin(x * s0)
+
+
+def _pyramid_strip_inverse(c: Tensor, s0: Tensor, s1: Tensor) -> Tensor:
+    """Closed-form inverse of :func:`_pyramid_strip` (derivation in the module docstring)."""
+    half = torch.sin(0.5 * c)
+    x = torch.sin(c) / torch.sqrt((s1 - s0) ** 2 + 4.0 * s0 * s1 * half * half)
+    x = x.clamp(-1.0 + 1e-16, 1.0 - 1e-16)
+    return x / torch.sqrt((1.0 - x) * (1.0 + x))
+
+
+def directions_from_unit(
+    u_vertical: Float[Tensor, "n *l"], u_horizontal: Float[Tensor, "n *l"], bounds: Float[Tensor, "n 4"], transform: str
+) -> Float[Tensor, "n *l 3"]:
+    """Unit ray directions from the two angular CDF coordinates (paper eqs. 8-9, 12, 14).
+
+    ``u_vertical`` (``u2``) drives elevation / the ``b`` tangent, ``u_horizontal`` (``u3``) azimuth / ``a``.
+    """
+    a0, a1 = _column(bounds, 0, u_horizontal), _column(bounds, 1, u_horizontal)
+    b0, b1 = _column(bounds, 2, u_vertical), _column(bounds, 3, u_vertical)
+    if transform == "spherical":
+        az = torch.atan(a0) + u_horizontal * (torch.atan(a1) - torch.atan(a0))
+        sin_e0, sin_e1 = b0 / torch.sqrt(1.0 + b0 * b0), b1 / torch.sqrt(1.0 + b1 * b1)
+        sin_el = (sin_e0 + u_vertical * (sin_e1 - sin_e0)).clamp(-1.0, 1.0)
+        cos_el = torch.sqrt((1.0 - sin_el) * (1.0 + sin_el))
+        return torch.stack([cos_el * torch.sin(az), sin_el, cos_el * torch.cos(az)], dim=-1)
+    s0, s1 = b0 / torch.sqrt(1.0 + b0 * b0), b1 / torch.sqrt(1.0 + b1 * b1)
+    c_lo, c_hi = _pyramid_strip(a0, s0, s1), _pyramid_strip(a1, s0, s1)
+    a = _pyramid_strip_inverse(c_lo + u_horizontal * (c_hi - c_lo), s0, s1)
+    # The inverse can overshoot the box by an ulp; clamping keeps "every sample projects inside" exact.
+    a = torch.minimum(torch.maximum(a, a0), a1)
+    rho = 1.0 + a * a
+    h0, h1 = b0 / torch.sqrt(rho + b0 * b0), b1 / torch.sqrt(rho + b1 * b1)
+    h = h0 + u_vertical * (h1 - h0)
+    b = h * torch.sqrt(rho / ((1.0 - h) * (1.0 + h)))
+    b = torch.minimum(torch.maximum(b, b0), b1)
+    direction = torch.stack([a, b, torch.ones_like(a)], dim=-1)
+    return direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True)
+
+
+def unit_from_directions(
+    directions: Float[Tensor, "n *l 3"], bounds: Float[Tensor, "n 4"], transform: str
+) -> tuple[Float[Tensor, "n *l"], Float[Tensor, "n *l"]]:
+    """Forward angular CDFs ``(u_vertical, u_horizontal)`` of directions (paper eq. 11); inverse of the above."""
+    x, y, z = directions.unbind(-1)
+    a0, a1 = _column(bounds, 0, x), _column(bounds, 1, x)
+    b0, b1 = _column(bounds, 2, x), _column(bounds, 3, x)
+    if transform == "spherical":
+        az = torch.atan2(x, z)
+        sin_el = y / torch.linalg.vector_norm(directions, dim=-1)
+        sin_e0, sin_e1 = b0 / torch.sqrt(1.0 + b0 * b0), b1 / torch.sqrt(1.0 + b1 * b1)
+        u_h = (az - torch.atan(a0)) / (torch.atan(a1) - torch.atan(a0))
+        return (sin_el - sin_e0) / (sin_e1 - sin_e0), u_h
+    a, b = x / z, y / z
+    s0, s1 = b0 / torch.sqrt(1.0 + b0 * b0), b1 / torch.sqrt(1.0 + b1 * b1)
+    c_lo, c_hi = _pyramid_strip(a0, s0, s1), _pyramid_strip(a1, s0, s1)
+    u_h = (_pyramid_strip(a, s0, s1) - c_lo) / (c_hi - c_lo)
+    rho = 1.0 + a * a
+    h0, h1 = b0 / torch.sqrt(rho + b0 * b0), b1 / torch.sqrt(rho + b1 * b1)
+    return (b / torch.sqrt(rho + b * b) - h0) / (h1 - h0), u_h
+
+
+def _as_batched_unit(unit_points: Tensor, num_cameras: int, device: torch.device) -> Tensor:
+    if not isinstance(unit_points, Tensor) or unit_points.ndim not in (2, 3) or unit_points.shape[-1] != 3:
+        shape = tuple(unit_points.shape) if isinstance(unit_points, Tensor) else type(unit_points).__name__
+        raise ValueError(f"unit_points must have shape [L, 3] or [N, L, 3], got {shape}")
+    if unit_points.ndim == 3 and unit_points.shape[0] != num_cameras:
+        raise ValueError(
+            f"unit_points must have N = {num_cameras} cameras to match tangent_bounds, got {unit_points.shape[0]}"
+        )
+    check_range("unit_points", unit_points, low=0.0, high=1.0)
+    u = unit_points.detach().to(device=device, dtype=torch.float64)
+    return u.expand(num_cameras, -1, -1) if u.ndim == 2 else u
+
+
+def map_unit_to_frustum(
+    unit_points: Float[Tensor, "n l 3"], bounds: Float[Tensor, "n 4"], t_near: float, t_far: float, transform: str
+) -> Float[Tensor, "n l 3"]:
+    """Contracted frustum points ``Q(u)`` (paper eqs. 8-9, 12), no validation (internal fast path)."""
+    radius = radius_from_unit(unit_points[..., 0], t_near, t_far)
+    directions = directions_from_unit(unit_points[..., 1], unit_points[..., 2], bounds, transform)
+    return radius.unsqueeze(-1) * directions
+
+
+def frustum_to_unit(
+    contracted: Float[Tensor, "n l 3"], tangent_bounds: Float[Tensor, "n 4"], t_near: float, t_far: float,
+    transform: Transform = "pyramid",
+) -> Float[Tensor, "n l 3"]:
+    """Forward CDF ``F(p)`` of contracted frustum points (paper eqs. 6, 11): the inverse of :func:`sample_frustum`.
+
+    Points outside the frustum get coordinates outside ``[0, 1]``; use this to test membership.
+    """
+    bounds = validate_frustum(tangent_bounds, t_near, t_far, transform)
+    points = contracted.to(device=bounds.device, dtype=torch.float64)
+    radius = torch.linalg.vector_norm(points, dim=-1)
+    u_v, u_h = unit_from_directions(points, bounds, transform)
+    return torch.stack([unit_from_radius(radius, t_near, t_far), u_v, u_h], dim=-1)
+
+
+def sample_frustum(
+    unit_points: Float[Tensor, "l 3"] | Float[Tensor, "n l 3"],
+    tangent_bounds: Float[Tensor, "n 4"],
+    t_near: float,
+    t_far: float,
+    transform: Transform = "pyramid",
+) -> FrustumSamples:
+    """Map unit-cube points into each camera's contracted frustum and back to Euclidean camera-frame points.
+
+    Uniform points in ``[0, 1]^3`` become uniform points in the contracted frustum with radius in
+    ``[t_near, t_far]`` (paper eqs. 6-14; angular transforms described in the module docstring); the Euclidean
+    points follow from the inverse contraction (paper eq. 10). Output is float64 on the device of
+    ``tangent_bounds``. With ``t_near = 0`` a point with ``u1 = 0`` sits on the camera centre.
+    """
+    bounds = validate_frustum(tangent_bounds, t_near, t_far, transform)
+    u = _as_batched_unit(unit_points, bounds.shape[0], bounds.device)
+    contracted = map_unit_to_frustum(u, bounds, float(t_near), float(t_far), transform)
+    radius = torch.linalg.vector_norm(contracted, dim=-1, keepdim=True)
+    # Scale by r_euclid / r_contracted; for r <= 1 the ratio is exactly 1 (the contraction is the identity there).
+    scale = torch.where(radius <= 1.0, torch.ones_like(radius), uncontract_radius(radius) / radius.clamp_min(1.0))
+    return FrustumSamples(contracted=contracted, camera=contracted * scale)
+
+
+def camp_random_points(
+    tangent_bounds: Float[Tensor, "n 4"],
+    num_points: int,
+    t_near: float,
+    t_far: float,
+    generator: torch.Generator | None = None,
+    seed: int = 0,
+) -> FrustumSamples:
+    """CamP's random baseline ("frustum_contracted" sampling of Park et al. 2023): uniform random image-plane
+    tangents (a uniform random pixel of an undistorted pinhole camera) and a uniform random contracted distance
+    along the unit ray in ``[t_near, t_far]``; Euclidean points through the inverse contraction (paper eq. 10).
+
+    This is not uniform in volume: the density falls off as ``1 / r^2`` and grows towards the image corners.
+    Random numbers come from ``generator`` (CPU) or a CPU generator seeded with ``seed``, then move to the device
+    of ``tangent_bounds``, so the points are the same on every device.
+    """
+    bounds = validate_frustum(tangent_bounds, t_near, t_far)
+    check_positive_int("num_points", num_points)
+    if generator is None:
+        generator = torch.Generator().manual_seed(int(seed))
+    n = bounds.shape[0]
+    draws = torch.rand((n, num_points, 3), generator=generator, dtype=torch.float64).to(bounds.device)
+    a0, a1 = _column(bounds, 0, draws[..., 0]), _column(bounds, 1, draws[..., 0])
+    b0, b1 = _column(bounds, 2, draws[..., 0]), _column(bounds, 3, draws[..., 0])
+    a = a0 + draws[..., 0] * (a1 - a0)
+    b = b0 + draws[..., 1] * (b1 - b0)
+    radius = t_near + draws[..., 2] * (t_far - t_near)
+    direction = torch.stack([a, b, torch.ones_like(a)], dim=-1)
+    direction = direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True)
+    contracted = radius.unsqueeze(-1) * direction
+    return FrustumSamples(contracted=contracted, camera=uncontract_radius(radius).unsqueeze(-1) * direction)

@@ -1,0 +1,170 @@
+"""Camera perturbation protocol of CamP, used to evaluate how well camera refinement recovers from bad cameras.
+
+CamP (configs/camp/camera_optim_perturbed.gin of its public code) perturbs the training cameras of a scene that is
+already normalized (centred and scaled), in this order, with one seeded random stream:
+
+1. dolly zoom: the z component of every camera's world-to-camera translation t = -R^T c is multiplied by one scale
+   s = exp(N(0, 1) log1p(sigma_dolly_z)) shared by all cameras ("single dolly"), the focal lengths by the same s,
+   and the centre is recomputed from the new translation. Objects near the world origin keep their image size,
+   which makes the perturbation hard to undo from images alone (focal against forward translation);
+2. focal length: every camera's focal lengths are multiplied by its own exp(N(0, 1) log1p(sigma_focal_length));
+3. position: every centre moves by sigma_position times a random unit vector;
+4. orientation: the look-at point (the point of the optical axis closest to the world origin, after step 1) moves
+   by sigma_look_at times a random unit vector and the camera is re-aimed at it from its new centre, keeping its
+   old up vector;
+5. radial distortion is zeroed (done by the caller, which owns the distortion parameters).
+
+The sigmas are in the units of the normalized scene, so perturb after the data parser's normalization.
+Cameras here use the OpenCV convention (x right, y down, z forward), like the rest of ``s2camp_ns.core``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from s2camp_ns.core.validation import check_finite, check_range
+
+
+@dataclass
+class PerturbationConfig:
+    """CamP's camera perturbation; the defaults are its ``camera_optim_perturbed`` setting."""
+
+    enabled: bool = False
+    """Perturb the training cameras (an evaluation protocol; off for normal training)."""
+    sigma_look_at: float = 0.005
+    """Distance (normalized scene units) the look-at point moves, along a random direction."""
+    sigma_position: float = 0.005
+    """Distance (normalized scene units) the camera centre moves, along a random direction."""
+    sigma_dolly_z: float = 0.05
+    """Relative strength of the shared dolly zoom: the z translation and the focal lengths scale by
+    exp(N(0,1) log1p(sigma))."""
+    sigma_focal_length: float = 0.02
+    """Relative strength of the per-camera focal length change: focal scales by exp(N(0,1) log1p(sigma))."""
+    single_dolly: bool = True
+    """One dolly scale shared by all cameras (CamP's default) rather than one per camera."""
+    zero_distortion: bool = True
+    """Set the radial distortion of the perturbed cameras to zero (part of CamP's protocol)."""
+    seed: int = 0
+    """Seed of the random stream; the same seed and cameras give the same perturbation."""
+
+    def validate(self) -> None:
+        for name in ("sigma_look_at", "sigma_position", "sigma_dolly_z", "sigma_focal_length"):
+            check_range(f"perturbation.{name}", getattr(self, name), low=0.0)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"perturbation.seed must be an integer in [0, inf), got {self.seed!r}")
+
+
+@dataclass
+class PerturbedCameras:
+    """Result of ``perturb_cameras``; every tensor has leading dimension N and dtype float64."""
+
+    c2w: Float[Tensor, "n 3 4"]
+    """Perturbed OpenCV camera-to-world poses."""
+    fx: Float[Tensor, " n"]
+    """Perturbed focal lengths (pixels)."""
+    fy: Float[Tensor, " n"]
+    focal_scale: Float[Tensor, " n"]
+    """Total factor applied to both focal lengths (dolly times focal perturbation)."""
+    dolly_scale: Float[Tensor, " n"]
+    """Factor applied to the world-to-camera z translation (the same for all cameras with ``single_dolly``)."""
+
+
+def _unit_vectors(n: int, generator: torch.Generator) -> Tensor:
+    directions = torch.randn(n, 3, dtype=torch.float64, generator=generator)
+    return directions / torch.linalg.norm(directions, dim=-1, keepdim=True).clamp_min(1e-300)
+
+
+def look_at_rotation(
+    eye: Float[Tensor, "n 3"], target: Float[Tensor, "n 3"], up: Float[Tensor, "n 3"]
+) -> Float[Tensor, "n 3 3"]:
+    """Camera-to-world rotation of an OpenCV camera at ``eye`` looking at ``target`` with ``up`` as world up.
+
+    Columns: z = unit forward, x = z cross up (image right), y = z cross x (image down).
+    """
+    forward = target - eye
+    norm = torch.linalg.norm(forward, dim=-1, keepdim=True)
+    if bool((norm < 1e-12).any()):
+        raise ValueError("look-at target coincides with the camera centre; cannot aim the camera")
+    z = forward / norm
+    x = torch.linalg.cross(z, up, dim=-1)
+    x_norm = torch.linalg.norm(x, dim=-1, keepdim=True)
+    if bool((x_norm < 1e-12).any()):
+        raise ValueError("camera up vector is parallel to its viewing direction; cannot aim the camera")
+    x = x / x_norm
+    y = torch.linalg.cross(z, x, dim=-1)
+    return torch.stack([x, y, z], dim=-1)
+
+
+def perturb_cameras(
+    c2w: Float[Tensor, "n 3 4"],
+    fx: Float[Tensor, " n"],
+    fy: Float[Tensor, " n"] | None = None,
+    config: PerturbationConfig | None = None,
+    seed: int | None = None,
+) -> PerturbedCameras:
+    """Perturb OpenCV cameras with CamP's protocol (see the module docstring); ``enabled`` is not consulted here.
+
+    ``seed`` overrides ``config.seed``. Works in float64 on the CPU so that the random stream, and hence the
+    perturbation, is the same on every machine; the result is moved back to the input device.
+    """
+    config = config or PerturbationConfig()
+    config.validate()
+    seed = config.seed if seed is None else seed
+    if c2w.ndim != 3 or c2w.shape[1:] != (3, 4):
+        raise ValueError(f"c2w must have shape [N, 3, 4], got {tuple(c2w.shape)}")
+    n = c2w.shape[0]
+    fy = fx if fy is None else fy
+    if fx.shape != (n,) or fy.shape != (n,):
+        raise ValueError(f"fx and fy must have shape [{n}], got {tuple(fx.shape)} and {tuple(fy.shape)}")
+    check_finite("c2w", c2w)
+    check_range("fx", fx, low=0.0, low_inclusive=False)
+    check_range("fy", fy, low=0.0, low_inclusive=False)
+    device = c2w.device
+    c2w = c2w.detach().to(device="cpu", dtype=torch.float64)
+    fx = fx.detach().to(device="cpu", dtype=torch.float64)
+    fy = fy.detach().to(device="cpu", dtype=torch.float64)
+    generator = torch.Generator(device="cpu").manual_seed(int(seed))
+
+    rotation, centre = c2w[:, :, :3], c2w[:, :, 3]
+    # World-to-camera translation t = -R^T c: its z is the depth of the world origin in front of the camera.
+    translation = -torch.einsum("nji,nj->ni", rotation, centre)
+
+    # 1. Dolly zoom (always draw, so the later draws do not depend on whether it is enabled).
+    dolly_draw = torch.randn(1 if config.single_dolly else n, dtype=torch.float64, generator=generator)
+    dolly_scale = torch.exp(dolly_draw * math.log1p(config.sigma_dolly_z)).expand(n).clone()
+    translation = translation.clone()
+    translation[:, 2] = translation[:, 2] * dolly_scale
+    centre = -torch.einsum("nij,nj->ni", rotation, translation)
+
+    # 2. Focal length, per camera.
+    focal_draw = torch.randn(n, dtype=torch.float64, generator=generator)
+    focal_scale = dolly_scale * torch.exp(focal_draw * math.log1p(config.sigma_focal_length))
+
+    # 3. Position.
+    new_centre = centre + config.sigma_position * _unit_vectors(n, generator)
+
+    # 4. Look-at point: the optical-axis point closest to the origin, from the dollied (not yet moved) centre.
+    # CamP takes that point even when it lies behind the camera, which turns the camera around; a camera that
+    # looks away from the origin uses the point at the same distance in front instead (unit distance if the
+    # axis passes through its own centre's foot point), which keeps the angular size of the perturbation.
+    axis = rotation[:, :, 2]
+    depth = -(centre * axis).sum(dim=-1)
+    depth = torch.where(depth.abs() > 1e-9, depth.abs(), torch.ones_like(depth))
+    look_at = centre + depth[:, None] * axis
+    look_at = look_at + config.sigma_look_at * _unit_vectors(n, generator)
+    up = -rotation[:, :, 1]  # OpenCV y points down in the image
+    new_rotation = look_at_rotation(new_centre, look_at, up)
+
+    new_c2w = torch.cat([new_rotation, new_centre[:, :, None]], dim=-1)
+    return PerturbedCameras(
+        c2w=new_c2w.to(device),
+        fx=(fx * focal_scale).to(device),
+        fy=(fy * focal_scale).to(device),
+        focal_scale=focal_scale.to(device),
+        dolly_scale=dolly_scale.to(device),
+    )

@@ -1,0 +1,191 @@
+"""The camera-parameter preconditioner P = (Sigma + damping)^(1/2) (paper eqs. 15-20).
+
+Whitening requires P^T P = Sigma (eq. 17); every solution is Q Sigma^(1/2) with Q orthogonal (eqs. 18-19), and
+the paper picks Q = I, the symmetric (Mahalanobis / ZCA) square root (eq. 20). The optimizer then works on
+phi_hat = P phi and the camera uses phi = P^-1 phi_hat (eq. 15).
+
+Sigma is often nearly singular: focal length against forward translation and principal point against rotation
+are almost indistinguishable from projections alone (condition numbers near 1e8 on real frusta). A diagonal
+damping, diag(max(damping_abs, damping_rel * diag(Sigma))), is added before the square root, as in CamP; it also
+keeps P finite and invertible for parameters that the proxy points cannot observe at all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout, tangent_bounds
+from s2camp_ns.core.frustum import camp_random_points, sample_frustum
+from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
+from s2camp_ns.core.lattice import unit_cube_points
+from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
+
+SamplerName = Literal["frolov", "sobol", "halton", "random", "camp-random"]
+TransformName = Literal["pyramid", "spherical"]
+SAMPLERS: tuple[str, ...] = ("frolov", "sobol", "halton", "random", "camp-random")
+TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical")
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    """Where and how the proxy points are placed (paper sec. 4, "Deterministic View-Frustum Sampling")."""
+
+    num_points: int = 500
+    """L, proxy points per camera."""
+    sampler: SamplerName = "frolov"
+    """Unit-cube point set: the deterministic Frolov lattice (S2CamP), a quasi-random or random baseline, or
+    CamP's random pixel + random distance sampling ("camp-random")."""
+    transform: TransformName = "pyramid"
+    """Unit cube to frustum: the exact pinhole pyramid, or the paper's separable spherical transform."""
+    t_near: float = 0.4
+    """Near contracted radius of the frustum (scene units; the contraction is the identity below 1)."""
+    t_far: float = 1.99
+    """Far contracted radius, below 2 (1.99 reaches about 100 scene units, paper sec. 4)."""
+    seed: int = 0
+    """Seed of the random and scrambled samplers; ignored by the deterministic lattice."""
+
+    def validate(self) -> None:
+        check_positive_int("num_points", self.num_points)
+        check_choice("sampler", self.sampler, SAMPLERS)
+        check_choice("transform", self.transform, TRANSFORMS)
+        check_range("t_near", self.t_near, low=0.0)
+        check_range("t_far", self.t_far, low=self.t_near, high=2.0, low_inclusive=False, high_inclusive=False)
+
+
+@dataclass(frozen=True)
+class DampingConfig:
+    """Diagonal damping added to Sigma before the square root (CamP's default for camera optimisation)."""
+
+    damping_abs: float = 1e-8
+    """Absolute floor of the damping, > 0; it is what keeps P finite when a parameter is unobservable."""
+    damping_rel: float = 0.1
+    """Damping relative to Sigma's diagonal."""
+    diagonal_only: bool = False
+    """Use only Sigma's diagonal (per-parameter scaling, no decorrelation)."""
+
+    def validate(self) -> None:
+        check_range("damping_abs", self.damping_abs, low=0.0, low_inclusive=False)
+        check_range("damping_rel", self.damping_rel, low=0.0)
+
+
+@dataclass(frozen=True)
+class Preconditioner:
+    """P, P^-1, the undamped Gram matrix it came from, and how many proxy points projected inside each image."""
+
+    matrix: Float[Tensor, "n k k"]
+    inverse: Float[Tensor, "n k k"]
+    gram: Float[Tensor, "n k k"]
+    num_valid: Tensor
+
+
+def damped_gram(sigma: Float[Tensor, "n k k"], damping: DampingConfig) -> Float[Tensor, "n k k"]:
+    """Sigma + diag(max(damping_abs, damping_rel * diag(Sigma)))."""
+    damping.validate()
+    diagonal = torch.diagonal(sigma, dim1=-2, dim2=-1)
+    extra = torch.clamp(damping.damping_rel * diagonal, min=damping.damping_abs)
+    return sigma + torch.diag_embed(extra)
+
+
+def symmetric_sqrt_and_inverse(
+    sigma: Float[Tensor, "n k k"], diagonal_only: bool = False
+) -> tuple[Float[Tensor, "n k k"], Float[Tensor, "n k k"]]:
+    """Symmetric square root S = Sigma^(1/2) and S^-1 of an SPD matrix by eigendecomposition (paper eq. 20).
+
+    Computed in float64. Eigenvalues at or below zero (possible only for undamped, singular input) raise, because
+    the whitening transform does not exist there.
+    """
+    sigma = sigma.to(torch.float64)
+    check_finite("sigma", sigma)
+    if diagonal_only:
+        diagonal = torch.diagonal(sigma, dim1=-2, dim2=-1)
+        check_range("diagonal of sigma", diagonal, low=0.0, low_inclusive=False)
+        return torch.diag_embed(diagonal.sqrt()), torch.diag_embed(diagonal.rsqrt())
+    eigenvalues, eigenvectors = torch.linalg.eigh(0.5 * (sigma + sigma.transpose(-1, -2)))
+    check_range("eigenvalues of sigma", eigenvalues, low=0.0, low_inclusive=False)
+    root = (eigenvectors * eigenvalues.sqrt()[..., None, :]) @ eigenvectors.transpose(-1, -2)
+    inverse_root = (eigenvectors * eigenvalues.rsqrt()[..., None, :]) @ eigenvectors.transpose(-1, -2)
+    return 0.5 * (root + root.transpose(-1, -2)), 0.5 * (inverse_root + inverse_root.transpose(-1, -2))
+
+
+def sample_proxy_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> Float[Tensor, "n l 3"]:
+    """Euclidean camera-frame proxy points filling each camera's contracted view frustum (paper eqs. 6-14)."""
+    sampling.validate()
+    bounds = tangent_bounds(intrinsics.to(dtype=torch.float64))
+    if sampling.sampler == "camp-random":
+        return camp_random_points(bounds, sampling.num_points, sampling.t_near, sampling.t_far, seed=sampling.seed).camera
+    unit = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed)
+    return sample_frustum(unit.to(bounds.device), bounds, sampling.t_near, sampling.t_far, sampling.transform).camera
+
+
+def gram_from_points(
+    points_cam: Float[Tensor, "n l 3"], intrinsics: Intrinsics, layout: ParameterLayout | None = None
+) -> tuple[Float[Tensor, "n k k"], Tensor]:
+    """Sigma (paper eq. 5) from explicit camera-frame proxy points, in float64."""
+    intrinsics64 = intrinsics.detach().to(dtype=torch.float64)
+    _, jacobian, mask = projection_jacobian(points_cam.detach().to(torch.float64), intrinsics64, layout)
+    return gram_matrix(jacobian, mask, intrinsics64.image_scale())
+
+
+def compute_preconditioner(
+    intrinsics: Intrinsics,
+    layout: ParameterLayout | None = None,
+    sampling: SamplingConfig | None = None,
+    damping: DampingConfig | None = None,
+) -> Preconditioner:
+    """P and P^-1 for each camera from proxy points in its frustum (paper eqs. 4, 5 and 20)."""
+    sampling = sampling or SamplingConfig()
+    damping = damping or DampingConfig()
+    damping.validate()
+    intrinsics = intrinsics.detach().to(dtype=torch.float64)
+    intrinsics.validate()
+    points = sample_proxy_points(intrinsics, sampling)
+    sigma, count = gram_from_points(points, intrinsics, layout)
+    matrix, inverse = symmetric_sqrt_and_inverse(damped_gram(sigma, damping), damping.diagonal_only)
+    return Preconditioner(matrix=matrix, inverse=inverse, gram=sigma, num_valid=count)
+
+
+def whitening_error(inverse: Float[Tensor, "n k k"], sigma: Float[Tensor, "n k k"]) -> Float[Tensor, " n"]:
+    """max |eigenvalue - 1| of P^-T Sigma P^-1 (paper eq. 16): zero for perfect whitening."""
+    whitened = inverse.transpose(-1, -2).to(torch.float64) @ sigma.to(torch.float64) @ inverse.to(torch.float64)
+    eigenvalues = torch.linalg.eigvalsh(0.5 * (whitened + whitened.transpose(-1, -2)))
+    return (eigenvalues - 1.0).abs().amax(dim=-1)
+
+
+def condition_number(sigma: Float[Tensor, "n k k"]) -> Float[Tensor, " n"]:
+    """Ratio of the largest to the smallest eigenvalue of a symmetric positive semi-definite matrix."""
+    eigenvalues = torch.linalg.eigvalsh(sigma.to(torch.float64))
+    return eigenvalues[..., -1] / eigenvalues[..., 0].clamp(min=torch.finfo(torch.float64).tiny)
+
+
+@torch.no_grad()
+def reexpress_latent(
+    latent: Float[Tensor, "n k"],
+    old: Preconditioner,
+    new: Preconditioner,
+    adam_state: dict | None = None,
+) -> None:
+    """Switch whitened parameters from P_old to P_new in place without moving the cameras (paper eq. 15).
+
+    phi = P^-1 phi_hat must not change, so phi_hat_new = M phi_hat_old with M = P_new P_old^-1. Adam's state
+    follows the same change of variables instead of being reset (a reset restarts the bias correction and gives
+    every camera a full-size step right after each refresh): gradients transform as g_new = M^-T g_old, so the
+    first moment maps exactly, m_new = M^-T m_old; the second moment (elementwise E[g^2]) has no exact linear image
+    and is mapped assuming uncorrelated gradient components, v_new = (M^-T)^2 v_old with the elementwise square.
+    P changes slowly between refreshes, M stays close to the identity and the approximation is mild.
+    """
+    change = new.matrix @ old.inverse
+    gradient_map = new.inverse.transpose(-1, -2) @ old.matrix.transpose(-1, -2)
+    latent.copy_((change.to(latent.device) @ latent.to(torch.float64)[..., None])[..., 0].to(latent.dtype))
+    if not adam_state:
+        return
+    if "exp_avg" in adam_state:
+        m = adam_state["exp_avg"]
+        m.copy_((gradient_map.to(m.device) @ m.to(torch.float64)[..., None])[..., 0].to(m.dtype))
+    if "exp_avg_sq" in adam_state:
+        v = adam_state["exp_avg_sq"]
+        v.copy_(((gradient_map**2).to(v.device) @ v.to(torch.float64)[..., None])[..., 0].to(v.dtype))

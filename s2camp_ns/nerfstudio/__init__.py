@@ -1,0 +1,1 @@
+"""nerfstudio integration of S2CamP: camera optimizer, data manager, model and pipeline."""

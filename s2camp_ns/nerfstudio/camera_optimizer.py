@@ -1,0 +1,493 @@
+"""S2CamP camera optimizer for nerfstudio: preconditioned pose + intrinsics refinement (paper sec. 4).
+
+The optimizer holds whitened deltas phi_hat [num_cameras, K] (K <= 12, the enabled columns of
+``core.camera.ParameterLayout``) and maps them to camera-parameter deltas phi = P^-1 phi_hat (paper eq. 15), with
+P = (Sigma + damping)^(1/2) computed from deterministic proxy points in each camera's frustum (paper eq. 20).
+
+Refined camera = base camera from the dataparser plus phi:
+- pose: c2w' = c2w exp(xi) with the local twist xi in the OpenCV camera frame (``core.camera`` convention);
+  nerfstudio stores OpenGL c2w, c2w_gl = c2w_cv F with F = diag(1, -1, -1);
+- intrinsics: additive residual update (paper sec. 4, Phi' = Phi + dPhi) of focal, principal point, skew, k1, k2.
+
+Training rays are regenerated from each ray's pixel coordinates (carried by ``PixelRayGenerator`` in
+``ray_bundle.metadata[PIXEL_KEY]``), so intrinsics really move the rays, differentiably.
+
+P is refreshed every ``refresh_every`` steps from the current refined intrinsics; a refresh re-expresses the
+latent so the camera does not move (phi_hat_new = P_new P_old^-1 phi_hat_old) and transforms Adam's moments
+(see ``refresh``).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Literal, Union
+
+import torch
+from jaxtyping import Float, Int
+from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.cameras.rays import RayBundle
+from torch import Tensor, nn
+
+from s2camp_ns.core.camera import (
+    PARAMETER_NAMES,
+    Intrinsics,
+    ParameterLayout,
+    pixel_to_ray_direction,
+    se3_exp,
+)
+from s2camp_ns.core.preconditioner import (
+    DampingConfig,
+    SamplerName,
+    SamplingConfig,
+    TransformName,
+    compute_preconditioner,
+)
+from s2camp_ns.core.validation import check_range
+
+PIXEL_KEY = "s2camp_pixels"
+"""RayBundle metadata key of the continuous pixel coordinates (u, v) = (x + 0.5, y + 0.5) of each training ray."""
+TRAIN_CAMERA_KEY = "s2camp_train_camera_index"
+"""Cameras metadata key marking a camera as training camera i: the model then renders it fully refined."""
+
+# nerfstudio's camera frame is OpenGL (y up, z backwards); COLMAP/OpenCV's is y down, z forward.
+_OPENGL_FROM_OPENCV = (1.0, -1.0, -1.0)
+
+
+def _flip_yz(c2w: Float[Tensor, "*b 3 4"]) -> Float[Tensor, "*b 3 4"]:
+    """Switch a c2w between the OpenGL and OpenCV camera frames (F = diag(1, -1, -1) is its own inverse)."""
+    flip = c2w.new_tensor([*_OPENGL_FROM_OPENCV, 1.0])
+    return c2w * flip
+
+
+@dataclass
+class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
+    """Preconditioned refinement of pose, focal length, principal point, skew and radial distortion (S2CamP)."""
+
+    _target: type = field(default_factory=lambda: S2CampCameraOptimizer)
+
+    mode: Literal["off", "SO3xR3", "SE3"] = "SE3"
+    """"off" disables camera refinement. "SE3" and "SO3xR3" both refine the local se(3) twist of the paper
+    (sec. 4, screw-axis form); S2CamP does not use nerfstudio's SO3xR3 split, the value only exists for
+    compatibility with nerfstudio's config."""
+    parameters: Literal["pose", "pose+focal", "pose+intrinsics", "all"] = "all"
+    """Refined parameter groups: se(3) pose; + focal length; + principal point and skew; + radial k1, k2 ("all",
+    K = 12, the paper's setting)."""
+    precondition: bool = True
+    """Optimize whitened deltas phi_hat = P phi (paper eqs. 15-20). False optimizes the raw deltas (P = I), the
+    "no preconditioning" ablation."""
+    num_points: int = 500
+    """L, proxy points per camera frustum used for the Jacobian (paper eq. 4)."""
+    sampler: SamplerName = "frolov"
+    """Proxy point set: "frolov" (deterministic lattice, S2CamP), "sobol"/"halton"/"random", or "camp-random"
+    (CamP's random sampling)."""
+    transform: TransformName = "pyramid"
+    """Unit cube to frustum map: exact pinhole "pyramid" or the paper's separable "spherical" transform."""
+    t_near: float = 0.4
+    """Near contracted radius of the proxy frustum (scene units, after the dataparser's scaling)."""
+    t_far: float = 1.99
+    """Far contracted radius of the proxy frustum, below 2 (1.99 reaches about 100 scene units)."""
+    seed: int = 0
+    """Seed of the random samplers (ignored by the deterministic lattice)."""
+    damping_abs: float = 1e-8
+    """Absolute damping floor added to Sigma's diagonal before the square root."""
+    damping_rel: float = 0.1
+    """Damping relative to Sigma's diagonal (CamP's camera-optimisation value)."""
+    diagonal_only: bool = False
+    """Precondition with Sigma's diagonal only (per-parameter scaling, no decorrelation)."""
+    refresh_every: int = 1000
+    """Recompute P from the current refined intrinsics every this many steps; 0 computes it only at the start."""
+    trans_l2_penalty: float = 0.0
+    """L2 penalty on the raw translation delta (scene units); 0 = none, as in the paper."""
+    rot_l2_penalty: float = 0.0
+    """L2 penalty on the raw rotation delta (radians); 0 = none, as in the paper."""
+
+    def layout(self) -> ParameterLayout:
+        return ParameterLayout.from_preset(self.parameters)
+
+    def sampling_config(self) -> SamplingConfig:
+        return SamplingConfig(
+            num_points=self.num_points,
+            sampler=self.sampler,
+            transform=self.transform,
+            t_near=self.t_near,
+            t_far=self.t_far,
+            seed=self.seed,
+        )
+
+    def damping_config(self) -> DampingConfig:
+        return DampingConfig(
+            damping_abs=self.damping_abs, damping_rel=self.damping_rel, diagonal_only=self.diagonal_only
+        )
+
+    def validate(self) -> None:
+        self.layout()
+        self.sampling_config().validate()
+        self.damping_config().validate()
+        check_range("refresh_every", self.refresh_every, low=0)
+
+
+def intrinsics_from_cameras(cameras: Cameras, dtype: torch.dtype = torch.float64) -> Intrinsics:
+    """Base intrinsics of nerfstudio cameras; raises ValueError for camera models S2CamP cannot represent.
+
+    nerfstudio's distortion_params are [k1, k2, k3, k4, p1, p2]; only the radial k1, k2 exist in the S2CamP
+    camera model (COLMAP RADIAL), so nonzero k3, k4, p1, p2 would make the regenerated rays disagree with the
+    images.
+    """
+    if not bool((cameras.camera_type == CameraType.PERSPECTIVE.value).all()):
+        raise ValueError("camera_type must be PERSPECTIVE for every camera; S2CamP models pinhole cameras only")
+    n = cameras.shape[0]
+    k1 = k2 = torch.zeros(n, dtype=dtype)
+    if cameras.distortion_params is not None:
+        params = cameras.distortion_params.reshape(n, 6).to(dtype).cpu()
+        for column, name in ((2, "k3"), (3, "k4"), (4, "p1"), (5, "p2")):
+            if bool((params[:, column] != 0).any()):
+                raise ValueError(
+                    f"distortion parameter {name} = {params[:, column].abs().max().item():g} is not supported; "
+                    "allowed are radial k1, k2 only (COLMAP PINHOLE, SIMPLE_RADIAL or RADIAL cameras)"
+                )
+        k1, k2 = params[:, 0], params[:, 1]
+    return Intrinsics.create(
+        fx=cameras.fx.reshape(n).cpu(),
+        fy=cameras.fy.reshape(n).cpu(),
+        cx=cameras.cx.reshape(n).cpu(),
+        cy=cameras.cy.reshape(n).cpu(),
+        width=cameras.width.reshape(n).cpu(),
+        height=cameras.height.reshape(n).cpu(),
+        k1=k1,
+        k2=k2,
+        dtype=dtype,
+    )
+
+
+class S2CampCameraOptimizer(CameraOptimizer):
+    """Whitened camera-parameter deltas, their preconditioner and its refresh schedule."""
+
+    config: S2CampCameraOptimizerConfig
+
+    def __init__(
+        self,
+        config: S2CampCameraOptimizerConfig,
+        num_cameras: int,
+        device: Union[torch.device, str],
+        non_trainable_camera_indices: Int[Tensor, " num_non_trainable_cameras"] | None = None,
+        **kwargs,
+    ) -> None:
+        # Skip CameraOptimizer.__init__: it would create a pose_adjustment parameter that never gets a gradient
+        # and would sit in the "camera_opt" group (grad-scaler trouble, DESIGN-NOTES sec. 6).
+        nn.Module.__init__(self)
+        config.validate()
+        self.config = config
+        self.num_cameras = num_cameras
+        self.device = device
+        self.non_trainable_camera_indices = non_trainable_camera_indices
+        self.layout = config.layout()
+        k = self.layout.num_params
+        self.enabled = config.mode != "off"
+        if self.enabled:
+            self.whitened_delta = nn.Parameter(torch.zeros(num_cameras, k, device=device))
+        eye = torch.eye(k, dtype=torch.float64, device=device).expand(num_cameras, k, k).clone()
+        # P and P^-1 (paper eq. 20) and the schedule state are persistent so that a resumed run continues with
+        # the identical camera parameters.
+        self.register_buffer("precond", eye.clone())
+        self.register_buffer("precond_inv", eye.clone())
+        self.register_buffer("last_refresh_step", torch.tensor(-1, dtype=torch.long, device=device))
+        self.register_buffer("num_refreshes", torch.tensor(0, dtype=torch.long, device=device))
+        # Base cameras come from the dataparser on every run, so they are not saved.
+        self.register_buffer("base_c2w_cv", torch.zeros(num_cameras, 3, 4, dtype=torch.float64), persistent=False)
+        self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 9, dtype=torch.float64), persistent=False)
+        self.has_cameras = False
+        self._warned_no_pixels = False
+
+    # ----------------------------------------------------------------------------------------------------- setup
+    def set_train_cameras(self, cameras: Cameras) -> None:
+        """Store the dataparser's training cameras and compute the initial P (called by the pipeline).
+
+        A checkpoint loaded afterwards overwrites phi_hat, P and P^-1 with the saved ones.
+        """
+        if cameras.shape[0] != self.num_cameras:
+            raise ValueError(f"cameras must hold {self.num_cameras} training cameras, got {cameras.shape[0]}")
+        intrinsics = intrinsics_from_cameras(cameras)
+        device = self.precond.device
+        self.base_c2w_cv = _flip_yz(cameras.camera_to_worlds.to(torch.float64)).to(device)
+        self.base_intrinsics = torch.stack(
+            [getattr(intrinsics, name) for name in ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "width", "height")],
+            dim=-1,
+        ).to(device)
+        self.has_cameras = True
+        if int(self.last_refresh_step) < 0:
+            self.refresh(step=0)
+
+    def _require_cameras(self) -> None:
+        if not self.has_cameras:
+            raise RuntimeError("S2CampCameraOptimizer.set_train_cameras must be called before use (the pipeline does)")
+
+    def base_intrinsics_struct(self) -> Intrinsics:
+        return Intrinsics(*self.base_intrinsics.unbind(dim=-1))
+
+    # ------------------------------------------------------------------------------------------- refined cameras
+    def camera_deltas(self) -> Float[Tensor, "n 12"]:
+        """Camera-parameter deltas phi = P^-1 phi_hat of every camera (paper eq. 15), all 12 columns, float64."""
+        if not self.enabled:
+            return self.precond.new_zeros(self.num_cameras, len(PARAMETER_NAMES))
+        phi = (self.precond_inv @ self.whitened_delta.to(torch.float64)[..., None])[..., 0]
+        if self.non_trainable_camera_indices is not None:
+            keep = torch.ones(self.num_cameras, 1, dtype=phi.dtype, device=phi.device)
+            keep[self.non_trainable_camera_indices.to(phi.device)] = 0.0
+            phi = phi * keep
+        return self.layout.expand(phi)
+
+    def refined_intrinsics(self, deltas: Tensor | None = None) -> Intrinsics:
+        """Intrinsics Phi' = Phi + dPhi of every camera (paper sec. 4), float64, differentiable."""
+        self._require_cameras()
+        deltas = self.camera_deltas() if deltas is None else deltas
+        return self.base_intrinsics_struct().with_delta(deltas)
+
+    def refined_c2w(self, deltas: Tensor | None = None, opengl: bool = False) -> Float[Tensor, "n 3 4"]:
+        """Refined c2w' = c2w exp(xi) of every camera, float64; OpenCV frame unless ``opengl``."""
+        self._require_cameras()
+        deltas = self.camera_deltas() if deltas is None else deltas
+        delta = se3_exp(deltas[:, :6])
+        rotation = self.base_c2w_cv[:, :, :3] @ delta[:, :, :3]
+        translation = self.base_c2w_cv[:, :, 3:] + self.base_c2w_cv[:, :, :3] @ delta[:, :, 3:]
+        c2w = torch.cat([rotation, translation], dim=-1)
+        return _flip_yz(c2w) if opengl else c2w
+
+    def forward(self, indices: Int[Tensor, " camera_indices"]) -> Float[Tensor, "camera_indices 3 4"]:
+        """Pose corrections D with c2w_gl' = c2w_gl D (right-multiplied, nerfstudio's OpenGL camera frame).
+
+        This is what nerfstudio's viewer multiplies onto the training-camera frustums it draws.
+        """
+        deltas = self.camera_deltas()[indices.to(self.precond.device)]
+        # c2w_gl' = c2w_cv E F = c2w_gl (F E F): flip the rows and the columns of E.
+        correction = _flip_yz(se3_exp(deltas[:, :6]))
+        correction[:, 1:3, :] = -correction[:, 1:3, :]
+        return correction.to(torch.float32)
+
+    # ---------------------------------------------------------------------------------------------------- rays
+    def regenerate_rays(
+        self,
+        camera_indices: Int[Tensor, " num_rays"],
+        pixels: Float[Tensor, "num_rays 2"],
+        dtype: torch.dtype = torch.float32,
+    ) -> tuple[Float[Tensor, "num_rays 3"], Float[Tensor, "num_rays 3"], Float[Tensor, "num_rays 1"]]:
+        """World origins, unit directions and directions_norm of rays through pixels of refined cameras.
+
+        The per-camera algebra runs in float64 (N is small); the per-ray part in ``dtype``. Autocast is disabled:
+        undistortion and the pose product are not safe in half precision.
+        """
+        self._require_cameras()
+        with torch.autocast(device_type=pixels.device.type, enabled=False):
+            deltas = self.camera_deltas()
+            intrinsics = self.refined_intrinsics(deltas).to(dtype=dtype)
+            c2w = self.refined_c2w(deltas).to(dtype=dtype)
+            camera_indices = camera_indices.to(self.precond.device)
+            per_ray = intrinsics[camera_indices]
+            directions_cam = pixel_to_ray_direction(pixels.to(dtype)[:, None, :], per_ray)[:, 0]
+            c2w_rays = c2w[camera_indices]
+            directions = (c2w_rays[:, :, :3] @ directions_cam[:, :, None])[..., 0]
+            origins = c2w_rays[:, :, 3]
+            # nerfstudio's directions_norm is |(a, b, 1)| of the unnormalized camera direction = 1 / d_z.
+            directions_norm = 1.0 / directions_cam[:, 2:3]
+        return origins, directions, directions_norm
+
+    def apply_to_raybundle(self, raybundle: RayBundle) -> None:
+        """Replace training rays by rays through the same pixels of the refined cameras (pose AND intrinsics)."""
+        if not self.enabled:
+            return
+        assert raybundle.camera_indices is not None
+        camera_indices = raybundle.camera_indices.reshape(-1)
+        pixels = None if raybundle.metadata is None else raybundle.metadata.get(PIXEL_KEY)
+        if pixels is None:
+            self._apply_pose_only(raybundle, camera_indices)
+            return
+        origins, directions, directions_norm = self.regenerate_rays(
+            camera_indices, pixels.reshape(-1, 2), dtype=raybundle.origins.dtype
+        )
+        shape = raybundle.origins.shape
+        with torch.no_grad():
+            refined = self.refined_intrinsics()
+            focal_ratio = self.base_intrinsics[:, 0] * self.base_intrinsics[:, 1] / (refined.fx * refined.fy)
+        raybundle.origins = origins.reshape(shape)
+        raybundle.directions = directions.reshape(shape)
+        # Cone footprints shrink with the focal length; nerfacto ignores them, other fields may not.
+        raybundle.pixel_area = raybundle.pixel_area * focal_ratio[camera_indices].to(raybundle.pixel_area).reshape(
+            raybundle.pixel_area.shape
+        )
+        if "directions_norm" in raybundle.metadata:
+            raybundle.metadata["directions_norm"] = directions_norm.reshape(raybundle.metadata["directions_norm"].shape)
+
+    def _apply_pose_only(self, raybundle: RayBundle, camera_indices: Tensor) -> None:
+        """Rays without pixel coordinates (a stock data manager): only the pose refinement can be applied."""
+        if not self._warned_no_pixels:
+            warnings.warn(
+                f"ray bundle carries no '{PIXEL_KEY}' metadata (use S2CampDataManagerConfig): intrinsics refinement "
+                "has no effect on these rays, only the pose is refined",
+                stacklevel=2,
+            )
+            self._warned_no_pixels = True
+        dtype = raybundle.origins.dtype
+        refined = self.refined_c2w()[camera_indices].to(dtype)
+        base = self.base_c2w_cv[camera_indices].to(dtype)
+        world_rotation = refined[:, :, :3] @ base[:, :, :3].transpose(-1, -2)
+        shape = raybundle.origins.shape
+        directions = (world_rotation @ raybundle.directions.reshape(-1, 3)[:, :, None])[..., 0]
+        offset = (raybundle.origins.reshape(-1, 3) - base[:, :, 3])[:, :, None]
+        raybundle.origins = (refined[:, :, 3] + (world_rotation @ offset)[..., 0]).reshape(shape)
+        raybundle.directions = directions.reshape(shape)
+
+    def train_camera_raybundle(self, index: int, downscale: int = 1) -> RayBundle:
+        """Full-image rays [H, W] of training camera ``index`` through its refined camera, skew included.
+
+        nerfstudio's Cameras cannot represent skew, so rendering a refined training view goes through here.
+        """
+        self._require_cameras()
+        width = int(self.base_intrinsics[index, 7]) // downscale
+        height = int(self.base_intrinsics[index, 8]) // downscale
+        device = self.precond.device
+        ys, xs = torch.meshgrid(
+            torch.arange(height, device=device), torch.arange(width, device=device), indexing="ij"
+        )
+        pixels = torch.stack([xs + 0.5, ys + 0.5], dim=-1).reshape(-1, 2).to(torch.float32) * downscale
+        camera_indices = torch.full((pixels.shape[0],), index, dtype=torch.long, device=device)
+        with torch.no_grad():
+            origins, directions, directions_norm = self.regenerate_rays(camera_indices, pixels)
+        refined = self.refined_intrinsics().detach()
+        pixel_area = torch.full_like(directions_norm, float(downscale**2 / (refined.fx[index] * refined.fy[index])))
+        return RayBundle(
+            origins=origins.reshape(height, width, 3),
+            directions=directions.reshape(height, width, 3),
+            pixel_area=pixel_area.reshape(height, width, 1),
+            camera_indices=camera_indices.reshape(height, width, 1),
+            metadata={"directions_norm": directions_norm.reshape(height, width, 1)},
+        )
+
+    # ------------------------------------------------------------------------------------------------- cameras
+    def apply_to_camera(self, camera: Cameras) -> Tensor:
+        """Refined OpenGL c2w [1, 3, 4] of a training camera (nerfstudio's contract: used by its exporter).
+
+        Only cameras whose metadata has "cam_idx" (a training-camera index, as nerfstudio sets it) are changed;
+        viewer cameras are returned unchanged. ``refine_cameras`` also returns the refined intrinsics.
+        """
+        if not self.enabled or camera.metadata is None or "cam_idx" not in camera.metadata:
+            return camera.camera_to_worlds
+        correction = self(torch.tensor([int(camera.metadata["cam_idx"])], dtype=torch.long))
+        c2w = camera.camera_to_worlds.reshape(-1, 3, 4)
+        correction = correction.to(c2w)
+        rotation = c2w[:, :, :3] @ correction[:, :, :3]
+        translation = c2w[:, :, 3:] + c2w[:, :, :3] @ correction[:, :, 3:]
+        return torch.cat([rotation, translation], dim=-1)
+
+    @torch.no_grad()
+    def refine_cameras(self, cameras: Cameras, indices: Tensor | None = None) -> Cameras:
+        """nerfstudio Cameras of the training cameras ``indices`` with refined pose, fx, fy, cx, cy, k1, k2.
+
+        Skew is not representable in nerfstudio's Cameras and is dropped here (a warning says so when nonzero);
+        ``train_camera_raybundle`` renders with it.
+        """
+        self._require_cameras()
+        indices = torch.arange(self.num_cameras) if indices is None else indices.reshape(-1).cpu()
+        deltas = self.camera_deltas()
+        intrinsics = self.refined_intrinsics(deltas)[indices.to(self.precond.device)]
+        if bool((intrinsics.skew.abs() > 1e-6).any()):
+            warnings.warn("refined skew is dropped: nerfstudio Cameras cannot represent skew", stacklevel=2)
+        c2w = self.refined_c2w(deltas, opengl=True)[indices.to(self.precond.device)]
+        selected = cameras[indices]
+        distortion = torch.zeros(indices.shape[0], 6, dtype=torch.float64)
+        distortion[:, 0], distortion[:, 1] = intrinsics.k1.cpu(), intrinsics.k2.cpu()
+        device = selected.device
+        return Cameras(
+            camera_to_worlds=c2w.to(device=device, dtype=torch.float32),
+            fx=intrinsics.fx[:, None].to(device=device, dtype=torch.float32),
+            fy=intrinsics.fy[:, None].to(device=device, dtype=torch.float32),
+            cx=intrinsics.cx[:, None].to(device=device, dtype=torch.float32),
+            cy=intrinsics.cy[:, None].to(device=device, dtype=torch.float32),
+            width=selected.width,
+            height=selected.height,
+            distortion_params=distortion.to(device=device, dtype=torch.float32),
+            camera_type=selected.camera_type,
+            times=selected.times,
+            metadata=selected.metadata,
+        )
+
+    # ------------------------------------------------------------------------------------------------- refresh
+    @torch.no_grad()
+    def refresh(self, step: int, optimizer: torch.optim.Optimizer | None = None) -> None:
+        """Recompute P from the current refined intrinsics without moving the cameras (paper sec. 4).
+
+        The latent is re-expressed, phi_hat_new = M phi_hat_old with M = P_new P_old^-1, so phi = P^-1 phi_hat is
+        unchanged. Adam's state follows the same change of variables instead of being reset (a reset would
+        restart the bias correction and give every camera a full-size step right after each refresh):
+        gradients transform as g_new = M^-T g_old, so the first moment transforms exactly, m_new = M^-T m_old;
+        the second moment (an elementwise E[g^2]) has no exact linear image, and is mapped assuming
+        uncorrelated gradient components, v_new = (M^-T)^2 v_old (elementwise square of the matrix). P changes
+        slowly, so M stays close to the identity and this approximation is mild; the step count is kept.
+        """
+        self._require_cameras()
+        if self.config.precondition and self.enabled:
+            device = self.precond.device
+            intrinsics = self.refined_intrinsics().detach()
+            result = compute_preconditioner(
+                intrinsics, self.layout, self.config.sampling_config(), self.config.damping_config()
+            )
+            new_p, new_p_inv = result.matrix.to(device), result.inverse.to(device)
+            change = new_p @ self.precond_inv  # M = P_new P_old^-1
+            grad_map = new_p_inv.transpose(-1, -2) @ self.precond.transpose(-1, -2)  # M^-T = P_new^-T P_old^T
+            latent = self.whitened_delta
+            latent.copy_((change @ latent.to(torch.float64)[..., None])[..., 0].to(latent.dtype))
+            if optimizer is not None and latent in optimizer.state:
+                state = optimizer.state[latent]
+                if "exp_avg" in state:
+                    m = state["exp_avg"]
+                    m.copy_((grad_map @ m.to(torch.float64)[..., None])[..., 0].to(m.dtype))
+                if "exp_avg_sq" in state:
+                    v = state["exp_avg_sq"]
+                    v.copy_(((grad_map**2) @ v.to(torch.float64)[..., None])[..., 0].to(v.dtype))
+            self.precond.copy_(new_p)
+            self.precond_inv.copy_(new_p_inv)
+        self.last_refresh_step.fill_(step)
+        self.num_refreshes.add_(1)
+
+    def should_refresh(self, step: int) -> bool:
+        every = self.config.refresh_every
+        return every > 0 and step > 0 and step % every == 0 and step != int(self.last_refresh_step)
+
+    # ---------------------------------------------------------------------------------------- losses, metrics
+    def get_loss_dict(self, loss_dict: dict) -> None:
+        """Optional L2 penalties on the raw pose deltas (off by default)."""
+        if not self.enabled or (self.config.trans_l2_penalty == 0 and self.config.rot_l2_penalty == 0):
+            return
+        phi = self.camera_deltas()
+        loss_dict["camera_opt_regularizer"] = (
+            phi[:, :3].norm(dim=-1).mean() * self.config.trans_l2_penalty
+            + phi[:, 3:6].norm(dim=-1).mean() * self.config.rot_l2_penalty
+        ).to(torch.float32)
+
+    def get_metrics_dict(self, metrics_dict: dict) -> None:
+        """Size of the current deltas (raw units: scene units, degrees, pixels)."""
+        if not self.enabled or not self.has_cameras:
+            return
+        with torch.no_grad():
+            phi = self.camera_deltas()
+            trans = phi[:, :3].norm(dim=-1)
+            rot = torch.rad2deg(phi[:, 3:6].norm(dim=-1))
+            metrics_dict["camera_opt_translation_max"] = trans.max().float()
+            metrics_dict["camera_opt_translation_mean"] = trans.mean().float()
+            metrics_dict["camera_opt_rotation_mean"] = rot.mean().float()
+            metrics_dict["camera_opt_rotation_max"] = rot.max().float()
+            for name in self.layout.names[6:]:
+                column = PARAMETER_NAMES.index(name)
+                metrics_dict[f"camera_opt_{name}_abs_mean"] = phi[:, column].abs().mean().float()
+
+    def get_correction_matrices(self):
+        return self(torch.arange(0, self.num_cameras).long())
+
+
+__all__ = [
+    "PIXEL_KEY",
+    "TRAIN_CAMERA_KEY",
+    "S2CampCameraOptimizer",
+    "S2CampCameraOptimizerConfig",
+    "intrinsics_from_cameras",
+]

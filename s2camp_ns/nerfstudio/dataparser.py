@@ -1,0 +1,466 @@
+"""Data parser for S2CamP: mip-NeRF 360 COLMAP scenes or nerfstudio transforms.json, optional CamP perturbation.
+
+``--data`` may point at
+
+- a mip-NeRF 360 style scene: ``images/``, ``images_2/``, ``images_4/``, ... and ``sparse/0/`` (or nerfstudio's own
+  ``colmap/sparse/0``), read through nerfstudio's ``ColmapDataParser``;
+- a nerfstudio scene: ``transforms.json`` (or the json file itself), read through nerfstudio's parser.
+
+Downscaled images are taken from the pre-made ``images_{k}`` folder; nothing is regenerated (nerfstudio would ask
+on the terminal and exit). Intrinsics are rescaled to the actual size of those images: mip-NeRF 360's
+``images_4`` round the sizes (3114 -> 779) where nerfstudio floors them (778), which would shift the principal
+point by half a pixel.
+
+Before training, the scene is validated (images listed by the model but missing on disk, unsupported camera
+models, empty scenes) with errors that name the file and what was expected.
+
+The CamP perturbation (off by default, ``--pipeline.datamanager.dataparser.perturbation.enabled True``) is applied
+to the training cameras after nerfstudio's orientation and scale normalization, so its sigmas are in normalized
+scene units (the cameras fit in [-1, 1]^3), as CamP applies them in its own normalized scene. The unperturbed
+cameras of the split are kept in ``metadata["reference_cameras"]``; evaluation cameras are never perturbed.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
+from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
+from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
+from PIL import Image
+
+from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
+from s2camp_ns.core.validation import check_range
+
+SUPPORTED_COLMAP_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+"""Camera models whose parameters map onto S2CamP's (focal, principal point, k1, k2); OPENCV needs p1 = p2 = 0."""
+
+COLMAP_PATH_CANDIDATES = (Path("sparse/0"), Path("colmap/sparse/0"), Path("sparse"))
+"""Where a COLMAP model is looked for when ``colmap_path`` is not given (mip-NeRF 360 first, then nerfstudio's)."""
+
+AUTO_DOWNSCALE_FACTOR = 4
+"""``downscale_factor=None`` uses ``images_4`` when it exists (the mip-NeRF 360 convention), else ``images``."""
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
+
+# OpenGL (nerfstudio) <-> OpenCV (COLMAP, s2camp_ns.core) camera axes: flip y and z.
+_GL_CV_FLIP = torch.tensor([1.0, -1.0, -1.0])
+
+
+@dataclass
+class S2CampDataParserConfig(DataParserConfig):
+    """S2CamP data parser: mip-NeRF 360 / COLMAP or transforms.json scenes, optional CamP camera perturbation."""
+
+    _target: type = field(default_factory=lambda: S2CampDataParser)
+    """Target class to instantiate."""
+    data: Path = Path()
+    """Scene folder (mip-NeRF 360 layout or transforms.json), or a transforms json file."""
+    data_format: Literal["auto", "colmap", "nerfstudio"] = "auto"
+    """Scene format; auto detects a COLMAP model (sparse/0) first, then transforms.json."""
+    downscale_factor: int | None = None
+    """Use the pre-downscaled images_{k} folder; None picks images_4 when present, else the full-size images."""
+    colmap_path: Path | None = None
+    """COLMAP model folder relative to data; None tries sparse/0, colmap/sparse/0, sparse."""
+    images_path: Path = Path("images")
+    """Full-size image folder relative to data (the downscaled ones are its siblings with suffix _k)."""
+    scale_factor: float = 1.0
+    """Extra scale applied to the camera centres after the automatic scaling."""
+    scene_scale: float = 1.0
+    """Half side of the scene box."""
+    orientation_method: Literal["pca", "up", "vertical", "none"] = "up"
+    """Orientation normalization of nerfstudio."""
+    center_method: Literal["poses", "focus", "none"] = "poses"
+    """Centring normalization of nerfstudio."""
+    auto_scale_poses: bool = True
+    """Scale the camera centres into [-1, 1]^3 (the perturbation sigmas are in these units)."""
+    eval_mode: Literal["fraction", "filename", "interval", "all"] = "interval"
+    """Train / eval split; interval takes every eval_interval-th image for eval (the mip-NeRF 360 protocol)."""
+    train_split_fraction: float = 0.9
+    """Fraction of the images used for training with eval_mode fraction."""
+    eval_interval: int = 8
+    """Every eval_interval-th image is held out with eval_mode interval."""
+    load_3D_points: bool = True
+    """Load the COLMAP sparse points into metadata (needed by point-initialized models; cheap)."""
+    perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
+    """CamP perturbation of the training cameras (evaluation protocol, off by default)."""
+
+
+def _find_colmap_model(data: Path, colmap_path: Path | None) -> tuple[Path | None, list[str]]:
+    """First folder holding cameras.bin/txt, and the descriptions of everything looked at."""
+    candidates = (colmap_path,) if colmap_path is not None else COLMAP_PATH_CANDIDATES
+    looked_for = []
+    for candidate in candidates:
+        folder = data / candidate
+        looked_for.append(f"{folder}/cameras.bin or cameras.txt (COLMAP model)")
+        if (folder / "cameras.bin").exists() or (folder / "cameras.txt").exists():
+            return folder, looked_for
+    return None, looked_for
+
+
+def detect_format(config: S2CampDataParserConfig) -> tuple[Literal["colmap", "nerfstudio"], Path]:
+    """Return the scene format and the path to read (COLMAP model folder or transforms json)."""
+    data = Path(config.data)
+    if not data.exists():
+        raise FileNotFoundError(f"--data {data} does not exist")
+    if data.is_file():
+        if data.suffix != ".json":
+            raise ValueError(f"--data {data} is a file but not a transforms .json file")
+        return "nerfstudio", data
+    looked_for: list[str] = []
+    if config.data_format in ("auto", "colmap"):
+        model, looked_for = _find_colmap_model(data, config.colmap_path)
+        if model is not None:
+            return "colmap", model
+    if config.data_format in ("auto", "nerfstudio"):
+        looked_for.append(f"{data / 'transforms.json'} (nerfstudio format)")
+        if (data / "transforms.json").exists():
+            return "nerfstudio", data / "transforms.json"
+    raise FileNotFoundError(
+        f"no scene found in --data {data} (data_format={config.data_format!r}); looked for:\n  - "
+        + "\n  - ".join(looked_for)
+    )
+
+
+def _image_folders(data: Path, images_path: Path) -> list[str]:
+    base = images_path.name
+    return sorted(p.name for p in (data / images_path).parent.glob(f"{base}*") if p.is_dir())
+
+
+def resolve_downscale(data: Path, images_path: Path, downscale_factor: int | None) -> int:
+    """Downscale factor whose image folder exists (``None``: images_4 if present, else 1)."""
+    folder = data / images_path
+    if downscale_factor is None:
+        return AUTO_DOWNSCALE_FACTOR if folder.with_name(f"{folder.name}_{AUTO_DOWNSCALE_FACTOR}").is_dir() else 1
+    if isinstance(downscale_factor, bool) or not isinstance(downscale_factor, int) or downscale_factor < 1:
+        raise ValueError(f"downscale_factor must be an integer in [1, inf) or None, got {downscale_factor!r}")
+    chosen = folder if downscale_factor == 1 else folder.with_name(f"{folder.name}_{downscale_factor}")
+    if not chosen.is_dir():
+        raise FileNotFoundError(
+            f"downscale_factor={downscale_factor} needs the image folder {chosen}, which does not exist; image "
+            f"folders present: {_image_folders(data, images_path) or 'none'} (downscaled images are not generated "
+            "here: make them first, or pick another downscale_factor)"
+        )
+    return downscale_factor
+
+
+def _list_images(folder: Path) -> list[Path]:
+    return [p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+
+
+def validate_colmap_cameras(recon_dir: Path) -> dict[int, str]:
+    """Check every COLMAP camera uses a supported model; return camera id -> model name."""
+    if (recon_dir / "cameras.bin").exists():
+        path = recon_dir / "cameras.bin"
+        cameras = colmap_utils.read_cameras_binary(path)
+    else:
+        path = recon_dir / "cameras.txt"
+        cameras = colmap_utils.read_cameras_text(path)
+    if not cameras:
+        raise ValueError(f"COLMAP model {path} holds no cameras: the scene is empty")
+    models = {}
+    for camera_id, camera in sorted(cameras.items()):
+        if camera.model not in SUPPORTED_COLMAP_MODELS:
+            raise ValueError(
+                f"{path}: camera {camera_id} uses the COLMAP camera model {camera.model}, which is not supported; "
+                f"supported: {', '.join(SUPPORTED_COLMAP_MODELS)} (OPENCV with p1 = p2 = 0)"
+            )
+        if camera.model == "OPENCV" and (camera.params[6] != 0.0 or camera.params[7] != 0.0):
+            raise ValueError(
+                f"{path}: camera {camera_id} is OPENCV with tangential distortion p1 = {camera.params[6]:g}, "
+                f"p2 = {camera.params[7]:g}; only p1 = p2 = 0 is supported (radial k1, k2 only)"
+            )
+        models[camera_id] = camera.model
+    if len(set(models.values())) > 1:
+        raise ValueError(f"{path}: cameras use several models {sorted(set(models.values()))}; use one model")
+    return models
+
+
+class _ValidatingColmapDataParser(ColmapDataParser):
+    """nerfstudio's COLMAP parser plus file checks; remembers the full-size image sizes for the intrinsics fix."""
+
+    def __init__(self, config: ColmapDataParserConfig, image_folder: Path):
+        super().__init__(config)
+        self.image_folder = image_folder
+        self.full_sizes: dict[str, tuple[int, int]] = {}
+
+    def _get_all_images_and_cameras(self, recon_dir: Path):
+        validate_colmap_cameras(recon_dir)
+        images_file = recon_dir / ("images.bin" if (recon_dir / "images.bin").exists() else "images.txt")
+        if not images_file.exists():
+            raise FileNotFoundError(f"COLMAP model {recon_dir} has cameras but no images.bin or images.txt")
+        try:
+            out = super()._get_all_images_and_cameras(recon_dir)
+        except AssertionError as error:
+            if "No images" in str(error):
+                raise ValueError(f"COLMAP model {images_file} lists no images: the scene is empty") from error
+            raise
+        on_disk = _list_images(self.image_folder) if self.image_folder.is_dir() else []
+        if not on_disk:
+            raise ValueError(
+                f"the scene is empty: image folder {self.image_folder} holds no images "
+                f"({', '.join(IMAGE_SUFFIXES)}) but {images_file} lists {len(out['frames'])}"
+            )
+        full_folder = self.config.data / self.config.images_path
+        missing = []
+        for frame in out["frames"]:
+            name = Path(frame["file_path"]).relative_to(full_folder).as_posix()
+            self.full_sizes[name] = (int(frame["w"]), int(frame["h"]))
+            if not (self.image_folder / name).is_file():
+                missing.append(name)
+        if missing:
+            raise FileNotFoundError(
+                f"{images_file} lists image '{missing[0]}' but {self.image_folder / missing[0]} does not exist "
+                f"({len(missing)} of {len(out['frames'])} listed images missing from {self.image_folder})"
+            )
+        return out
+
+
+def _replace_cameras(cameras: Cameras, **fields) -> Cameras:
+    values = dict(
+        camera_to_worlds=cameras.camera_to_worlds,
+        fx=cameras.fx,
+        fy=cameras.fy,
+        cx=cameras.cx,
+        cy=cameras.cy,
+        width=cameras.width,
+        height=cameras.height,
+        distortion_params=cameras.distortion_params,
+        camera_type=cameras.camera_type,
+        times=cameras.times,
+        metadata=cameras.metadata,
+    )
+    values.update(fields)
+    return Cameras(**values)
+
+
+def _fit_intrinsics_to_images(
+    cameras: Cameras, image_filenames: list[Path], image_folder: Path, full_sizes: dict[str, tuple[int, int]], k: int
+) -> Cameras:
+    """Set each camera's size to its image's and scale the intrinsics by the true per-axis resize ratio."""
+    fx, fy, cx, cy = (getattr(cameras, name).clone() for name in ("fx", "fy", "cx", "cy"))
+    width, height = cameras.width.clone(), cameras.height.clone()
+    for i, path in enumerate(image_filenames):
+        name = Path(path).relative_to(image_folder).as_posix()
+        full_w, full_h = full_sizes[name]
+        with Image.open(path) as image:
+            w, h = image.size
+        if abs(w - full_w / k) > 1.0 or abs(h - full_h / k) > 1.0:
+            raise ValueError(
+                f"image {path} is {w}x{h} but its COLMAP camera is {full_w}x{full_h}, which at downscale_factor {k} "
+                f"gives {full_w / k:g}x{full_h / k:g}; pick the downscale_factor that matches the folder"
+            )
+        # nerfstudio already divided the intrinsics by k; correct for the rounding of the stored image size.
+        sx, sy = w / (full_w / k), h / (full_h / k)
+        fx[i], cx[i], fy[i], cy[i] = fx[i] * sx, cx[i] * sx, fy[i] * sy, cy[i] * sy
+        width[i], height[i] = w, h
+    return _replace_cameras(cameras, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
+
+
+def opengl_to_opencv(c2w: torch.Tensor) -> torch.Tensor:
+    """Flip the y and z camera axes (nerfstudio OpenGL <-> COLMAP OpenCV); its own inverse."""
+    flip = torch.cat([_GL_CV_FLIP, torch.ones(1)]).to(dtype=c2w.dtype, device=c2w.device)
+    return c2w * flip
+
+
+def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> Cameras:
+    """Apply the CamP perturbation to nerfstudio (OpenGL) cameras; zero their distortion if configured."""
+    if cameras.camera_type.ne(CameraType.PERSPECTIVE.value).any():
+        raise ValueError("the camera perturbation supports perspective cameras only")
+    c2w = opengl_to_opencv(cameras.camera_to_worlds.double())
+    out = perturb_cameras(c2w, cameras.fx[:, 0].double(), cameras.fy[:, 0].double(), config)
+    dtype = cameras.camera_to_worlds.dtype
+    distortion = cameras.distortion_params
+    if config.zero_distortion and distortion is not None:
+        distortion = torch.zeros_like(distortion)
+    return _replace_cameras(
+        cameras,
+        camera_to_worlds=opengl_to_opencv(out.c2w).to(dtype),
+        fx=out.fx[:, None].to(cameras.fx.dtype),
+        fy=out.fy[:, None].to(cameras.fy.dtype),
+        distortion_params=distortion,
+    )
+
+
+def check_supported_cameras(cameras: Cameras, source: Path) -> None:
+    """Perspective cameras with radial k1, k2 only (what S2CamP refines); names the source file otherwise."""
+    if cameras.camera_type.ne(CameraType.PERSPECTIVE.value).any():
+        kinds = sorted({CameraType(int(t)).name for t in cameras.camera_type.reshape(-1).tolist()})
+        raise ValueError(f"{source}: camera types {kinds} are not supported; only perspective (pinhole) cameras")
+    if cameras.distortion_params is not None and cameras.distortion_params[:, 2:].abs().max() > 0:
+        raise ValueError(
+            f"{source}: distortion k3, k4, p1 or p2 is non-zero; only radial k1, k2 are supported "
+            f"(SIMPLE_RADIAL, RADIAL or OPENCV with p1 = p2 = 0)"
+        )
+
+
+@dataclass
+class S2CampDataParser(DataParser):
+    """See the module docstring."""
+
+    config: S2CampDataParserConfig
+
+    def __init__(self, config: S2CampDataParserConfig):
+        super().__init__(config=config)
+        self.config = config
+
+    def _validate_config(self) -> None:
+        config = self.config
+        check_range("scale_factor", config.scale_factor, low=0.0, low_inclusive=False)
+        check_range("scene_scale", config.scene_scale, low=0.0, low_inclusive=False)
+        check_range("train_split_fraction", config.train_split_fraction, low=0.0, high=1.0)
+        if (
+            isinstance(config.eval_interval, bool)
+            or not isinstance(config.eval_interval, int)
+            or config.eval_interval < 1
+        ):
+            raise ValueError(f"eval_interval must be an integer in [1, inf), got {config.eval_interval!r}")
+        config.perturbation.validate()
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        self._validate_config()
+        data_format, source = detect_format(self.config)
+        data = Path(self.config.data)
+        if data_format == "colmap":
+            outputs, extra = self._parse_colmap(data, source, split)
+        else:
+            outputs, extra = self._parse_transforms(source, split)
+        check_supported_cameras(outputs.cameras, source)
+
+        reference = copy.deepcopy(outputs.cameras)
+        cameras = outputs.cameras
+        perturbed = split == "train" and self.config.perturbation.enabled
+        if perturbed:
+            cameras = perturb_nerfstudio_cameras(cameras, self.config.perturbation)
+        metadata = dict(outputs.metadata)
+        metadata.update(extra)
+        metadata.update(
+            reference_cameras=reference,
+            dataparser_scale=float(outputs.dataparser_scale),
+            dataparser_transform=outputs.dataparser_transform.clone(),
+            perturbed=perturbed,
+            source_format=data_format,
+            source_path=source.resolve(),
+        )
+        return DataparserOutputs(
+            image_filenames=outputs.image_filenames,
+            cameras=cameras,
+            alpha_color=outputs.alpha_color,
+            scene_box=outputs.scene_box,
+            mask_filenames=outputs.mask_filenames,
+            dataparser_transform=outputs.dataparser_transform,
+            dataparser_scale=outputs.dataparser_scale,
+            metadata=metadata,
+        )
+
+    def _common_kwargs(self) -> dict:
+        c = self.config
+        return dict(
+            scale_factor=c.scale_factor,
+            scene_scale=c.scene_scale,
+            orientation_method=c.orientation_method,
+            center_method=c.center_method,
+            auto_scale_poses=c.auto_scale_poses,
+            eval_mode=c.eval_mode,
+            train_split_fraction=c.train_split_fraction,
+            eval_interval=c.eval_interval,
+        )
+
+    def _parse_colmap(self, data: Path, model: Path, split: str) -> tuple[DataparserOutputs, dict]:
+        k = resolve_downscale(data, self.config.images_path, self.config.downscale_factor)
+        full_folder = data / self.config.images_path
+        image_folder = full_folder if k == 1 else full_folder.with_name(f"{full_folder.name}_{k}")
+        colmap_config = ColmapDataParserConfig(
+            data=data,
+            colmap_path=model.relative_to(data),
+            images_path=self.config.images_path,
+            downscale_factor=k,
+            load_3D_points=self.config.load_3D_points and self._has_points(model),
+            **self._common_kwargs(),
+        )
+        parser = _ValidatingColmapDataParser(colmap_config, image_folder)
+        outputs = parser.get_dataparser_outputs(split=split)
+        if not outputs.image_filenames:
+            raise ValueError(f"the {split} split of {model} is empty (eval_mode={self.config.eval_mode!r})")
+        cameras = _fit_intrinsics_to_images(
+            outputs.cameras, outputs.image_filenames, image_folder, parser.full_sizes, k
+        )
+        outputs = DataparserOutputs(
+            image_filenames=outputs.image_filenames,
+            cameras=cameras,
+            scene_box=outputs.scene_box,
+            dataparser_transform=outputs.dataparser_transform,
+            dataparser_scale=outputs.dataparser_scale,
+            metadata=outputs.metadata,
+        )
+        names = [Path(p).relative_to(image_folder).as_posix() for p in outputs.image_filenames]
+        full_size = torch.tensor([parser.full_sizes[name] for name in names], dtype=torch.int64)
+        return outputs, dict(
+            image_names=names, downscale_factor=k, colmap_model_path=model.resolve(), full_image_size=full_size
+        )
+
+    @staticmethod
+    def _has_points(model: Path) -> bool:
+        return (model / "points3D.bin").exists() or (model / "points3D.txt").exists()
+
+    def _parse_transforms(self, source: Path, split: str) -> tuple[DataparserOutputs, dict]:
+        data_dir = source.parent
+        k = resolve_downscale(data_dir, self.config.images_path, self.config.downscale_factor)
+        ns_config = NerfstudioDataParserConfig(
+            data=source, downscale_factor=k, load_3D_points=False, **self._common_kwargs()
+        )
+        try:
+            outputs = Nerfstudio(ns_config).get_dataparser_outputs(split=split)
+        except (AssertionError, IndexError, ValueError, StopIteration) as error:
+            frames = self._transforms_frames(source)
+            if not frames:
+                raise ValueError(f"{source} lists no frames: the scene is empty") from error
+            raise
+        missing = [p for p in outputs.image_filenames if not Path(p).is_file()]
+        if missing:
+            raise FileNotFoundError(
+                f"{source} lists image '{missing[0]}', which does not exist ({len(missing)} of "
+                f"{len(outputs.image_filenames)} {split} images missing)"
+            )
+        return outputs, dict(image_names=[Path(p).name for p in outputs.image_filenames], downscale_factor=k)
+
+    @staticmethod
+    def _transforms_frames(source: Path) -> list:
+        with open(source, encoding="utf8") as f:
+            return list(json.load(f).get("frames", []))
+
+
+def c2w_to_colmap_world(
+    c2w_normalized: torch.Tensor, dataparser_transform: torch.Tensor, dataparser_scale: float
+) -> torch.Tensor:
+    """Undo nerfstudio's normalization: normalized OpenGL c2w [N, 3, 4] -> original-world OpenCV c2w (float64).
+
+    nerfstudio maps an original-world pose to ``T @ c2w`` (T = dataparser_transform as 4x4, which includes the
+    COLMAP world axis swap) and then multiplies the centre by the scale; this inverts both and flips the camera axes.
+    """
+    c2w = c2w_normalized.detach().double().cpu().clone()
+    transform = torch.eye(4, dtype=torch.float64)
+    transform[:3, :4] = dataparser_transform.detach().double().cpu()
+    c2w[:, :, 3] = c2w[:, :, 3] / float(dataparser_scale)
+    c2w4 = torch.cat([c2w, torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(c2w.shape[0], 1, 4)], dim=1)
+    original = torch.linalg.inv(transform) @ c2w4
+    return opengl_to_opencv(original[:, :3, :4])
+
+
+__all__ = [
+    "S2CampDataParser",
+    "S2CampDataParserConfig",
+    "SUPPORTED_COLMAP_MODELS",
+    "c2w_to_colmap_world",
+    "detect_format",
+    "opengl_to_opencv",
+    "perturb_nerfstudio_cameras",
+    "resolve_downscale",
+    "validate_colmap_cameras",
+]

@@ -1,0 +1,302 @@
+"""``s2camp-export-cameras``: write the refined training cameras of a trained model as a COLMAP model.
+
+    s2camp-export-cameras --load-config outputs/scene/s2camp/DATE/config.yml --output-dir refined/sparse/0
+
+The refined cameras (pose and intrinsics, radial k1, k2) come from the camera optimizer of the trained pipeline
+(``refined_cameras()`` or ``refine_cameras(train_cameras)`` of S2CamP's optimizer; nerfstudio's pose-only
+``apply_to_camera`` otherwise). nerfstudio's normalization (dataparser transform and scale) is undone, the camera
+axes are flipped from OpenGL to OpenCV, and a COLMAP model is written with pycolmap: one camera per image
+(intrinsics are refined per image), RADIAL when fx = fy else OPENCV (p1 = p2 = 0), so k1 and k2 survive.
+The sparse points of the input model are carried over unchanged: undoing the normalization puts the cameras back
+in the input model's world frame. Their tracks are dropped, since the exported images carry no 2D keypoints.
+Skew is not representable in COLMAP and is dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pycolmap
+import torch
+import tyro
+from jaxtyping import Float
+from nerfstudio.cameras.cameras import Cameras
+from torch import Tensor
+
+from s2camp_ns.nerfstudio.dataparser import c2w_to_colmap_world
+
+CameraModel = Literal["auto", "RADIAL", "OPENCV"]
+
+
+def _as_numpy(name: str, value, n: int) -> np.ndarray:
+    array = np.asarray(value.detach().cpu().double() if isinstance(value, Tensor) else value, dtype=np.float64)
+    array = np.broadcast_to(array.reshape(-1) if array.size == n else array, (n,)).copy()
+    if not np.isfinite(array).all():
+        raise ValueError(f"{name} must be finite, got {array[~np.isfinite(array)][0]}")
+    return array
+
+
+def cameras_to_reconstruction(
+    c2w_opencv: Float[Tensor, "n 3 4"] | np.ndarray,
+    fx,
+    fy,
+    cx,
+    cy,
+    width,
+    height,
+    image_names: list[str],
+    k1=0.0,
+    k2=0.0,
+    camera_model: CameraModel = "auto",
+    points_xyz: np.ndarray | None = None,
+    points_rgb: np.ndarray | None = None,
+) -> pycolmap.Reconstruction:
+    """COLMAP reconstruction with one camera per image from OpenCV camera-to-world poses and intrinsics.
+
+    Intrinsics are scalars or length-N sequences in pixels. ``camera_model`` auto picks RADIAL (f, cx, cy, k1, k2)
+    when fx = fy for every camera and OPENCV (fx, fy, cx, cy, k1, k2, p1 = 0, p2 = 0) otherwise.
+    """
+    c2w = np.asarray(
+        c2w_opencv.detach().cpu().double() if isinstance(c2w_opencv, Tensor) else c2w_opencv, dtype=np.float64
+    )
+    if c2w.ndim != 3 or c2w.shape[1:] != (3, 4):
+        raise ValueError(f"c2w_opencv must have shape [N, 3, 4], got {c2w.shape}")
+    n = c2w.shape[0]
+    if len(image_names) != n:
+        raise ValueError(f"image_names must have {n} entries (one per camera), got {len(image_names)}")
+    if len(set(image_names)) != n:
+        raise ValueError("image_names must be unique")
+    values = {
+        name: _as_numpy(name, v, n)
+        for name, v in dict(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, k1=k1, k2=k2).items()
+    }
+    for name in ("fx", "fy", "width", "height"):
+        if (values[name] <= 0).any():
+            raise ValueError(f"{name} must lie in (0, inf), got {values[name][values[name] <= 0][0]:g}")
+    same_focal = np.abs(values["fx"] - values["fy"]) <= 1e-9 * np.abs(values["fx"])
+    if camera_model == "auto":
+        camera_model = "RADIAL" if same_focal.all() else "OPENCV"
+    elif camera_model == "RADIAL" and not same_focal.all():
+        i = int(np.flatnonzero(~same_focal)[0])
+        raise ValueError(
+            f"camera_model RADIAL needs fx = fy, but camera {i} ({image_names[i]}) has fx = "
+            f"{values['fx'][i]:.6g}, fy = {values['fy'][i]:.6g}; use OPENCV or auto"
+        )
+    elif camera_model not in ("RADIAL", "OPENCV"):
+        raise ValueError(f"camera_model must be one of 'auto', 'RADIAL', 'OPENCV', got {camera_model!r}")
+
+    reconstruction = pycolmap.Reconstruction()
+    for i in range(n):
+        v = {name: float(array[i]) for name, array in values.items()}
+        if camera_model == "RADIAL":
+            params = [v["fx"], v["cx"], v["cy"], v["k1"], v["k2"]]
+        else:
+            params = [v["fx"], v["fy"], v["cx"], v["cy"], v["k1"], v["k2"], 0.0, 0.0]
+        camera = pycolmap.Camera(
+            model=camera_model, width=round(v["width"]), height=round(v["height"]), params=params, camera_id=i + 1
+        )
+        reconstruction.add_camera_with_trivial_rig(camera)
+        rotation = c2w[i, :, :3]
+        if abs(np.linalg.det(rotation) - 1.0) > 1e-4:
+            raise ValueError(
+                f"camera {i} ({image_names[i]}) has a rotation with det {np.linalg.det(rotation):.6g}, "
+                "expected a proper rotation (det 1)"
+            )
+        # Re-orthonormalize: float32 poses from nerfstudio are a few 1e-7 off, and COLMAP stores quaternions.
+        u, _, vt = np.linalg.svd(rotation)
+        rotation = u @ vt
+        world_from_cam_t = c2w[i, :, 3]
+        cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation.T), -rotation.T @ world_from_cam_t)
+        image = pycolmap.Image(name=image_names[i], camera_id=i + 1, image_id=i + 1)
+        reconstruction.add_image_with_trivial_frame(image, cam_from_world)
+    if points_xyz is not None:
+        xyz = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+        rgb = np.zeros_like(xyz, dtype=np.uint8) if points_rgb is None else np.asarray(points_rgb, dtype=np.uint8)
+        for point, colour in zip(xyz, rgb.reshape(-1, 3), strict=True):
+            reconstruction.add_point3D(point, pycolmap.Track(), colour)
+    return reconstruction
+
+
+def reconstruction_to_arrays(reconstruction: pycolmap.Reconstruction) -> dict[str, np.ndarray | list[str]]:
+    """OpenCV c2w [N, 3, 4], names, and fx, fy, cx, cy, k1, k2, width, height of a reconstruction, by image id."""
+    out: dict[str, list] = {key: [] for key in ("names", "c2w", "fx", "fy", "cx", "cy", "k1", "k2", "width", "height")}
+    for image_id in sorted(reconstruction.images):
+        image = reconstruction.images[image_id]
+        camera = reconstruction.cameras[image.camera_id]
+        w2c = image.cam_from_world().matrix()
+        rotation = w2c[:, :3].T
+        out["names"].append(image.name)
+        out["c2w"].append(np.concatenate([rotation, (-rotation @ w2c[:, 3])[:, None]], axis=1))
+        p = np.asarray(camera.params, dtype=np.float64)
+        model = camera.model.name
+        table = {
+            "SIMPLE_PINHOLE": (p[0], p[0], p[1], p[2], 0.0, 0.0),
+            "PINHOLE": (p[0], p[1], p[2], p[3], 0.0, 0.0),
+            "SIMPLE_RADIAL": (p[0], p[0], p[1], p[2], p[3], 0.0) if len(p) >= 4 else None,
+            "RADIAL": (p[0], p[0], p[1], p[2], p[3], p[4]) if len(p) >= 5 else None,
+            "OPENCV": (p[0], p[1], p[2], p[3], p[4], p[5]) if len(p) >= 6 else None,
+        }
+        if table.get(model) is None:
+            raise ValueError(f"camera {image.camera_id} uses the unsupported COLMAP model {model}")
+        for key, value in zip(("fx", "fy", "cx", "cy", "k1", "k2"), table[model], strict=True):
+            out[key].append(value)
+        out["width"].append(camera.width)
+        out["height"].append(camera.height)
+    return {key: (value if key == "names" else np.asarray(value, dtype=np.float64)) for key, value in out.items()}
+
+
+def refined_training_cameras(pipeline) -> Cameras:
+    """Refined cameras of every training image, in nerfstudio's normalized OpenGL frame."""
+    model = pipeline.model
+    optimizer = getattr(model, "camera_optimizer", None)
+    if optimizer is not None and hasattr(optimizer, "refined_cameras"):
+        return optimizer.refined_cameras()
+    cameras = pipeline.datamanager.train_dataset.cameras
+    if optimizer is None:
+        return cameras
+    if hasattr(optimizer, "refine_cameras"):  # S2CamP's optimizer: pose, fx, fy, cx, cy, k1, k2 of all cameras
+        return optimizer.refine_cameras(cameras)
+    # nerfstudio's optimizer only refines poses: apply it camera by camera (it reads cam_idx from the metadata).
+    poses = []
+    for i in range(cameras.shape[0]):
+        camera = cameras[i : i + 1]
+        camera.metadata = {"cam_idx": i}
+        with torch.no_grad():
+            poses.append(optimizer.apply_to_camera(camera).reshape(3, 4).cpu())
+    refined = cameras.to("cpu")
+    return Cameras(
+        camera_to_worlds=torch.stack(poses).to(refined.camera_to_worlds.dtype),
+        fx=refined.fx,
+        fy=refined.fy,
+        cx=refined.cx,
+        cy=refined.cy,
+        width=refined.width,
+        height=refined.height,
+        distortion_params=refined.distortion_params,
+        camera_type=refined.camera_type,
+    )
+
+
+def _column(tensor: Tensor | None, n: int, index: int | None = None) -> np.ndarray:
+    if tensor is None:
+        return np.zeros(n)
+    array = tensor.detach().cpu().double().numpy()
+    return (array[:, index] if index is not None else array.reshape(n, -1)[:, 0]).astype(np.float64)
+
+
+def export_cameras(
+    cameras: Cameras,
+    dataparser_transform: Tensor,
+    dataparser_scale: float,
+    image_names: list[str],
+    full_image_size: Tensor | None = None,
+    points_xyz: np.ndarray | None = None,
+    points_rgb: np.ndarray | None = None,
+    camera_model: CameraModel = "auto",
+) -> pycolmap.Reconstruction:
+    """Undo nerfstudio's normalization of (refined) training cameras and build the COLMAP reconstruction.
+
+    With ``full_image_size`` [N, 2] (width, height of the input model's cameras) the intrinsics are rescaled from
+    the training resolution to it, so the model matches the full-size images of the input model.
+    """
+    cameras = cameras.to("cpu")
+    n = cameras.shape[0]
+    c2w = c2w_to_colmap_world(cameras.camera_to_worlds, dataparser_transform, dataparser_scale)
+    width, height = _column(cameras.width, n), _column(cameras.height, n)
+    sx, sy = np.ones(n), np.ones(n)
+    if full_image_size is not None:
+        full = np.asarray(full_image_size, dtype=np.float64).reshape(n, 2)
+        sx, sy = full[:, 0] / width, full[:, 1] / height
+        width, height = full[:, 0], full[:, 1]
+    distortion = cameras.distortion_params
+    return cameras_to_reconstruction(
+        c2w,
+        fx=_column(cameras.fx, n) * sx,
+        fy=_column(cameras.fy, n) * sy,
+        cx=_column(cameras.cx, n) * sx,
+        cy=_column(cameras.cy, n) * sy,
+        width=width,
+        height=height,
+        image_names=image_names,
+        k1=_column(distortion, n, 0),
+        k2=_column(distortion, n, 1),
+        camera_model=camera_model,
+        points_xyz=points_xyz,
+        points_rgb=points_rgb,
+    )
+
+
+def read_points(model_path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """xyz [M, 3] and rgb [M, 3] of a COLMAP model's sparse points."""
+    reconstruction = pycolmap.Reconstruction(str(model_path))
+    ids = sorted(reconstruction.points3D)
+    xyz = np.array([reconstruction.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([reconstruction.points3D[i].color for i in ids], dtype=np.uint8).reshape(-1, 3)
+    return xyz, rgb
+
+
+@dataclass
+class ExportCamerasConfig:
+    """Export the refined training cameras of a trained S2CamP (or nerfstudio) model as a COLMAP model."""
+
+    load_config: Path
+    """config.yml of the trained run (outputs/<scene>/<method>/<timestamp>/config.yml)."""
+    output_dir: Path
+    """Folder that receives cameras.bin, images.bin, points3D.bin (created if needed)."""
+    resolution: Literal["original", "training"] = "original"
+    """Intrinsics for the input model's full-size images (original) or for the images trained on."""
+    camera_model: CameraModel = "auto"
+    """COLMAP camera model: RADIAL when fx = fy (auto), else OPENCV."""
+    include_points: bool = True
+    """Copy the sparse points of the input COLMAP model (if the scene came from one)."""
+    text: bool = False
+    """Also write the model as text (cameras.txt, images.txt, points3D.txt) into output_dir/text."""
+
+
+def main(config: ExportCamerasConfig) -> Path:
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    if not config.load_config.is_file():
+        raise FileNotFoundError(f"--load-config {config.load_config} does not exist")
+    _, pipeline, _, _ = eval_setup(config.load_config, test_mode="inference")
+    datamanager = pipeline.datamanager
+    outputs = getattr(datamanager, "train_dataparser_outputs", None) or datamanager.train_dataset._dataparser_outputs
+    metadata = outputs.metadata
+    cameras = refined_training_cameras(pipeline)
+    names = metadata.get("image_names") or [Path(p).name for p in outputs.image_filenames]
+    full_size = metadata.get("full_image_size") if config.resolution == "original" else None
+    xyz = rgb = None
+    model_path = metadata.get("colmap_model_path")
+    if config.include_points and model_path is not None and Path(model_path).exists():
+        xyz, rgb = read_points(Path(model_path))
+    reconstruction = export_cameras(
+        cameras,
+        outputs.dataparser_transform,
+        outputs.dataparser_scale,
+        names,
+        full_size,
+        xyz,
+        rgb,
+        config.camera_model,
+    )
+    config.output_dir.mkdir(parents=True, exist_ok=True)
+    reconstruction.write_binary(str(config.output_dir))
+    if config.text:
+        (config.output_dir / "text").mkdir(exist_ok=True)
+        reconstruction.write_text(str(config.output_dir / "text"))
+    print(
+        f"wrote {reconstruction.num_images()} cameras and {reconstruction.num_points3D()} points to {config.output_dir}"
+    )
+    return config.output_dir
+
+
+def entrypoint() -> None:
+    """Console script ``s2camp-export-cameras``."""
+    main(tyro.cli(ExportCamerasConfig))
+
+
+if __name__ == "__main__":
+    entrypoint()

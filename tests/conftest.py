@@ -1,0 +1,36 @@
+"""Shared fixtures: a tiny synthetic scene in the mip-NeRF 360 layout (generated once per test session).
+
+The scene module is imported inside the fixtures, so a broken import there fails the tests that use the scene,
+not the collection of the whole suite.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import pytest
+
+if TYPE_CHECKING:
+    from s2camp_ns.scene.make_scene import MakeSceneConfig
+
+TINY_SCENE = {"num_cameras": 12, "width": 64, "height": 48, "points_per_image": 150, "seed": 0}
+"""Config of the session scene: about a second to generate, small enough for CPU training smoke tests."""
+
+
+@pytest.fixture(scope="session")
+def tiny_scene_config(tmp_path_factory: pytest.TempPathFactory) -> MakeSceneConfig:
+    from s2camp_ns.scene.make_scene import MakeSceneConfig
+
+    return MakeSceneConfig(output_dir=tmp_path_factory.mktemp("tiny_scene") / "scene", **TINY_SCENE)
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tiny_scene_config: MakeSceneConfig) -> Path:
+    """Directory of a generated 12-camera 64x48 scene (images/, images_2/, sparse/0/, poses_bounds.npy).
+
+    Shared by the whole session: treat it as read-only.
+    """
+    from s2camp_ns.scene.make_scene import make_scene
+
+    return make_scene(tiny_scene_config)

@@ -1,0 +1,221 @@
+"""S2CampCameraOptimizer: whitening, refresh continuity, gradient flow, checkpoints (tiny mocked cameras)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.cameras.rays import RayBundle
+
+from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout
+from s2camp_ns.nerfstudio.camera_optimizer import (
+    PIXEL_KEY,
+    S2CampCameraOptimizer,
+    S2CampCameraOptimizerConfig,
+)
+
+NUM_CAMERAS = 3
+WIDTH, HEIGHT = 64, 48
+
+
+def look_at_c2w(position: torch.Tensor) -> torch.Tensor:
+    """OpenGL c2w (nerfstudio convention) looking from ``position`` at the origin."""
+    backward = position / position.norm()
+    right = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), backward)
+    right = right / right.norm()
+    up = torch.linalg.cross(backward, right)
+    return torch.cat([torch.stack([right, up, backward], dim=-1), position[:, None]], dim=-1)
+
+
+def make_cameras(k1: float = 0.0, k2: float = 0.0) -> Cameras:
+    angles = torch.linspace(0.0, 2.0 * math.pi, NUM_CAMERAS + 1)[:-1]
+    positions = torch.stack([2.0 * angles.cos(), 2.0 * angles.sin(), 0.5 + 0.1 * angles], dim=-1)
+    c2w = torch.stack([look_at_c2w(p) for p in positions])
+    distortion = torch.zeros(NUM_CAMERAS, 6)
+    distortion[:, 0], distortion[:, 1] = k1, k2
+    return Cameras(
+        camera_to_worlds=c2w,
+        fx=torch.tensor([[60.0], [62.0], [58.0]]),
+        fy=torch.tensor([[61.0], [62.0], [59.0]]),
+        cx=torch.tensor([[32.0], [31.0], [33.5]]),
+        cy=torch.tensor([[24.0], [24.5], [23.0]]),
+        width=WIDTH,
+        height=HEIGHT,
+        distortion_params=distortion,
+        camera_type=CameraType.PERSPECTIVE,
+    )
+
+
+def make_optimizer(cameras: Cameras | None = None, **overrides) -> S2CampCameraOptimizer:
+    defaults = {"num_points": 64, "sampler": "camp-random", "refresh_every": 10}
+    config = S2CampCameraOptimizerConfig(**{**defaults, **overrides})
+    optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
+    optimizer.set_train_cameras(cameras if cameras is not None else make_cameras(k1=-0.05, k2=0.01))
+    return optimizer
+
+
+def random_ray_bundle(num_rays: int = 256, seed: int = 0) -> RayBundle:
+    generator = torch.Generator().manual_seed(seed)
+    pixels = torch.rand(num_rays, 2, generator=generator) * torch.tensor([WIDTH, HEIGHT])
+    camera_indices = torch.randint(0, NUM_CAMERAS, (num_rays, 1), generator=generator)
+    return RayBundle(
+        origins=torch.zeros(num_rays, 3),
+        directions=torch.zeros(num_rays, 3),
+        pixel_area=torch.ones(num_rays, 1),
+        camera_indices=camera_indices,
+        metadata={PIXEL_KEY: pixels, "directions_norm": torch.ones(num_rays, 1)},
+    )
+
+
+def set_latent(optimizer: S2CampCameraOptimizer, seed: int = 1, scale: float = 1e-2) -> None:
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        optimizer.whitened_delta.copy_(scale * torch.randn(optimizer.whitened_delta.shape, generator=generator))
+
+
+def refined_state(optimizer: S2CampCameraOptimizer) -> torch.Tensor:
+    intrinsics = optimizer.refined_intrinsics()
+    columns = [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.skew, intrinsics.k1, intrinsics.k2]
+    return torch.cat([optimizer.refined_c2w().reshape(NUM_CAMERAS, -1), torch.stack(columns, dim=-1)], dim=-1)
+
+
+def test_initial_preconditioner_is_computed_and_symmetric():
+    optimizer = make_optimizer()
+    p, p_inv = optimizer.precond, optimizer.precond_inv
+    assert p.shape == (NUM_CAMERAS, 12, 12)
+    assert int(optimizer.last_refresh_step) == 0
+    torch.testing.assert_close(p, p.transpose(-1, -2))
+    torch.testing.assert_close(p @ p_inv, torch.eye(12, dtype=torch.float64).expand_as(p), atol=1e-8, rtol=0)
+    assert not torch.allclose(p, torch.eye(12, dtype=torch.float64).expand_as(p))
+
+
+def test_whitening_round_trip():
+    """phi = P^-1 (P phi) (paper eq. 15) for every camera and parameter."""
+    optimizer = make_optimizer()
+    phi = 1e-3 * torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        optimizer.whitened_delta.copy_((optimizer.precond @ phi[..., None])[..., 0])
+    torch.testing.assert_close(optimizer.camera_deltas(), phi, atol=1e-9, rtol=1e-5)
+
+
+@pytest.mark.parametrize("parameters", ["pose", "pose+focal", "pose+intrinsics", "all"])
+def test_layout_selects_columns(parameters: str):
+    optimizer = make_optimizer(parameters=parameters)
+    layout = ParameterLayout.from_preset(parameters)
+    assert optimizer.whitened_delta.shape == (NUM_CAMERAS, layout.num_params)
+    set_latent(optimizer)
+    disabled = [i for i in range(12) if i not in layout.indices]
+    assert torch.all(optimizer.camera_deltas()[:, disabled] == 0)
+
+
+def test_precondition_false_uses_raw_deltas():
+    optimizer = make_optimizer(precondition=False)
+    set_latent(optimizer)
+    torch.testing.assert_close(optimizer.camera_deltas(), optimizer.whitened_delta.detach().double())
+
+
+def test_refresh_keeps_cameras_and_transforms_adam_state():
+    optimizer = make_optimizer()
+    set_latent(optimizer, scale=1e-2)
+    with torch.no_grad():  # move the focal length far enough that P changes noticeably
+        optimizer.whitened_delta[:, 6] += 5.0
+    adam = torch.optim.Adam([optimizer.whitened_delta], lr=1e-3)
+    for _ in range(3):
+        adam.zero_grad()
+        bundle = random_ray_bundle()
+        optimizer.apply_to_raybundle(bundle)
+        (bundle.directions.sum() + bundle.origins.sum()).backward()
+        adam.step()
+    before = refined_state(optimizer).detach()
+    p_old = optimizer.precond.clone()
+    m_old = adam.state[optimizer.whitened_delta]["exp_avg"].double().clone()
+    optimizer.refresh(step=10, optimizer=adam)
+    after = refined_state(optimizer).detach()
+    assert not torch.allclose(optimizer.precond, p_old)
+    assert int(optimizer.last_refresh_step) == 10 and int(optimizer.num_refreshes) == 2
+    torch.testing.assert_close(after, before, atol=1e-6, rtol=1e-6)
+    # First moment: m_new = M^-T m_old = P_new^-1 P_old m_old (P symmetric).
+    expected_m = (optimizer.precond_inv @ p_old @ m_old[..., None])[..., 0]
+    torch.testing.assert_close(adam.state[optimizer.whitened_delta]["exp_avg"].double(), expected_m, rtol=1e-4, atol=1e-9)
+
+
+def test_should_refresh_schedule():
+    optimizer = make_optimizer(refresh_every=5)
+    assert [s for s in range(12) if optimizer.should_refresh(s)] == [5, 10]
+    assert not any(make_optimizer(refresh_every=0).should_refresh(s) for s in range(12))
+
+
+@pytest.mark.parametrize("precondition", [True, False])
+def test_gradient_reaches_every_parameter(precondition: bool):
+    optimizer = make_optimizer(precondition=precondition)
+    set_latent(optimizer, scale=1e-3)
+    bundle = random_ray_bundle()
+    optimizer.apply_to_raybundle(bundle)
+    weights = torch.randn(bundle.directions.shape, generator=torch.Generator().manual_seed(5))
+    ((bundle.directions * weights).sum() + (bundle.origins * weights).sum()).backward()
+    grad = optimizer.whitened_delta.grad
+    assert grad is not None and torch.isfinite(grad).all()
+    per_parameter = grad.abs().sum(dim=0)
+    assert torch.all(per_parameter > 0), dict(zip(PARAMETER_NAMES, per_parameter.tolist(), strict=True))
+
+
+def test_checkpoint_round_trip():
+    optimizer = make_optimizer()
+    set_latent(optimizer)
+    optimizer.refresh(step=20)
+    state = optimizer.state_dict()
+    assert {"whitened_delta", "precond", "precond_inv", "last_refresh_step", "num_refreshes"} <= set(state)
+    assert "base_c2w_cv" not in state  # base cameras come from the dataparser on every run
+
+    restored = make_optimizer()
+    restored.load_state_dict(state)
+    torch.testing.assert_close(refined_state(restored), refined_state(optimizer), atol=0, rtol=0)
+    assert int(restored.last_refresh_step) == 20 and int(restored.num_refreshes) == int(optimizer.num_refreshes)
+    assert not restored.should_refresh(20)
+
+
+def test_viewer_correction_matches_refined_pose():
+    """nerfstudio's viewer draws c2w_gl @ forward(i); that must be the refined pose."""
+    cameras = make_cameras()
+    optimizer = make_optimizer(cameras)
+    set_latent(optimizer, scale=0.05)
+    correction = optimizer(torch.arange(NUM_CAMERAS)).double()
+    c2w = cameras.camera_to_worlds.double()
+    composed = torch.cat([c2w[:, :, :3] @ correction[:, :, :3], c2w[:, :, 3:] + c2w[:, :, :3] @ correction[:, :, 3:]], -1)
+    torch.testing.assert_close(composed, optimizer.refined_c2w(opengl=True).detach(), atol=1e-6, rtol=0)
+    camera = cameras[1:2]
+    camera.metadata = {"cam_idx": 1}
+    torch.testing.assert_close(
+        optimizer.apply_to_camera(camera).double(), optimizer.refined_c2w(opengl=True)[1:2].detach(), atol=1e-6, rtol=0
+    )
+
+
+def test_mode_off_has_no_parameters():
+    optimizer = make_optimizer(mode="off")
+    assert list(optimizer.parameters()) == []
+    bundle = random_ray_bundle()
+    optimizer.apply_to_raybundle(bundle)
+    assert torch.all(bundle.directions == 0)
+
+
+def test_param_group_is_camera_opt():
+    optimizer = make_optimizer()
+    groups: dict = {}
+    optimizer.get_param_groups(groups)
+    assert list(groups) == ["camera_opt"] and groups["camera_opt"] == [optimizer.whitened_delta]
+
+
+def test_unsupported_distortion_raises():
+    cameras = make_cameras()
+    cameras.distortion_params[:, 4] = 1e-3  # p1
+    with pytest.raises(ValueError, match="p1"):
+        make_optimizer(cameras)
+
+
+def test_invalid_config_raises():
+    with pytest.raises(ValueError, match="refresh_every"):
+        make_optimizer(refresh_every=-1)
+    with pytest.raises(ValueError, match="t_far"):
+        make_optimizer(t_far=2.5)

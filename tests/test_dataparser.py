@@ -1,0 +1,218 @@
+"""S2CampDataParser on a tiny generated mip-NeRF 360 style scene: detection, downscale folders, perturbation, errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+import torch
+from PIL import Image
+
+from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
+from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig, opengl_to_opencv
+from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+
+# 50 x 38 so that a quarter-size folder must round (12.5 x 9.5 -> 13 x 10), like mip-NeRF 360's images_4.
+WIDTH, HEIGHT, NUM_CAMERAS = 50, 38, 10
+
+
+@pytest.fixture(scope="session")
+def generated_scene(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("scene") / "tiny"
+    config = MakeSceneConfig(
+        output_dir=root, num_cameras=NUM_CAMERAS, width=WIDTH, height=HEIGHT, supersample=1, points_per_image=30
+    )
+    return make_scene(config)
+
+
+@pytest.fixture
+def scene(generated_scene: Path, tmp_path: Path) -> Path:
+    """A private copy that a test may modify."""
+    return Path(shutil.copytree(generated_scene, tmp_path / "scene"))
+
+
+def parse(data: Path, split: str = "train", **kwargs):
+    return S2CampDataParserConfig(data=data, **kwargs).setup().get_dataparser_outputs(split=split)
+
+
+def input_model(scene: Path) -> pycolmap.Reconstruction:
+    return pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+
+
+def test_colmap_scene_detected_with_full_size_images(generated_scene: Path):
+    train, test = parse(generated_scene), parse(generated_scene, "test")
+    assert train.metadata["source_format"] == "colmap"
+    assert len(train.image_filenames) + len(test.image_filenames) == NUM_CAMERAS
+    assert len(test.image_filenames) == 2  # every 8th image (0 and 8)
+    assert all(Path(p).parent.name == "images" for p in train.image_filenames)
+    camera = input_model(generated_scene).cameras[1]
+    assert int(train.cameras.width[0]) == WIDTH and int(train.cameras.height[0]) == HEIGHT
+    assert abs(float(train.cameras.fx[0]) - camera.params[0]) < 1e-4
+    torch.testing.assert_close(train.cameras.distortion_params[0, :2], torch.tensor(camera.params[3:5]).float())
+    assert train.metadata["downscale_factor"] == 1 and train.metadata["perturbed"] is False
+    assert isinstance(train.metadata["dataparser_scale"], float)
+    assert train.metadata["dataparser_scale"] == pytest.approx(float(train.dataparser_scale))
+    torch.testing.assert_close(train.metadata["reference_cameras"].camera_to_worlds, train.cameras.camera_to_worlds)
+    # Normalized: camera centres inside [-1, 1]^3.
+    assert float(train.cameras.camera_to_worlds[:, :, 3].abs().max()) <= 1.0 + 1e-6
+
+
+def test_downscale_factor_two_uses_images_2(generated_scene: Path):
+    full, half = parse(generated_scene), parse(generated_scene, downscale_factor=2)
+    assert all(Path(p).parent.name == "images_2" for p in half.image_filenames)
+    torch.testing.assert_close(half.cameras.fx, full.cameras.fx / 2)
+    torch.testing.assert_close(half.cameras.cx, full.cameras.cx / 2)
+    assert int(half.cameras.width[0]) == WIDTH // 2
+
+
+def test_auto_picks_images_4_and_fits_rounded_sizes(scene: Path):
+    (scene / "images_4").mkdir()
+    small = (round(WIDTH / 4 + 0.01), round(HEIGHT / 4 + 0.01))  # 13 x 10, rounded up as ImageMagick does
+    for path in (scene / "images").iterdir():
+        Image.open(path).resize(small).save(scene / "images_4" / path.name)
+    out = parse(scene)
+    assert out.metadata["downscale_factor"] == 4
+    assert all(Path(p).parent.name == "images_4" for p in out.image_filenames)
+    camera = input_model(scene).cameras[1]
+    assert (int(out.cameras.width[0]), int(out.cameras.height[0])) == small
+    assert float(out.cameras.fx[0]) == pytest.approx(camera.params[0] * small[0] / WIDTH, rel=1e-6)
+    assert float(out.cameras.fy[0]) == pytest.approx(camera.params[0] * small[1] / HEIGHT, rel=1e-6)
+    assert float(out.cameras.cx[0]) == pytest.approx(camera.params[1] * small[0] / WIDTH, rel=1e-6)
+    # A folder that does not match the model's size is reported, not silently used.
+    for path in (scene / "images_4").iterdir():
+        Image.open(path).resize((20, 10)).save(path)
+    with pytest.raises(ValueError, match=r"is 20x10 but its COLMAP camera is 50x38"):
+        parse(scene)
+
+
+def test_missing_downscale_folder_lists_present_ones(generated_scene: Path):
+    with pytest.raises(FileNotFoundError, match=r"images_8.*images_2"):
+        parse(generated_scene, downscale_factor=8)
+    with pytest.raises(ValueError, match="downscale_factor must be an integer"):
+        parse(generated_scene, downscale_factor=0)
+
+
+def test_perturbation_off_by_default_on_when_enabled(generated_scene: Path):
+    plain = parse(generated_scene)
+    config = PerturbationConfig(enabled=True, seed=3)
+    train = parse(generated_scene, perturbation=config)
+    again = parse(generated_scene, perturbation=PerturbationConfig(enabled=True, seed=3))
+    other = parse(generated_scene, perturbation=PerturbationConfig(enabled=True, seed=4))
+    test = parse(generated_scene, "test", perturbation=config)
+    reference = train.metadata["reference_cameras"]
+    assert train.metadata["perturbed"] is True
+    torch.testing.assert_close(reference.camera_to_worlds, plain.cameras.camera_to_worlds)
+    torch.testing.assert_close(reference.fx, plain.cameras.fx)
+    torch.testing.assert_close(reference.distortion_params, plain.cameras.distortion_params)
+    assert not torch.allclose(train.cameras.camera_to_worlds, plain.cameras.camera_to_worlds, atol=1e-3)
+    assert torch.equal(train.cameras.camera_to_worlds, again.cameras.camera_to_worlds)
+    assert not torch.allclose(train.cameras.camera_to_worlds, other.cameras.camera_to_worlds, atol=1e-4)
+    assert float(train.cameras.distortion_params.abs().max()) == 0.0
+    # Exactly the core protocol applied to the normalized OpenCV cameras.
+    expected = perturb_cameras(
+        opengl_to_opencv(plain.cameras.camera_to_worlds.double()),
+        plain.cameras.fx[:, 0].double(),
+        plain.cameras.fy[:, 0].double(),
+        config,
+    )
+    torch.testing.assert_close(
+        opengl_to_opencv(train.cameras.camera_to_worlds.double()), expected.c2w, atol=1e-6, rtol=0
+    )
+    torch.testing.assert_close(train.cameras.fx[:, 0].double(), expected.fx, atol=1e-4, rtol=0)
+    # Evaluation cameras are never perturbed.
+    plain_test = parse(generated_scene, "test")
+    assert test.metadata["perturbed"] is False
+    torch.testing.assert_close(test.cameras.camera_to_worlds, plain_test.cameras.camera_to_worlds)
+    torch.testing.assert_close(test.cameras.distortion_params, plain_test.cameras.distortion_params)
+
+
+def test_missing_image_is_named(scene: Path):
+    (scene / "images" / "frame_00003.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"images\.bin lists image 'frame_00003\.png'"):
+        parse(scene)
+
+
+def _set_camera(scene: Path, model: str, params: list[float]) -> None:
+    reconstruction = input_model(scene)
+    camera = reconstruction.cameras[1]
+    camera.model = getattr(pycolmap.CameraModelId, model)
+    camera.params = params
+    reconstruction.write_binary(str(scene / "sparse" / "0"))
+
+
+def test_unsupported_camera_model_is_named(scene: Path):
+    _set_camera(scene, "OPENCV_FISHEYE", [50, 50, 25, 19, 0, 0, 0, 0])
+    with pytest.raises(
+        ValueError,
+        match=r"cameras\.bin: camera 1 uses the COLMAP camera model OPENCV_FISHEYE.*"
+        r"supported: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV",
+    ):
+        parse(scene)
+
+
+def test_opencv_needs_zero_tangential(scene: Path):
+    _set_camera(scene, "OPENCV", [50, 50, 25, 19, -0.02, 0.005, 1e-3, 0])
+    with pytest.raises(ValueError, match=r"p1 = 0\.001"):
+        parse(scene)
+    _set_camera(scene, "OPENCV", [50, 51, 25, 19, -0.02, 0.005, 0, 0])
+    out = parse(scene)
+    assert float(out.cameras.fy[0]) == pytest.approx(51.0)
+
+
+def test_empty_scenes(scene: Path, tmp_path: Path):
+    nothing = tmp_path / "nothing_here"
+    nothing.mkdir()
+    with pytest.raises(FileNotFoundError, match=r"(?s)looked for:.*sparse/0/cameras\.bin.*transforms\.json"):
+        parse(nothing)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        parse(tmp_path / "absent")
+    for path in (scene / "images").iterdir():
+        path.unlink()
+    with pytest.raises(ValueError, match=r"the scene is empty: image folder .*images holds no images"):
+        parse(scene)
+    empty_model = pycolmap.Reconstruction()
+    empty_model.add_camera_with_trivial_rig(input_model(scene).cameras[1])
+    empty_model.write_binary(str(scene / "sparse" / "0"))
+    with pytest.raises(ValueError, match=r"images\.bin lists no images"):
+        parse(scene)
+
+
+def test_transforms_json_detected(generated_scene: Path, tmp_path: Path):
+    data = tmp_path / "ns"
+    shutil.copytree(generated_scene / "images", data / "images")
+    reconstruction = input_model(generated_scene)
+    frames = []
+    for image_id in sorted(reconstruction.images):
+        image = reconstruction.images[image_id]
+        c2w = np.linalg.inv(np.vstack([image.cam_from_world().matrix(), [0, 0, 0, 1]]))
+        c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
+        frames.append({"file_path": f"images/{image.name}", "transform_matrix": c2w.tolist()})
+    f, cx, cy, k1, k2 = reconstruction.cameras[1].params
+    meta = {
+        "camera_model": "OPENCV",
+        "fl_x": f,
+        "fl_y": f,
+        "cx": cx,
+        "cy": cy,
+        "w": WIDTH,
+        "h": HEIGHT,
+        "k1": k1,
+        "k2": k2,
+        "p1": 0.0,
+        "p2": 0.0,
+        "frames": frames,
+    }
+    (data / "transforms.json").write_text(json.dumps(meta))
+    out = parse(data, eval_mode="interval")
+    assert out.metadata["source_format"] == "nerfstudio"
+    assert len(out.image_filenames) == 8 and float(out.cameras.fx[0]) == pytest.approx(f, rel=1e-6)
+    (data / "images" / frames[1]["file_path"].split("/")[1]).unlink()
+    with pytest.raises(FileNotFoundError, match="frame_00001.png"):
+        parse(data)
+    (data / "transforms.json").write_text(json.dumps({**meta, "frames": []}))
+    with pytest.raises(ValueError, match="lists no frames"):
+        parse(data)

@@ -1,0 +1,173 @@
+"""COLMAP export of (refined) cameras: conversion round trip, undoing nerfstudio's normalization, CLI path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pycolmap
+import pytest
+import torch
+import tyro
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+
+from s2camp_ns.core.camera import se3_exp
+from s2camp_ns.nerfstudio import export_cameras as export
+from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+from s2camp_ns.nerfstudio.export_cameras import (
+    ExportCamerasConfig,
+    cameras_to_reconstruction,
+    reconstruction_to_arrays,
+    refined_training_cameras,
+)
+from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    config = MakeSceneConfig(
+        output_dir=tmp_path_factory.mktemp("export") / "tiny",
+        num_cameras=9,
+        width=40,
+        height=30,
+        supersample=1,
+        points_per_image=30,
+    )
+    return make_scene(config)
+
+
+def random_cameras(n: int, seed: int = 0) -> dict:
+    generator = torch.Generator().manual_seed(seed)
+    c2w = se3_exp(torch.randn(n, 6, dtype=torch.float64, generator=generator) * 2)
+    u = torch.rand(n, 6, dtype=torch.float64, generator=generator)
+    return dict(
+        c2w_opencv=c2w,
+        fx=300 + 50 * u[:, 0],
+        fy=300 + 50 * u[:, 1],
+        cx=160 + u[:, 2],
+        cy=120 + u[:, 3],
+        width=320,
+        height=240,
+        k1=-0.1 * u[:, 4],
+        k2=0.01 * u[:, 5],
+        image_names=[f"dir/img_{i:03d}.jpg" for i in range(n)],
+    )
+
+
+def compare(arrays: dict, expected: dict, pose_atol: float, rel: float) -> None:
+    assert arrays["names"] == list(expected["names"])
+    np.testing.assert_allclose(arrays["c2w"], expected["c2w"], atol=pose_atol, rtol=0)
+    for key in ("fx", "fy", "cx", "cy"):
+        np.testing.assert_allclose(arrays[key], expected[key], rtol=rel, atol=0, err_msg=key)
+    for key in ("k1", "k2"):
+        np.testing.assert_allclose(arrays[key], expected[key], atol=1e-7, rtol=0, err_msg=key)
+    np.testing.assert_array_equal(arrays["width"], expected["width"])
+    np.testing.assert_array_equal(arrays["height"], expected["height"])
+
+
+@pytest.mark.parametrize("same_focal", [False, True])
+def test_conversion_round_trip_through_files(tmp_path: Path, same_focal: bool):
+    cams = random_cameras(7)
+    if same_focal:
+        cams["fy"] = cams["fx"]
+    points = np.random.default_rng(0).normal(size=(25, 3))
+    colours = np.random.default_rng(1).integers(0, 256, size=(25, 3))
+    reconstruction = cameras_to_reconstruction(**cams, points_xyz=points, points_rgb=colours)
+    reconstruction.write_binary(str(tmp_path))
+    assert (tmp_path / "cameras.bin").exists() and (tmp_path / "images.bin").exists()
+    loaded = pycolmap.Reconstruction(str(tmp_path))
+    assert loaded.num_cameras() == 7 and loaded.num_images() == 7 and loaded.num_points3D() == 25
+    assert {c.model.name for c in loaded.cameras.values()} == {"RADIAL" if same_focal else "OPENCV"}
+    expected = {
+        key: np.broadcast_to(np.asarray(value, dtype=np.float64), (7,))
+        if key in ("width", "height")
+        else (value.numpy() if isinstance(value, torch.Tensor) else value)
+        for key, value in cams.items()
+    }
+    expected["names"], expected["c2w"] = cams["image_names"], cams["c2w_opencv"].numpy()
+    compare(reconstruction_to_arrays(loaded), expected, pose_atol=1e-9, rel=1e-12)
+    xyz = np.array([loaded.points3D[i].xyz for i in sorted(loaded.points3D)])
+    np.testing.assert_allclose(xyz, points, atol=1e-12)
+
+
+def test_conversion_rejects_bad_input():
+    cams = random_cameras(3)
+    with pytest.raises(ValueError, match="RADIAL needs fx = fy"):
+        cameras_to_reconstruction(**cams, camera_model="RADIAL")
+    with pytest.raises(ValueError, match="image_names must have 3 entries"):
+        cameras_to_reconstruction(**{**cams, "image_names": ["a"]})
+    with pytest.raises(ValueError, match="fx must lie in"):
+        cameras_to_reconstruction(**{**cams, "fx": -cams["fx"]})
+    bad = cams["c2w_opencv"].clone()
+    bad[0, :, 0] *= -1
+    with pytest.raises(ValueError, match="det"):
+        cameras_to_reconstruction(**{**cams, "c2w_opencv": bad})
+
+
+def input_arrays(scene: Path, names: list[str]) -> dict:
+    arrays = reconstruction_to_arrays(pycolmap.Reconstruction(str(scene / "sparse" / "0")))
+    order = [arrays["names"].index(name) for name in names]
+    return {key: ([value[i] for i in order] if key == "names" else value[order]) for key, value in arrays.items()}
+
+
+@pytest.mark.parametrize("downscale", [1, 2])
+def test_unrefined_cameras_reproduce_input_model(scene: Path, downscale: int):
+    out = S2CampDataParserConfig(data=scene, downscale_factor=downscale).setup().get_dataparser_outputs("train")
+    names = out.metadata["image_names"]
+    reconstruction = export.export_cameras(
+        out.cameras, out.dataparser_transform, out.dataparser_scale, names, out.metadata["full_image_size"]
+    )
+    compare(reconstruction_to_arrays(reconstruction), input_arrays(scene, names), pose_atol=2e-5, rel=2e-6)
+
+
+def stub_pipeline(outputs, optimizer):
+    datamanager = SimpleNamespace(
+        train_dataparser_outputs=outputs, train_dataset=SimpleNamespace(cameras=outputs.cameras)
+    )
+    return SimpleNamespace(model=SimpleNamespace(camera_optimizer=optimizer), datamanager=datamanager)
+
+
+def test_fallback_applies_nerfstudio_pose_optimizer(scene: Path):
+    out = S2CampDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
+    n = len(out.image_filenames)
+    optimizer = CameraOptimizerConfig(mode="SO3xR3").setup(num_cameras=n, device="cpu")
+    torch.testing.assert_close(
+        refined_training_cameras(stub_pipeline(out, optimizer)).camera_to_worlds, out.cameras.camera_to_worlds
+    )
+    with torch.no_grad():
+        optimizer.pose_adjustment[2] = torch.tensor([0.01, -0.02, 0.03, 0.001, 0.002, -0.003])
+    refined = refined_training_cameras(stub_pipeline(out, optimizer)).camera_to_worlds
+    adjustment = optimizer(torch.tensor([2])).detach()[0]
+    torch.testing.assert_close(refined[2, :, :3], adjustment[:, :3] @ out.cameras.camera_to_worlds[2, :, :3])
+    torch.testing.assert_close(refined[2, :, 3], out.cameras.camera_to_worlds[2, :, 3] + adjustment[:, 3])
+    torch.testing.assert_close(refined[3], out.cameras.camera_to_worlds[3])
+    # S2CamP's optimizer exposes refined_cameras(): used as is.
+    marker = out.cameras[:2]
+    assert refined_training_cameras(stub_pipeline(out, SimpleNamespace(refined_cameras=lambda: marker))) is marker
+    refine = SimpleNamespace(refine_cameras=lambda cameras: cameras[:2])
+    assert refined_training_cameras(stub_pipeline(out, refine)).shape[0] == 2
+
+
+def test_cli_main_writes_a_readable_model(scene: Path, tmp_path: Path, monkeypatch):
+    import nerfstudio.utils.eval_utils as eval_utils
+
+    out = S2CampDataParserConfig(data=scene, downscale_factor=2).setup().get_dataparser_outputs("train")
+    optimizer = CameraOptimizerConfig(mode="off").setup(num_cameras=len(out.image_filenames), device="cpu")
+    monkeypatch.setattr(eval_utils, "eval_setup", lambda *a, **k: (None, stub_pipeline(out, optimizer), None, 0))
+    config_file = tmp_path / "config.yml"
+    config_file.write_text("stub")
+    args = ["--load-config", str(config_file), "--output-dir", str(tmp_path / "sparse" / "0"), "--text"]
+    config = tyro.cli(ExportCamerasConfig, args=args)
+    export.main(config)
+    loaded = pycolmap.Reconstruction(str(tmp_path / "sparse" / "0"))
+    names = out.metadata["image_names"]
+    compare(reconstruction_to_arrays(loaded), input_arrays(scene, names), pose_atol=2e-5, rel=2e-6)
+    source = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    assert loaded.num_points3D() == source.num_points3D() > 0
+    src_xyz = np.array([source.points3D[i].xyz for i in sorted(source.points3D)])
+    out_xyz = np.array([loaded.points3D[i].xyz for i in sorted(loaded.points3D)])
+    np.testing.assert_allclose(out_xyz, src_xyz, atol=1e-12)
+    assert (tmp_path / "sparse" / "0" / "text" / "cameras.txt").exists()
+    with pytest.raises(FileNotFoundError, match="--load-config"):
+        export.main(ExportCamerasConfig(load_config=tmp_path / "missing.yml", output_dir=tmp_path / "x"))

@@ -1,0 +1,180 @@
+"""Method registration (`ns-train s2camp`, `ns-train s2camp-camp`) and the model wiring, on tiny inputs."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+from contextlib import redirect_stdout
+from importlib.metadata import entry_points
+
+import pytest
+import torch
+import tyro
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from s2camp_ns import method_config
+from s2camp_ns.nerfstudio.camera_optimizer import PIXEL_KEY, TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
+from s2camp_ns.nerfstudio.model import S2CampModel, S2CampModelConfig
+from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
+
+
+def test_method_specifications():
+    for spec, name in ((method_config.s2camp_method, "s2camp"), (method_config.s2camp_camp_method, "s2camp-camp")):
+        assert isinstance(spec, MethodSpecification) and isinstance(spec.config, TrainerConfig)
+        assert spec.config.method_name == name and spec.description
+        pipeline = spec.config.pipeline
+        assert isinstance(pipeline, S2CampPipelineConfig)
+        assert isinstance(pipeline.datamanager, S2CampDataManagerConfig)
+        assert isinstance(pipeline.model, S2CampModelConfig)
+        assert isinstance(pipeline.model.camera_optimizer, S2CampCameraOptimizerConfig)
+        assert "camera_opt" in spec.config.optimizers
+        assert spec.config.machine.device_type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def test_camp_baseline_differs_only_in_camera_sampling():
+    s2camp = method_config.s2camp_method.config
+    camp = method_config.s2camp_camp_method.config
+    camp_camera = camp.pipeline.model.camera_optimizer
+    assert (camp_camera.sampler, camp_camera.num_points, camp_camera.refresh_every) == ("camp-random", 5000, 0)
+    s2camp_camera = s2camp.pipeline.model.camera_optimizer
+    assert (s2camp_camera.sampler, s2camp_camera.num_points, s2camp_camera.transform) == ("frolov", 500, "pyramid")
+    aligned = dataclasses.replace(
+        camp,
+        method_name=s2camp.method_name,
+        pipeline=dataclasses.replace(
+            camp.pipeline,
+            model=dataclasses.replace(camp.pipeline.model, camera_optimizer=s2camp_camera),
+        ),
+    )
+    assert repr(aligned) == repr(s2camp)
+
+
+def test_cli_help_documents_camera_optimizer_flags():
+    config = method_config.s2camp_method.config
+    out = io.StringIO()
+    with redirect_stdout(out), pytest.raises(SystemExit) as exit_info:
+        tyro.cli(
+            type(config), default=config, args=["pipeline.model.camera-optimizer", "--help"], console_outputs=True
+        )
+    assert exit_info.value.code == 0
+    text = out.getvalue()
+    for flag in ("num-points", "sampler", "refresh-every", "damping-rel", "precondition", "parameters", "t-near"):
+        assert f"--pipeline.model.camera-optimizer.{flag}" in text
+    assert "proxy points" in text and "whitened" in text
+
+
+def test_entry_points_registered():
+    names = {ep.name: ep.value for ep in entry_points(group="nerfstudio.method_configs")}
+    if "s2camp" not in names:
+        pytest.skip("package not installed (pip install -e .)")
+    assert names["s2camp"] == "s2camp_ns.method_config:s2camp_method"
+    assert names["s2camp-camp"] == "s2camp_ns.method_config:s2camp_camp_method"
+
+
+# --------------------------------------------------------------------------------------------------- model wiring
+NUM_CAMERAS, WIDTH, HEIGHT = 3, 32, 24
+
+
+def tiny_cameras() -> Cameras:
+    c2w = torch.eye(4)[:3].expand(NUM_CAMERAS, 3, 4).clone()
+    c2w[:, 0, 3] = torch.tensor([-0.2, 0.0, 0.2])
+    c2w[:, 2, 3] = 1.0
+    return Cameras(
+        camera_to_worlds=c2w,
+        fx=30.0,
+        fy=30.0,
+        cx=16.0,
+        cy=12.0,
+        width=WIDTH,
+        height=HEIGHT,
+        distortion_params=torch.tensor([-0.02, 0.0, 0.0, 0.0, 0.0, 0.0]).expand(NUM_CAMERAS, 6).clone(),
+        camera_type=CameraType.PERSPECTIVE,
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_model() -> S2CampModel:
+    """A nerfacto-sized-down S2CampModel on the CPU with LPIPS made unavailable (offline behaviour)."""
+    import torchmetrics.image.lpip as lpip_module
+
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+
+    def offline(*args, **kwargs):
+        raise OSError("no network (simulated)")
+
+    lpip_module.LearnedPerceptualImagePatchSimilarity = offline
+    try:
+        config = S2CampModelConfig(
+            num_levels=4,
+            log2_hashmap_size=12,
+            hidden_dim=16,
+            hidden_dim_color=16,
+            num_nerf_samples_per_ray=8,
+            num_proposal_samples_per_ray=(8, 8),
+            proposal_net_args_list=[
+                {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
+                {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
+            ],
+            implementation="torch",
+            camera_optimizer=S2CampCameraOptimizerConfig(num_points=64, sampler="camp-random"),
+        )
+        model = config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=NUM_CAMERAS)
+    finally:
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+    model.camera_optimizer.set_train_cameras(tiny_cameras())
+    return model
+
+
+def test_every_param_group_receives_gradients(tiny_model: S2CampModel):
+    """The grad scaler needs a gradient in every group (DESIGN-NOTES sec. 6), camera_opt included."""
+    tiny_model.train()
+    generator = torch.Generator().manual_seed(0)
+    num_rays = 64
+    pixels = torch.rand(num_rays, 2, generator=generator) * torch.tensor([WIDTH, HEIGHT])
+    bundle = RayBundle(
+        origins=torch.zeros(num_rays, 3),
+        directions=torch.tensor([0.0, 0.0, -1.0]).expand(num_rays, 3).clone(),
+        pixel_area=torch.ones(num_rays, 1),
+        camera_indices=torch.randint(0, NUM_CAMERAS, (num_rays, 1), generator=generator),
+        metadata={PIXEL_KEY: pixels, "directions_norm": torch.ones(num_rays, 1)},
+    )
+    batch = {"image": torch.rand(num_rays, 3, generator=generator)}
+    tiny_model.zero_grad()
+    outputs = tiny_model(bundle)
+    metrics = tiny_model.get_metrics_dict(outputs, batch)
+    loss = sum(tiny_model.get_loss_dict(outputs, batch, metrics).values())
+    loss.backward()
+    groups = tiny_model.get_param_groups()
+    assert set(groups) == {"proposal_networks", "fields", "camera_opt"}
+    for name, params in groups.items():
+        grads = [p.grad for p in params if p.grad is not None]
+        assert grads and any(bool(g.abs().sum() > 0) for g in grads), name
+
+
+def test_lpips_unavailable_is_omitted(tiny_model: S2CampModel):
+    assert not tiny_model.lpips_available
+    tiny_model.eval()
+    camera = tiny_cameras()[0:1]
+    camera.metadata = {TRAIN_CAMERA_KEY: 0}
+    outputs = tiny_model.get_outputs_for_camera(camera)
+    assert outputs["rgb"].shape == (HEIGHT, WIDTH, 3)
+    metrics, images = tiny_model.get_image_metrics_and_images(outputs, {"image": torch.rand(HEIGHT, WIDTH, 3)})
+    assert {"psnr", "ssim"} <= set(metrics) and "lpips" not in metrics
+    assert "img" in images
+
+
+def test_camera_errors_logged_with_reference_cameras(tiny_model: S2CampModel):
+    pytest.importorskip("s2camp_ns.core.alignment")
+    tiny_model.kwargs["metadata"] = {"reference_cameras": tiny_cameras()}
+    try:
+        errors = tiny_model.update_camera_errors()
+        assert errors["camera_errors/rot_err_mean"] >= 0.0 and "camera_errors/focal_err_mean" in errors
+        assert tiny_model._camera_errors == errors  # merged into the training metrics dict
+    finally:
+        tiny_model.kwargs["metadata"] = {}
+        tiny_model._camera_errors = {}

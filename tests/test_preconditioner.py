@@ -1,0 +1,137 @@
+"""Preconditioner P = (Sigma + damping)^(1/2) (paper eqs. 15-20): whitening, symmetry, damping, determinism."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout, project_with_delta
+from s2camp_ns.core.preconditioner import (
+    DampingConfig,
+    SamplingConfig,
+    compute_preconditioner,
+    condition_number,
+    damped_gram,
+    gram_from_points,
+    sample_proxy_points,
+    symmetric_sqrt_and_inverse,
+    whitening_error,
+)
+
+ROOM = Intrinsics.create(fx=793.13, fy=793.49, cx=389.25, cy=259.375, width=778, height=518)
+DISTORTED = Intrinsics.create(fx=410.0, fy=405.0, cx=330.0, cy=210.0, width=640, height=420, k1=-0.03, k2=0.004)
+
+
+def _spd(n: int, k: int, seed: int) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(seed)
+    a = torch.randn(n, 3 * k, k, generator=generator, dtype=torch.float64)
+    return a.transpose(1, 2) @ a / (3 * k) + 0.05 * torch.eye(k, dtype=torch.float64)
+
+
+def test_symmetric_sqrt_whitens_exactly_without_damping() -> None:
+    sigma = _spd(4, 12, seed=0)
+    root, inverse = symmetric_sqrt_and_inverse(sigma)
+    eye = torch.eye(12, dtype=torch.float64).expand(4, 12, 12)
+    torch.testing.assert_close(inverse.transpose(1, 2) @ sigma @ inverse, eye, atol=1e-8, rtol=0)  # eq. 16
+    torch.testing.assert_close(root.transpose(1, 2) @ root, sigma, atol=1e-10, rtol=1e-10)  # eq. 17
+    torch.testing.assert_close(root, root.transpose(1, 2))
+    assert (torch.linalg.eigvalsh(root) > 0).all()
+    torch.testing.assert_close(root @ inverse, eye, atol=1e-10, rtol=0)
+
+
+def test_whitening_of_a_real_frustum_gram_is_exact_without_damping() -> None:
+    points = sample_proxy_points(ROOM, SamplingConfig(num_points=500, t_near=0.4))
+    sigma, count = gram_from_points(points, ROOM, ParameterLayout.from_preset("pose+focal"))
+    assert count.item() == 500  # the pyramid transform puts every proxy point inside the image
+    _, inverse = symmetric_sqrt_and_inverse(sigma)
+    assert whitening_error(inverse, sigma).item() < 1e-6
+
+
+def test_whitened_jacobian_is_orthonormal() -> None:
+    """J P^-1 has orthonormal columns in the mean over points (eqs. 15-16) for an undamped P."""
+    layout = ParameterLayout.from_preset("pose+focal")
+    points = sample_proxy_points(ROOM, SamplingConfig(num_points=200))
+    sigma, count = gram_from_points(points, ROOM, layout)
+    _, inverse = symmetric_sqrt_and_inverse(sigma)
+    delta = torch.zeros(1, layout.num_params, dtype=torch.float64)
+
+    def whitened_projection(phi_hat: torch.Tensor) -> torch.Tensor:
+        return project_with_delta(points, ROOM, layout.expand(phi_hat @ inverse[0].T)) / 778.0
+
+    jacobian = torch.func.jacrev(whitened_projection)(delta)[0].reshape(-1, layout.num_params)
+    torch.testing.assert_close(jacobian.T @ jacobian / count.item(), torch.eye(7, dtype=torch.float64), atol=1e-6,
+                               rtol=0)
+
+
+def test_damping_keeps_unobservable_parameters_finite() -> None:
+    sigma = torch.zeros(1, 12, 12, dtype=torch.float64)
+    sigma[0, :6, :6] = _spd(1, 6, seed=1)[0]
+    damped = damped_gram(sigma, DampingConfig(damping_abs=1e-6, damping_rel=0.1))
+    root, inverse = symmetric_sqrt_and_inverse(damped)
+    assert torch.isfinite(root).all() and torch.isfinite(inverse).all()
+    torch.testing.assert_close(torch.diagonal(root[0])[6:], torch.full((6,), 1e-3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="eigenvalues of sigma"):
+        symmetric_sqrt_and_inverse(sigma)
+
+
+def test_diagonal_only_mode() -> None:
+    sigma = _spd(2, 5, seed=2)
+    root, inverse = symmetric_sqrt_and_inverse(sigma, diagonal_only=True)
+    torch.testing.assert_close(root, torch.diag_embed(torch.diagonal(sigma, dim1=1, dim2=2).sqrt()))
+    torch.testing.assert_close(root @ inverse, torch.eye(5, dtype=torch.float64).expand(2, 5, 5))
+
+
+@pytest.mark.parametrize("intrinsics", [ROOM, DISTORTED], ids=["room", "distorted"])
+def test_compute_preconditioner_is_spd_finite_and_bit_identical(intrinsics: Intrinsics) -> None:
+    first = compute_preconditioner(intrinsics)
+    second = compute_preconditioner(intrinsics)
+    assert torch.equal(first.matrix, second.matrix) and torch.equal(first.inverse, second.inverse)
+    assert first.matrix.dtype == torch.float64 and first.matrix.shape == (1, 12, 12)
+    torch.testing.assert_close(first.matrix, first.matrix.transpose(1, 2))
+    assert (torch.linalg.eigvalsh(first.matrix) > 0).all()
+    torch.testing.assert_close(first.matrix @ first.inverse, torch.eye(12, dtype=torch.float64)[None], atol=1e-8,
+                               rtol=0)
+    # Damping bounds the whitened spectrum: P^-1 Sigma P^-1 has eigenvalues in (0, 1].
+    whitened = first.inverse @ first.gram @ first.inverse
+    eigenvalues = torch.linalg.eigvalsh(whitened)
+    assert eigenvalues.max() <= 1 + 1e-9 and eigenvalues.min() > 0
+    assert condition_number(whitened).item() < condition_number(first.gram).item()
+
+
+def test_random_samplers_are_seeded() -> None:
+    config = SamplingConfig(sampler="camp-random", num_points=300, seed=7)
+    torch.testing.assert_close(sample_proxy_points(ROOM, config), sample_proxy_points(ROOM, config))
+    other = sample_proxy_points(ROOM, SamplingConfig(sampler="camp-random", num_points=300, seed=8))
+    assert not torch.equal(sample_proxy_points(ROOM, config), other)
+
+
+def test_batched_equals_per_camera() -> None:
+    both = Intrinsics.create(
+        fx=[793.13, 410.0], fy=[793.49, 405.0], cx=[389.25, 330.0], cy=[259.375, 210.0], width=[778, 640],
+        height=[518, 420], k1=[0.0, -0.03], k2=[0.0, 0.004],
+    )
+    batched = compute_preconditioner(both)
+    for i, single in enumerate([ROOM, DISTORTED]):
+        torch.testing.assert_close(batched.matrix[i], compute_preconditioner(single).matrix[0], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("config", "name"),
+    [
+        (SamplingConfig(num_points=0), "num_points"),
+        (SamplingConfig(t_near=-0.1), "t_near"),
+        (SamplingConfig(t_near=1.0, t_far=0.5), "t_far"),
+        (SamplingConfig(t_far=2.0), "t_far"),
+        (SamplingConfig(sampler="magic"), "sampler"),  # type: ignore[arg-type]
+    ],
+)
+def test_bad_sampling_config_names_the_parameter(config: SamplingConfig, name: str) -> None:
+    with pytest.raises(ValueError, match=rf"^{name} must"):
+        compute_preconditioner(ROOM, sampling=config)
+
+
+def test_bad_damping_names_the_parameter() -> None:
+    with pytest.raises(ValueError, match="^damping_abs must"):
+        compute_preconditioner(ROOM, damping=DampingConfig(damping_abs=0.0))
+    with pytest.raises(ValueError, match="^damping_rel must"):
+        compute_preconditioner(ROOM, damping=DampingConfig(damping_rel=-1.0))
