@@ -18,7 +18,7 @@ help:
 	@echo "make lint   ruff only"
 	@echo "make bench  all benchmarks (s2camp-bench all)"
 	@echo "make venv   create/refresh $(VENV) (VENV=path to use another one, PYTHON=python3.x to pick the interpreter)"
-	@echo "make clean  remove caches, build outputs and generated scenes (keeps $(VENV))"
+	@echo "make clean  remove caches, build outputs and generated scenes (keeps $(VENV) and ns-train outputs/)"
 
 venv: $(STAMP)
 
@@ -58,5 +58,5 @@ bench: venv
 
 clean:
 	@echo ">>> removing caches, build outputs and generated scenes"
-	rm -rf build dist *.egg-info .pytest_cache .ruff_cache scenes demo_scene outputs
+	rm -rf build dist *.egg-info .pytest_cache .ruff_cache scenes demo_scene
 	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -exec rm -rf {} +

@@ -12,12 +12,14 @@ import tyro
 from .common import DEFAULT_OUTPUT_DIR, emit_json, log
 from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
+from .recovery import RecoveryConfig
 from .speed import SpeedConfig
 
 MODULES = {
     DispersionConfig: "dispersion",
     GramErrorConfig: "gram_error",
     SpeedConfig: "speed",
+    RecoveryConfig: "recovery",
 }
 
 
@@ -33,6 +35,7 @@ Command = Union[
     Annotated[DispersionConfig, tyro.conf.subcommand("dispersion")],
     Annotated[GramErrorConfig, tyro.conf.subcommand("gram-error")],
     Annotated[SpeedConfig, tyro.conf.subcommand("speed")],
+    Annotated[RecoveryConfig, tyro.conf.subcommand("recovery")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]
 

@@ -11,8 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import torch
-
 from s2camp_ns.core.camera import ParameterLayout
 from s2camp_ns.core.gram_error import gram_estimation_error, reference_gram
 from s2camp_ns.core.jacobian import relative_gram_error
@@ -52,8 +50,9 @@ class GramErrorConfig:
     def effective(self) -> GramErrorConfig:
         if not self.quick:
             return self
-        return replace(self, frusta=("room",), num_points=(100, 500), seeds=2, t_near=(0.4,),
-                       reference_points=1_000_000)
+        return replace(
+            self, frusta=("room",), num_points=(100, 500), seeds=2, t_near=(0.4,), reference_points=1_000_000
+        )
 
 
 def run(config: GramErrorConfig) -> list[dict]:
@@ -97,8 +96,10 @@ def run(config: GramErrorConfig) -> list[dict]:
                             "reference_error": reference_error,
                         }
                     )
-                    log(f"gram-error {frustum_name} t_near={t_near} {label:13s} L={num_points:5d} "
-                        f"err={rows[-1]['rel_error']:.3e}")
+                    log(
+                        f"gram-error {frustum_name} t_near={t_near} {label:13s} L={num_points:5d} "
+                        f"err={rows[-1]['rel_error']:.3e}"
+                    )
     return rows
 
 
@@ -114,8 +115,15 @@ def summary(rows: list[dict]) -> list[dict]:
             det = _cell(rows, frustum=frustum, t_near=t_near, sampler="deterministic", L=500)
             rnd = _cell(rows, frustum=frustum, t_near=t_near, sampler="random", L=5000)
             if det and rnd:
-                out.append({"frustum": frustum, "t_near": t_near, "deterministic_500": det["rel_error"],
-                            "random_5000": rnd["rel_error"], "ratio": det["rel_error"] / rnd["rel_error"]})
+                out.append(
+                    {
+                        "frustum": frustum,
+                        "t_near": t_near,
+                        "deterministic_500": det["rel_error"],
+                        "random_5000": rnd["rel_error"],
+                        "ratio": det["rel_error"] / rnd["rel_error"],
+                    }
+                )
     return out
 
 
@@ -127,7 +135,7 @@ def plot(rows: list[dict], path: Path) -> None:
 
     panels = sorted({(r["frustum"], r["t_near"]) for r in rows})
     figure, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
-    for axis, (frustum, t_near) in zip(axes[0], panels):
+    for axis, (frustum, t_near) in zip(axes[0], panels, strict=True):
         for sampler in dict.fromkeys(r["sampler"] for r in rows):
             cells = [r for r in rows if r["frustum"] == frustum and r["t_near"] == t_near and r["sampler"] == sampler]
             if cells:
@@ -147,8 +155,11 @@ def report(rows: list[dict], config: GramErrorConfig) -> Path:
     plot(rows, config.output_dir / "gram-error.png")
     columns = ["frustum", "t_near", "sampler", "L", "rel_error", "rel_error_std", "seeds"]
     table = markdown_table(rows, columns)
-    claim = markdown_table(summary(rows), ["frustum", "t_near", "deterministic_500", "random_5000", "ratio"],
-                           ["frustum", "t_near", "deterministic, L=500", "random, L=5000 (mean)", "ratio"])
+    claim = markdown_table(
+        summary(rows),
+        ["frustum", "t_near", "deterministic_500", "random_5000", "ratio"],
+        ["frustum", "t_near", "deterministic, L=500", "random, L=5000 (mean)", "ratio"],
+    )
     reference_note = (
         f"Reference: {rows[0]['reference_points']} scrambled Sobol points through the {rows[0]['transform']} "
         f"transform (CamP's sampler: as many of its own random points); two references with different "
@@ -156,8 +167,16 @@ def report(rows: list[dict], config: GramErrorConfig) -> Path:
         "resolved. All 12 camera parameters, pinhole intrinsics, pixels divided by max(W, H)."
     )
     return write_report(
-        config.output_dir, "gram-error", "Gram-matrix estimation error",
+        config.output_dir,
+        "gram-error",
+        "Gram-matrix estimation error",
         "s2camp-bench gram-error",
-        ["## The claim: 500 deterministic points vs 5000 random points", claim, reference_note,
-         "![gram error](gram-error.png)", "## All cells", table],
+        [
+            "## The claim: 500 deterministic points vs 5000 random points",
+            claim,
+            reference_note,
+            "![gram error](gram-error.png)",
+            "## All cells",
+            table,
+        ],
     )

@@ -17,9 +17,10 @@ from .common import DEFAULT_OUTPUT_DIR, log, markdown_table, write_report
 from .recovery_geometric import VARIANTS, GeometricConfig, iterations_to, load_scene, run_variant
 
 SCENES = {
-    "narrow": MakeSceneConfig(num_cameras=24, width=320, height=240, fov="narrow", seed=0),
-    "wide": MakeSceneConfig(num_cameras=24, width=320, height=240, fov="wide", seed=1),
+    "narrow": MakeSceneConfig(num_cameras=24, width=160, height=120, fov="narrow", seed=0),
+    "wide": MakeSceneConfig(num_cameras=24, width=160, height=120, fov="wide", seed=1),
 }
+QUICK_SCENE_SIZE = {"num_cameras": 8, "width": 64, "height": 48}
 
 
 @dataclass
@@ -54,6 +55,8 @@ def run_geometric(config: RecoveryConfig, scene_root: Path) -> tuple[list[dict],
     rows, histories = [], {}
     for scene_name in config.scenes:
         scene_config = replace(SCENES[scene_name], output_dir=scene_root / scene_name)
+        if config.quick:
+            scene_config = replace(scene_config, **QUICK_SCENE_SIZE)
         scene = load_scene(make_scene(scene_config), scene_name)
         baseline_seconds = None
         for variant in config.variants:
@@ -61,16 +64,18 @@ def run_geometric(config: RecoveryConfig, scene_root: Path) -> tuple[list[dict],
             results = [run_variant(scene, variant, config.geometric, seed=seed) for seed in seeds]
             histories[(scene_name, variant)] = results[0]["history"]
             row = {"tier": 1, "scene": scene_name, "variant": variant, "seeds": len(seeds)}
-            for key in ("rot_err", "pos_err", "focal_err"):
+            for key in ("rot_err", "pos_err", "focal_err", "pp_err", "k1_err"):
                 row[key] = _mean([r["final"][key] for r in results])
-                threshold = config.geometric.thresholds[key]
+            for key, threshold in config.geometric.thresholds.items():
                 row[f"iters_to_{key}"] = _mean([iterations_to(r["history"], key, threshold) for r in results])
             row["sec_per_iter"] = _mean([r["sec_per_iter"] for r in results])
             if variant == "so3xr3":
                 baseline_seconds = row["sec_per_iter"]
             rows.append(row)
-            log(f"recovery tier 1 {scene_name:6s} {variant:12s} rot {row['rot_err']:.2e} pos {row['pos_err']:.2e} "
-                f"focal {row['focal_err']:.3f}")
+            log(
+                f"recovery tier 1 {scene_name:6s} {variant:12s} rot {row['rot_err']:.2e} pos {row['pos_err']:.2e} "
+                f"focal {row['focal_err']:.3f}"
+            )
         for row in rows:
             if row["scene"] == scene_name and baseline_seconds:
                 row["time_vs_so3xr3"] = row["sec_per_iter"] / baseline_seconds
@@ -97,8 +102,8 @@ def plot(histories: dict, path: Path) -> None:
     scenes = sorted({scene for scene, _ in histories})
     keys = (("focal_err", "focal error (px)"), ("rot_err", "rotation error (rad)"), ("pos_err", "position error"))
     figure, axes = plt.subplots(len(scenes), 3, figsize=(12, 3.3 * len(scenes)), squeeze=False)
-    for row_axes, scene in zip(axes, scenes):
-        for axis, (key, label) in zip(row_axes, keys):
+    for row_axes, scene in zip(axes, scenes, strict=True):
+        for axis, (key, label) in zip(row_axes, keys, strict=True):
             for (name, variant), history in histories.items():
                 if name == scene and len(history) > 1:
                     axis.semilogy([h["iteration"] for h in history], [h[key] for h in history], label=variant)
@@ -116,11 +121,36 @@ def report(rows: list[dict], config: RecoveryConfig) -> Path:
     config = config.effective()
     plot(getattr(run, "histories", {}), config.output_dir / "recovery-tier1.png")
     thresholds = config.geometric.thresholds
-    columns = ["scene", "variant", "seeds", "rot_err", "pos_err", "focal_err", "iters_to_rot_err", "iters_to_pos_err",
-               "iters_to_focal_err", "sec_per_iter", "time_vs_so3xr3"]
-    headers = ["scene", "variant", "seeds", "rot err (rad)", "pos err", "focal err (px)",
-               f"iters to rot < {thresholds['rot_err']:g}", f"iters to pos < {thresholds['pos_err']:g}",
-               f"iters to focal < {thresholds['focal_err']:g} px", "s / iter", "time vs so3xr3"]
+    columns = [
+        "scene",
+        "variant",
+        "seeds",
+        "rot_err",
+        "pos_err",
+        "focal_err",
+        "pp_err",
+        "k1_err",
+        "iters_to_rot_err",
+        "iters_to_pos_err",
+        "iters_to_focal_err",
+        "sec_per_iter",
+        "time_vs_so3xr3",
+    ]
+    headers = [
+        "scene",
+        "variant",
+        "seeds",
+        "rot err (rad)",
+        "pos err",
+        "focal err (px)",
+        "pp err (px)",
+        "k1 err",
+        f"iters to rot < {thresholds['rot_err']:g}",
+        f"iters to pos < {thresholds['pos_err']:g}",
+        f"iters to focal < {thresholds['focal_err']:g} px",
+        "s / iter",
+        "time vs so3xr3",
+    ]
     g = config.geometric
     setup = (
         f"Tier 1: {g.iterations} Adam iterations (b1 0.9, b2 0.99) on the mean squared reprojection error of the "
@@ -128,11 +158,18 @@ def report(rows: list[dict], config: RecoveryConfig) -> Path:
         f"whitened variants, {g.so3xr3_lr:g} -> {g.so3xr3_lr_final:g} for so3xr3; P refreshed every "
         f"{g.refresh_every} iterations for s2camp; CamP averaged over seeds {list(g.camp_seeds)}; perturbation seed "
         f"{g.perturbation_seed} (CamP protocol, distortion zeroed). Errors after a similarity alignment to the true "
-        "cameras: mean rotation angle (rad), mean camera-centre distance (normalized scene units), mean |fx error| (px)."
+        "cameras: mean rotation angle (rad), mean camera-centre distance (normalized scene units), mean |fx error| "
+        "(px), mean principal-point distance (px), mean |k1 error|."
     )
     return write_report(
-        config.output_dir, "recovery", "Camera recovery from perturbed cameras",
+        config.output_dir,
+        "recovery",
+        "Camera recovery from perturbed cameras",
         "s2camp-bench recovery" + (" --quick" if config.quick else ""),
-        ["## Tier 1: geometric refinement", setup, markdown_table(rows, columns, headers),
-         "![tier 1](recovery-tier1.png)"],
+        [
+            "## Tier 1: geometric refinement",
+            setup,
+            markdown_table(rows, columns, headers),
+            "![tier 1](recovery-tier1.png)",
+        ],
     )

@@ -65,9 +65,7 @@ class GeometricConfig:
     camp_seeds: tuple[int, ...] = (0, 1, 2)
     perturbation_seed: int = 0
     log_every: int = 10
-    thresholds: dict[str, float] = field(
-        default_factory=lambda: {"rot_err": 1e-3, "pos_err": 1e-3, "focal_err": 1.0}
-    )
+    thresholds: dict[str, float] = field(default_factory=lambda: {"rot_err": 1e-3, "pos_err": 1e-3, "focal_err": 1.0})
     """Error levels for the iterations-to-threshold columns (rad, scene units, pixels)."""
     sampling: SamplingConfig = SamplingConfig()
     damping: DampingConfig = DampingConfig()
@@ -98,8 +96,9 @@ def load_scene(path: Path, name: str) -> GeometricScene:
     points = torch.tensor(np.stack([p.xyz for p in reconstruction.points3D.values()]), dtype=torch.float64)
     points = (points - centre) * scale
     p = torch.tensor(params, dtype=torch.float64)
-    intrinsics = Intrinsics.create(fx=p[:, 0], fy=p[:, 1], cx=p[:, 2], cy=p[:, 3], width=p[:, 4], height=p[:, 5],
-                                   k1=p[:, 6], k2=p[:, 7])
+    intrinsics = Intrinsics.create(
+        fx=p[:, 0], fy=p[:, 1], cx=p[:, 2], cy=p[:, 3], width=p[:, 4], height=p[:, 5], k1=p[:, 6], k2=p[:, 7]
+    )
     return GeometricScene(name=name, c2w=c2w_t, intrinsics=intrinsics, points=points)
 
 
@@ -121,12 +120,14 @@ class Refinement:
         if variant in ("camp", "s2camp", "s2camp-once"):
             sampling = config.sampling
             if variant == "camp":
-                sampling = SamplingConfig(sampler="camp-random", num_points=5000, t_near=sampling.t_near,
-                                          t_far=sampling.t_far, seed=seed)
+                sampling = SamplingConfig(
+                    sampler="camp-random", num_points=5000, t_near=sampling.t_near, t_far=sampling.t_far, seed=seed
+                )
             self.sampling = sampling
             self.preconditioner = compute_preconditioner(start, self.layout, sampling, config.damping)
-        lr, lr_final = (config.so3xr3_lr, config.so3xr3_lr_final) if variant == "so3xr3" else (config.lr,
-                                                                                             config.lr_final)
+        lr, lr_final = (
+            (config.so3xr3_lr, config.so3xr3_lr_final) if variant == "so3xr3" else (config.lr, config.lr_final)
+        )
         self.optimizer = torch.optim.Adam([self.latent], lr=lr, betas=(0.9, 0.99), eps=1e-15)
         gamma = (lr_final / lr) ** (1.0 / max(config.iterations, 1))
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma)
@@ -168,8 +169,13 @@ def refined_cameras(
 
 
 def reprojection_loss(
-    base_c2w: torch.Tensor, base: Intrinsics, deltas: torch.Tensor, variant: str, points: torch.Tensor,
-    observed: torch.Tensor, visible: torch.Tensor,
+    base_c2w: torch.Tensor,
+    base: Intrinsics,
+    deltas: torch.Tensor,
+    variant: str,
+    points: torch.Tensor,
+    observed: torch.Tensor,
+    visible: torch.Tensor,
 ) -> torch.Tensor:
     points_cam = world_to_camera(points, base_c2w)
     if variant == "so3xr3":
@@ -184,15 +190,32 @@ def reprojection_loss(
 
 
 def errors(c2w: torch.Tensor, intrinsics: Intrinsics, scene: GeometricScene) -> dict[str, float]:
+    """Aligned pose errors and focal error (the issue's metrics), plus principal-point and k1 errors, which show
+    where a camera that reprojects well can still be wrong (principal point trades against rotation)."""
     result = camera_errors(c2w.detach(), scene.c2w, intrinsics.fx.detach(), scene.intrinsics.fx, align=True)
-    return {"rot_err": result["rot_err_mean"], "pos_err": result["pos_err_mean"], "focal_err": result["focal_err_mean"]}
+    truth = scene.intrinsics
+    pp = torch.stack([intrinsics.cx.detach() - truth.cx, intrinsics.cy.detach() - truth.cy], dim=-1).norm(dim=-1)
+    return {
+        "rot_err": result["rot_err_mean"],
+        "pos_err": result["pos_err_mean"],
+        "focal_err": result["focal_err_mean"],
+        "pp_err": float(pp.mean()),
+        "k1_err": float((intrinsics.k1.detach() - truth.k1).abs().mean()),
+    }
 
 
 def perturbed_start(scene: GeometricScene, seed: int) -> tuple[torch.Tensor, Intrinsics]:
-    perturbed = perturb_cameras(scene.c2w, scene.intrinsics.fx, scene.intrinsics.fy,
-                                PerturbationConfig(enabled=True), seed=seed)
-    start = Intrinsics.create(fx=perturbed.fx, fy=perturbed.fy, cx=scene.intrinsics.cx, cy=scene.intrinsics.cy,
-                              width=scene.intrinsics.width, height=scene.intrinsics.height)
+    perturbed = perturb_cameras(
+        scene.c2w, scene.intrinsics.fx, scene.intrinsics.fy, PerturbationConfig(enabled=True), seed=seed
+    )
+    start = Intrinsics.create(
+        fx=perturbed.fx,
+        fy=perturbed.fy,
+        cx=scene.intrinsics.cx,
+        cy=scene.intrinsics.cy,
+        width=scene.intrinsics.width,
+        height=scene.intrinsics.height,
+    )
     return perturbed.c2w, start
 
 
@@ -216,7 +239,7 @@ def run_variant(scene: GeometricScene, variant: str, config: GeometricConfig, se
         if iteration % config.log_every == 0 or iteration == config.iterations:
             with torch.no_grad():
                 c2w, intrinsics = refined_cameras(base_c2w, start, refinement.deltas(), variant)
-            history.append({"iteration": iteration, "loss": float(loss), **errors(c2w, intrinsics, scene)})
+            history.append({"iteration": iteration, "loss": loss.item(), **errors(c2w, intrinsics, scene)})
         if variant == "s2camp":
             with torch.no_grad():
                 _, current = refined_cameras(base_c2w, start, refinement.deltas(), variant)

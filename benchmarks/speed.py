@@ -15,6 +15,7 @@ import resource
 import statistics
 import time
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -72,8 +73,13 @@ def batch_intrinsics(cameras: int, device: torch.device) -> Intrinsics:
     preset = FRUSTA["room"]
     jitter = torch.linspace(0.98, 1.02, cameras, dtype=torch.float64)
     return Intrinsics.create(
-        fx=preset.fx * jitter, fy=preset.fy * jitter, cx=preset.cx, cy=preset.cy, width=preset.width,
-        height=preset.height, device=device,
+        fx=preset.fx * jitter,
+        fy=preset.fy * jitter,
+        cx=preset.cx,
+        cy=preset.cy,
+        width=preset.width,
+        height=preset.height,
+        device=device,
     )
 
 
@@ -90,8 +96,17 @@ def _autodiff_jacobian(points: torch.Tensor, intrinsics: Intrinsics) -> torch.Te
 
         return jacfwd(stacked_projection)(torch.zeros(12, dtype=camera_points.dtype, device=camera_points.device))
 
-    fields = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.skew, intrinsics.k1,
-              intrinsics.k2, intrinsics.width, intrinsics.height)
+    fields = (
+        intrinsics.fx,
+        intrinsics.fy,
+        intrinsics.cx,
+        intrinsics.cy,
+        intrinsics.skew,
+        intrinsics.k1,
+        intrinsics.k2,
+        intrinsics.width,
+        intrinsics.height,
+    )
     return vmap(one_camera)(points, *fields)
 
 
@@ -133,11 +148,12 @@ def _measure(method: str, config: SpeedConfig, queue) -> None:
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     if method == "s2camp":
-        seconds = time_call(lambda: s2camp_preconditioner(intrinsics, config.s2camp_points), device, config.repeats)
+        seconds = time_call(partial(s2camp_preconditioner, intrinsics, config.s2camp_points), device, config.repeats)
     else:
         seconds = time_call(
             lambda: camp_baseline_preconditioner(intrinsics, config.baseline_points, config.baseline_chunk),
-            device, config.repeats,
+            device,
+            config.repeats,
         )
     if device.type == "cuda":
         peak_mb = torch.cuda.max_memory_allocated(device) / 2**20
@@ -162,23 +178,49 @@ def run(config: SpeedConfig) -> list[dict]:
     rows = []
     for method, points in (("s2camp", config.s2camp_points), ("camp-baseline", config.baseline_points)):
         result = measure_in_subprocess(method, config)
-        rows.append({"kind": "comparison", "method": method, "cameras": config.cameras, "L": points,
-                     "jacobian": "analytic" if method == "s2camp" else "autodiff", **result})
-        log(f"speed {method:14s} cameras={config.cameras} L={points} {result['seconds']:.3f} s "
-            f"peak {result['peak_mb']:.0f} MB")
+        rows.append(
+            {
+                "kind": "comparison",
+                "method": method,
+                "cameras": config.cameras,
+                "L": points,
+                "jacobian": "analytic" if method == "s2camp" else "autodiff",
+                **result,
+            }
+        )
+        log(
+            f"speed {method:14s} cameras={config.cameras} L={points} {result['seconds']:.3f} s "
+            f"peak {result['peak_mb']:.0f} MB"
+        )
     baseline_seconds = rows[1]["seconds"]
     for row in rows:
         row["speedup_vs_baseline"] = baseline_seconds / row["seconds"]
     for points in config.scaling_points:
         intrinsics = batch_intrinsics(config.cameras, device)
-        seconds = time_call(lambda: s2camp_preconditioner(intrinsics, points), device, config.repeats)
-        rows.append({"kind": "scaling-L", "method": "s2camp", "cameras": config.cameras, "L": points,
-                     "seconds": seconds, "device": str(device)})
+        seconds = time_call(partial(s2camp_preconditioner, intrinsics, points), device, config.repeats)
+        rows.append(
+            {
+                "kind": "scaling-L",
+                "method": "s2camp",
+                "cameras": config.cameras,
+                "L": points,
+                "seconds": seconds,
+                "device": str(device),
+            }
+        )
     for cameras in config.scaling_cameras:
         intrinsics = batch_intrinsics(cameras, device)
-        seconds = time_call(lambda: s2camp_preconditioner(intrinsics, config.s2camp_points), device, config.repeats)
-        rows.append({"kind": "scaling-cameras", "method": "s2camp", "cameras": cameras, "L": config.s2camp_points,
-                     "seconds": seconds, "device": str(device)})
+        seconds = time_call(partial(s2camp_preconditioner, intrinsics, config.s2camp_points), device, config.repeats)
+        rows.append(
+            {
+                "kind": "scaling-cameras",
+                "method": "s2camp",
+                "cameras": cameras,
+                "L": config.s2camp_points,
+                "seconds": seconds,
+                "device": str(device),
+            }
+        )
     for row in rows[2:]:
         row["seconds_per_point_camera"] = row["seconds"] / (row["L"] * row["cameras"])
     return rows
@@ -191,8 +233,10 @@ def plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     figure, axes = plt.subplots(1, 2, figsize=(8.4, 3.6))
-    for axis, kind, key, label in ((axes[0], "scaling-L", "L", "L (points per camera)"),
-                                   (axes[1], "scaling-cameras", "cameras", "cameras")):
+    for axis, kind, key, label in (
+        (axes[0], "scaling-L", "L", "L (points per camera)"),
+        (axes[1], "scaling-cameras", "cameras", "cameras"),
+    ):
         cells = [r for r in rows if r["kind"] == kind]
         xs, ys = [r[key] for r in cells], [r["seconds"] for r in cells]
         axis.loglog(xs, ys, marker="o", label="S2CamP (measured)")
@@ -213,11 +257,19 @@ def report(rows: list[dict], config: SpeedConfig) -> Path:
     comparison = [r for r in rows if r["kind"] == "comparison"]
     scaling = [r for r in rows if r["kind"] != "comparison"]
     return write_report(
-        config.output_dir, "speed", "Time to compute the preconditioner", "s2camp-bench speed",
-        ["## S2CamP vs CamP-style baseline, same run",
-         markdown_table(comparison, ["method", "cameras", "L", "jacobian", "seconds", "peak_mb", "speedup_vs_baseline"]),
-         "Median of the timed repetitions after a warm-up; each method in its own subprocess. Peak memory is the "
-         "growth of the resident set on the CPU (allocator peak on CUDA).",
-         "## Scaling of S2CamP", markdown_table(scaling, ["kind", "cameras", "L", "seconds", "seconds_per_point_camera"]),
-         "![scaling](speed.png)"],
+        config.output_dir,
+        "speed",
+        "Time to compute the preconditioner",
+        "s2camp-bench speed",
+        [
+            "## S2CamP vs CamP-style baseline, same run",
+            markdown_table(
+                comparison, ["method", "cameras", "L", "jacobian", "seconds", "peak_mb", "speedup_vs_baseline"]
+            ),
+            "Median of the timed repetitions after a warm-up; each method in its own subprocess. Peak memory is the "
+            "growth of the resident set on the CPU (allocator peak on CUDA).",
+            "## Scaling of S2CamP",
+            markdown_table(scaling, ["kind", "cameras", "L", "seconds", "seconds_per_point_camera"]),
+            "![scaling](speed.png)",
+        ],
     )

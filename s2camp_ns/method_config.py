@@ -18,7 +18,6 @@ import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
-from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
@@ -26,6 +25,7 @@ from s2camp_ns.nerfstudio.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
 from s2camp_ns.nerfstudio.model import S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
+from s2camp_ns.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig
 
 DEFAULT_DEVICE_TYPE = "cuda" if torch.cuda.is_available() else "cpu"
 """nerfstudio's Trainer takes the device from the config and asserts CUDA; fall back to the CPU here instead."""
@@ -67,21 +67,22 @@ def make_trainer_config(method_name: str, camera_optimizer: S2CampCameraOptimize
         optimizers={
             "proposal_networks": {
                 "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
+                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
             },
             "fields": {
                 "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
+                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
             },
             # Whitened units: a unit step moves the proxy projections by about max(W, H) pixels RMS, so CamP's
             # camera schedule applies as is (1e-4 -> 1e-5 over 25k steps after a 2.5k-step warm-up).
             "camera_opt": {
                 "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(
+                "scheduler": FloatExponentialDecaySchedulerConfig(
                     lr_pre_warmup=1e-8, warmup_steps=2500, lr_final=1e-5, max_steps=25000
                 ),
             },
         },
+        # Float learning rates: nerfstudio's numpy ones make checkpoints unloadable with torch >= 2.6 defaults.
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",
     )

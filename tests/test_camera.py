@@ -57,9 +57,7 @@ def test_project_and_unproject_agree_with_pycolmap(model: str, params: list[floa
 def test_skew_matches_calibration_matrix() -> None:
     intrinsics = Intrinsics.create(**ROOM_QUARTER, skew=3.5)
     points = _random_points_in_view(intrinsics, 100, seed=2)
-    k_matrix = torch.tensor(
-        [[793.13, 3.5, 389.25], [0.0, 793.49, 259.375], [0.0, 0.0, 1.0]], dtype=torch.float64
-    )
+    k_matrix = torch.tensor([[793.13, 3.5, 389.25], [0.0, 793.49, 259.375], [0.0, 0.0, 1.0]], dtype=torch.float64)
     homogeneous = points[0] @ k_matrix.T
     expected = homogeneous[:, :2] / homogeneous[:, 2:]
     pixels, _ = project(points, intrinsics)

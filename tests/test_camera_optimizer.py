@@ -77,7 +77,8 @@ def set_latent(optimizer: S2CampCameraOptimizer, seed: int = 1, scale: float = 1
 
 def refined_state(optimizer: S2CampCameraOptimizer) -> torch.Tensor:
     intrinsics = optimizer.refined_intrinsics()
-    columns = [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.skew, intrinsics.k1, intrinsics.k2]
+    names = ("fx", "fy", "cx", "cy", "skew", "k1", "k2")
+    columns = [getattr(intrinsics, name) for name in names]
     return torch.cat([optimizer.refined_c2w().reshape(NUM_CAMERAS, -1), torch.stack(columns, dim=-1)], dim=-1)
 
 
@@ -138,7 +139,18 @@ def test_refresh_keeps_cameras_and_transforms_adam_state():
     torch.testing.assert_close(after, before, atol=1e-6, rtol=1e-6)
     # First moment: m_new = M^-T m_old = P_new^-1 P_old m_old (P symmetric).
     expected_m = (optimizer.precond_inv @ p_old @ m_old[..., None])[..., 0]
-    torch.testing.assert_close(adam.state[optimizer.whitened_delta]["exp_avg"].double(), expected_m, rtol=1e-4, atol=1e-9)
+    m_new = adam.state[optimizer.whitened_delta]["exp_avg"].double()
+    torch.testing.assert_close(m_new, expected_m, rtol=1e-4, atol=1e-9)
+
+
+def test_refresh_with_invalid_intrinsics_keeps_preconditioner():
+    optimizer = make_optimizer(precondition=True)
+    p_before = optimizer.precond.clone()
+    with torch.no_grad():  # k1 so negative that the distortion folds inside the image
+        optimizer.whitened_delta.copy_((optimizer.precond @ torch.eye(12, dtype=torch.float64)[10] * -5.0).float())
+    with pytest.warns(UserWarning, match="refresh at step 10 skipped"):
+        optimizer.refresh(step=10)
+    torch.testing.assert_close(optimizer.precond, p_before)
 
 
 def test_should_refresh_schedule():
@@ -183,7 +195,8 @@ def test_viewer_correction_matches_refined_pose():
     set_latent(optimizer, scale=0.05)
     correction = optimizer(torch.arange(NUM_CAMERAS)).double()
     c2w = cameras.camera_to_worlds.double()
-    composed = torch.cat([c2w[:, :, :3] @ correction[:, :, :3], c2w[:, :, 3:] + c2w[:, :, :3] @ correction[:, :, 3:]], -1)
+    rotation = c2w[:, :, :3] @ correction[:, :, :3]
+    composed = torch.cat([rotation, c2w[:, :, 3:] + c2w[:, :, :3] @ correction[:, :, 3:]], dim=-1)
     torch.testing.assert_close(composed, optimizer.refined_c2w(opengl=True).detach(), atol=1e-6, rtol=0)
     camera = cameras[1:2]
     camera.metadata = {"cam_idx": 1}

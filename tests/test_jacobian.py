@@ -12,8 +12,15 @@ from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian, relative_g
 
 def _camera_and_points(seed: int, count: int = 64) -> tuple[Intrinsics, torch.Tensor]:
     intrinsics = Intrinsics.create(
-        fx=[793.1, 410.0], fy=[793.5, 405.0], cx=[389.2, 330.0], cy=[259.4, 210.0], width=[778, 640],
-        height=[518, 420], skew=[0.0, 1.5], k1=[-0.05, 0.02], k2=[0.01, -0.003],
+        fx=[793.1, 410.0],
+        fy=[793.5, 405.0],
+        cx=[389.2, 330.0],
+        cy=[259.4, 210.0],
+        width=[778, 640],
+        height=[518, 420],
+        skew=[0.0, 1.5],
+        k1=[-0.05, 0.02],
+        k2=[0.01, -0.003],
     )
     generator = torch.Generator().manual_seed(seed)
     pixels = torch.rand(2, count, 2, generator=generator, dtype=torch.float64)
@@ -45,7 +52,7 @@ def test_analytic_jacobian_matches_finite_differences() -> None:
     for k in range(12):
         delta = torch.zeros(2, 12, dtype=torch.float64)
         delta[:, k] = step
-        central = (project_with_delta(points, intrinsics, delta) - project_with_delta(points, intrinsics, -delta))
+        central = project_with_delta(points, intrinsics, delta) - project_with_delta(points, intrinsics, -delta)
         numeric = central / (2 * step)
         scale = numeric.abs().max().clamp(min=1.0)
         assert (analytic[..., k] - numeric).abs().max() / scale < 1e-6, f"column {k}"
@@ -90,8 +97,14 @@ def test_gram_does_not_depend_on_resolution() -> None:
     _, jacobian, mask = projection_jacobian(points, intrinsics)
     sigma, _ = gram_matrix(jacobian, mask, intrinsics.image_scale())
     half = Intrinsics.create(
-        fx=intrinsics.fx / 2, fy=intrinsics.fy / 2, cx=intrinsics.cx / 2, cy=intrinsics.cy / 2,
-        width=intrinsics.width / 2, height=intrinsics.height / 2, skew=intrinsics.skew / 2, k1=intrinsics.k1,
+        fx=intrinsics.fx / 2,
+        fy=intrinsics.fy / 2,
+        cx=intrinsics.cx / 2,
+        cy=intrinsics.cy / 2,
+        width=intrinsics.width / 2,
+        height=intrinsics.height / 2,
+        skew=intrinsics.skew / 2,
+        k1=intrinsics.k1,
         k2=intrinsics.k2,
     )
     _, jacobian_half, mask_half = projection_jacobian(points, half)

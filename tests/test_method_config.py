@@ -58,9 +58,7 @@ def test_cli_help_documents_camera_optimizer_flags():
     config = method_config.s2camp_method.config
     out = io.StringIO()
     with redirect_stdout(out), pytest.raises(SystemExit) as exit_info:
-        tyro.cli(
-            type(config), default=config, args=["pipeline.model.camera-optimizer", "--help"], console_outputs=True
-        )
+        tyro.cli(type(config), default=config, args=["pipeline.model.camera-optimizer", "--help"], console_outputs=True)
     assert exit_info.value.code == 0
     text = out.getvalue()
     for flag in ("num-points", "sampler", "refresh-every", "damping-rel", "precondition", "parameters", "t-near"):

@@ -59,8 +59,9 @@ def test_whitened_jacobian_is_orthonormal() -> None:
         return project_with_delta(points, ROOM, layout.expand(phi_hat @ inverse[0].T)) / 778.0
 
     jacobian = torch.func.jacrev(whitened_projection)(delta)[0].reshape(-1, layout.num_params)
-    torch.testing.assert_close(jacobian.T @ jacobian / count.item(), torch.eye(7, dtype=torch.float64), atol=1e-6,
-                               rtol=0)
+    torch.testing.assert_close(
+        jacobian.T @ jacobian / count.item(), torch.eye(7, dtype=torch.float64), atol=1e-6, rtol=0
+    )
 
 
 def test_damping_keeps_unobservable_parameters_finite() -> None:
@@ -89,8 +90,9 @@ def test_compute_preconditioner_is_spd_finite_and_bit_identical(intrinsics: Intr
     assert first.matrix.dtype == torch.float64 and first.matrix.shape == (1, 12, 12)
     torch.testing.assert_close(first.matrix, first.matrix.transpose(1, 2))
     assert (torch.linalg.eigvalsh(first.matrix) > 0).all()
-    torch.testing.assert_close(first.matrix @ first.inverse, torch.eye(12, dtype=torch.float64)[None], atol=1e-8,
-                               rtol=0)
+    torch.testing.assert_close(
+        first.matrix @ first.inverse, torch.eye(12, dtype=torch.float64)[None], atol=1e-8, rtol=0
+    )
     # Damping bounds the whitened spectrum: P^-1 Sigma P^-1 has eigenvalues in (0, 1].
     whitened = first.inverse @ first.gram @ first.inverse
     eigenvalues = torch.linalg.eigvalsh(whitened)
@@ -107,8 +109,14 @@ def test_random_samplers_are_seeded() -> None:
 
 def test_batched_equals_per_camera() -> None:
     both = Intrinsics.create(
-        fx=[793.13, 410.0], fy=[793.49, 405.0], cx=[389.25, 330.0], cy=[259.375, 210.0], width=[778, 640],
-        height=[518, 420], k1=[0.0, -0.03], k2=[0.0, 0.004],
+        fx=[793.13, 410.0],
+        fy=[793.49, 405.0],
+        cx=[389.25, 330.0],
+        cy=[259.375, 210.0],
+        width=[778, 640],
+        height=[518, 420],
+        k1=[0.0, -0.03],
+        k2=[0.0, 0.004],
     )
     batched = compute_preconditioner(both)
     for i, single in enumerate([ROOM, DISTORTED]):

@@ -38,9 +38,7 @@ def make_cameras(k1: float, k2: float) -> Cameras:
 
 
 def all_ray_indices() -> torch.Tensor:
-    c, y, x = torch.meshgrid(
-        torch.arange(NUM_CAMERAS), torch.arange(HEIGHT), torch.arange(WIDTH), indexing="ij"
-    )
+    c, y, x = torch.meshgrid(torch.arange(NUM_CAMERAS), torch.arange(HEIGHT), torch.arange(WIDTH), indexing="ij")
     return torch.stack([c, y, x], dim=-1).reshape(-1, 3)
 
 

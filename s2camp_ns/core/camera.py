@@ -192,7 +192,7 @@ def _corner_distorted_radius(intrinsics: Intrinsics) -> Tensor:
     us = torch.stack([torch.zeros_like(intrinsics.width), intrinsics.width], dim=-1)
     vs = torch.stack([torch.zeros_like(intrinsics.height), intrinsics.height], dim=-1)
     b_d = (vs - intrinsics.cy[:, None]) / intrinsics.fy[:, None]
-    a_d = (us[:, :, None] - intrinsics.cx[:, None, None] - intrinsics.skew[:, None, None] * b_d[:, None, :])
+    a_d = us[:, :, None] - intrinsics.cx[:, None, None] - intrinsics.skew[:, None, None] * b_d[:, None, :]
     a_d = a_d / intrinsics.fx[:, None, None]
     r_d = torch.sqrt(a_d**2 + b_d[:, None, :] ** 2)
     return r_d.reshape(intrinsics.num_cameras, -1).amax(dim=-1)
@@ -286,9 +286,7 @@ def pixel_to_ray_direction(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsic
     return directions / torch.linalg.norm(directions, dim=-1, keepdim=True)
 
 
-def tangent_bounds(
-    intrinsics: Intrinsics, samples_per_edge: int = 129, inset: float = 1e-5
-) -> Float[Tensor, "n 4"]:
+def tangent_bounds(intrinsics: Intrinsics, samples_per_edge: int = 129, inset: float = 1e-5) -> Float[Tensor, "n 4"]:
     """Inner box (a_min, a_max, b_min, b_max) of undistorted tangents whose rays land inside the image.
 
     The image border is unprojected at ``samples_per_edge`` points per edge. With barrel distortion the border

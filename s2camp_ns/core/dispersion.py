@@ -40,7 +40,9 @@ __all__ = [
     "dispersion",
     "frustum_volume",
     "nearest_distance",
+    "reference_tangent_bounds",
     "solid_angle",
+    "transform_volume",
 ]
 
 BCC_COVERING_DENSITY = 5.0 * math.sqrt(5.0) * math.pi / 24.0
@@ -58,6 +60,18 @@ class DispersionResult:
     def error_bound(self) -> Float[Tensor, " n"]:
         """``upper - value``: the true dispersion lies in ``[value, value + error_bound]``."""
         return self.upper - self.value
+
+
+def reference_tangent_bounds(name: str) -> Float[Tensor, "1 4"]:
+    """Tangent box of a reference camera: ``"room"`` (mip-NeRF 360 room at 1/4 resolution: 778 x 518 pixels,
+    fx 793.13, fy 793.49, cx 389.25, cy 259.375) or ``"wide"`` (90 degree horizontal field of view, 3:2)."""
+    check_choice("name", name, ("room", "wide"))
+    if name == "room":
+        width, height, fx, fy, cx, cy = 778.0, 518.0, 793.13, 793.49, 389.25, 259.375
+        box = [-cx / fx, (width - cx) / fx, -cy / fy, (height - cy) / fy]
+    else:
+        box = [-1.0, 1.0, -2.0 / 3.0, 2.0 / 3.0]
+    return torch.tensor([box], dtype=torch.float64)
 
 
 def _tangent_G(a: Tensor, b: Tensor) -> Tensor:
@@ -131,6 +145,8 @@ def _map_params(params: Tensor, bounds: Tensor, t_near: float, t_far: float, tra
     return radius.unsqueeze(-1) * direction
 
 
+_MAX_CELLS = 1 << 19
+
 _CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.float64)
 
 
@@ -140,7 +156,7 @@ def _dispersion_one(
     device = points.device
     corners = _CORNERS.to(device)
     a0, a1, b0, b1 = bounds[0].tolist()
-    # Initial cells about a quarter of the mean point spacing in each mapped direction.
+    # Initial cells about half the mean point spacing along each mapped direction.
     spacing = 0.5 * (float(transform_volume(bounds, t_near, t_far, transform)[0]) / points.shape[0]) ** (1.0 / 3.0)
     sizes = (
         t_far - t_near,
@@ -150,9 +166,9 @@ def _dispersion_one(
     counts = [max(2, min(256, math.ceil(size / spacing))) for size in sizes]
     axes = [torch.arange(c + 1, device=device, dtype=torch.float64) / c for c in counts]
     grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
-    values = nearest_distance(_map_params(grid.reshape(-1, 3), bounds, t_near, t_far, transform), points)
-    values = values.reshape(grid.shape[:3])
-    mapped = _map_params(grid.reshape(-1, 3), bounds, t_near, t_far, transform).reshape(grid.shape)
+    mapped = _map_params(grid.reshape(-1, 3), bounds, t_near, t_far, transform)
+    values = nearest_distance(mapped, points).reshape(grid.shape[:3])
+    mapped = mapped.reshape(grid.shape)
     best = float(values.max())
     best_index = int(values.argmax())
     centre = mapped.reshape(-1, 3)[best_index]
@@ -169,7 +185,9 @@ def _dispersion_one(
 
     for _ in range(max_levels):
         keep = upper > best + tol
-        if not bool(keep.any()):
+        # A flat maximum (e.g. a whole spherical cap at the same distance) would keep every cell on it alive;
+        # stop at the cell budget and report the honest, larger upper bound instead of exhausting memory.
+        if not bool(keep.any()) or 2 * int(keep.sum()) > _MAX_CELLS:
             break
         low, step, vpts = low[keep], step[keep], vertex_points.reshape(-1, 8, 3)[keep]
         # Split each surviving cell in two across its longest mapped edge: cells at the apex are long in radius
@@ -188,7 +206,7 @@ def _dispersion_one(
             centre = vpts[int(vvals.argmax())]
         vertex_points = vpts.reshape(-1, 8, 3)
         upper = vvals.amax(-1) + _half_diagonal(vertex_points)
-    final_upper = max(best, float(upper.max())) if upper.numel() else best
+    final_upper = max(best, float(upper.max()))
     return best, final_upper, centre
 
 

@@ -120,8 +120,11 @@ def _pyramid_strip_inverse(c: Tensor, s0: Tensor, s1: Tensor) -> Tensor:
 
 
 def directions_from_unit(
-    u_vertical: Float[Tensor, "n *l"], u_horizontal: Float[Tensor, "n *l"], bounds: Float[Tensor, "n 4"], transform: str
-) -> Float[Tensor, "n *l 3"]:
+    u_vertical: Float[Tensor, "*batch"],
+    u_horizontal: Float[Tensor, "*batch"],
+    bounds: Float[Tensor, "n 4"],
+    transform: str,
+) -> Float[Tensor, "*batch 3"]:
     """Unit ray directions from the two angular CDF coordinates (paper eqs. 8-9, 12, 14).
 
     ``u_vertical`` (``u2``) drives elevation / the ``b`` tangent, ``u_horizontal`` (``u3``) azimuth / ``a``.
@@ -149,8 +152,8 @@ def directions_from_unit(
 
 
 def unit_from_directions(
-    directions: Float[Tensor, "n *l 3"], bounds: Float[Tensor, "n 4"], transform: str
-) -> tuple[Float[Tensor, "n *l"], Float[Tensor, "n *l"]]:
+    directions: Float[Tensor, "*batch 3"], bounds: Float[Tensor, "n 4"], transform: str
+) -> tuple[Float[Tensor, "*batch"], Float[Tensor, "*batch"]]:
     """Forward angular CDFs ``(u_vertical, u_horizontal)`` of directions (paper eq. 11); inverse of the above."""
     x, y, z = directions.unbind(-1)
     a0, a1 = _column(bounds, 0, x), _column(bounds, 1, x)
@@ -193,7 +196,10 @@ def map_unit_to_frustum(
 
 
 def frustum_to_unit(
-    contracted: Float[Tensor, "n l 3"], tangent_bounds: Float[Tensor, "n 4"], t_near: float, t_far: float,
+    contracted: Float[Tensor, "n l 3"],
+    tangent_bounds: Float[Tensor, "n 4"],
+    t_near: float,
+    t_far: float,
     transform: Transform = "pyramid",
 ) -> Float[Tensor, "n l 3"]:
     """Forward CDF ``F(p)`` of contracted frustum points (paper eqs. 6, 11): the inverse of :func:`sample_frustum`.

@@ -60,9 +60,7 @@ def projection_jacobian(
         dim=-2,
     )
     # d(u, v)/d(a_d, b_d): [n, 1, 2, 2]
-    duv_dd = torch.stack(
-        [torch.stack([fx, skew], dim=-1), torch.stack([torch.zeros_like(fy), fy], dim=-1)], dim=-2
-    )
+    duv_dd = torch.stack([torch.stack([fx, skew], dim=-1), torch.stack([torch.zeros_like(fy), fy], dim=-1)], dim=-2)
     duv_dx = duv_dd @ dd_dab @ dab_dx  # [n, l, 2, 3]
     # Local twist at zero: dx'/drho = -I, dx'/domega = [x]_x.
     d_rho = -duv_dx

@@ -117,7 +117,9 @@ def sample_proxy_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> Flo
     sampling.validate()
     bounds = tangent_bounds(intrinsics.to(dtype=torch.float64))
     if sampling.sampler == "camp-random":
-        return camp_random_points(bounds, sampling.num_points, sampling.t_near, sampling.t_far, seed=sampling.seed).camera
+        return camp_random_points(
+            bounds, sampling.num_points, sampling.t_near, sampling.t_far, seed=sampling.seed
+        ).camera
     unit = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed)
     return sample_frustum(unit.to(bounds.device), bounds, sampling.t_near, sampling.t_far, sampling.transform).camera
 

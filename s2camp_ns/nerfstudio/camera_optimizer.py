@@ -346,9 +346,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         width = int(self.base_intrinsics[index, 7]) // downscale
         height = int(self.base_intrinsics[index, 8]) // downscale
         device = self.precond.device
-        ys, xs = torch.meshgrid(
-            torch.arange(height, device=device), torch.arange(width, device=device), indexing="ij"
-        )
+        ys, xs = torch.meshgrid(torch.arange(height, device=device), torch.arange(width, device=device), indexing="ij")
         pixels = torch.stack([xs + 0.5, ys + 0.5], dim=-1).reshape(-1, 2).to(torch.float32) * downscale
         camera_indices = torch.full((pixels.shape[0],), index, dtype=torch.long, device=device)
         with torch.no_grad():
@@ -423,14 +421,23 @@ class S2CampCameraOptimizer(CameraOptimizer):
         the second moment (an elementwise E[g^2]) has no exact linear image, and is mapped assuming
         uncorrelated gradient components, v_new = (M^-T)^2 v_old (elementwise square of the matrix). P changes
         slowly, so M stays close to the identity and this approximation is mild; the step count is kept.
+
+        The pose columns of the new P are the local-twist Jacobian at the refined pose; for the accumulated twist
+        xi the exact Jacobian differs by SE(3)'s right Jacobian, the identity up to O(|xi|) (small corrections).
+        If the refined intrinsics are invalid (e.g. distortion folding inside the image) P is kept and a warning
+        says why, so a refresh never stops training.
         """
         self._require_cameras()
         if self.config.precondition and self.enabled:
             device = self.precond.device
             intrinsics = self.refined_intrinsics().detach()
-            result = compute_preconditioner(
-                intrinsics, self.layout, self.config.sampling_config(), self.config.damping_config()
-            )
+            try:
+                result = compute_preconditioner(
+                    intrinsics, self.layout, self.config.sampling_config(), self.config.damping_config()
+                )
+            except ValueError as error:
+                warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
+                return
             new_p, new_p_inv = result.matrix.to(device), result.inverse.to(device)
             change = new_p @ self.precond_inv  # M = P_new P_old^-1
             grad_map = new_p_inv.transpose(-1, -2) @ self.precond.transpose(-1, -2)  # M^-T = P_new^-T P_old^T

@@ -1,0 +1,54 @@
+"""Every `s2camp-bench` subcommand runs in quick mode, prints one JSON object and writes its report."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REQUIRED_KEYS = {
+    "dispersion": {"frustum", "transform", "sampler", "L", "dispersion", "covering_bound"},
+    "gram-error": {"frustum", "sampler", "L", "rel_error", "seeds"},
+    "speed": {"method", "cameras", "L", "seconds", "peak_mb"},
+    "recovery": {"tier", "scene", "variant", "rot_err", "pos_err", "focal_err", "sec_per_iter"},
+}
+REPORTS = {"dispersion": "dispersion.md", "gram-error": "gram-error.md", "speed": "speed.md", "recovery": "recovery.md"}
+
+
+def _bench() -> str:
+    script = Path(sys.executable).with_name("s2camp-bench")
+    if not script.exists():
+        pytest.skip("s2camp-bench is not installed (pip install -e .)")
+    return str(script)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(400)
+@pytest.mark.parametrize("name", sorted(REQUIRED_KEYS))
+def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path) -> None:
+    result = subprocess.run(
+        [_bench(), name, "--quick", "--json", "--output-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=390,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    payload = json.loads(result.stdout)
+    rows = payload["rows"]
+    assert rows, "no rows"
+    for row in rows:
+        if name == "speed" and row.get("kind", "comparison") != "comparison":
+            continue
+        assert REQUIRED_KEYS[name] <= row.keys(), f"{name} row misses {REQUIRED_KEYS[name] - row.keys()}"
+    report = tmp_path / REPORTS[name]
+    assert report.exists() and "Regenerate with" in report.read_text()
+    if name == "recovery":
+        variants = {row["variant"] for row in rows}
+        assert variants == {"none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once"}
+    if name == "speed":
+        methods = {row["method"] for row in rows if row.get("kind") == "comparison"}
+        assert methods == {"s2camp", "camp-baseline"}
