@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import platform
 import sys
 import time
@@ -82,9 +83,17 @@ def write_report(output_dir: Path, name: str, title: str, command: str, sections
     return path
 
 
+def _json_safe(value: object) -> object:
+    """NaN and infinities (e.g. a threshold never reached) become null: strict JSON has no NaN."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def emit_json(rows: list[dict]) -> None:
-    """Print exactly one JSON object on stdout: ``{"rows": [...]}``."""
-    sys.stdout.write(json.dumps({"rows": rows}) + "\n")
+    """Print exactly one JSON object on stdout: ``{"rows": [...]}`` (strict JSON: NaN is written as null)."""
+    safe = [{key: _json_safe(value) for key, value in row.items()} for row in rows]
+    sys.stdout.write(json.dumps({"rows": safe}, allow_nan=False) + "\n")
     sys.stdout.flush()
 
 

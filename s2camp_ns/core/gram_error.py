@@ -33,9 +33,10 @@ def reference_gram(
     chunk: int = 2**16,
     min_points: int = 10**6,
 ) -> Float[Tensor, "n k k"]:
-    """Sigma from ``num_points`` (>= 10^6) points of the same distribution as ``sampling`` describes.
+    """Sigma from ``num_points`` points of the same distribution as ``sampling`` describes.
 
-    ``min_points`` guards the benchmark's protocol; internal rankings may lower it. Volume-uniform samplers (lattice, Sobol, Halton, random) share one reference, made from scrambled Sobol points
+    ``min_points`` (10^6) guards the benchmark protocol; internal rankings such as the lattice search may lower it.
+    Volume-uniform samplers (lattice, Sobol, Halton, random) share one reference, made from scrambled Sobol points
     through ``sampling.transform``; CamP's random sampler has its own (non-uniform) density, so its reference is made
     from ``num_points`` of its own random draws.
     """

@@ -197,6 +197,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
         # Base cameras come from the dataparser on every run, so they are not saved.
         self.register_buffer("base_c2w_cv", torch.zeros(num_cameras, 3, 4, dtype=torch.float64), persistent=False)
         self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 9, dtype=torch.float64), persistent=False)
+        # Undamped Gram Sigma of the last refresh (zero until one computes it; the viewer panel's condition numbers).
+        self.register_buffer("gram", torch.zeros_like(eye), persistent=False)
         self.has_cameras = False
         self._warned_no_pixels = False
 
@@ -453,6 +455,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
                     v.copy_(((grad_map**2) @ v.to(torch.float64)[..., None])[..., 0].to(v.dtype))
             self.precond.copy_(new_p)
             self.precond_inv.copy_(new_p_inv)
+            self.gram.copy_(result.gram.to(device))
         self.last_refresh_step.fill_(step)
         self.num_refreshes.add_(1)
 

@@ -20,6 +20,7 @@ from s2camp_ns.nerfstudio.camera_optimizer import (
     S2CampCameraOptimizer,
     S2CampCameraOptimizerConfig,
 )
+from s2camp_ns.nerfstudio.viewer_panel import S2CampViewerPanel
 
 _LPIPS_WARNED = False
 
@@ -45,6 +46,9 @@ class S2CampModelConfig(NerfactoModelConfig):
     camera_error_every: int = 100
     """Compute camera errors against the dataparser's reference cameras every this many steps (0 = never);
     skipped when the dataparser provides no reference cameras."""
+    viewer_update_period: float = 1.0
+    """Seconds between updates of the viewer's S2CamP panel and training-camera frusta (0 = every step; negative =
+    no panel). Costs nothing when training without the viewer."""
 
 
 class S2CampModel(NerfactoModel):
@@ -64,6 +68,11 @@ class S2CampModel(NerfactoModel):
             self.lpips = None
             self.step = 0
         self._camera_errors: dict[str, float] = {}
+        # --- S2CamP viewer panel (viewer_panel.py); inert unless nerfstudio's viewer installs it. The attribute name
+        # is the panel's folder label in the viewer.
+        if self.config.viewer_update_period >= 0:
+            self.S2CamP = S2CampViewerPanel(self, update_period=self.config.viewer_update_period)
+        # --- end viewer panel
 
     @property
     def lpips_available(self) -> bool:
@@ -98,6 +107,11 @@ class S2CampModel(NerfactoModel):
                     func=lambda step: self.update_camera_errors(),
                 )
             )
+        # --- S2CamP viewer panel: its callback exists only when the viewer installed the panel
+        panel = getattr(self, "S2CamP", None)
+        if panel is not None:
+            callbacks.extend(panel.training_callbacks(training_callback_attributes))
+        # --- end viewer panel
         return callbacks
 
     # ---------------------------------------------------------------------------------------------- camera errors

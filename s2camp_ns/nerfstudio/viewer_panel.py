@@ -1,0 +1,412 @@
+"""The "S2CamP" panel of nerfstudio's viewer and the training-camera frusta: watch camera refinement live.
+
+The model declares the panel (``S2CampModel.S2CamP``) with nerfstudio's viewer elements. nerfstudio's viewer finds
+them on the pipeline's modules and installs them in its Control tab (folder Custom Elements > model > S2CamP), and
+hands its ``Viewer`` to the panel's ``ViewerControl``. Only then does the model add the panel's training callback,
+so training without the viewer (``--vis tensorboard``) never touches this module after start-up.
+
+The panel shows, updated at most every ``update_period`` seconds of training:
+- camera errors against the reference cameras, when the dataparser provides them (after a similarity alignment;
+  rotation, position, focal; mean and max over the training cameras);
+- the condition number of the Gram matrix Sigma of the last refresh of P, before and after whitening
+  (P^-T Sigma P^-1), mean and worst over the cameras;
+- the steps since the last refresh of P, and a button that refreshes P at the next training step (in the training
+  thread; the button's own callback only sets a flag).
+
+Frusta (viser units are nerfstudio's times ``VISER_NERFSTUDIO_SCALE_RATIO``): the refined training cameras (amber),
+and, when the reference cameras differ from the initial ones (CamP perturbation), the initial (red) and the
+reference (green) cameras; each set has a checkbox. Clicking a frustum moves the view to that camera, its vertical
+field of view set from the camera's focal length (refined for the refined set and for nerfstudio's own image
+frusta, which follow the refined poses). The viewer camera has a centred principal point and no skew or
+distortion, so only pose and focal length carry over.
+
+Nothing here may stop training: a failure is reported once and the panel then stays still.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import weakref
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.utils.rich_utils import CONSOLE
+from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerCheckbox, ViewerControl, ViewerText
+from torch import nn
+
+from s2camp_ns.core.preconditioner import condition_number
+
+if TYPE_CHECKING:
+    from viser import ViserServer
+
+    from s2camp_ns.nerfstudio.model import S2CampModel
+
+FrustumSet = Literal["refined", "initial", "reference"]
+FRUSTUM_COLORS: dict[FrustumSet, tuple[int, int, int]] = {
+    "refined": (255, 176, 32),
+    "initial": (230, 64, 64),
+    "reference": (64, 200, 110),
+}
+"""Colours of the three frustum sets (amber, red, green); the checkbox labels name them."""
+FRUSTUM_ROOT = "/s2camp_cameras"
+"""Scene-tree folder of the panel's frusta (nerfstudio draws its own image frusta under /cameras)."""
+_POSE_TOLERANCE = 1e-6
+"""Frusta whose pose and field of view moved less than this (viser units, radians) are not re-sent."""
+
+
+class DisplayText(ViewerText):
+    """A read-only text field written by the training thread.
+
+    Installed without an update callback: nerfstudio wraps every element callback in a re-render of the view, so a
+    field that the server writes once a second would otherwise keep interrupting the render.
+    """
+
+    def __init__(self, name: str, hint: str) -> None:
+        super().__init__(name, "n/a", disabled=True, hint=hint)
+
+    def install(self, viser_server: ViserServer) -> None:
+        self._create_gui_handle(viser_server)
+
+
+def _mean_max(errors: dict[str, float], key: str, scale: float = 1.0) -> str:
+    """Text "mean / max" of ``camera_errors/{key}_mean`` and ``camera_errors/{key}_max``."""
+    mean, worst = (errors[f"camera_errors/{key}_{stat}"] * scale for stat in ("mean", "max"))
+    return f"{mean:.3g} / {worst:.3g}"
+
+
+def _opencv_from_opengl(c2w: torch.Tensor) -> torch.Tensor:
+    """Right-multiply a c2w by diag(1, -1, -1) (OpenGL <-> OpenCV camera frame)."""
+    out = c2w.clone()
+    out[..., 1:3] = -out[..., 1:3]
+    return out
+
+
+class S2CampViewerPanel(nn.Module):
+    """Viewer elements of the S2CamP panel, its frusta and its training callback.
+
+    nerfstudio lists a folder's elements in attribute-name order, hence the letter prefixes. The module holds no
+    parameters or buffers (nothing enters checkpoints) and refers to its model weakly (no module cycle).
+    """
+
+    def __init__(self, model: S2CampModel, update_period: float = 1.0) -> None:
+        super().__init__()
+        self._model_ref = weakref.ref(model)
+        self._update_period = float(update_period)
+        self.a_status = DisplayText("Status", "Training step of the last panel update")
+        self.b_rotation_error = DisplayText(
+            "Rot. err ° mean/max",
+            "Geodesic rotation error (degrees) against the reference cameras after a similarity alignment; mean and "
+            "max over the training cameras",
+        )
+        self.c_position_error = DisplayText(
+            "Pos. err mean/max", "Camera-centre error against the reference cameras after alignment (scene units)"
+        )
+        self.d_focal_error = DisplayText(
+            "Focal err px mean/max", "Focal-length error (pixels) against the reference cameras"
+        )
+        self.e_condition_sigma = DisplayText(
+            "cond Σ mean/worst",
+            "Condition number of each camera's Gram matrix Σ at the last refresh of P; mean and worst camera",
+        )
+        self.f_condition_whitened = DisplayText(
+            "cond P⁻ᵀΣP⁻¹ mean/worst",
+            "Condition number after whitening with the damped preconditioner P; mean and worst camera",
+        )
+        self.g_since_refresh = DisplayText("Since P refresh", "Training steps since P was last recomputed")
+        self.h_refresh_now = ViewerButton("Refresh P now", cb_hook=lambda _: self.request_refresh())
+        self.i_show_refined = ViewerCheckbox(
+            "Refined cams (amber)", True, cb_hook=lambda element: self.set_frusta_visible("refined", element.value)
+        )
+        self.j_show_initial = ViewerCheckbox(
+            "Initial cams (red)", True, cb_hook=lambda element: self.set_frusta_visible("initial", element.value)
+        )
+        self.k_show_reference = ViewerCheckbox(
+            "Reference cams (green)", True, cb_hook=lambda element: self.set_frusta_visible("reference", element.value)
+        )
+        self.viewer_control = _PanelControl(self)
+        self._viewer: Any = None
+        self._lock = threading.Lock()  # guards the frustum handles (training thread vs. websocket callbacks)
+        self._handles: dict[FrustumSet, dict[int, Any]] = {"refined": {}, "initial": {}, "reference": {}}
+        self._poses: dict[FrustumSet, dict[int, tuple[np.ndarray, np.ndarray, float]]] = {
+            "refined": {},
+            "initial": {},
+            "reference": {},
+        }
+        self._nerfstudio_frusta_hooked = False
+        self._refresh_requested = False
+        self._last_update = -math.inf
+        self._failed = False
+        self.num_updates = 0
+
+    # --------------------------------------------------------------------------------------------------- state
+    def _model(self) -> S2CampModel:
+        # A method, not a property: nerfstudio's viewer walks public attributes (properties included) for elements.
+        model = self._model_ref()
+        if model is None:
+            raise RuntimeError("the S2CamP viewer panel outlived its model")
+        return model
+
+    @property
+    def attached(self) -> bool:
+        """True once nerfstudio's viewer has installed the panel (never when training without the viewer)."""
+        return self._viewer is not None and not self._failed
+
+    def request_refresh(self) -> None:
+        """Ask for a refresh of P at the next training step (called from the viewer's websocket thread)."""
+        self._refresh_requested = True
+
+    # --------------------------------------------------------------------------------------------- attachment
+    def attach(self, viewer: Any) -> None:
+        """Called by the ViewerControl when nerfstudio's viewer is built: draw the static frusta, fill the panel."""
+        self._viewer = viewer
+        self._guard(self._attach)
+
+    @torch.no_grad()
+    def _attach(self) -> None:
+        optimizer = self._model().camera_optimizer
+        if not optimizer.has_cameras:
+            return
+        distinct = self._reference_differs()
+        for element in (self.j_show_initial, self.k_show_reference):
+            element.set_visible(distinct)
+        if not (optimizer.enabled and optimizer.config.precondition):
+            self.h_refresh_now.set_disabled(True)
+        if distinct:
+            self._draw_static_sets()
+        self._update(step=int(optimizer.last_refresh_step.clamp(min=0)))
+
+    def _guard(self, func, *args) -> None:
+        if self._failed:
+            return
+        try:
+            func(*args)
+        except Exception as error:  # the viewer must never stop training
+            self._failed = True
+            CONSOLE.print(
+                f"[bold yellow]S2CamP viewer panel disabled after an error ({type(error).__name__}: {error}); "
+                "training continues."
+            )
+
+    # ------------------------------------------------------------------------------------------------ callbacks
+    def training_callbacks(self, attributes: TrainingCallbackAttributes) -> list[TrainingCallback]:
+        """The panel's per-step callback, or nothing when the viewer is off."""
+        if not self.attached:
+            return []
+        optimizers = attributes.optimizers
+
+        def after_step(step: int) -> None:
+            force = False
+            if self._refresh_requested:
+                self._refresh_requested = False
+                torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
+                self._guard(self._model().camera_optimizer.refresh, step, torch_optimizer)
+                force = True
+            now = time.monotonic()
+            if force or now - self._last_update >= self._update_period:
+                self._guard(self._update, step)
+
+        return [TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=after_step)]
+
+    # --------------------------------------------------------------------------------------------- panel values
+    @torch.no_grad()
+    def panel_values(self, step: int) -> dict[str, str]:
+        """The panel's text values at training step ``step`` (also used by tests)."""
+        model = self._model()
+        optimizer = model.camera_optimizer
+        values = {"a_status": f"step {step} · {optimizer.num_cameras} cams"}
+        errors = model.update_camera_errors() if model.reference_cameras() is not None else {}
+        if errors:
+            values["b_rotation_error"] = _mean_max(errors, "rot_err", scale=180.0 / math.pi)
+            values["c_position_error"] = _mean_max(errors, "pos_err")
+            has_focal = "camera_errors/focal_err_mean" in errors
+            values["d_focal_error"] = _mean_max(errors, "focal_err") if has_focal else "n/a"
+        else:
+            for key in ("b_rotation_error", "c_position_error", "d_focal_error"):
+                values[key] = "no reference cameras"
+        gram = optimizer.gram
+        if optimizer.enabled and optimizer.config.precondition and bool(gram.abs().amax() > 0):
+            inverse = optimizer.precond_inv.to(gram)
+            whitened = inverse.transpose(-1, -2) @ gram @ inverse
+            values["e_condition_sigma"] = self._condition_text(gram)
+            values["f_condition_whitened"] = self._condition_text(0.5 * (whitened + whitened.transpose(-1, -2)))
+        else:
+            reason = "camera refinement off" if not optimizer.enabled else "preconditioning off"
+            values["e_condition_sigma"] = values["f_condition_whitened"] = reason
+        last = int(optimizer.last_refresh_step)
+        every = optimizer.config.refresh_every
+        since = f"{max(step - last, 0)} steps" if last >= 0 else "never refreshed"
+        if every > 0 and last >= 0:
+            since += f" (every {every})"
+        values["g_since_refresh"] = since
+        return values
+
+    @staticmethod
+    def _condition_text(matrices: torch.Tensor) -> str:
+        condition = condition_number(matrices)
+        return f"{float(condition.mean()):.3g} / {float(condition.max()):.3g}"
+
+    @torch.no_grad()
+    def _update(self, step: int) -> None:
+        values = self.panel_values(step)
+        for name, value in values.items():
+            getattr(self, name).value = value
+        self._update_refined_frusta()
+        if not self._nerfstudio_frusta_hooked:
+            self._hook_nerfstudio_frusta()
+        self._last_update = time.monotonic()
+        self.num_updates += 1
+
+    # --------------------------------------------------------------------------------------------------- frusta
+    def _server(self) -> ViserServer:
+        return self._viewer.viser_server
+
+    def _scale_ratio(self) -> float:
+        from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+        return VISER_NERFSTUDIO_SCALE_RATIO
+
+    def drawn_indices(self) -> list[int]:
+        """Training cameras drawn, evenly spaced up to the viewer's ``max_num_display_images`` (as nerfstudio)."""
+        total = self._model().camera_optimizer.num_cameras
+        limit = getattr(getattr(self._viewer, "config", None), "max_num_display_images", -1)
+        count = total if limit is None or limit < 0 else min(limit, total)
+        return np.linspace(0, total - 1, count, dtype=np.int64).tolist() if count > 0 else []
+
+    def _reference_differs(self) -> bool:
+        reference = self._model().reference_cameras()
+        if reference is None:
+            return False
+        optimizer = self._model().camera_optimizer
+        initial_c2w = _opencv_from_opengl(reference.camera_to_worlds.to(torch.float64)).cpu()
+        return not (
+            torch.allclose(initial_c2w, optimizer.base_c2w_cv.cpu(), atol=1e-6)
+            and torch.allclose(reference.fy.reshape(-1).double().cpu(), optimizer.base_intrinsics[:, 1].cpu())
+        )
+
+    def _frustum_params(
+        self, c2w_cv: torch.Tensor, fy: torch.Tensor, height: torch.Tensor
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions (viser units), wxyz and vertical fields of view of OpenCV c2w's."""
+        import viser.transforms as vtf
+
+        c2w = c2w_cv.detach().double().cpu().numpy()
+        positions = c2w[:, :, 3] * self._scale_ratio()
+        wxyz = vtf.SO3.from_matrix(c2w[:, :, :3]).wxyz.reshape(-1, 4)
+        fov = 2.0 * np.arctan(height.double().cpu().numpy() / (2.0 * fy.double().cpu().numpy()))
+        return positions, wxyz, fov
+
+    @torch.no_grad()
+    def _draw_static_sets(self) -> None:
+        optimizer = self._model().camera_optimizer
+        reference = self._model().reference_cameras()
+        assert reference is not None
+        base = optimizer.base_intrinsics
+        sets: dict[FrustumSet, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {
+            "initial": (optimizer.base_c2w_cv, base[:, 1], base[:, 8]),
+            "reference": (
+                _opencv_from_opengl(reference.camera_to_worlds.to(torch.float64)),
+                reference.fy.reshape(-1),
+                reference.height.reshape(-1),
+            ),
+        }
+        indices = self.drawn_indices()
+        for name, (c2w, fy, height) in sets.items():
+            positions, wxyz, fov = self._frustum_params(c2w[indices], fy[indices], height[indices])
+            with self._lock, self._server().atomic():
+                for row, index in enumerate(indices):
+                    self._add_frustum(name, index, positions[row], wxyz[row], float(fov[row]))
+
+    def _update_refined_frusta(self) -> None:
+        optimizer = self._model().camera_optimizer
+        indices = self.drawn_indices()
+        if not indices:
+            return
+        deltas = optimizer.camera_deltas()
+        intrinsics = optimizer.refined_intrinsics(deltas)
+        c2w = optimizer.refined_c2w(deltas)
+        positions, wxyz, fov = self._frustum_params(c2w[indices], intrinsics.fy[indices], intrinsics.height[indices])
+        with self._lock, self._server().atomic():
+            handles, poses = self._handles["refined"], self._poses["refined"]
+            for row, index in enumerate(indices):
+                old = poses.get(index)
+                if index not in handles or old is None or abs(old[2] - float(fov[row])) > _POSE_TOLERANCE:
+                    self._add_frustum("refined", index, positions[row], wxyz[row], float(fov[row]))
+                    continue
+                if np.abs(old[0] - positions[row]).max() > _POSE_TOLERANCE or (
+                    np.abs(np.abs(old[1] @ wxyz[row]) - 1.0) > _POSE_TOLERANCE
+                ):
+                    handles[index].position = positions[row]
+                    handles[index].wxyz = wxyz[row]
+                    poses[index] = (positions[row], wxyz[row], float(fov[row]))
+
+    def _add_frustum(self, name: FrustumSet, index: int, position: np.ndarray, wxyz: np.ndarray, fov: float) -> None:
+        """(Re)create one frustum (viser cannot change a frustum's field of view in place). Caller holds the lock."""
+        intrinsics = self._model().camera_optimizer.base_intrinsics[index]
+        handle = self._server().scene.add_camera_frustum(
+            f"{FRUSTUM_ROOT}/{name}/camera_{index:05d}",
+            fov=fov,
+            aspect=float(intrinsics[7] / intrinsics[8]),
+            scale=float(getattr(getattr(self._viewer, "config", None), "camera_frustum_scale", 0.1)),
+            color=FRUSTUM_COLORS[name],
+            wxyz=wxyz,
+            position=position,
+            visible=self._set_visible(name),
+        )
+        handle.on_click(lambda event, name=name, index=index: self._guard(self._go_to_camera, event, name, index))
+        self._handles[name][index] = handle
+        self._poses[name][index] = (position, wxyz, fov)
+
+    def _set_visible(self, name: FrustumSet) -> bool:
+        checkbox = {"refined": self.i_show_refined, "initial": self.j_show_initial, "reference": self.k_show_reference}
+        return bool(checkbox[name].value)
+
+    def set_frusta_visible(self, name: FrustumSet, visible: bool) -> None:
+        """Show or hide one frustum set (checkbox callback, websocket thread)."""
+        with self._lock:
+            for handle in self._handles[name].values():
+                handle.visible = bool(visible)
+
+    def _go_to_camera(self, event: Any, name: FrustumSet, index: int) -> None:
+        """Move the clicking client's view to camera ``index`` of set ``name``, field of view included."""
+        with self._lock:
+            pose = self._poses[name].get(index)
+        if pose is None:
+            return
+        position, wxyz, fov = pose
+        client = event.client
+        with client.atomic():
+            client.camera.fov = fov
+            client.camera.wxyz = wxyz
+            client.camera.position = position
+        if hasattr(self._viewer, "current_camera_idx"):
+            self._viewer.current_camera_idx = index
+
+    def _hook_nerfstudio_frusta(self) -> None:
+        """Make a click on nerfstudio's own (image) training frusta also apply the refined field of view."""
+        handles = getattr(self._viewer, "camera_handles", None)
+        if not handles:
+            return  # nerfstudio draws them when training starts
+        for index, handle in handles.items():
+            handle.on_click(lambda event, index=int(index): self._guard(self._go_to_camera, event, "refined", index))
+        self._nerfstudio_frusta_hooked = True
+
+
+class _PanelControl(ViewerControl):
+    """Receives nerfstudio's viewer (``ViewerControl._setup`` is how nerfstudio hands it to a model's controls)."""
+
+    def __init__(self, panel: S2CampViewerPanel) -> None:
+        super().__init__()
+        self._panel_ref = weakref.ref(panel)
+
+    def _setup(self, viewer: Any) -> None:
+        super()._setup(viewer)
+        panel = self._panel_ref()
+        if panel is not None:
+            panel.attach(viewer)
+
+
+__all__ = ["FRUSTUM_COLORS", "FRUSTUM_ROOT", "DisplayText", "S2CampViewerPanel"]
