@@ -11,6 +11,8 @@ import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import torch
+
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import DEFAULT_OUTPUT_DIR, log, markdown_table, write_report
@@ -57,7 +59,7 @@ def run_geometric(config: RecoveryConfig, scene_root: Path) -> tuple[list[dict],
         scene_config = replace(SCENES[scene_name], output_dir=scene_root / scene_name)
         if config.quick:
             scene_config = replace(scene_config, **QUICK_SCENE_SIZE)
-        scene = load_scene(make_scene(scene_config), scene_name)
+        scene = load_scene(make_scene(scene_config), scene_name, config.geometric.max_points)
         baseline_seconds = None
         for variant in config.variants:
             seeds = config.geometric.camp_seeds if variant == "camp" else (0,)
@@ -84,6 +86,17 @@ def run_geometric(config: RecoveryConfig, scene_root: Path) -> tuple[list[dict],
 
 def run(config: RecoveryConfig) -> list[dict]:
     config = config.effective()
+    # Tier 1 is many small tensor operations: one thread keeps per-iteration times stable and comparable between
+    # variants (several threads on a busy 2-core machine made them vary tenfold).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _run(config)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run(config: RecoveryConfig) -> list[dict]:
     if config.scene_dir is not None:
         rows, histories = run_geometric(config, config.scene_dir)
     else:
@@ -153,7 +166,8 @@ def report(rows: list[dict], config: RecoveryConfig) -> Path:
     ]
     g = config.geometric
     setup = (
-        f"Tier 1: {g.iterations} Adam iterations (b1 0.9, b2 0.99) on the mean squared reprojection error of the "
+        f"Tier 1: {g.iterations} Adam iterations (b1 0.9, b2 0.99, one CPU thread) on the mean squared reprojection "
+        "error of the "
         f"scene's 3D points (pixels / max(W, H)); lr {g.lr:g} -> {g.lr_final:g} (exponential) for raw and the "
         f"whitened variants, {g.so3xr3_lr:g} -> {g.so3xr3_lr_final:g} for so3xr3; P refreshed every "
         f"{g.refresh_every} iterations for s2camp; CamP averaged over seeds {list(g.camp_seeds)}; perturbation seed "

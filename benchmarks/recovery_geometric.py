@@ -26,7 +26,7 @@ import pycolmap
 import torch
 
 from s2camp_ns.core.alignment import camera_errors
-from s2camp_ns.core.camera import Intrinsics, ParameterLayout, apply_pose_delta, in_image, project, se3_exp
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout, apply_local_transform, in_image, project, se3_exp
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
@@ -53,7 +53,7 @@ class GeometricScene:
 class GeometricConfig:
     """Optimizer settings of tier 1."""
 
-    iterations: int = 1500
+    iterations: int = 1000
     lr: float = 1e-3
     """Initial learning rate of the camera parameters (whitened units for the preconditioned variants)."""
     lr_final: float = 1e-4
@@ -65,13 +65,15 @@ class GeometricConfig:
     camp_seeds: tuple[int, ...] = (0, 1, 2)
     perturbation_seed: int = 0
     log_every: int = 10
+    max_points: int = 2000
+    """Scene points used (an evenly strided subset when the scene has more)."""
     thresholds: dict[str, float] = field(default_factory=lambda: {"rot_err": 1e-3, "pos_err": 1e-3, "focal_err": 1.0})
     """Error levels for the iterations-to-threshold columns (rad, scene units, pixels)."""
     sampling: SamplingConfig = SamplingConfig()
     damping: DampingConfig = DampingConfig()
 
 
-def load_scene(path: Path, name: str) -> GeometricScene:
+def load_scene(path: Path, name: str, max_points: int | None = None) -> GeometricScene:
     """Cameras and points of a COLMAP model under ``path/sparse/0``, normalized like nerfstudio's data parser
     (centred on the mean camera centre, scaled so the largest centre coordinate is 1)."""
     reconstruction = pycolmap.Reconstruction(str(path / "sparse" / "0"))
@@ -95,6 +97,8 @@ def load_scene(path: Path, name: str) -> GeometricScene:
     c2w_t[:, :, 3] = (c2w_t[:, :, 3] - centre) * scale
     points = torch.tensor(np.stack([p.xyz for p in reconstruction.points3D.values()]), dtype=torch.float64)
     points = (points - centre) * scale
+    if max_points is not None and points.shape[0] > max_points:
+        points = points[torch.linspace(0, points.shape[0] - 1, max_points).long()]
     p = torch.tensor(params, dtype=torch.float64)
     intrinsics = Intrinsics.create(
         fx=p[:, 0], fy=p[:, 1], cx=p[:, 2], cy=p[:, 3], width=p[:, 4], height=p[:, 5], k1=p[:, 6], k2=p[:, 7]
@@ -154,37 +158,35 @@ class Refinement:
         self.preconditioner = new
 
 
+def local_transform(deltas: torch.Tensor, variant: str) -> torch.Tensor:
+    """T with c2w' = c2w T: exp(xi) for the se(3) twist, [exp(omega) | rho] for nerfstudio's SO3xR3."""
+    if variant != "so3xr3":
+        return se3_exp(deltas[:, :6])
+    rotation = se3_exp(torch.cat([torch.zeros_like(deltas[:, :3]), deltas[:, 3:6]], dim=-1))[:, :, :3]
+    return torch.cat([rotation, deltas[:, :3, None]], dim=-1)
+
+
 def refined_cameras(
     base_c2w: torch.Tensor, base: Intrinsics, deltas: torch.Tensor, variant: str
 ) -> tuple[torch.Tensor, Intrinsics]:
-    """c2w' = c2w exp(xi) (SO3xR3: translation not coupled to rotation) and Phi' = Phi + dPhi."""
-    if variant == "so3xr3":
-        transform = se3_exp(torch.cat([torch.zeros_like(deltas[:, :3]), deltas[:, 3:6]], dim=-1))
-        transform = torch.cat([transform[:, :, :3], deltas[:, :3, None]], dim=-1)
-    else:
-        transform = se3_exp(deltas[:, :6])
+    """c2w' = c2w T (see ``local_transform``) and Phi' = Phi + dPhi."""
+    transform = local_transform(deltas, variant)
     rotation = base_c2w[:, :, :3] @ transform[:, :, :3]
     translation = base_c2w[:, :, 3:] + base_c2w[:, :, :3] @ transform[:, :, 3:]
     return torch.cat([rotation, translation], dim=-1), base.with_delta(deltas)
 
 
 def reprojection_loss(
-    base_c2w: torch.Tensor,
+    base_points_cam: torch.Tensor,
     base: Intrinsics,
     deltas: torch.Tensor,
     variant: str,
-    points: torch.Tensor,
     observed: torch.Tensor,
     visible: torch.Tensor,
 ) -> torch.Tensor:
-    points_cam = world_to_camera(points, base_c2w)
-    if variant == "so3xr3":
-        c2w, intrinsics = refined_cameras(base_c2w, base, deltas, variant)
-        points_cam = world_to_camera(points, c2w)
-    else:
-        points_cam = apply_pose_delta(points_cam, deltas[:, :6])
-        intrinsics = base.with_delta(deltas)
-    pixels, _ = project(points_cam, intrinsics)
+    """Mean squared reprojection error, pixels divided by max(W, H), over the visible observations."""
+    points_cam = apply_local_transform(base_points_cam, local_transform(deltas, variant))
+    pixels, _ = project(points_cam, base.with_delta(deltas))
     residual = (pixels - observed) / base.image_scale()[:, None, None]
     return (residual.pow(2).sum(dim=-1) * visible).sum() / visible.sum()
 
@@ -224,6 +226,7 @@ def run_variant(scene: GeometricScene, variant: str, config: GeometricConfig, se
     observed, depth = project(world_to_camera(scene.points, scene.c2w), scene.intrinsics)
     visible = in_image(observed, depth, scene.intrinsics).to(torch.float64)
     base_c2w, start = perturbed_start(scene, config.perturbation_seed)
+    base_points_cam = world_to_camera(scene.points, base_c2w)
     history = [{"iteration": 0, **errors(base_c2w, start, scene)}]
     if variant == "none":
         return {"history": history, "final": history[-1], "sec_per_iter": 0.0}
@@ -231,7 +234,7 @@ def run_variant(scene: GeometricScene, variant: str, config: GeometricConfig, se
     began = time.perf_counter()
     for iteration in range(1, config.iterations + 1):
         deltas = refinement.deltas()
-        loss = reprojection_loss(base_c2w, start, deltas, variant, scene.points, observed, visible)
+        loss = reprojection_loss(base_points_cam, start, deltas, variant, observed, visible)
         refinement.optimizer.zero_grad(set_to_none=True)
         (loss + refinement.regularizer()).backward()
         refinement.optimizer.step()

@@ -347,11 +347,17 @@ def se3_exp(xi: Float[Tensor, "*batch 6"]) -> Float[Tensor, "*batch 3 4"]:
     return torch.cat([rotation, translation[..., None]], dim=-1)
 
 
-def apply_pose_delta(points_cam: Float[Tensor, "n l 3"], pose_delta: Float[Tensor, "n 6"]) -> Float[Tensor, "n l 3"]:
-    """Camera-frame coordinates after the local pose update c2w' = c2w exp(xi): x' = R_d^T (x - t_d)."""
-    transform = se3_exp(pose_delta)
+def apply_local_transform(
+    points_cam: Float[Tensor, "n l 3"], transform: Float[Tensor, "n 3 4"]
+) -> Float[Tensor, "n l 3"]:
+    """Camera-frame coordinates after the local update c2w' = c2w T with T = [R_d | t_d]: x' = R_d^T (x - t_d)."""
     rotation, translation = transform[:, :, :3], transform[:, :, 3]
     return torch.einsum("nji,nlj->nli", rotation, points_cam - translation[:, None, :])
+
+
+def apply_pose_delta(points_cam: Float[Tensor, "n l 3"], pose_delta: Float[Tensor, "n 6"]) -> Float[Tensor, "n l 3"]:
+    """Camera-frame coordinates after the local pose update c2w' = c2w exp(xi): x' = R_d^T (x - t_d)."""
+    return apply_local_transform(points_cam, se3_exp(pose_delta))
 
 
 def project_with_delta(

@@ -65,8 +65,8 @@ class DisplayText(ViewerText):
     field that the server writes once a second would otherwise keep interrupting the render.
     """
 
-    def __init__(self, name: str, hint: str) -> None:
-        super().__init__(name, "n/a", disabled=True, hint=hint)
+    def __init__(self, name: str, hint: str, value: str = "n/a") -> None:
+        super().__init__(name, value, disabled=True, hint=hint)
 
     def install(self, viser_server: ViserServer) -> None:
         self._create_gui_handle(viser_server)
@@ -96,36 +96,32 @@ class S2CampViewerPanel(nn.Module):
         super().__init__()
         self._model_ref = weakref.ref(model)
         self._update_period = float(update_period)
-        self.a_status = DisplayText("Status", "Training step of the last panel update")
-        self.b_rotation_error = DisplayText(
-            "Rot. err ° mean/max",
-            "Geodesic rotation error (degrees) against the reference cameras after a similarity alignment; mean and "
-            "max over the training cameras",
+        self.a_status = DisplayText("Status", "Training step of the last update, and the number of training cameras")
+        self.b_errors = DisplayText("Cam. error", "The three rows below: mean / max over the training cameras", "")
+        self.c_rotation_error = DisplayText(
+            "Rotation °", "Geodesic rotation error (degrees) against the reference cameras after a similarity alignment"
         )
-        self.c_position_error = DisplayText(
-            "Pos. err mean/max", "Camera-centre error against the reference cameras after alignment (scene units)"
+        self.d_position_error = DisplayText(
+            "Position", "Camera-centre error against the reference cameras after the alignment (scene units)"
         )
-        self.d_focal_error = DisplayText(
-            "Focal err px mean/max", "Focal-length error (pixels) against the reference cameras"
+        self.e_focal_error = DisplayText("Focal px", "Focal-length error against the reference cameras (pixels)")
+        self.f_conditioning = DisplayText(
+            "Precond.", "The two rows below: mean / worst camera, from the Gram matrix Σ of the last refresh of P"
         )
-        self.e_condition_sigma = DisplayText(
-            "cond Σ mean/worst",
-            "Condition number of each camera's Gram matrix Σ at the last refresh of P; mean and worst camera",
+        self.g_condition_sigma = DisplayText("cond Σ", "Condition number of each camera's Gram matrix Σ")
+        self.h_condition_whitened = DisplayText(
+            "cond P⁻¹ΣP⁻¹", "Condition number of Σ whitened by the damped preconditioner P"
         )
-        self.f_condition_whitened = DisplayText(
-            "cond P⁻ᵀΣP⁻¹ mean/worst",
-            "Condition number after whitening with the damped preconditioner P; mean and worst camera",
+        self.i_since_refresh = DisplayText("P refreshed", "Training steps since P was last recomputed")
+        self.j_refresh_now = ViewerButton("Refresh P now", cb_hook=lambda _: self.request_refresh())
+        self.k_show_refined = ViewerCheckbox(
+            "Refined (amber)", True, cb_hook=lambda element: self.set_frusta_visible("refined", element.value)
         )
-        self.g_since_refresh = DisplayText("Since P refresh", "Training steps since P was last recomputed")
-        self.h_refresh_now = ViewerButton("Refresh P now", cb_hook=lambda _: self.request_refresh())
-        self.i_show_refined = ViewerCheckbox(
-            "Refined cams (amber)", True, cb_hook=lambda element: self.set_frusta_visible("refined", element.value)
+        self.l_show_initial = ViewerCheckbox(
+            "Initial (red)", True, cb_hook=lambda element: self.set_frusta_visible("initial", element.value)
         )
-        self.j_show_initial = ViewerCheckbox(
-            "Initial cams (red)", True, cb_hook=lambda element: self.set_frusta_visible("initial", element.value)
-        )
-        self.k_show_reference = ViewerCheckbox(
-            "Reference cams (green)", True, cb_hook=lambda element: self.set_frusta_visible("reference", element.value)
+        self.m_show_reference = ViewerCheckbox(
+            "Reference (green)", True, cb_hook=lambda element: self.set_frusta_visible("reference", element.value)
         )
         self.viewer_control = _PanelControl(self)
         self._viewer: Any = None
@@ -171,10 +167,10 @@ class S2CampViewerPanel(nn.Module):
         if not optimizer.has_cameras:
             return
         distinct = self._reference_differs()
-        for element in (self.j_show_initial, self.k_show_reference):
+        for element in (self.l_show_initial, self.m_show_reference):
             element.set_visible(distinct)
         if not (optimizer.enabled and optimizer.config.precondition):
-            self.h_refresh_now.set_disabled(True)
+            self.j_refresh_now.set_disabled(True)
         if distinct:
             self._draw_static_sets()
         self._update(step=int(optimizer.last_refresh_step.clamp(min=0)))
@@ -220,28 +216,30 @@ class S2CampViewerPanel(nn.Module):
         values = {"a_status": f"step {step} · {optimizer.num_cameras} cams"}
         errors = model.update_camera_errors() if model.reference_cameras() is not None else {}
         if errors:
-            values["b_rotation_error"] = _mean_max(errors, "rot_err", scale=180.0 / math.pi)
-            values["c_position_error"] = _mean_max(errors, "pos_err")
+            values["b_errors"] = "mean / max"
+            values["c_rotation_error"] = _mean_max(errors, "rot_err", scale=180.0 / math.pi)
+            values["d_position_error"] = _mean_max(errors, "pos_err")
             has_focal = "camera_errors/focal_err_mean" in errors
-            values["d_focal_error"] = _mean_max(errors, "focal_err") if has_focal else "n/a"
+            values["e_focal_error"] = _mean_max(errors, "focal_err") if has_focal else "n/a"
         else:
-            for key in ("b_rotation_error", "c_position_error", "d_focal_error"):
-                values[key] = "no reference cameras"
+            values["b_errors"] = "no reference cameras"
+            values["c_rotation_error"] = values["d_position_error"] = values["e_focal_error"] = "n/a"
         gram = optimizer.gram
         if optimizer.enabled and optimizer.config.precondition and bool(gram.abs().amax() > 0):
             inverse = optimizer.precond_inv.to(gram)
             whitened = inverse.transpose(-1, -2) @ gram @ inverse
-            values["e_condition_sigma"] = self._condition_text(gram)
-            values["f_condition_whitened"] = self._condition_text(0.5 * (whitened + whitened.transpose(-1, -2)))
+            values["f_conditioning"] = "mean / worst"
+            values["g_condition_sigma"] = self._condition_text(gram)
+            values["h_condition_whitened"] = self._condition_text(0.5 * (whitened + whitened.transpose(-1, -2)))
         else:
-            reason = "camera refinement off" if not optimizer.enabled else "preconditioning off"
-            values["e_condition_sigma"] = values["f_condition_whitened"] = reason
+            values["f_conditioning"] = "camera refinement off" if not optimizer.enabled else "preconditioning off"
+            values["g_condition_sigma"] = values["h_condition_whitened"] = "n/a"
         last = int(optimizer.last_refresh_step)
         every = optimizer.config.refresh_every
-        since = f"{max(step - last, 0)} steps" if last >= 0 else "never refreshed"
+        since = f"{max(step - last, 0)} steps ago" if last >= 0 else "never"
         if every > 0 and last >= 0:
             since += f" (every {every})"
-        values["g_since_refresh"] = since
+        values["i_since_refresh"] = since
         return values
 
     @staticmethod
@@ -361,7 +359,7 @@ class S2CampViewerPanel(nn.Module):
         self._poses[name][index] = (position, wxyz, fov)
 
     def _set_visible(self, name: FrustumSet) -> bool:
-        checkbox = {"refined": self.i_show_refined, "initial": self.j_show_initial, "reference": self.k_show_reference}
+        checkbox = {"refined": self.k_show_refined, "initial": self.l_show_initial, "reference": self.m_show_reference}
         return bool(checkbox[name].value)
 
     def set_frusta_visible(self, name: FrustumSet, visible: bool) -> None:

@@ -31,6 +31,7 @@ import tyro
 from PIL import Image as PILImage
 
 from s2camp_ns import __version__
+from s2camp_ns.core.camera import Intrinsics, check_distortion_monotonic
 from s2camp_ns.core.validation import check_choice, check_range
 from s2camp_ns.scene import procedural
 
@@ -78,22 +79,6 @@ class MakeSceneConfig:
     """Image file format; PNG is lossless, JPG mimics the real dataset's files."""
 
 
-def _check_distortion(k1: float, k2: float, corner_radius: float) -> None:
-    """Radial distortion r_d = r (1 + k1 r^2 + k2 r^4) must be increasing up to the image corners."""
-    r = np.linspace(0.0, 10.0 * corner_radius + 1.0, 200001)
-    slope = 1.0 + 3.0 * k1 * r**2 + 5.0 * k2 * r**4
-    turn = np.flatnonzero(slope <= 0.0)
-    if turn.size:
-        r_turn = r[turn[0]]
-        peak = r_turn * (1.0 + k1 * r_turn**2 + k2 * r_turn**4)
-        if peak <= 1.02 * corner_radius:
-            raise ValueError(
-                f"k1, k2 = ({k1:g}, {k2:g}) make the radial distortion non-monotonic inside the image: the distorted "
-                f"radius peaks at {peak:.4g} but the image corners need {corner_radius:.4g} (normalized units); "
-                "allowed: 1 + 3 k1 r^2 + 5 k2 r^4 > 0 for every undistorted radius r up to the image corners"
-            )
-
-
 def validate(config: MakeSceneConfig) -> tuple[float, float, float]:
     """Check the config; return (focal, cx, cy) in full-resolution pixels."""
     for name in ("num_cameras", "width", "height", "supersample", "points_per_image", "seed"):
@@ -118,8 +103,20 @@ def validate(config: MakeSceneConfig) -> tuple[float, float, float]:
     check_range("principal_point[1] (cy)", cy, low=0.0, high=config.height, low_inclusive=False, high_inclusive=False)
     check_range("k1", config.k1, low=-1.0, high=1.0)
     check_range("k2", config.k2, low=-1.0, high=1.0)
-    corners = np.array([[0.0, 0.0], [config.width, 0.0], [0.0, config.height], [config.width, config.height]])
-    _check_distortion(config.k1, config.k2, float(np.linalg.norm((corners - [cx, cy]) / focal, axis=1).max()))
+    # The same monotonicity rule as the camera model: the distortion must not fold back inside the image.
+    check_distortion_monotonic(
+        Intrinsics.create(
+            fx=focal,
+            fy=focal,
+            cx=cx,
+            cy=cy,
+            width=config.width,
+            height=config.height,
+            k1=config.k1,
+            k2=config.k2,
+            validate=False,
+        )
+    )
     check_range(
         "ring_radius", config.ring_radius, low=procedural.SCENE_RADIUS + 0.7, high=procedural.BACKGROUND_RADIUS / 4
     )
