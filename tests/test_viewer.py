@@ -112,17 +112,22 @@ class FakeClientCamera:
 
 
 def fake_click():
-    client = SimpleNamespace(camera=FakeClientCamera(), atomic=contextlib.nullcontext)
-    return SimpleNamespace(client=client)
+    return SimpleNamespace(client=SimpleNamespace(camera=FakeClientCamera()))
 
 
 @contextlib.contextmanager
-def viewer_with(model: S2CampModel) -> Iterator[SimpleNamespace]:
-    """Install the model's viewer elements and controls the way nerfstudio's Viewer does, on a real viser server."""
+def viewer_with(model: S2CampModel, training: bool = True) -> Iterator[SimpleNamespace]:
+    """Install the model's viewer elements and controls the way nerfstudio's Viewer does, on a real viser server.
+
+    ``training=False`` stands for ``ns-viewer`` (a viewer without a trainer).
+    """
     import viser
 
     server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
-    viewer = SimpleNamespace(viser_server=server, config=ViewerConfig(), camera_handles={}, current_camera_idx=0)
+    trainer = object() if training else None
+    viewer = SimpleNamespace(
+        viser_server=server, config=ViewerConfig(), camera_handles={}, current_camera_idx=0, trainer=trainer
+    )
     try:
         for _, element in parse_object(model, ViewerElement, "Custom Elements/model"):
             element.install(server)
@@ -185,6 +190,7 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         for name in FRUSTUM_COLORS:
             assert sorted(panel._handles[name]) == list(range(NUM_CAMERAS)), name
         assert panel.l_show_initial.gui_handle.visible and panel.m_show_reference.gui_handle.visible
+        assert not panel.j_refresh_now.gui_handle.disabled
 
         callbacks = panel.training_callbacks(
             TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=None)
@@ -238,10 +244,11 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         assert not panel._failed
 
 
-def test_unperturbed_cameras_hide_the_initial_and_reference_sets():
+def test_unperturbed_cameras_hide_the_initial_and_reference_sets_and_ns_viewer_has_no_refresh():
     model = build_model(initial=tiny_cameras())
     panel: S2CampViewerPanel = model.S2CamP
-    with viewer_with(model):
+    with viewer_with(model, training=False):
+        assert panel.j_refresh_now.gui_handle.disabled  # ns-viewer: no training step would apply it
         assert not panel.l_show_initial.gui_handle.visible and not panel.m_show_reference.gui_handle.visible
         assert panel._handles["initial"] == {} and panel._handles["reference"] == {}
         assert sorted(panel._handles["refined"]) == list(range(NUM_CAMERAS))
@@ -352,7 +359,7 @@ def ns_train_with_viewer(scene: Path, output_dir: Path, port: int, log_path: Pat
         "--viewer.websocket-host", "127.0.0.1",
         "--viewer.websocket-port", str(port),
         "--viewer.quit-on-train-completion", "True",
-        "--viewer.camera-frustum-scale", "0.3",
+        "--viewer.camera-frustum-scale", "0.6",
         "--pipeline.datamanager.train-num-rays-per-batch", "256",
         "--pipeline.model.implementation", "torch",
         "--pipeline.model.hidden-dim", "16",
@@ -486,6 +493,18 @@ def click_button(devtools: DevTools, text: str) -> bool:
     )
 
 
+def click_checkbox(devtools: DevTools, label: str) -> bool:
+    """Click the checkbox of the GUI row labelled ``label``; False if there is none."""
+    return bool(
+        devtools.evaluate(
+            "(() => { const l = Array.from(document.querySelectorAll('label'))"
+            f".find(l => l.innerText.trim() === {json.dumps(label)});"
+            " const i = l && l.closest('.mantine-Flex-root').querySelector('input[type=checkbox]');"
+            " if (i) i.click(); return !!i; })()"
+        )
+    )
+
+
 def render_width(values: dict[str, str]) -> int:
     """Width of the last image nerfstudio rendered into the view ("Resolution: WxHpx"; 0 if none)."""
     match = re.search(r"Resolution: (\d+)[x×]", values.get("__text__", ""))
@@ -515,14 +534,18 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
     with ns_train_with_viewer(tiny_scene, tmp_path, port, log_path) as process:
         wait_for_http(url, process, log_path, timeout=180)
         with headless_chromium(chromium, url, tmp_path / "chromium-profile") as devtools:
-            # On a CPU, pick nerfstudio's "Fast" train speed (256 px renders hold the training lock less long), hide
-            # nerfstudio's image frusta (they cover the panel's coloured ones) and zoom out to see the cameras.
+            # On a CPU, pick nerfstudio's "Fast" train speed (256 px renders hold the training lock less long) and
+            # zoom out to see the cameras.
             wait_for(devtools, lambda v: "Fast" in v.get("__text__", ""), 120, "the viewer's controls")
-            assert click_button(devtools, "Fast") and click_button(devtools, "Hide Train Cams")
+            assert click_button(devtools, "Fast")
             for _ in range(8):
                 devtools.call("Input.dispatchMouseEvent", type="mouseWheel", x=500, y=600, deltaX=0, deltaY=200)
 
             first = wait_for(devtools, lambda v: panel_step(v) > 0, 120, "the S2CamP panel to show a training step")
+            # Training runs, so nerfstudio has drawn its image frusta: hide them, they cover the panel's coloured
+            # ones (before that, nerfstudio 1.1.5's button raises inside viser's atomic() and freezes the viewer),
+            # and draw the frusta over the rendered image rather than depth-composited into it.
+            assert click_button(devtools, "Hide Train Cams") and click_checkbox(devtools, "Composite depth")
             assert "S2CamP" in first["__text__"] and "Refresh P now" in first["__text__"]
             assert first["Cam. error"] == "mean / max" and first["Precond."] == "mean / worst"
             for label in (*errors, "cond Σ", "cond P⁻¹ΣP⁻¹"):

@@ -14,7 +14,7 @@ point by half a pixel.
 Before training, the scene is validated (images listed by the model but missing on disk, unsupported camera
 models, empty scenes) with errors that name the file and what was expected.
 
-The CamP perturbation (off by default, ``--pipeline.datamanager.dataparser.perturbation.enabled True``) is applied
+The CamP perturbation (off by default; ``ns-train s2camp --data D s2camp-data --perturbation.enabled True``) is applied
 to the training cameras after nerfstudio's orientation and scale normalization, so its sigmas are in normalized
 scene units (the cameras fit in [-1, 1]^3), as CamP applies them in its own normalized scene. The unperturbed
 cameras of the split are kept in ``metadata["reference_cameras"]``; evaluation cameras are never perturbed.
@@ -464,3 +464,18 @@ __all__ = [
     "resolve_downscale",
     "validate_colmap_cameras",
 ]
+
+
+def _specification():
+    from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+
+    return DataParserSpecification(
+        config=S2CampDataParserConfig(),
+        description="mip-NeRF 360 / COLMAP layout or transforms.json, with optional CamP camera perturbation",
+    )
+
+
+s2camp_dataparser = _specification()
+"""Registered as ``s2camp-data`` (entry point ``nerfstudio.dataparser_configs``): nerfstudio exposes dataparser
+options only after the dataparser's subcommand, e.g.
+``ns-train s2camp --data scene s2camp-data --perturbation.enabled True``."""

@@ -9,7 +9,8 @@ The panel shows, updated at most every ``update_period`` seconds of training:
 - camera errors against the reference cameras, when the dataparser provides them (after a similarity alignment;
   rotation, position, focal; mean and max over the training cameras);
 - the condition number of the Gram matrix Sigma of the last refresh of P, before and after whitening
-  (P^-T Sigma P^-1), mean and worst over the cameras;
+  (P^-T Sigma P^-1), mean and worst over the cameras (Sigma is not saved in checkpoints: after a resume it is that of
+  the initial cameras until the next refresh);
 - the steps since the last refresh of P, and a button that refreshes P at the next training step (in the training
   thread; the button's own callback only sets a flag).
 
@@ -20,7 +21,8 @@ field of view set from the camera's focal length (refined for the refined set an
 frusta, which follow the refined poses). The viewer camera has a centred principal point and no skew or
 distortion, so only pose and focal length carry over.
 
-Nothing here may stop training: a failure is reported once and the panel then stays still.
+Nothing here may stop training: a failure is reported once and the panel then stays still. The panel never uses
+viser's ``atomic()`` (viser 0.2.7 does not release that lock when its block raises, which freezes the viewer).
 """
 
 from __future__ import annotations
@@ -169,7 +171,8 @@ class S2CampViewerPanel(nn.Module):
         distinct = self._reference_differs()
         for element in (self.l_show_initial, self.m_show_reference):
             element.set_visible(distinct)
-        if not (optimizer.enabled and optimizer.config.precondition):
+        # No training (ns-viewer has no trainer), no refinement or no preconditioning: nothing to refresh.
+        if getattr(self._viewer, "trainer", None) is None or not (optimizer.enabled and optimizer.config.precondition):
             self.j_refresh_now.set_disabled(True)
         if distinct:
             self._draw_static_sets()
@@ -195,6 +198,8 @@ class S2CampViewerPanel(nn.Module):
         optimizers = attributes.optimizers
 
         def after_step(step: int) -> None:
+            if not self._model().camera_optimizer.has_cameras:
+                return  # a pipeline that never handed the training cameras to the camera optimizer
             force = False
             if self._refresh_requested:
                 self._refresh_requested = False
@@ -251,7 +256,9 @@ class S2CampViewerPanel(nn.Module):
     def _update(self, step: int) -> None:
         values = self.panel_values(step)
         for name, value in values.items():
-            getattr(self, name).value = value
+            element = getattr(self, name)
+            if element.value != value:
+                element.value = value
         self._update_refined_frusta()
         if not self._nerfstudio_frusta_hooked:
             self._hook_nerfstudio_frusta()
@@ -314,7 +321,7 @@ class S2CampViewerPanel(nn.Module):
         indices = self.drawn_indices()
         for name, (c2w, fy, height) in sets.items():
             positions, wxyz, fov = self._frustum_params(c2w[indices], fy[indices], height[indices])
-            with self._lock, self._server().atomic():
+            with self._lock:
                 for row, index in enumerate(indices):
                     self._add_frustum(name, index, positions[row], wxyz[row], float(fov[row]))
 
@@ -327,7 +334,7 @@ class S2CampViewerPanel(nn.Module):
         intrinsics = optimizer.refined_intrinsics(deltas)
         c2w = optimizer.refined_c2w(deltas)
         positions, wxyz, fov = self._frustum_params(c2w[indices], intrinsics.fy[indices], intrinsics.height[indices])
-        with self._lock, self._server().atomic():
+        with self._lock:
             handles, poses = self._handles["refined"], self._poses["refined"]
             for row, index in enumerate(indices):
                 old = poses.get(index)
@@ -375,11 +382,10 @@ class S2CampViewerPanel(nn.Module):
         if pose is None:
             return
         position, wxyz, fov = pose
-        client = event.client
-        with client.atomic():
-            client.camera.fov = fov
-            client.camera.wxyz = wxyz
-            client.camera.position = position
+        camera = event.client.camera
+        camera.fov = fov
+        camera.position = position
+        camera.wxyz = wxyz
         if hasattr(self._viewer, "current_camera_idx"):
             self._viewer.current_camera_idx = index
 
