@@ -143,3 +143,22 @@ def test_bad_damping_names_the_parameter() -> None:
         compute_preconditioner(ROOM, damping=DampingConfig(damping_abs=0.0))
     with pytest.raises(ValueError, match="^damping_rel must"):
         compute_preconditioner(ROOM, damping=DampingConfig(damping_rel=-1.0))
+
+
+def test_reexpress_latent_keeps_the_camera_and_maps_adam_moments() -> None:
+    from s2camp_ns.core.preconditioner import reexpress_latent
+
+    old = compute_preconditioner(ROOM)
+    changed = Intrinsics.create(fx=820.0, fy=820.0, cx=380.0, cy=262.0, width=778, height=518, k1=-0.02)
+    new = compute_preconditioner(changed)
+    generator = torch.Generator().manual_seed(3)
+    latent = torch.randn(1, 12, generator=generator, dtype=torch.float64)
+    first_moment = torch.randn(1, 12, generator=generator, dtype=torch.float64)
+    state = {"exp_avg": first_moment.clone(), "exp_avg_sq": first_moment.square()}
+    phi_before = (old.inverse @ latent[..., None])[..., 0]
+    # A gradient g_old w.r.t. the old latent is g_new = P_new^-T P_old^T g_old w.r.t. the new one.
+    expected_moment = (new.inverse.transpose(1, 2) @ old.matrix.transpose(1, 2) @ first_moment[..., None])[..., 0]
+    reexpress_latent(latent, old, new, state)
+    torch.testing.assert_close((new.inverse @ latent[..., None])[..., 0], phi_before, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(state["exp_avg"], expected_moment)
+    assert (state["exp_avg_sq"] >= 0).all()

@@ -39,10 +39,12 @@ from s2camp_ns.core.camera import (
 )
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
+    Preconditioner,
     SamplerName,
     SamplingConfig,
     TransformName,
     compute_preconditioner,
+    reexpress_latent,
 )
 from s2camp_ns.core.validation import check_range
 
@@ -416,13 +418,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
     def refresh(self, step: int, optimizer: torch.optim.Optimizer | None = None) -> None:
         """Recompute P from the current refined intrinsics without moving the cameras (paper sec. 4).
 
-        The latent is re-expressed, phi_hat_new = M phi_hat_old with M = P_new P_old^-1, so phi = P^-1 phi_hat is
-        unchanged. Adam's state follows the same change of variables instead of being reset (a reset would
-        restart the bias correction and give every camera a full-size step right after each refresh):
-        gradients transform as g_new = M^-T g_old, so the first moment transforms exactly, m_new = M^-T m_old;
-        the second moment (an elementwise E[g^2]) has no exact linear image, and is mapped assuming
-        uncorrelated gradient components, v_new = (M^-T)^2 v_old (elementwise square of the matrix). P changes
-        slowly, so M stays close to the identity and this approximation is mild; the step count is kept.
+        The latent and Adam's moments are re-expressed in the new basis by ``core.preconditioner.reexpress_latent``
+        (phi = P^-1 phi_hat is unchanged; m_new = M^-T m_old exactly, v mapped with the elementwise square of M^-T,
+        the step count kept, so no full-size step follows a refresh as it would after a state reset).
 
         The pose columns of the new P are the local-twist Jacobian at the refined pose; for the accumulated twist
         xi the exact Jacobian differs by SE(3)'s right Jacobian, the identity up to O(|xi|) (small corrections).
@@ -440,21 +438,15 @@ class S2CampCameraOptimizer(CameraOptimizer):
             except ValueError as error:
                 warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
                 return
-            new_p, new_p_inv = result.matrix.to(device), result.inverse.to(device)
-            change = new_p @ self.precond_inv  # M = P_new P_old^-1
-            grad_map = new_p_inv.transpose(-1, -2) @ self.precond.transpose(-1, -2)  # M^-T = P_new^-T P_old^T
+            old = Preconditioner(matrix=self.precond, inverse=self.precond_inv, gram=self.gram, num_valid=None)
+            new = Preconditioner(
+                matrix=result.matrix.to(device), inverse=result.inverse.to(device), gram=result.gram, num_valid=None
+            )
             latent = self.whitened_delta
-            latent.copy_((change @ latent.to(torch.float64)[..., None])[..., 0].to(latent.dtype))
-            if optimizer is not None and latent in optimizer.state:
-                state = optimizer.state[latent]
-                if "exp_avg" in state:
-                    m = state["exp_avg"]
-                    m.copy_((grad_map @ m.to(torch.float64)[..., None])[..., 0].to(m.dtype))
-                if "exp_avg_sq" in state:
-                    v = state["exp_avg_sq"]
-                    v.copy_(((grad_map**2) @ v.to(torch.float64)[..., None])[..., 0].to(v.dtype))
-            self.precond.copy_(new_p)
-            self.precond_inv.copy_(new_p_inv)
+            state = optimizer.state.get(latent) if optimizer is not None else None
+            reexpress_latent(latent, old, new, state)
+            self.precond.copy_(new.matrix)
+            self.precond_inv.copy_(new.inverse)
             self.gram.copy_(result.gram.to(device))
         self.last_refresh_step.fill_(step)
         self.num_refreshes.add_(1)
