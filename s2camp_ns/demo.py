@@ -82,13 +82,15 @@ def train_command(config: DemoConfig, scene: Path) -> list[str]:
         "--vis", "viewer+tensorboard" if config.viewer else "tensorboard",
         "--viewer.quit-on-train-completion", "True",
         "--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch),
-        "--pipeline.datamanager.dataparser.perturbation.enabled", "True",
-        "--pipeline.datamanager.dataparser.perturbation.seed", str(config.perturbation_seed),
         "--optimizers.camera-opt.optimizer.lr", str(config.camera_lr),
         "--optimizers.camera-opt.scheduler.warmup-steps", "0",
         "--optimizers.camera-opt.scheduler.lr-final", str(config.camera_lr / 10),
         "--optimizers.camera-opt.scheduler.max-steps", str(config.iterations),
         "--pipeline.model.camera-optimizer.refresh-every", str(max(config.iterations // 4, 1)),
+        # nerfstudio takes dataparser options only after the dataparser's subcommand, at the end.
+        "s2camp-data",
+        "--perturbation.enabled", "True",
+        "--perturbation.seed", str(config.perturbation_seed),
     ]
 
 

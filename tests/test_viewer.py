@@ -374,7 +374,7 @@ def ns_train_with_viewer(scene: Path, output_dir: Path, port: int, log_path: Pat
         "--pipeline.model.viewer-update-period", "0.5",
         "--optimizers.camera-opt.optimizer.lr", "5e-4",
         "--optimizers.camera-opt.scheduler.warmup-steps", "0",
-        "s2-camp-data-parser-config",
+        "s2camp-data",
         "--perturbation.enabled", "True",
     ]  # fmt: skip
     environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
