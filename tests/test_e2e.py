@@ -26,6 +26,8 @@ import numpy as np
 import pytest
 import torch
 
+from s2camp_ns.demo import SMALL_MODEL
+
 pytestmark = pytest.mark.slow
 
 BIN = Path(sys.executable).parent
@@ -35,14 +37,6 @@ RAYS = 512
 DATAPARSER = "s2camp-data"
 """Subcommand of S2CamP's dataparser (entry point ``nerfstudio.dataparser_configs``); its options follow it."""
 CPU_MESSAGE = "CUDA is not available: training on the CPU"
-# A smaller nerfacto than the default (16 levels of 2^19 hash entries): same code paths, a CPU-sized step.
-SMALL_MODEL = [
-    "--pipeline.model.log2-hashmap-size", "15",
-    "--pipeline.model.num-levels", "8",
-    "--pipeline.model.max-res", "128",
-    "--pipeline.model.num-nerf-samples-per-ray", "32",
-    "--pipeline.model.num-proposal-samples-per-ray", "64", "32",
-]  # fmt: skip
 
 
 def _tool(name: str) -> str:
