@@ -14,21 +14,25 @@ similarity alignment, are read from the final checkpoint (nerfstudio's ``eval_se
 Why the warm start: measured on this scene, a NeRF trained from scratch on perturbed cameras for a few hundred CPU
 iterations absorbs the inconsistencies, and the cameras then barely move (focal and position errors fell by about
 10% in 400 iterations, the rotation error rose). Against a NeRF that has already seen the scene, the focal error and
-the dolly zoom are recovered within tens of iterations and large position errors roughly halve. ``--warm-start 0``
-runs the plain joint optimisation from scratch instead. The sigmas are CamP's for focal and dolly, and larger for
-position and look-at: CamP's 0.005 is a fraction of a pixel at this resolution, below the gradient noise of a run
-this short.
+the dolly zoom are recovered within tens of iterations and large position errors fall by about two thirds.
+``--warm-start 0`` runs the plain joint optimisation from scratch instead. The sigmas are CamP's for focal and dolly,
+and larger for position and look-at: CamP's 0.005 is a fraction of a pixel at this resolution, below the gradient
+noise of a run this short.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -36,6 +40,7 @@ from typing import Literal
 import torch
 import tyro
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
@@ -98,6 +103,9 @@ class DemoConfig:
     """nerfstudio method: s2camp (deterministic lattice preconditioner) or s2camp-camp (CamP's random points)."""
     viewer: bool = False
     """Also serve the viser viewer during the refinement run (ns-train --vis viewer+tensorboard)."""
+    verbose: bool = False
+    """Stream ns-train's full output (config dump, warnings, progress table) instead of a progress bar; it is
+    always written to <output_dir>/{warm-start,refine}.log."""
 
 
 def check_config(config: DemoConfig) -> None:
@@ -202,33 +210,92 @@ def refine_command(config: DemoConfig, scene: Path) -> list[str]:
     ]  # fmt: skip
 
 
-def _environment() -> dict[str, str]:
+def training_environment() -> dict[str, str]:
     environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
     # Idle OpenMP threads must not spin: on a busy 2-core machine spinning makes each step 5-10x slower.
     environment.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     return environment
 
 
-def run(command: list[str], what: str) -> float:
-    """Run one ns-train command, streaming its output; return its wall time. Exits (no traceback) if it fails."""
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+_STEP = re.compile(r"^(\d+) \(\d+(?:\.\d+)?%\)")
+_SHOWN = ("CUDA is not available: training on the CPU", "Viewer running", "Viewer at")
+"""ns-train lines echoed on the terminal in quiet mode (the rest goes to the run's log file)."""
+
+
+def run(command: list[str], what: str, log_path: Path, iterations: int, verbose: bool = False) -> float:
+    """Run one ns-train command; return its wall time. Exits with ns-train's status (no traceback) if it fails.
+
+    Quiet mode writes ns-train's output (its full config, warnings, progress) to ``log_path`` and shows a progress bar
+    from the step numbers it prints; ``verbose`` streams it to the terminal instead.
+    """
     CONSOLE.rule(what)
-    CONSOLE.print("[bold]running:[/bold] " + " ".join(command), soft_wrap=True)
+    CONSOLE.print("[bold]running:[/bold] " + " ".join(command), soft_wrap=True, highlight=False)
+    log_path.parent.mkdir(parents=True, exist_ok=True)
     began = time.perf_counter()
-    result = subprocess.run(command, env=_environment(), check=False)
-    if result.returncode != 0:
-        CONSOLE.print(f"[bold red]{what} failed: ns-train exited with status {result.returncode} (output above)")
-        raise SystemExit(result.returncode)
+    with open(log_path, "w", encoding="utf8") as log:
+        if verbose:
+            process = subprocess.Popen(command, env=training_environment())
+        else:
+            process = subprocess.Popen(
+                command, env=training_environment(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+            )
+        try:
+            if not verbose:
+                _follow(process, log, iterations)
+            returncode = process.wait()
+        except KeyboardInterrupt:
+            process.terminate()
+            process.wait()
+            raise
+    if returncode != 0:
+        if not verbose:
+            tail = log_path.read_text(encoding="utf8", errors="replace").splitlines()[-40:]
+            CONSOLE.print("\n".join(_ANSI.sub("", line) for line in tail), highlight=False, markup=False)
+        CONSOLE.print(f"[bold red]{what}: ns-train exited with status {returncode}; full output in {log_path}")
+        raise SystemExit(returncode)
+    CONSOLE.print(f"[dim]done in {time.perf_counter() - began:.0f} s; ns-train output in {log_path}")
     return time.perf_counter() - began
+
+
+def _follow(process: subprocess.Popen, log, iterations: int) -> None:
+    """Copy ns-train's output to the log, echo the few lines that matter and advance a progress bar."""
+    assert process.stdout is not None
+    first_step = None
+    with Progress(
+        TextColumn("training"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=CONSOLE
+    ) as progress:
+        task = progress.add_task("training", total=iterations)
+        for line in process.stdout:
+            log.write(line)
+            text = _ANSI.sub("", line).strip()
+            match = _STEP.match(text)
+            if match:
+                step = int(match.group(1))
+                first_step = step if first_step is None else first_step
+                # Resumed runs count on from the checkpoint's step; steps are printed every few iterations.
+                progress.update(task, completed=min(step - first_step + 1, iterations))
+            elif text.startswith(_SHOWN):
+                progress.console.print(text, highlight=False, markup=False)
+        progress.update(task, completed=iterations)
 
 
 @torch.no_grad()
 def camera_error_table(config_path: Path) -> dict[str, dict[str, float]]:
     """Errors of the perturbed start and of the refined training cameras, read from the final checkpoint."""
-    from nerfstudio.utils.eval_utils import eval_setup
-
     from s2camp_ns.core.alignment import camera_errors
 
-    _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
+    captured = io.StringIO()
+    try:
+        # eval_setup prints nerfstudio's start-up chatter (tcnn fallback, LPIPS, checkpoint); keep it off the table.
+        with contextlib.redirect_stdout(captured), contextlib.redirect_stderr(captured), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            from nerfstudio.utils.eval_utils import eval_setup
+
+            _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
+    except Exception:
+        CONSOLE.print(captured.getvalue(), highlight=False, markup=False)
+        raise
     model = pipeline.model
     optimizer = model.camera_optimizer
     reference = model.reference_cameras()
@@ -287,11 +354,17 @@ def main(config: DemoConfig) -> dict[str, dict[str, float]]:
         seconds += run(
             warm_start_command(config, scene),
             f"1/2 warm start: nerfacto on the accurate cameras, {config.warm_start} iterations",
+            config.output_dir / f"{WARM_START_TIMESTAMP}.log",
+            config.warm_start,
+            config.verbose,
         )
     step = "2/2 " if config.warm_start > 0 else ""
     seconds += run(
         refine_command(config, scene),
         f"{step}{config.method} on perturbed cameras (CamP protocol): joint refinement, {config.iterations} iterations",
+        config.output_dir / f"{REFINE_TIMESTAMP}.log",
+        config.iterations,
+        config.verbose,
     )
     config_path = run_dir(config, REFINE_TIMESTAMP) / "config.yml"
     CONSOLE.rule("camera errors")
