@@ -109,45 +109,18 @@ def run(config: DispersionConfig) -> list[dict]:
                 log(f"dispersion: {frustum} {transform} L={num_points}")
                 value, error = _measure(in_frustum(frolov_lattice(num_points)), bounds, config, transform, bound)
                 rows.append(_row(frustum, transform, "deterministic", num_points, [value], [error], bound, []))
-                measured = [
-                    _measure(in_frustum(random_points(num_points, seed)), bounds, config, transform, bound)
-                    for seed in config.seeds
-                ]
-                rows.append(
-                    _row(
-                        frustum,
-                        transform,
-                        "random",
-                        num_points,
-                        [m[0] for m in measured],
-                        [m[1] for m in measured],
-                        bound,
-                        list(config.seeds),
-                    )
-                )
-                if config.include_camp and transform == "pyramid":
-                    measured = [
-                        _measure(
-                            camp_random_points(bounds, num_points, config.t_near, config.t_far, seed=seed).contracted,
-                            bounds,
-                            config,
-                            transform,
-                            bound,
-                        )
-                        for seed in config.seeds
-                    ]
-                    rows.append(
-                        _row(
-                            frustum,
-                            transform,
-                            "camp",
-                            num_points,
-                            [m[0] for m in measured],
-                            [m[1] for m in measured],
-                            bound,
-                            list(config.seeds),
-                        )
-                    )
+                labels = ["random", "camp"] if config.include_camp and transform == "pyramid" else ["random"]
+                for label in labels:
+                    measured = []
+                    for seed in config.seeds:
+                        if label == "random":
+                            points = in_frustum(random_points(num_points, seed))
+                        else:
+                            points = camp_random_points(bounds, num_points, config.t_near, config.t_far, seed=seed)
+                            points = points.contracted
+                        measured.append(_measure(points, bounds, config, transform, bound))
+                    values, errors = [m[0] for m in measured], [m[1] for m in measured]
+                    rows.append(_row(frustum, transform, label, num_points, values, errors, bound, list(config.seeds)))
     return rows
 
 

@@ -6,6 +6,8 @@ not the collection of the whole suite.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -34,3 +36,20 @@ def tiny_scene(tiny_scene_config: MakeSceneConfig) -> Path:
     from s2camp_ns.scene.make_scene import make_scene
 
     return make_scene(tiny_scene_config)
+
+
+@contextlib.contextmanager
+def lpips_offline() -> Iterator[None]:
+    """Make nerfacto's LPIPS fail to load, as it does offline without cached AlexNet weights."""
+    import torchmetrics.image.lpip as lpip_module
+
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+
+    def offline(*args, **kwargs):
+        raise OSError("no network (simulated)")
+
+    lpip_module.LearnedPerceptualImagePatchSimilarity = offline
+    try:
+        yield
+    finally:
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original

@@ -10,6 +10,7 @@ from importlib.metadata import entry_points
 import pytest
 import torch
 import tyro
+from conftest import lpips_offline
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
@@ -98,15 +99,7 @@ def tiny_cameras() -> Cameras:
 @pytest.fixture(scope="module")
 def tiny_model() -> S2CampModel:
     """A nerfacto-sized-down S2CampModel on the CPU with LPIPS made unavailable (offline behaviour)."""
-    import torchmetrics.image.lpip as lpip_module
-
-    original = lpip_module.LearnedPerceptualImagePatchSimilarity
-
-    def offline(*args, **kwargs):
-        raise OSError("no network (simulated)")
-
-    lpip_module.LearnedPerceptualImagePatchSimilarity = offline
-    try:
+    with lpips_offline():
         config = S2CampModelConfig(
             num_levels=4,
             log2_hashmap_size=12,
@@ -122,8 +115,6 @@ def tiny_model() -> S2CampModel:
             camera_optimizer=S2CampCameraOptimizerConfig(num_points=64, sampler="camp-random"),
         )
         model = config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=NUM_CAMERAS)
-    finally:
-        lpip_module.LearnedPerceptualImagePatchSimilarity = original
     model.camera_optimizer.set_train_cameras(tiny_cameras())
     return model
 

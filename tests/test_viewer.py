@@ -28,6 +28,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from conftest import lpips_offline
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.scene_box import SceneBox
@@ -70,15 +71,7 @@ def tiny_cameras(shift: float = 0.0, focal: float = 30.0) -> Cameras:
 
 def build_model(viewer_update_period: float = 0.0, initial: Cameras | None = None) -> S2CampModel:
     """A sized-down S2CampModel whose reference cameras differ from its initial ones (as with the perturbation)."""
-    import torchmetrics.image.lpip as lpip_module
-
-    original = lpip_module.LearnedPerceptualImagePatchSimilarity
-
-    def offline(*args, **kwargs):
-        raise OSError("no network (simulated)")
-
-    lpip_module.LearnedPerceptualImagePatchSimilarity = offline
-    try:
+    with lpips_offline():
         config = S2CampModelConfig(
             num_levels=2,
             log2_hashmap_size=10,
@@ -99,8 +92,6 @@ def build_model(viewer_update_period: float = 0.0, initial: Cameras | None = Non
             num_train_data=NUM_CAMERAS,
             metadata={"reference_cameras": tiny_cameras()},
         )
-    finally:
-        lpip_module.LearnedPerceptualImagePatchSimilarity = original
     model.camera_optimizer.set_train_cameras(initial if initial is not None else tiny_cameras(0.02, 31.0))
     return model
 
