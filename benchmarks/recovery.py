@@ -1,7 +1,8 @@
 """``s2camp-bench recovery``: does S2CamP recover perturbed cameras as well as CamP, with 10% of the samples?
 
-Tier 1 (geometric, seconds): see ``recovery_geometric``. Each variant starts from the same perturbed cameras
-(CamP protocol, fixed seed) of the same generated scenes; CamP's random baseline is averaged over seeds.
+Tier 1 (geometric, seconds): see ``recovery_geometric``. Tier 2 (photometric, ``ns-train`` of every variant,
+minutes): see ``recovery_photometric``. Each variant starts from the same perturbed cameras (CamP protocol, fixed
+seed) of the same generated scenes; CamP's random baseline is averaged over seeds.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import DEFAULT_OUTPUT_DIR, log, markdown_table, write_report
 from .recovery_geometric import VARIANTS, GeometricConfig, iterations_to, load_scene, run_variant
+from .recovery_photometric import PhotometricConfig, run_photometric
 
 SCENES = {
     "narrow": MakeSceneConfig(num_cameras=24, width=160, height=120, fov="narrow", seed=0),
@@ -32,9 +34,13 @@ class RecoveryConfig:
     scenes: tuple[str, ...] = ("narrow", "wide")
     """Generated scenes (s2camp-make-scene presets)."""
     variants: tuple[str, ...] = VARIANTS
+    tiers: tuple[int, ...] = (1, 2)
+    """1: geometric (seconds); 2: photometric ns-train runs (about 45 minutes on a 2-core CPU)."""
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
+    photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     quick: bool = False
-    """Small run for CI: 100 iterations, one CamP seed; asserts only that every variant runs."""
+    """Small run for CI: tier 1 with 100 iterations, tier 2 with a few iterations on a tiny scene, one CamP seed;
+    asserts only that every variant runs."""
     scene_dir: Path | None = None
     """Where the scenes are generated (a temporary folder by default)."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
@@ -86,27 +92,38 @@ def run_geometric(config: RecoveryConfig, scene_root: Path) -> tuple[list[dict],
 
 def run(config: RecoveryConfig) -> list[dict]:
     config = config.effective()
-    # Tier 1 is many small tensor operations: one thread keeps per-iteration times stable and comparable between
-    # variants (several threads on a busy 2-core machine made them vary tenfold).
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return _run(config)
-    finally:
-        torch.set_num_threads(threads)
-
-
-def _run(config: RecoveryConfig) -> list[dict]:
+    for tier in config.tiers:
+        if tier not in (1, 2):
+            raise ValueError(f"tiers must contain only 1 and 2, got {tier!r}")
     if config.scene_dir is not None:
-        rows, histories = run_geometric(config, config.scene_dir)
-    else:
-        with tempfile.TemporaryDirectory(prefix="s2camp-recovery-") as folder:
-            rows, histories = run_geometric(config, Path(folder))
+        return _run(config, config.scene_dir)
+    with tempfile.TemporaryDirectory(prefix="s2camp-recovery-") as folder:
+        return _run(config, Path(folder))
+
+
+def _run(config: RecoveryConfig, root: Path) -> list[dict]:
+    rows, histories = [], {}
+    if 1 in config.tiers:
+        # Tier 1 is many small tensor operations: one thread keeps per-iteration times stable and comparable
+        # between variants (several threads on a busy 2-core machine made them vary tenfold).
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            rows, histories = run_geometric(config, root / "tier1")
+        finally:
+            torch.set_num_threads(threads)
     run.histories = histories  # type: ignore[attr-defined]
+    run.photometric_histories = {}  # type: ignore[attr-defined]
+    if 2 in config.tiers:
+        tier2_rows, tier2_histories = run_photometric(
+            config.scenes, config.variants, config.photometric, root / "tier2", config.quick
+        )
+        rows.extend(tier2_rows)
+        run.photometric_histories = tier2_histories  # type: ignore[attr-defined]
     return rows
 
 
-def plot(histories: dict, path: Path) -> None:
+def plot(histories: dict, path: Path, scale: str = "log") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -119,7 +136,8 @@ def plot(histories: dict, path: Path) -> None:
         for axis, (key, label) in zip(row_axes, keys, strict=True):
             for (name, variant), history in histories.items():
                 if name == scene and len(history) > 1:
-                    axis.semilogy([h["iteration"] for h in history], [h[key] for h in history], label=variant)
+                    axis.plot([h["iteration"] for h in history], [h[key] for h in history], label=variant)
+            axis.set_yscale(scale)
             axis.set_title(f"{scene}: {label}")
             axis.set_xlabel("iteration")
             axis.grid(True, which="both", alpha=0.3)
@@ -132,7 +150,74 @@ def plot(histories: dict, path: Path) -> None:
 
 def report(rows: list[dict], config: RecoveryConfig) -> Path:
     config = config.effective()
-    plot(getattr(run, "histories", {}), config.output_dir / "recovery-tier1.png")
+    sections = []
+    tier1 = [row for row in rows if row["tier"] == 1]
+    tier2 = [row for row in rows if row["tier"] == 2]
+    if tier1:
+        plot(getattr(run, "histories", {}), config.output_dir / "recovery-tier1.png")
+        sections += _tier1_section(tier1, config)
+    if tier2:
+        plot(getattr(run, "photometric_histories", {}), config.output_dir / "recovery-tier2.png")
+        sections += _tier2_section(tier2, config)
+    command = "s2camp-bench recovery" + (" --quick" if config.quick else "")
+    if tuple(config.tiers) != (1, 2):
+        command += " --tiers " + " ".join(str(tier) for tier in config.tiers)
+    return write_report(config.output_dir, "recovery", "Camera recovery from perturbed cameras", command, sections)
+
+
+def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
+    p = config.photometric.quick() if config.quick else config.photometric
+    a = p.alignment
+    columns = [
+        "scene", "variant", "seeds", "rot_err", "pos_err", "focal_err",
+        "iters_to_half_rot_err", "iters_to_half_pos_err", "iters_to_half_focal_err",
+        "psnr", "ssim", "lpips", "psnr_unaligned", "sec_per_iter", "time_vs_so3xr3",
+    ]  # fmt: skip
+    headers = [
+        "scene", "variant", "seeds", "rot err (rad)", "pos err", "focal err (px)",
+        "iters to half rot", "iters to half pos", "iters to half focal",
+        "PSNR", "SSIM", "LPIPS", "PSNR before alignment", "s / iter", "time vs so3xr3",
+    ]  # fmt: skip
+    start = {row["scene"]: row for row in rows}
+    starts = "; ".join(
+        f"{scene}: rot {row['start_rot_err']:.2e} rad, pos {row['start_pos_err']:.2e}, "
+        f"focal {row['start_focal_err']:.3g} px"
+        for scene, row in start.items()
+    )
+    setup = (
+        f"Tier 2: `ns-train` of every variant on generated scenes ({_scene_sizes(config)}, every 8th image held "
+        f"out), CPU-sized nerfacto (`s2camp_ns.demo.SMALL_MODEL`), {p.rays_per_batch} rays per step. A shared "
+        f"warm start of {p.warm_start} iterations on the accurate cameras (camera learning rate zero), then "
+        f"{p.iterations} iterations per variant from the perturbed cameras (seed {p.perturbation_seed}; sigma "
+        f"position {p.sigma_position:g}, look-at {p.sigma_look_at:g}, focal {p.sigma_focal_length:g}, dolly "
+        f"{p.sigma_dolly_z:g}), camera lr {p.camera_lr:g} -> {p.camera_lr_final:g} for every variant; P refreshed "
+        f"every {p.refresh_every} iterations for s2camp; CamP over seeds {list(p.camp_seeds)}. Errors as in tier 1, "
+        f"evaluated on checkpoints every {p.checkpoint_every} iterations; start errors {starts}. Held-out views: "
+        f"{a.steps} camera-only Adam steps (pose + focal scale, {a.rays} rays per step, lr {a.lr:g} -> "
+        f"{a.lr_final:g}) from the similarity-mapped reference camera, then PSNR / SSIM of the full image (LPIPS "
+        "NaN where its weights are not cached). 'iters to half' = first checkpoint with at most half the start "
+        "error. s / iter from nerfstudio's per-step event stamps (checkpoint saves and refreshes included); "
+        "so3xr3 is `ns-train s2camp-so3xr3`, nerfstudio's stock pose optimizer in the same pipeline."
+    )
+    return [
+        "## Tier 2: photometric joint optimisation (ns-train)",
+        setup,
+        markdown_table(rows, columns, headers),
+        "![tier 2](recovery-tier2.png)",
+    ]
+
+
+def _scene_sizes(config: RecoveryConfig) -> str:
+    from .recovery_photometric import QUICK_SCENE_SIZE, SCENES
+
+    parts = []
+    for name in config.scenes[:1] if config.quick else config.scenes:
+        scene = replace(SCENES[name], **QUICK_SCENE_SIZE) if config.quick else SCENES[name]
+        parts.append(f"{name} {scene.fov} fov, {scene.num_cameras} cameras {scene.width}x{scene.height}")
+    return "; ".join(parts)
+
+
+def _tier1_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
     thresholds = config.geometric.thresholds
     columns = [
         "scene",
@@ -175,15 +260,9 @@ def report(rows: list[dict], config: RecoveryConfig) -> Path:
         "cameras: mean rotation angle (rad), mean camera-centre distance (normalized scene units), mean |fx error| "
         "(px), mean principal-point distance (px), mean |k1 error|."
     )
-    return write_report(
-        config.output_dir,
-        "recovery",
-        "Camera recovery from perturbed cameras",
-        "s2camp-bench recovery" + (" --quick" if config.quick else ""),
-        [
-            "## Tier 1: geometric refinement",
-            setup,
-            markdown_table(rows, columns, headers),
-            "![tier 1](recovery-tier1.png)",
-        ],
-    )
+    return [
+        "## Tier 1: geometric refinement",
+        setup,
+        markdown_table(rows, columns, headers),
+        "![tier 1](recovery-tier1.png)",
+    ]

@@ -1,11 +1,14 @@
 """``ns-train s2camp`` and ``ns-train s2camp-camp``, registered through the ``nerfstudio.method_configs`` entry point.
 
 Both are nerfacto (nerfstudio's proposal sampling, field and losses) with joint pose + intrinsics refinement;
-they differ only in how the camera preconditioner P is built:
+they differ only in the camera optimizer:
 
 - ``s2camp``: 500 deterministic Frolov-lattice points in each camera's frustum, P refreshed during training
   (paper sec. 4);
-- ``s2camp-camp``: the CamP baseline, 5000 random points, P computed once at the start (DESIGN-NOTES sec. 3).
+- ``s2camp-camp``: the CamP baseline, 5000 random points, P computed once at the start (DESIGN-NOTES sec. 3);
+- ``s2camp-so3xr3``: the nerfacto baseline, nerfstudio's stock SO3xR3 pose optimizer (no intrinsics) with
+  nerfacto's camera learning rate, in the same pipeline (data manager, offline LPIPS, camera-error logging), so
+  the three are compared with everything else equal.
 
 Without CUDA the machine defaults to the CPU (``--machine.device-type cpu``), with one message at start-up.
 """
@@ -15,6 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
@@ -43,8 +47,23 @@ def default_dataparser() -> DataParserConfig:
     return S2CampDataParserConfig()
 
 
-def make_trainer_config(method_name: str, camera_optimizer: S2CampCameraOptimizerConfig) -> TrainerConfig:
+def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfig) -> TrainerConfig:
     """Nerfacto's trainer settings with the S2CamP pipeline; only ``camera_optimizer`` differs between methods."""
+    if isinstance(camera_optimizer, S2CampCameraOptimizerConfig):
+        # Whitened units: a unit step moves the proxy projections by about max(W, H) pixels RMS, so CamP's
+        # camera schedule applies as is (1e-4 -> 1e-5 over 25k steps after a 2.5k-step warm-up).
+        camera_schedule = {
+            "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
+            "scheduler": FloatExponentialDecaySchedulerConfig(
+                lr_pre_warmup=1e-8, warmup_steps=2500, lr_final=1e-5, max_steps=25000
+            ),
+        }
+    else:
+        # nerfacto's own camera schedule for its stock optimizer (raw se(3) units).
+        camera_schedule = {
+            "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
+            "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
+        }
     return TrainerConfig(
         method_name=method_name,
         steps_per_eval_batch=500,
@@ -73,14 +92,7 @@ def make_trainer_config(method_name: str, camera_optimizer: S2CampCameraOptimize
                 "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
                 "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
             },
-            # Whitened units: a unit step moves the proxy projections by about max(W, H) pixels RMS, so CamP's
-            # camera schedule applies as is (1e-4 -> 1e-5 over 25k steps after a 2.5k-step warm-up).
-            "camera_opt": {
-                "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
-                "scheduler": FloatExponentialDecaySchedulerConfig(
-                    lr_pre_warmup=1e-8, warmup_steps=2500, lr_final=1e-5, max_steps=25000
-                ),
-            },
+            "camera_opt": camera_schedule,
         },
         # Float learning rates: nerfstudio's numpy ones make checkpoints unloadable with torch >= 2.6 defaults.
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
@@ -99,4 +111,9 @@ s2camp_camp_method = MethodSpecification(
         S2CampCameraOptimizerConfig(sampler="camp-random", num_points=5000, refresh_every=0),
     ),
     description="CamP baseline: as s2camp, but P from 5000 random frustum points, computed once.",
+)
+
+s2camp_so3xr3_method = MethodSpecification(
+    config=make_trainer_config("s2camp-so3xr3", CameraOptimizerConfig(mode="SO3xR3")),
+    description="nerfacto baseline: nerfstudio's stock SO3xR3 pose optimizer in the S2CamP pipeline (no intrinsics).",
 )

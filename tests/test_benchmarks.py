@@ -47,8 +47,14 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
     report = tmp_path / REPORTS[name]
     assert report.exists() and "Regenerate with" in report.read_text()
     if name == "recovery":
-        variants = {row["variant"] for row in rows}
-        assert variants == {"none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once"}
+        expected = {"none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once"}
+        for tier in (1, 2):
+            assert {row["variant"] for row in rows if row["tier"] == tier} == expected, f"tier {tier}"
+        for row in rows:
+            if row["tier"] == 2:
+                assert 0.0 < row["psnr"] < 100.0 and 0.0 < row["ssim"] <= 1.0, row
+                assert row["sec_per_iter"] > 0.0, row
+        assert (tmp_path / "recovery-tier2.png").exists()
     if name == "speed":
         methods = {row["method"] for row in rows if row.get("kind") == "comparison"}
         assert methods == {"s2camp", "camp-baseline"}

@@ -11,6 +11,7 @@ import pytest
 import torch
 import tyro
 from conftest import lpips_offline
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
@@ -73,6 +74,18 @@ def test_entry_points_registered():
         pytest.skip("package not installed (pip install -e .)")
     assert names["s2camp"] == "s2camp_ns.method_config:s2camp_method"
     assert names["s2camp-camp"] == "s2camp_ns.method_config:s2camp_camp_method"
+    assert names["s2camp-so3xr3"] == "s2camp_ns.method_config:s2camp_so3xr3_method"
+
+
+def test_so3xr3_baseline_differs_only_in_the_camera_optimizer():
+    s2camp = method_config.s2camp_method.config
+    baseline = method_config.s2camp_so3xr3_method.config
+    assert type(baseline.pipeline.model.camera_optimizer) is CameraOptimizerConfig
+    assert baseline.pipeline.model.camera_optimizer.mode == "SO3xR3"
+    # nerfacto's own camera schedule for raw se(3) units
+    assert baseline.optimizers["camera_opt"]["optimizer"].lr == 1e-3
+    replaced = dataclasses.replace(baseline.pipeline.model, camera_optimizer=s2camp.pipeline.model.camera_optimizer)
+    assert replaced == s2camp.pipeline.model
 
 
 # --------------------------------------------------------------------------------------------------- model wiring
@@ -167,3 +180,57 @@ def test_camera_errors_logged_with_reference_cameras(tiny_model: S2CampModel):
     finally:
         tiny_model.kwargs["metadata"] = {}
         tiny_model._camera_errors = {}
+
+
+def _tiny_model_config(camera_optimizer) -> S2CampModelConfig:
+    return S2CampModelConfig(
+        num_levels=4,
+        log2_hashmap_size=12,
+        hidden_dim=16,
+        hidden_dim_color=16,
+        num_nerf_samples_per_ray=8,
+        num_proposal_samples_per_ray=(8, 8),
+        proposal_net_args_list=[
+            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
+            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
+        ],
+        implementation="torch",
+        camera_optimizer=camera_optimizer,
+    )
+
+
+def test_stock_optimizer_refined_cameras_follow_its_ray_correction():
+    """s2camp-so3xr3: the camera the errors are computed for is the one nerfstudio's correction gives the rays."""
+    with lpips_offline():
+        model = _tiny_model_config(CameraOptimizerConfig(mode="SO3xR3")).setup(
+            scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=NUM_CAMERAS
+        )
+    cameras = tiny_cameras()
+    model.set_train_cameras(cameras)
+    assert not model.uses_s2camp_optimizer and not hasattr(model, "S2CamP")
+    with torch.no_grad():
+        model.camera_optimizer.pose_adjustment.copy_(
+            torch.tensor([[0.01, -0.02, 0.03, 0.02, 0.01, -0.03], [0.0] * 6, [-0.05, 0.0, 0.01, 0.0, 0.04, 0.0]])
+        )
+    c2w, fx = model.refined_train_cameras()
+    assert c2w.dtype == torch.float64 and torch.equal(fx, cameras.fx.reshape(-1).double())
+    camera_indices = torch.arange(NUM_CAMERAS)[:, None].repeat(1, 4).reshape(-1, 1)
+    directions = torch.nn.functional.normalize(
+        torch.randn(camera_indices.shape[0], 3, generator=torch.Generator().manual_seed(1)), dim=-1
+    )
+    bundle = RayBundle(
+        origins=cameras.camera_to_worlds[camera_indices[:, 0], :, 3].clone(),
+        directions=directions.clone(),
+        pixel_area=torch.ones(camera_indices.shape[0], 1),
+        camera_indices=camera_indices,
+    )
+    with torch.no_grad():
+        model.camera_optimizer.apply_to_raybundle(bundle)
+    # a direction d_cam = R^T d in the camera frame leaves the refined camera as R' d_cam
+    base = cameras.camera_to_worlds.double()[camera_indices[:, 0]]
+    d_cam = (base[:, :, :3].transpose(1, 2) @ directions.double()[..., None])[..., 0]
+    refined = c2w[camera_indices[:, 0]]
+    expected = (refined[:, :, :3] @ d_cam[..., None])[..., 0]
+    torch.testing.assert_close(bundle.directions.double(), expected, atol=1e-6, rtol=0)
+    torch.testing.assert_close(bundle.origins.double(), refined[:, :, 3], atol=1e-6, rtol=0)
+    assert model.update_camera_errors() == {}  # no reference cameras in this model's metadata

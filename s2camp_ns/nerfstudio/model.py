@@ -9,11 +9,14 @@ import warnings
 from dataclasses import dataclass, field
 
 import torch
+from jaxtyping import Float
+from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
 
 from s2camp_ns.nerfstudio.camera_optimizer import (
     TRAIN_CAMERA_KEY,
@@ -41,8 +44,9 @@ class S2CampModelConfig(NerfactoModelConfig):
     """Nerfacto with preconditioned pose + intrinsics refinement (S2CamP)."""
 
     _target: type = field(default_factory=lambda: S2CampModel)
-    camera_optimizer: S2CampCameraOptimizerConfig = field(default_factory=S2CampCameraOptimizerConfig)
-    """The S2CamP camera optimizer: which parameters, the preconditioner's proxy points, damping and refresh."""
+    camera_optimizer: CameraOptimizerConfig = field(default_factory=S2CampCameraOptimizerConfig)
+    """The S2CamP camera optimizer: which parameters, the preconditioner's proxy points, damping and refresh.
+    nerfstudio's own CameraOptimizerConfig (pose only, SO3xR3/SE3) also works: the ``s2camp-so3xr3`` baseline."""
     camera_error_every: int = 100
     """Compute camera errors against the dataparser's reference cameras every this many steps (0 = never);
     skipped when the dataparser provides no reference cameras."""
@@ -55,7 +59,7 @@ class S2CampModel(NerfactoModel):
     """Nerfacto whose training rays go through the refined cameras (pose and intrinsics)."""
 
     config: S2CampModelConfig
-    camera_optimizer: S2CampCameraOptimizer
+    camera_optimizer: CameraOptimizer
 
     def populate_modules(self):
         try:
@@ -68,15 +72,48 @@ class S2CampModel(NerfactoModel):
             self.lpips = None
             self.step = 0
         self._camera_errors: dict[str, float] = {}
+        self._train_cameras: Cameras | None = None
         # --- S2CamP viewer panel (viewer_panel.py); inert unless nerfstudio's viewer installs it. The attribute name
         # is the panel's folder label in the viewer.
-        if self.config.viewer_update_period >= 0:
+        if self.config.viewer_update_period >= 0 and self.uses_s2camp_optimizer:
             self.S2CamP = S2CampViewerPanel(self, update_period=self.config.viewer_update_period)
         # --- end viewer panel
 
     @property
     def lpips_available(self) -> bool:
         return self.lpips is not None
+
+    @property
+    def uses_s2camp_optimizer(self) -> bool:
+        """True for S2CamP's camera optimizer, False for nerfstudio's stock one (the s2camp-so3xr3 baseline)."""
+        return isinstance(self.camera_optimizer, S2CampCameraOptimizer)
+
+    def set_train_cameras(self, cameras: Cameras) -> None:
+        """Keep the dataparser's training cameras (called by the pipeline before any checkpoint is loaded)."""
+        self._train_cameras = cameras.to("cpu")
+        if self.uses_s2camp_optimizer:
+            self.camera_optimizer.set_train_cameras(cameras)
+
+    @torch.no_grad()
+    def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:
+        """OpenGL c2w and fx of the training cameras as the model currently sees them (float64, CPU).
+
+        S2CamP's optimizer refines pose and intrinsics (c2w' = c2w exp(xi)). nerfstudio's stock optimizer moves the
+        rays in the world frame, origins + t and R_adj @ directions, i.e. c2w' = [R_adj R | t + t_adj] (its
+        ``apply_to_camera``); it leaves the intrinsics alone.
+        """
+        if self.uses_s2camp_optimizer:
+            optimizer = self.camera_optimizer
+            return optimizer.refined_c2w(opengl=True).cpu(), optimizer.refined_intrinsics().fx.cpu()
+        if self._train_cameras is None:
+            raise RuntimeError("set_train_cameras must be called before refined_train_cameras (the pipeline does)")
+        cameras = self._train_cameras
+        c2w = cameras.camera_to_worlds.to(torch.float64)
+        if self.camera_optimizer.config.mode != "off":
+            indices = torch.arange(c2w.shape[0], device=self.device)
+            adjustment = self.camera_optimizer(indices).to(device="cpu", dtype=torch.float64)
+            c2w = torch.cat([adjustment[:, :, :3] @ c2w[:, :, :3], c2w[:, :, 3:] + adjustment[:, :, 3:]], dim=-1)
+        return c2w, cameras.fx.reshape(-1).to(torch.float64)
 
     # ------------------------------------------------------------------------------------------------- training
     def get_training_callbacks(
@@ -91,7 +128,11 @@ class S2CampModel(NerfactoModel):
                 torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
                 camera_optimizer.refresh(step, torch_optimizer)
 
-        if camera_optimizer.enabled and camera_optimizer.config.refresh_every > 0:
+        if (
+            isinstance(camera_optimizer, S2CampCameraOptimizer)
+            and camera_optimizer.enabled
+            and camera_optimizer.config.refresh_every > 0
+        ):
             callbacks.append(
                 TrainingCallback(
                     where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
@@ -127,18 +168,22 @@ class S2CampModel(NerfactoModel):
     def update_camera_errors(self) -> dict[str, float]:
         """Rotation (rad), position (scene units) and focal (px) errors after similarity alignment."""
         reference = self.reference_cameras()
-        if reference is None or not self.camera_optimizer.has_cameras:
+        if reference is None:
             return {}
+        from s2camp_ns.core.alignment import camera_errors
+
         try:
-            from s2camp_ns.core.alignment import camera_errors
-        except ImportError:  # the alignment module is optional at this layer
+            estimated_c2w, estimated_fx = self.refined_train_cameras()
+        except RuntimeError:  # no training cameras handed over yet
             return {}
-        estimated_c2w = self.camera_optimizer.refined_c2w(opengl=True)
-        estimated_fx = self.camera_optimizer.refined_intrinsics().fx
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             errors = camera_errors(
-                estimated_c2w, reference.camera_to_worlds, estimated_fx, reference.fx.reshape(-1), align=True
+                estimated_c2w,
+                reference.camera_to_worlds.to(torch.float64).cpu(),
+                estimated_fx,
+                reference.fx.reshape(-1).to(torch.float64).cpu(),
+                align=True,
             )
         self._camera_errors = {f"camera_errors/{k}": float(v) for k, v in errors.items()}
         return self._camera_errors
@@ -158,7 +203,7 @@ class S2CampModel(NerfactoModel):
         by the camera optimizer because nerfstudio's Cameras cannot hold skew). Other cameras (held-out eval
         cameras, viewer and render-path cameras) have no refined parameters and render as given.
         """
-        if camera.metadata is not None and TRAIN_CAMERA_KEY in camera.metadata:
+        if self.uses_s2camp_optimizer and camera.metadata is not None and TRAIN_CAMERA_KEY in camera.metadata:
             index = int(camera.metadata[TRAIN_CAMERA_KEY])
             ray_bundle = self.camera_optimizer.train_camera_raybundle(index)
             return self.get_outputs_for_camera_ray_bundle(ray_bundle)

@@ -39,7 +39,9 @@ class S2CampPipeline(VanillaPipeline):
         if str(device).startswith("cpu") and not torch.cuda.is_available():
             CONSOLE.print("[bold yellow]CUDA is not available: training on the CPU (expect about 1 s per iteration).")
         super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
-        camera_optimizer = getattr(self.model, "camera_optimizer", None)
-        if isinstance(camera_optimizer, S2CampCameraOptimizer):
-            assert self.datamanager.train_dataset is not None
-            camera_optimizer.set_train_cameras(self.datamanager.train_dataset.cameras)
+        assert self.datamanager.train_dataset is not None
+        cameras = self.datamanager.train_dataset.cameras
+        if hasattr(self.model, "set_train_cameras"):
+            self.model.set_train_cameras(cameras)
+        elif isinstance(getattr(self.model, "camera_optimizer", None), S2CampCameraOptimizer):
+            self.model.camera_optimizer.set_train_cameras(cameras)

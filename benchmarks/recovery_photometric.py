@@ -1,0 +1,369 @@
+"""Tier 2 of ``s2camp-bench recovery``: photometric joint optimisation with ``ns-train``, every variant alike.
+
+Per generated scene (narrow and wide field of view):
+
+1. warm start: one ``ns-train s2camp`` run on the accurate cameras with the camera learning rate at zero (the demo's
+   protocol, see ``s2camp_ns.demo``: from scratch on a CPU budget the NeRF absorbs the camera errors first);
+2. its checkpoint, stripped of the camera optimizer's parameters and Adam state, is the common start of every
+   variant: ``ns-train <method> --load-dir`` with the training cameras perturbed (CamP protocol, fixed seed);
+3. each variant trains the same number of iterations with the same camera learning-rate schedule, saving a
+   checkpoint every ``checkpoint_every`` steps;
+4. afterwards, in this process and identically for every variant: camera errors of each checkpoint after a
+   similarity alignment (``core.alignment``), and PSNR / SSIM (LPIPS where its weights are cached) of the held-out
+   views after test-time camera alignment (``s2camp_ns.nerfstudio.test_time_alignment``, CamP's 100 camera-only
+   steps).
+
+Variants: none (camera optimizer off), so3xr3 (``s2camp-so3xr3``: nerfstudio's stock optimizer in the same
+pipeline), raw (S2CamP's 12 parameters without preconditioning), camp (``s2camp-camp``, 5000 random points, P once,
+one run per seed), s2camp (500 lattice points, P refreshed), s2camp-once (P computed once).
+Seconds per iteration come from the wall-clock stamps of nerfstudio's per-step tensorboard events (everything in
+the training loop, checkpoint saves and P refreshes included), skipping the first steps.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import shutil
+import subprocess
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import torch
+
+from s2camp_ns.demo import DATAPARSER_SUBCOMMAND, FROZEN_LR, SMALL_MODEL, _ns_train, training_environment
+from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
+from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+
+from .common import log
+
+SCENES = {
+    "narrow": MakeSceneConfig(num_cameras=16, width=96, height=72, fov="narrow", seed=0),
+    "wide": MakeSceneConfig(num_cameras=16, width=96, height=72, fov="wide", seed=1),
+}
+QUICK_SCENE_SIZE = {"num_cameras": 8, "width": 48, "height": 36}
+METHODS = {
+    "none": "s2camp",
+    "so3xr3": "s2camp-so3xr3",
+    "raw": "s2camp",
+    "camp": "s2camp-camp",
+    "s2camp": "s2camp",
+    "s2camp-once": "s2camp",
+}
+SKIPPED_TIMING_STEPS = 5
+"""Steps excluded from the seconds-per-iteration (start-up, first allocations)."""
+
+
+@dataclass
+class PhotometricConfig:
+    """ns-train joint optimisation from a shared warm start (module docstring)."""
+
+    warm_start: int = 250
+    """Iterations of the shared warm start on the accurate cameras."""
+    iterations: int = 200
+    """Iterations of every variant on the perturbed cameras."""
+    rays_per_batch: int = 1024
+    """Training rays per iteration."""
+    camera_lr: float = 1e-3
+    """Camera learning rate at the start (every variant; whitened units for camp/s2camp, raw for the others)."""
+    camera_lr_final: float = 3e-4
+    """Camera learning rate at the end (exponential decay)."""
+    refresh_every: int = 50
+    """P refresh interval of the s2camp variant."""
+    checkpoint_every: int = 20
+    """Checkpoint interval: the camera-error curves are evaluated on these checkpoints."""
+    sigma_position: float = 0.05
+    """Perturbation of the camera centres (normalized scene units; the demo's value)."""
+    sigma_look_at: float = 0.02
+    """Perturbation of the look-at points (normalized scene units)."""
+    sigma_focal_length: float = 0.02
+    """Per-camera relative focal-length perturbation (CamP)."""
+    sigma_dolly_z: float = 0.05
+    """Shared dolly zoom (CamP)."""
+    perturbation_seed: int = 0
+    camp_seeds: tuple[int, ...] = (0, 1, 2)
+    """Seeds of CamP's random proxy points (one run each, errors and metrics averaged)."""
+    alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    """Test-time alignment of the held-out cameras (every variant alike)."""
+
+    def quick(self) -> PhotometricConfig:
+        return replace(
+            self,
+            warm_start=10,
+            iterations=4,
+            rays_per_batch=256,
+            refresh_every=2,
+            checkpoint_every=2,
+            camp_seeds=self.camp_seeds[:1],
+            alignment=replace(self.alignment, steps=3, rays=64),
+        )
+
+
+def _common_arguments(scene: Path, output: Path, experiment: str, timestamp: str, iterations: int, every: int):
+    return [
+        "--data", str(scene),
+        "--output-dir", str(output),
+        "--experiment-name", experiment,
+        "--timestamp", timestamp,
+        "--max-num-iterations", str(iterations),
+        "--steps-per-save", str(every),
+        "--save-only-latest-checkpoint", "False",
+        "--steps-per-eval-batch", "0",
+        "--steps-per-eval-image", "0",
+        "--steps-per-eval-all-images", "0",
+        "--logging.steps-per-log", "10",
+        "--vis", "tensorboard",
+        "--pipeline.model.camera-error-every", "0",
+        *SMALL_MODEL,
+    ]  # fmt: skip
+
+
+def _variant_arguments(variant: str, seed: int, config: PhotometricConfig) -> list[str]:
+    prefix = "--pipeline.model.camera-optimizer."
+    return {
+        "none": [prefix + "mode", "off"],
+        "so3xr3": [],
+        "raw": [prefix + "precondition", "False", prefix + "refresh-every", "0"],
+        "camp": [prefix + "seed", str(seed), prefix + "refresh-every", "0"],
+        "s2camp": [prefix + "refresh-every", str(config.refresh_every)],
+        "s2camp-once": [prefix + "refresh-every", "0"],
+    }[variant]
+
+
+def _run_ns_train(command: list[str], log_path: Path, what: str) -> float:
+    log(f"  ns-train {what}: " + " ".join(command[1:3]) + f" ... (log: {log_path})")
+    began = time.perf_counter()
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "w", encoding="utf8") as output:
+        result = subprocess.run(command, stdout=output, stderr=subprocess.STDOUT, env=training_environment())
+    if result.returncode != 0:
+        tail = "\n".join(log_path.read_text(encoding="utf8", errors="replace").splitlines()[-30:])
+        raise RuntimeError(f"ns-train {what} failed with status {result.returncode}; log {log_path}:\n{tail}")
+    return time.perf_counter() - began
+
+
+def _checkpoints(run: Path) -> list[Path]:
+    return sorted((run / "nerfstudio_models").glob("step-*.ckpt"))
+
+
+def warm_start(scene: Path, work: Path, scene_name: str, config: PhotometricConfig) -> Path:
+    """Train on the accurate cameras; return a checkpoint folder without camera-optimizer state."""
+    command = [
+        _ns_train(), "s2camp",
+        *_common_arguments(scene, work, scene_name, "warm-start", config.warm_start, config.warm_start),
+        "--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch),
+        "--optimizers.camera-opt.optimizer.lr", str(FROZEN_LR),
+        "--optimizers.camera-opt.scheduler.warmup-steps", "0",
+        "--optimizers.camera-opt.scheduler.lr-final", str(FROZEN_LR),
+    ]  # fmt: skip
+    run = work / scene_name / "s2camp" / "warm-start"
+    _run_ns_train(command, work / f"{scene_name}-warm-start.log", f"{scene_name} warm start")
+    state = torch.load(_checkpoints(run)[-1], map_location="cpu", weights_only=True)
+    # Every variant starts from the same field; the camera parameters (whose shapes differ between camera
+    # optimizers) and their Adam state start fresh. nerfstudio loads the pipeline non-strictly.
+    stripped = {
+        "step": state["step"],
+        "pipeline": {key: value for key, value in state["pipeline"].items() if ".camera_optimizer." not in key},
+        "optimizers": {key: value for key, value in state["optimizers"].items() if key != "camera_opt"},
+        "scalers": state["scalers"],
+    }
+    folder = work / f"{scene_name}-warm-start-fields"
+    folder.mkdir(parents=True, exist_ok=True)
+    torch.save(stripped, folder / f"step-{state['step']:09d}.ckpt")
+    return folder
+
+
+def train_variant(
+    scene: Path, work: Path, scene_name: str, warm: Path | None, variant: str, seed: int, config: PhotometricConfig
+) -> Path:
+    method = METHODS[variant]
+    timestamp = variant if variant != "camp" else f"camp-seed{seed}"
+    command = [
+        _ns_train(), method,
+        *_common_arguments(scene, work, scene_name, timestamp, config.iterations, config.checkpoint_every),
+        "--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch),
+        "--optimizers.camera-opt.optimizer.lr", str(config.camera_lr),
+        "--optimizers.camera-opt.scheduler.warmup-steps", "0",
+        "--optimizers.camera-opt.scheduler.lr-final", str(config.camera_lr_final),
+        "--optimizers.camera-opt.scheduler.max-steps", str(config.iterations),
+        *_variant_arguments(variant, seed, config),
+    ]  # fmt: skip
+    if warm is not None:
+        command += ["--load-dir", str(warm), "--load-scheduler", "False"]
+    command += [
+        DATAPARSER_SUBCOMMAND,
+        "--perturbation.enabled", "True",
+        "--perturbation.seed", str(config.perturbation_seed),
+        "--perturbation.sigma-position", str(config.sigma_position),
+        "--perturbation.sigma-look-at", str(config.sigma_look_at),
+        "--perturbation.sigma-focal-length", str(config.sigma_focal_length),
+        "--perturbation.sigma-dolly-z", str(config.sigma_dolly_z),
+    ]  # fmt: skip
+    _run_ns_train(command, work / f"{scene_name}-{timestamp}.log", f"{scene_name} {timestamp}")
+    return work / scene_name / method / timestamp
+
+
+def seconds_per_iteration(run: Path) -> float:
+    """Mean wall-clock seconds per training step from nerfstudio's per-step tensorboard events."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = sorted(run.glob("events.out.tfevents.*"))
+    if not events:
+        return math.nan
+    accumulator = EventAccumulator(str(events[-1]), size_guidance={"scalars": 0})
+    accumulator.Reload()
+    stamps = accumulator.Scalars("Train Iter (time)")
+    stamps = stamps[SKIPPED_TIMING_STEPS:] if len(stamps) > SKIPPED_TIMING_STEPS + 1 else stamps
+    if len(stamps) < 2:
+        return math.nan
+    return (stamps[-1].wall_time - stamps[0].wall_time) / (stamps[-1].step - stamps[0].step)
+
+
+def _load_pipeline(run: Path):
+    """The run's pipeline (nerfstudio's eval_setup, latest checkpoint), start-up chatter kept off the terminal."""
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(captured), contextlib.redirect_stderr(captured), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            from nerfstudio.utils.eval_utils import eval_setup
+
+            _, pipeline, _, _ = eval_setup(run / "config.yml", test_mode="test")
+    except Exception:
+        log(captured.getvalue())
+        raise
+    return pipeline
+
+
+def _errors(model) -> dict[str, float]:
+    from s2camp_ns.core.alignment import camera_errors
+
+    reference = model.reference_cameras()
+    c2w, fx = model.refined_train_cameras()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        errors = camera_errors(
+            c2w,
+            reference.camera_to_worlds.to(torch.float64).cpu(),
+            fx,
+            reference.fx.reshape(-1).to(torch.float64).cpu(),
+            align=True,
+        )
+    return {"rot_err": errors["rot_err_mean"], "pos_err": errors["pos_err_mean"], "focal_err": errors["focal_err_mean"]}
+
+
+def evaluate_run(run: Path, warm_step: int, config: PhotometricConfig) -> dict:
+    """Camera errors of every checkpoint (the curve), then held-out metrics after test-time alignment."""
+    from s2camp_ns.nerfstudio.test_time_alignment import evaluate_held_out_views
+
+    pipeline = _load_pipeline(run)
+    model = pipeline.model
+    history = []
+    for checkpoint in _checkpoints(run):
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        pipeline.load_pipeline(state["pipeline"], state["step"])
+        history.append({"iteration": state["step"] - warm_step, **_errors(model)})
+    views = evaluate_held_out_views(pipeline, config.alignment)
+    result = {
+        "history": history,
+        "final": history[-1],
+        "psnr": sum(v.psnr for v in views) / len(views),
+        "ssim": sum(v.ssim for v in views) / len(views),
+        "lpips": sum(v.lpips for v in views) / len(views),
+        "psnr_unaligned": sum(v.psnr_unaligned for v in views) / len(views),
+        "eval_views": len(views),
+        "sec_per_iter": seconds_per_iteration(run),
+    }
+    return result
+
+
+def start_errors(run: Path) -> dict[str, float]:
+    """Errors of the perturbed start (identical for every variant: same cameras, zero corrections)."""
+    from s2camp_ns.core.alignment import camera_errors
+
+    pipeline = _load_pipeline(run)
+    model = pipeline.model
+    cameras, reference = model._train_cameras, model.reference_cameras()
+    errors = camera_errors(
+        cameras.camera_to_worlds.to(torch.float64),
+        reference.camera_to_worlds.to(torch.float64).cpu(),
+        cameras.fx.reshape(-1).to(torch.float64),
+        reference.fx.reshape(-1).to(torch.float64).cpu(),
+        align=True,
+    )
+    return {"rot_err": errors["rot_err_mean"], "pos_err": errors["pos_err_mean"], "focal_err": errors["focal_err_mean"]}
+
+
+def iterations_to_fraction(history: list[dict], start: dict[str, float], key: str, fraction: float) -> float:
+    """First evaluated iteration at which ``key`` is at most ``fraction`` of its start value (NaN if never)."""
+    for entry in history:
+        if entry[key] <= fraction * start[key]:
+            return float(entry["iteration"])
+    return math.nan
+
+
+def _mean(values: list[float]) -> float:
+    return sum(values) / len(values) if values else math.nan
+
+
+def run_scene(
+    scene_name: str, variants: tuple[str, ...], config: PhotometricConfig, root: Path, quick: bool
+) -> tuple[list[dict], dict]:
+    scene_config = replace(SCENES[scene_name], output_dir=root / "scenes" / scene_name)
+    if quick:
+        scene_config = replace(scene_config, **QUICK_SCENE_SIZE)
+    scene = make_scene(scene_config)
+    work = root / "runs"
+    shutil.rmtree(work / scene_name, ignore_errors=True)
+    warm = warm_start(scene, work, scene_name, config) if config.warm_start > 0 else None
+    warm_step = config.warm_start
+    rows, histories, start = [], {}, None
+    for variant in variants:
+        seeds = config.camp_seeds if variant == "camp" else (0,)
+        results = []
+        for seed in seeds:
+            run = train_variant(scene, work, scene_name, warm, variant, seed, config)
+            if start is None:
+                start = start_errors(run)
+            results.append(evaluate_run(run, warm_step, config))
+        history = [{"iteration": 0, **start}, *results[0]["history"]]
+        if len(results) > 1:  # mean curve over the seeds (same checkpoint steps)
+            history = [{"iteration": 0, **start}] + [
+                {"iteration": entries[0]["iteration"]}
+                | {key: _mean([e[key] for e in entries]) for key in ("rot_err", "pos_err", "focal_err")}
+                for entries in zip(*[r["history"] for r in results], strict=True)
+            ]
+        histories[(scene_name, variant)] = history
+        row = {"tier": 2, "scene": scene_name, "variant": variant, "seeds": len(seeds)}
+        for key in ("rot_err", "pos_err", "focal_err"):
+            row[f"start_{key}"] = start[key]
+            row[key] = _mean([r["final"][key] for r in results])
+            row[f"iters_to_half_{key}"] = iterations_to_fraction(history, start, key, 0.5)
+        for key in ("psnr", "ssim", "lpips", "psnr_unaligned", "sec_per_iter"):
+            row[key] = _mean([r[key] for r in results])
+        row["eval_views"] = results[0]["eval_views"]
+        rows.append(row)
+        log(
+            f"recovery tier 2 {scene_name:6s} {variant:12s} rot {row['rot_err']:.2e} pos {row['pos_err']:.2e} "
+            f"focal {row['focal_err']:.3f} psnr {row['psnr']:.2f} ssim {row['ssim']:.3f} "
+            f"s/iter {row['sec_per_iter']:.3f}"
+        )
+    baseline = next((row["sec_per_iter"] for row in rows if row["variant"] == "so3xr3"), None)
+    for row in rows:
+        row["time_vs_so3xr3"] = row["sec_per_iter"] / baseline if baseline else math.nan
+    return rows, histories
+
+
+def run_photometric(
+    scenes: tuple[str, ...], variants: tuple[str, ...], config: PhotometricConfig, root: Path, quick: bool
+) -> tuple[list[dict], dict]:
+    if quick:  # CI: every variant runs, on the first scene only (each ns-train start-up costs about 10 s)
+        config, scenes = config.quick(), scenes[:1]
+    rows, histories = [], {}
+    for scene_name in scenes:
+        scene_rows, scene_histories = run_scene(scene_name, variants, config, root, quick)
+        rows.extend(scene_rows)
+        histories.update(scene_histories)
+    return rows, histories
