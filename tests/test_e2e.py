@@ -233,6 +233,27 @@ def test_export_cameras_writes_a_colmap_model(runs: Runs, tmp_path: Path):
     assert errors["focal_err_max"] < 0.1 * info["camera"]["fx"], errors
 
 
+@pytest.mark.timeout(720)
+def test_s2camp_eval_aligns_held_out_views(runs: Runs, tmp_path: Path):
+    """``s2camp-eval``: test-time alignment of the held-out views of the refined run, metrics written as JSON."""
+    runs.check()
+    output = tmp_path / "aligned.json"
+    tool = str(Path(sys.executable).with_name("s2camp-eval"))
+    result = _run(
+        [tool, "--load-config", str(runs.refine_dir / "config.yml"), "--output-path", str(output),
+         "--alignment.steps", "10", "--alignment.rays", "128"],
+        timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 0, _failure(result, "s2camp-eval")
+    payload = json.loads(output.read_text())
+    held_out = len(range(0, runs.config.num_cameras, 8))
+    assert len(payload["views"]) == held_out and payload["alignment"]["steps"] == 10
+    for view in payload["views"]:
+        assert 5.0 < view["psnr"] < 60.0 and 0.0 < view["ssim"] <= 1.0
+        assert view["psnr"] > view["psnr_unaligned"] - 0.5, "ten small camera steps must not make the view worse"
+    assert "PSNR before" in result.stdout
+
+
 @pytest.mark.timeout(300)
 def test_camp_baseline_trains(tiny_scene: Path, tiny_scene_config, tmp_path: Path):
     """``ns-train s2camp-camp`` (random-sample preconditioner computed once) runs a few perturbed iterations."""
