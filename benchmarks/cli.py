@@ -14,12 +14,14 @@ from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
 from .recovery import RecoveryConfig
 from .speed import SpeedConfig
+from .train_time import TrainTimeConfig
 
 MODULES = {
     DispersionConfig: "dispersion",
     GramErrorConfig: "gram_error",
     SpeedConfig: "speed",
     RecoveryConfig: "recovery",
+    TrainTimeConfig: "train_time",
 }
 
 
@@ -36,6 +38,7 @@ Command = Union[
     Annotated[GramErrorConfig, tyro.conf.subcommand("gram-error")],
     Annotated[SpeedConfig, tyro.conf.subcommand("speed")],
     Annotated[RecoveryConfig, tyro.conf.subcommand("recovery")],
+    Annotated[TrainTimeConfig, tyro.conf.subcommand("train-time")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]
 

@@ -14,8 +14,15 @@ REQUIRED_KEYS = {
     "gram-error": {"frustum", "sampler", "L", "rel_error", "seeds"},
     "speed": {"method", "cameras", "L", "seconds", "peak_mb"},
     "recovery": {"tier", "scene", "variant", "rot_err", "pos_err", "focal_err", "sec_per_iter"},
+    "train-time": {"kind", "method", "sec_per_iter"},
 }
-REPORTS = {"dispersion": "dispersion.md", "gram-error": "gram-error.md", "speed": "speed.md", "recovery": "recovery.md"}
+REPORTS = {
+    "dispersion": "dispersion.md",
+    "gram-error": "gram-error.md",
+    "speed": "speed.md",
+    "recovery": "recovery.md",
+    "train-time": "train-time.md",
+}
 
 
 def _bench() -> str:
@@ -55,6 +62,11 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
                 assert 0.0 < row["psnr"] < 100.0 and 0.0 < row["ssim"] <= 1.0, row
                 assert row["sec_per_iter"] > 0.0, row
         assert (tmp_path / "recovery-tier2.png").exists()
+    if name == "train-time":
+        summary = {row["method"]: row for row in rows if row["kind"] == "summary"}
+        assert set(summary) == {"s2camp-so3xr3", "s2camp", "s2camp-camp"}
+        assert summary["s2camp-so3xr3"]["ratio_to_baseline"] == 1.0
+        assert all(row["sec_per_iter"] > 0.0 for row in rows)
     if name == "speed":
         methods = {row["method"] for row in rows if row.get("kind") == "comparison"}
         assert methods == {"s2camp", "camp-baseline"}
