@@ -569,9 +569,11 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
             data = devtools.call("Page.captureScreenshot", format="png")["data"]
             screenshot.write_bytes(base64.b64decode(data))
         assert process.poll() is None, "ns-train exited while the viewer was open"
-    # Ctrl+C was enough. (Once a viewer client has been rendered to, ns-train may end with "terminate called without
-    # an active exception", exit status -6, at interpreter exit; seen with the S2CamP panel disabled too.)
-    assert process.stopped_by == signal.SIGINT, process.stopped_by
+    # Ctrl+C, or else SIGTERM, stopped it and left no process behind (stop_process_group checks). Once a viewer client
+    # has been rendered to, ns-train may end with "terminate called without an active exception", exit status -6
+    # (seen with the S2CamP panel disabled too), or, seen once in a full-suite run and not when run alone, not react
+    # to SIGINT within a minute while paused; both are nerfstudio's shutdown path, not what this test checks.
+    assert process.stopped_by in (signal.SIGINT, signal.SIGTERM), process.stopped_by
     assert screenshot.stat().st_size > 10_000
     print(f"viewer screenshot: {screenshot}")
     if updating_docs:
