@@ -238,20 +238,9 @@ def _load_pipeline(run: Path):
 
 
 def _errors(model) -> dict[str, float]:
-    from s2camp_ns.core.alignment import camera_errors
-
-    reference = model.reference_cameras()
-    c2w, fx = model.refined_train_cameras()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        errors = camera_errors(
-            c2w,
-            reference.camera_to_worlds.to(torch.float64).cpu(),
-            fx,
-            reference.fx.reshape(-1).to(torch.float64).cpu(),
-            align=True,
-        )
-    return {"rot_err": errors["rot_err_mean"], "pos_err": errors["pos_err_mean"], "focal_err": errors["focal_err_mean"]}
+    """Mean errors of the training cameras as the model sees them, after similarity alignment (its own logging)."""
+    errors = model.update_camera_errors()
+    return {key: errors[f"camera_errors/{key}_mean"] for key in ("rot_err", "pos_err", "focal_err")}
 
 
 def evaluate_run(run: Path, warm_step: int, config: PhotometricConfig) -> dict:
@@ -286,14 +275,16 @@ def start_errors(run: Path) -> dict[str, float]:
     pipeline = _load_pipeline(run)
     model = pipeline.model
     cameras, reference = model._train_cameras, model.reference_cameras()
-    errors = camera_errors(
-        cameras.camera_to_worlds.to(torch.float64),
-        reference.camera_to_worlds.to(torch.float64).cpu(),
-        cameras.fx.reshape(-1).to(torch.float64),
-        reference.fx.reshape(-1).to(torch.float64).cpu(),
-        align=True,
-    )
-    return {"rot_err": errors["rot_err_mean"], "pos_err": errors["pos_err_mean"], "focal_err": errors["focal_err_mean"]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        errors = camera_errors(
+            cameras.camera_to_worlds.to(torch.float64),
+            reference.camera_to_worlds.to(torch.float64).cpu(),
+            cameras.fx.reshape(-1).to(torch.float64),
+            reference.fx.reshape(-1).to(torch.float64).cpu(),
+            align=True,
+        )
+    return {key: errors[f"{key}_mean"] for key in ("rot_err", "pos_err", "focal_err")}
 
 
 def iterations_to_fraction(history: list[dict], start: dict[str, float], key: str, fraction: float) -> float:

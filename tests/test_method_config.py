@@ -113,20 +113,7 @@ def tiny_cameras() -> Cameras:
 def tiny_model() -> S2CampModel:
     """A nerfacto-sized-down S2CampModel on the CPU with LPIPS made unavailable (offline behaviour)."""
     with lpips_offline():
-        config = S2CampModelConfig(
-            num_levels=4,
-            log2_hashmap_size=12,
-            hidden_dim=16,
-            hidden_dim_color=16,
-            num_nerf_samples_per_ray=8,
-            num_proposal_samples_per_ray=(8, 8),
-            proposal_net_args_list=[
-                {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
-                {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
-            ],
-            implementation="torch",
-            camera_optimizer=S2CampCameraOptimizerConfig(num_points=64, sampler="camp-random"),
-        )
+        config = _tiny_model_config(S2CampCameraOptimizerConfig(num_points=64, sampler="camp-random"))
         model = config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=NUM_CAMERAS)
     model.camera_optimizer.set_train_cameras(tiny_cameras())
     return model

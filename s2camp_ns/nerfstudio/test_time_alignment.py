@@ -18,7 +18,7 @@ Works with any nerfacto-derived model whose ``get_outputs`` renders a RayBundle 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from jaxtyping import Float
@@ -88,6 +88,11 @@ def map_camera(similarity: Similarity, c2w: Float[Tensor, "3 4"]) -> Float[Tenso
     return torch.cat([rotation, centre[:, None]], dim=-1)
 
 
+def scale_focal(intrinsics: Intrinsics, factor: float | Tensor) -> Intrinsics:
+    """The same camera with fx and fy multiplied by ``factor`` (differentiable in a tensor factor)."""
+    return replace(intrinsics, fx=intrinsics.fx * factor, fy=intrinsics.fy * factor)
+
+
 def camera_rays(
     c2w_gl: Float[Tensor, "3 4"],
     intrinsics: Intrinsics,
@@ -100,18 +105,7 @@ def camera_rays(
 
     Differentiable in ``twist`` and ``log_focal``; distortion is the camera's (iterative undistortion, core.camera).
     """
-    scale = torch.exp(log_focal)
-    scaled = Intrinsics.create(
-        fx=intrinsics.fx * scale,
-        fy=intrinsics.fy * scale,
-        cx=intrinsics.cx,
-        cy=intrinsics.cy,
-        width=intrinsics.width,
-        height=intrinsics.height,
-        k1=intrinsics.k1,
-        k2=intrinsics.k2,
-        dtype=torch.float64,
-    )
+    scaled = scale_focal(intrinsics.to(dtype=torch.float64), torch.exp(log_focal))
     directions_cam = pixel_to_ray_direction(pixels.double()[None], scaled)[0]
     c2w_cv = c2w_gl.double() * c2w_gl.new_tensor(_FLIP_YZ).double()
     delta = se3_exp(twist.double())
@@ -231,18 +225,7 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
     cameras = dataset.cameras
     views = []
     for index in range(len(dataset)):
-        intrinsics = intrinsics_from_cameras(cameras[index : index + 1])
-        intrinsics = Intrinsics.create(
-            fx=intrinsics.fx * focal_ratio,
-            fy=intrinsics.fy * focal_ratio,
-            cx=intrinsics.cx,
-            cy=intrinsics.cy,
-            width=intrinsics.width,
-            height=intrinsics.height,
-            k1=intrinsics.k1,
-            k2=intrinsics.k2,
-            dtype=torch.float64,
-        )
+        intrinsics = scale_focal(intrinsics_from_cameras(cameras[index : index + 1]), focal_ratio)
         c2w = map_camera(similarity, cameras.camera_to_worlds[index].cpu())
         image = dataset[index]["image"]
         views.append(align_and_evaluate(model, image, c2w, intrinsics, config, index=index))
