@@ -6,8 +6,9 @@ import json
 import math
 import platform
 import sys
+import tempfile
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -95,6 +96,14 @@ def emit_json(rows: list[dict]) -> None:
     safe = [{key: _json_safe(value) for key, value in row.items()} for row in rows]
     sys.stdout.write(json.dumps({"rows": safe}, allow_nan=False) + "\n")
     sys.stdout.flush()
+
+
+def in_work_folder(folder: Path | None, prefix: str, body: Callable[[Path], list[dict]]) -> list[dict]:
+    """``body(folder)``; without a folder, ``body`` of a temporary one that is removed afterwards."""
+    if folder is not None:
+        return body(folder)
+    with tempfile.TemporaryDirectory(prefix=prefix) as temporary:
+        return body(Path(temporary))
 
 
 def log(message: str) -> None:

@@ -8,7 +8,6 @@ seed) of the same generated scenes; CamP's random baseline is averaged over seed
 from __future__ import annotations
 
 import math
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -16,7 +15,7 @@ import torch
 
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
-from .common import DEFAULT_OUTPUT_DIR, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
 from .recovery_geometric import VARIANTS, GeometricConfig, iterations_to, load_scene, run_variant
 from .recovery_photometric import PhotometricConfig, run_photometric
 
@@ -35,7 +34,7 @@ class RecoveryConfig:
     """Generated scenes (s2camp-make-scene presets)."""
     variants: tuple[str, ...] = VARIANTS
     tiers: tuple[int, ...] = (1, 2)
-    """1: geometric (seconds); 2: photometric ns-train runs (about 45 minutes on a 2-core CPU)."""
+    """1: geometric (minutes); 2: photometric ns-train runs (58 minutes measured on a 2-core CPU)."""
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     quick: bool = False
@@ -95,10 +94,7 @@ def run(config: RecoveryConfig) -> list[dict]:
     for tier in config.tiers:
         if tier not in (1, 2):
             raise ValueError(f"tiers must contain only 1 and 2, got {tier!r}")
-    if config.scene_dir is not None:
-        return _run(config, config.scene_dir)
-    with tempfile.TemporaryDirectory(prefix="s2camp-recovery-") as folder:
-        return _run(config, Path(folder))
+    return in_work_folder(config.scene_dir, "s2camp-recovery-", lambda root: _run(config, root))
 
 
 def _run(config: RecoveryConfig, root: Path) -> list[dict]:
@@ -123,7 +119,7 @@ def _run(config: RecoveryConfig, root: Path) -> list[dict]:
     return rows
 
 
-def plot(histories: dict, path: Path, scale: str = "log") -> None:
+def plot(histories: dict, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -136,8 +132,7 @@ def plot(histories: dict, path: Path, scale: str = "log") -> None:
         for axis, (key, label) in zip(row_axes, keys, strict=True):
             for (name, variant), history in histories.items():
                 if name == scene and len(history) > 1:
-                    axis.plot([h["iteration"] for h in history], [h[key] for h in history], label=variant)
-            axis.set_yscale(scale)
+                    axis.semilogy([h["iteration"] for h in history], [h[key] for h in history], label=variant)
             axis.set_title(f"{scene}: {label}")
             axis.set_xlabel("iteration")
             axis.grid(True, which="both", alpha=0.3)

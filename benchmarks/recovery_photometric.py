@@ -27,14 +27,19 @@ import io
 import math
 import shutil
 import subprocess
-import time
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
 
-from s2camp_ns.demo import DATAPARSER_SUBCOMMAND, FROZEN_LR, SMALL_MODEL, _ns_train, training_environment
+from s2camp_ns.demo import (
+    FROZEN_LR,
+    camera_schedule_arguments,
+    ns_train_arguments,
+    perturbation_arguments,
+    training_environment,
+)
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
@@ -102,22 +107,16 @@ class PhotometricConfig:
         )
 
 
-def _common_arguments(scene: Path, output: Path, experiment: str, timestamp: str, iterations: int, every: int):
+def _arguments(
+    method: str, scene: Path, work: Path, experiment: str, timestamp: str, iterations: int, every: int, rays: int
+) -> list[str]:
+    """The demo's shared ns-train options, plus: every checkpoint kept (the error curves), no camera-error logging
+    during training (errors are computed afterwards, the same way for every variant, and time is not spent on it)."""
     return [
-        "--data", str(scene),
-        "--output-dir", str(output),
-        "--experiment-name", experiment,
-        "--timestamp", timestamp,
-        "--max-num-iterations", str(iterations),
-        "--steps-per-save", str(every),
+        *ns_train_arguments(method, scene, work, experiment, timestamp, iterations, every, rays),
         "--save-only-latest-checkpoint", "False",
-        "--steps-per-eval-batch", "0",
-        "--steps-per-eval-image", "0",
-        "--steps-per-eval-all-images", "0",
-        "--logging.steps-per-log", "10",
         "--vis", "tensorboard",
         "--pipeline.model.camera-error-every", "0",
-        *SMALL_MODEL,
     ]  # fmt: skip
 
 
@@ -133,16 +132,14 @@ def _variant_arguments(variant: str, seed: int, config: PhotometricConfig) -> li
     }[variant]
 
 
-def _run_ns_train(command: list[str], log_path: Path, what: str) -> float:
+def _run_ns_train(command: list[str], log_path: Path, what: str) -> None:
     log(f"  ns-train {what}: " + " ".join(command[1:3]) + f" ... (log: {log_path})")
-    began = time.perf_counter()
     log_path.parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "w", encoding="utf8") as output:
         result = subprocess.run(command, stdout=output, stderr=subprocess.STDOUT, env=training_environment())
     if result.returncode != 0:
         tail = "\n".join(log_path.read_text(encoding="utf8", errors="replace").splitlines()[-30:])
         raise RuntimeError(f"ns-train {what} failed with status {result.returncode}; log {log_path}:\n{tail}")
-    return time.perf_counter() - began
 
 
 def _checkpoints(run: Path) -> list[Path]:
@@ -152,12 +149,11 @@ def _checkpoints(run: Path) -> list[Path]:
 def warm_start(scene: Path, work: Path, scene_name: str, config: PhotometricConfig) -> Path:
     """Train on the accurate cameras; return a checkpoint folder without camera-optimizer state."""
     command = [
-        _ns_train(), "s2camp",
-        *_common_arguments(scene, work, scene_name, "warm-start", config.warm_start, config.warm_start),
-        "--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch),
-        "--optimizers.camera-opt.optimizer.lr", str(FROZEN_LR),
-        "--optimizers.camera-opt.scheduler.warmup-steps", "0",
-        "--optimizers.camera-opt.scheduler.lr-final", str(FROZEN_LR),
+        *_arguments(
+            "s2camp", scene, work, scene_name, "warm-start", config.warm_start, config.warm_start,
+            config.rays_per_batch,
+        ),
+        *camera_schedule_arguments(FROZEN_LR, FROZEN_LR),
     ]  # fmt: skip
     run = work / scene_name / "s2camp" / "warm-start"
     _run_ns_train(command, work / f"{scene_name}-warm-start.log", f"{scene_name} warm start")
@@ -182,26 +178,16 @@ def train_variant(
     method = METHODS[variant]
     timestamp = variant if variant != "camp" else f"camp-seed{seed}"
     command = [
-        _ns_train(), method,
-        *_common_arguments(scene, work, scene_name, timestamp, config.iterations, config.checkpoint_every),
-        "--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch),
-        "--optimizers.camera-opt.optimizer.lr", str(config.camera_lr),
-        "--optimizers.camera-opt.scheduler.warmup-steps", "0",
-        "--optimizers.camera-opt.scheduler.lr-final", str(config.camera_lr_final),
-        "--optimizers.camera-opt.scheduler.max-steps", str(config.iterations),
+        *_arguments(
+            method, scene, work, scene_name, timestamp, config.iterations, config.checkpoint_every,
+            config.rays_per_batch,
+        ),
+        *camera_schedule_arguments(config.camera_lr, config.camera_lr_final, config.iterations),
         *_variant_arguments(variant, seed, config),
     ]  # fmt: skip
     if warm is not None:
         command += ["--load-dir", str(warm), "--load-scheduler", "False"]
-    command += [
-        DATAPARSER_SUBCOMMAND,
-        "--perturbation.enabled", "True",
-        "--perturbation.seed", str(config.perturbation_seed),
-        "--perturbation.sigma-position", str(config.sigma_position),
-        "--perturbation.sigma-look-at", str(config.sigma_look_at),
-        "--perturbation.sigma-focal-length", str(config.sigma_focal_length),
-        "--perturbation.sigma-dolly-z", str(config.sigma_dolly_z),
-    ]  # fmt: skip
+    command += perturbation_arguments(config)
     _run_ns_train(command, work / f"{scene_name}-{timestamp}.log", f"{scene_name} {timestamp}")
     return work / scene_name / method / timestamp
 
@@ -256,6 +242,7 @@ def evaluate_run(run: Path, warm_step: int, config: PhotometricConfig) -> dict:
         history.append({"iteration": state["step"] - warm_step, **_errors(model)})
     views = evaluate_held_out_views(pipeline, config.alignment)
     result = {
+        "start": _start_errors(model),
         "history": history,
         "final": history[-1],
         "psnr": sum(v.psnr for v in views) / len(views),
@@ -268,12 +255,10 @@ def evaluate_run(run: Path, warm_step: int, config: PhotometricConfig) -> dict:
     return result
 
 
-def start_errors(run: Path) -> dict[str, float]:
+def _start_errors(model) -> dict[str, float]:
     """Errors of the perturbed start (identical for every variant: same cameras, zero corrections)."""
     from s2camp_ns.core.alignment import camera_errors
 
-    pipeline = _load_pipeline(run)
-    model = pipeline.model
     cameras, reference = model._train_cameras, model.reference_cameras()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -310,22 +295,20 @@ def run_scene(
     shutil.rmtree(work / scene_name, ignore_errors=True)
     warm = warm_start(scene, work, scene_name, config) if config.warm_start > 0 else None
     warm_step = config.warm_start
-    rows, histories, start = [], {}, None
+    rows, histories = [], {}
     for variant in variants:
         seeds = config.camp_seeds if variant == "camp" else (0,)
-        results = []
-        for seed in seeds:
-            run = train_variant(scene, work, scene_name, warm, variant, seed, config)
-            if start is None:
-                start = start_errors(run)
-            results.append(evaluate_run(run, warm_step, config))
-        history = [{"iteration": 0, **start}, *results[0]["history"]]
-        if len(results) > 1:  # mean curve over the seeds (same checkpoint steps)
-            history = [{"iteration": 0, **start}] + [
-                {"iteration": entries[0]["iteration"]}
-                | {key: _mean([e[key] for e in entries]) for key in ("rot_err", "pos_err", "focal_err")}
-                for entries in zip(*[r["history"] for r in results], strict=True)
-            ]
+        results = [
+            evaluate_run(train_variant(scene, work, scene_name, warm, variant, seed, config), warm_step, config)
+            for seed in seeds
+        ]
+        start = results[0]["start"]
+        # mean curve over the seeds (same checkpoint steps)
+        history = [{"iteration": 0, **start}] + [
+            {"iteration": entries[0]["iteration"]}
+            | {key: _mean([e[key] for e in entries]) for key in ("rot_err", "pos_err", "focal_err")}
+            for entries in zip(*[r["history"] for r in results], strict=True)
+        ]
         histories[(scene_name, variant)] = history
         row = {"tier": 2, "scene": scene_name, "variant": variant, "seeds": len(seeds)}
         for key in ("rot_err", "pos_err", "focal_err"):

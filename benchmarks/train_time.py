@@ -12,14 +12,13 @@ compared.
 from __future__ import annotations
 
 import statistics
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from s2camp_ns.demo import DATAPARSER_SUBCOMMAND, SMALL_MODEL, _ns_train
+from s2camp_ns.demo import DATAPARSER_SUBCOMMAND, ns_train_arguments
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
-from .common import DEFAULT_OUTPUT_DIR, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
 from .recovery_photometric import _run_ns_train, seconds_per_iteration
 
 BASELINE = "s2camp-so3xr3"
@@ -60,20 +59,11 @@ class TrainTimeConfig:
 
 def _command(config: TrainTimeConfig, scene: Path, work: Path, method: str, round_index: int) -> list[str]:
     command = [
-        _ns_train(), method,
-        "--data", str(scene),
-        "--output-dir", str(work),
-        "--experiment-name", "train-time",
-        "--timestamp", f"round{round_index}",
-        "--max-num-iterations", str(config.iterations),
-        "--steps-per-save", str(config.iterations),
-        "--steps-per-eval-batch", "0",
-        "--steps-per-eval-image", "0",
-        "--steps-per-eval-all-images", "0",
-        "--logging.steps-per-log", "10",
+        *ns_train_arguments(
+            method, scene, work, "train-time", f"round{round_index}", config.iterations, config.iterations,
+            config.rays_per_batch,
+        ),
         "--vis", "tensorboard",
-        "--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch),
-        *SMALL_MODEL,
     ]  # fmt: skip
     if method == "s2camp":  # CamP's protocol computes P once (s2camp-camp's default)
         command += ["--pipeline.model.camera-optimizer.refresh-every", str(config.refresh_every)]
@@ -84,10 +74,7 @@ def run(config: TrainTimeConfig) -> list[dict]:
     config = config.effective()
     if config.rounds < 1 or config.iterations < 2:
         raise ValueError(f"rounds must be >= 1 and iterations >= 2, got {config.rounds} and {config.iterations}")
-    if config.scene_dir is not None:
-        return _run(config, config.scene_dir)
-    with tempfile.TemporaryDirectory(prefix="s2camp-train-time-") as folder:
-        return _run(config, Path(folder))
+    return in_work_folder(config.scene_dir, "s2camp-train-time-", lambda root: _run(config, root))
 
 
 def _run(config: TrainTimeConfig, root: Path) -> list[dict]:

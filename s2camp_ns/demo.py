@@ -146,23 +146,69 @@ def _ns_train() -> str:
     return str(ns_train) if ns_train.exists() else "ns-train"
 
 
-def _common_arguments(config: DemoConfig, scene: Path, timestamp: str, iterations: int) -> list[str]:
-    """Options shared by both runs (the model must match for the refinement run to load the warm start)."""
+def ns_train_arguments(
+    method: str,
+    scene: Path,
+    output_dir: Path,
+    experiment: str,
+    timestamp: str,
+    iterations: int,
+    steps_per_save: int,
+    rays_per_batch: int,
+) -> list[str]:
+    """``ns-train <method>`` with what every CPU-sized run here shares (demo, e2e tests, benchmarks): no evaluation
+    during training, logs every 10 steps, the batch size and ``SMALL_MODEL``."""
     return [
-        _ns_train(), config.method,
+        _ns_train(), method,
         "--data", str(scene),
-        "--output-dir", str(config.output_dir),
-        "--experiment-name", EXPERIMENT,
+        "--output-dir", str(output_dir),
+        "--experiment-name", experiment,
         "--timestamp", timestamp,
         "--max-num-iterations", str(iterations),
-        "--steps-per-save", str(iterations),
+        "--steps-per-save", str(steps_per_save),
         "--steps-per-eval-batch", "0",
         "--steps-per-eval-image", "0",
         "--steps-per-eval-all-images", "0",
         "--logging.steps-per-log", "10",
-        "--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch),
-        "--pipeline.model.camera-error-every", "10",
+        "--pipeline.datamanager.train-num-rays-per-batch", str(rays_per_batch),
         *SMALL_MODEL,
+    ]  # fmt: skip
+
+
+def camera_schedule_arguments(lr: float, lr_final: float, max_steps: int | None = None) -> list[str]:
+    """Camera learning rate ``lr`` decaying exponentially to ``lr_final`` (over ``max_steps``), no warm-up."""
+    arguments = [
+        "--optimizers.camera-opt.optimizer.lr", str(lr),
+        "--optimizers.camera-opt.scheduler.warmup-steps", "0",
+        "--optimizers.camera-opt.scheduler.lr-final", str(lr_final),
+    ]  # fmt: skip
+    if max_steps is not None:
+        arguments += ["--optimizers.camera-opt.scheduler.max-steps", str(max_steps)]
+    return arguments
+
+
+def perturbation_arguments(config) -> list[str]:
+    """The dataparser subcommand with CamP's perturbation on, its seed and sigmas taken from ``config`` (a
+    ``DemoConfig`` or any config with the same ``perturbation_seed`` and ``sigma_*`` fields)."""
+    return [
+        DATAPARSER_SUBCOMMAND,
+        "--perturbation.enabled", "True",
+        "--perturbation.seed", str(config.perturbation_seed),
+        "--perturbation.sigma-position", str(config.sigma_position),
+        "--perturbation.sigma-look-at", str(config.sigma_look_at),
+        "--perturbation.sigma-focal-length", str(config.sigma_focal_length),
+        "--perturbation.sigma-dolly-z", str(config.sigma_dolly_z),
+    ]  # fmt: skip
+
+
+def _common_arguments(config: DemoConfig, scene: Path, timestamp: str, iterations: int) -> list[str]:
+    """Options shared by both runs (the model must match for the refinement run to load the warm start)."""
+    return [
+        *ns_train_arguments(
+            config.method, scene, config.output_dir, EXPERIMENT, timestamp, iterations, iterations,
+            config.rays_per_batch,
+        ),
+        "--pipeline.model.camera-error-every", "10",
     ]  # fmt: skip
 
 
@@ -175,9 +221,7 @@ def warm_start_command(config: DemoConfig, scene: Path) -> list[str]:
     return [
         *_common_arguments(config, scene, WARM_START_TIMESTAMP, config.warm_start),
         "--vis", "tensorboard",
-        "--optimizers.camera-opt.optimizer.lr", str(FROZEN_LR),
-        "--optimizers.camera-opt.scheduler.warmup-steps", "0",
-        "--optimizers.camera-opt.scheduler.lr-final", str(FROZEN_LR),
+        *camera_schedule_arguments(FROZEN_LR, FROZEN_LR),
     ]  # fmt: skip
 
 
@@ -187,10 +231,7 @@ def refine_command(config: DemoConfig, scene: Path) -> list[str]:
         *_common_arguments(config, scene, REFINE_TIMESTAMP, config.iterations),
         "--vis", "viewer+tensorboard" if config.viewer else "tensorboard",
         "--viewer.quit-on-train-completion", "True",
-        "--optimizers.camera-opt.optimizer.lr", str(config.camera_lr),
-        "--optimizers.camera-opt.scheduler.warmup-steps", "0",
-        "--optimizers.camera-opt.scheduler.lr-final", str(config.camera_lr_final),
-        "--optimizers.camera-opt.scheduler.max-steps", str(config.iterations),
+        *camera_schedule_arguments(config.camera_lr, config.camera_lr_final, config.iterations),
         "--pipeline.model.camera-optimizer.refresh-every", str(max(config.iterations // 4, 1)),
     ]  # fmt: skip
     if config.warm_start > 0:
@@ -198,16 +239,7 @@ def refine_command(config: DemoConfig, scene: Path) -> list[str]:
             "--load-dir", str(run_dir(config, WARM_START_TIMESTAMP) / "nerfstudio_models"),
             "--load-scheduler", "False",
         ]  # fmt: skip
-    return [
-        *command,
-        DATAPARSER_SUBCOMMAND,
-        "--perturbation.enabled", "True",
-        "--perturbation.seed", str(config.perturbation_seed),
-        "--perturbation.sigma-position", str(config.sigma_position),
-        "--perturbation.sigma-look-at", str(config.sigma_look_at),
-        "--perturbation.sigma-focal-length", str(config.sigma_focal_length),
-        "--perturbation.sigma-dolly-z", str(config.sigma_dolly_z),
-    ]  # fmt: skip
+    return [*command, *perturbation_arguments(config)]
 
 
 def training_environment() -> dict[str, str]:
