@@ -8,11 +8,13 @@ seed) of the same generated scenes; CamP's random baseline is averaged over seed
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
 
+from s2camp_ns.core.preconditioner import CAMP_T_FAR
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
@@ -34,7 +36,7 @@ class RecoveryConfig:
     """Generated scenes (s2camp-make-scene presets)."""
     variants: tuple[str, ...] = VARIANTS
     tiers: tuple[int, ...] = (1, 2)
-    """1: geometric (minutes); 2: photometric ns-train runs (58 minutes measured on a 2-core CPU)."""
+    """1: geometric (minutes); 2: photometric ns-train runs (most of the hour; the report states the wall time)."""
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     quick: bool = False
@@ -99,6 +101,8 @@ def run(config: RecoveryConfig) -> list[dict]:
 
 def _run(config: RecoveryConfig, root: Path) -> list[dict]:
     rows, histories = [], {}
+    run.minutes = {}  # type: ignore[attr-defined]
+    began = time.perf_counter()
     if 1 in config.tiers:
         # Tier 1 is many small tensor operations: one thread keeps per-iteration times stable and comparable
         # between variants (several threads on a busy 2-core machine made them vary tenfold).
@@ -108,14 +112,17 @@ def _run(config: RecoveryConfig, root: Path) -> list[dict]:
             rows, histories = run_geometric(config, root / "tier1")
         finally:
             torch.set_num_threads(threads)
+        run.minutes[1] = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
     run.histories = histories  # type: ignore[attr-defined]
     run.photometric_histories = {}  # type: ignore[attr-defined]
     if 2 in config.tiers:
+        began = time.perf_counter()
         tier2_rows, tier2_histories = run_photometric(
             config.scenes, config.variants, config.photometric, root / "tier2", config.quick
         )
         rows.extend(tier2_rows)
         run.photometric_histories = tier2_histories  # type: ignore[attr-defined]
+        run.minutes[2] = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
     return rows
 
 
@@ -154,6 +161,10 @@ def report(rows: list[dict], config: RecoveryConfig) -> Path:
     if tier2:
         plot(getattr(run, "photometric_histories", {}), config.output_dir / "recovery-tier2.png")
         sections += _tier2_section(tier2, config)
+    minutes = getattr(run, "minutes", {})
+    if minutes:
+        spent = ", ".join(f"tier {tier} {value:.1f}" for tier, value in sorted(minutes.items()))
+        sections.append(f"Wall time of this run: {sum(minutes.values()):.1f} minutes ({spent}).")
     command = "s2camp-bench recovery" + (" --quick" if config.quick else "")
     if tuple(config.tiers) != (1, 2):
         command += " --tiers " + " ".join(str(tier) for tier in config.tiers)
@@ -161,8 +172,11 @@ def report(rows: list[dict], config: RecoveryConfig) -> Path:
 
 
 def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
+    from s2camp_ns.nerfstudio.camera_optimizer import S2CampCameraOptimizerConfig
+
     p = config.photometric.quick() if config.quick else config.photometric
     a = p.alignment
+    method = S2CampCameraOptimizerConfig()
     columns = [
         "scene", "variant", "seeds", "rot_err", "pos_err", "focal_err",
         "iters_to_half_rot_err", "iters_to_half_pos_err", "iters_to_half_focal_err",
@@ -186,7 +200,9 @@ def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
         f"{p.iterations} iterations per variant from the perturbed cameras (seed {p.perturbation_seed}; sigma "
         f"position {p.sigma_position:g}, look-at {p.sigma_look_at:g}, focal {p.sigma_focal_length:g}, dolly "
         f"{p.sigma_dolly_z:g}), camera lr {p.camera_lr:g} -> {p.camera_lr_final:g} for every variant; P refreshed "
-        f"every {p.refresh_every} iterations for s2camp; CamP over seeds {list(p.camp_seeds)}. Errors as in tier 1, "
+        f"every {p.refresh_every} iterations for s2camp; proxy frustum t in [{method.t_near:g}, {method.t_far:g}] "
+        f"for S2CamP, [{method.t_near:g}, {CAMP_T_FAR:g}] for CamP (the methods' defaults); CamP over seeds "
+        f"{list(p.camp_seeds)}. Errors as in tier 1, "
         f"evaluated on checkpoints every {p.checkpoint_every} iterations; start errors {starts}. Held-out views: "
         f"{a.steps} camera-only Adam steps (pose + focal scale, {a.rays} rays per step, lr {a.lr:g} -> "
         f"{a.lr_final:g}) from the similarity-mapped reference camera, then PSNR / SSIM of the full image (LPIPS "
@@ -250,7 +266,9 @@ def _tier1_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
         "error of the "
         f"scene's 3D points (pixels / max(W, H)); lr {g.lr:g} -> {g.lr_final:g} (exponential) for raw and the "
         f"whitened variants, {g.so3xr3_lr:g} -> {g.so3xr3_lr_final:g} for so3xr3; P refreshed every "
-        f"{g.refresh_every} iterations for s2camp; CamP averaged over seeds {list(g.camp_seeds)}; perturbation seed "
+        f"{g.refresh_every} iterations for s2camp; proxy frustum t in [{g.sampling.t_near:g}, {g.sampling.t_far:g}] "
+        f"(contracted) for S2CamP, [{g.sampling.t_near:g}, {CAMP_T_FAR:g}] for CamP; CamP averaged over seeds "
+        f"{list(g.camp_seeds)}; perturbation seed "
         f"{g.perturbation_seed} (CamP protocol, distortion zeroed). Errors after a similarity alignment to the true "
         "cameras: mean rotation angle (rad), mean camera-centre distance (normalized scene units), mean |fx error| "
         "(px), mean principal-point distance (px), mean |k1 error|."

@@ -29,6 +29,7 @@ from s2camp_ns.core.alignment import camera_errors
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, apply_local_transform, in_image, project, se3_exp
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.core.preconditioner import (
+    CAMP_T_FAR,
     DampingConfig,
     Preconditioner,
     SamplingConfig,
@@ -125,7 +126,7 @@ class Refinement:
             sampling = config.sampling
             if variant == "camp":
                 sampling = SamplingConfig(
-                    sampler="camp-random", num_points=5000, t_near=sampling.t_near, t_far=sampling.t_far, seed=seed
+                    sampler="camp-random", num_points=5000, t_near=sampling.t_near, t_far=CAMP_T_FAR, seed=seed
                 )
             self.sampling = sampling
             self.preconditioner = compute_preconditioner(start, self.layout, sampling, config.damping)

@@ -8,10 +8,10 @@ Per generated scene (narrow and wide field of view):
    variant: ``ns-train <method> --load-dir`` with the training cameras perturbed (CamP protocol, fixed seed);
 3. each variant trains the same number of iterations with the same camera learning-rate schedule, saving a
    checkpoint every ``checkpoint_every`` steps;
-4. afterwards, in this process and identically for every variant: camera errors of each checkpoint after a
-   similarity alignment (``core.alignment``), and PSNR / SSIM (LPIPS where its weights are cached) of the held-out
-   views after test-time camera alignment (``s2camp_ns.nerfstudio.test_time_alignment``, CamP's 100 camera-only
-   steps).
+4. once every run of every scene has trained (so evaluation never overlaps a timed training run), identically for
+   every variant and in ``eval_workers`` processes: camera errors of each checkpoint after a similarity alignment
+   (``core.alignment``), and PSNR / SSIM (LPIPS where its weights are cached) of the held-out views after
+   test-time camera alignment (``s2camp_ns.nerfstudio.test_time_alignment``, CamP's 100 camera-only steps).
 
 Variants: none (camera optimizer off), so3xr3 (``s2camp-so3xr3``: nerfstudio's stock optimizer in the same
 pipeline), raw (S2CamP's 12 parameters without preconditioning), camp (``s2camp-camp``, 5000 random points, P once,
@@ -25,10 +25,13 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import multiprocessing
 import shutil
 import subprocess
 import warnings
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
+from itertools import repeat
 from pathlib import Path
 
 import torch
@@ -93,6 +96,8 @@ class PhotometricConfig:
     """Seeds of CamP's random proxy points (one run each, errors and metrics averaged)."""
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     """Test-time alignment of the held-out cameras (every variant alike)."""
+    eval_workers: int = 2
+    """Processes (one torch thread each) evaluating the finished runs; 1 evaluates in this process."""
 
     def quick(self) -> PhotometricConfig:
         return replace(
@@ -284,9 +289,20 @@ def _mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else math.nan
 
 
-def run_scene(
+@dataclass(frozen=True)
+class TrainedRun:
+    """A finished ``ns-train`` run of one variant (and CamP seed) on one scene, waiting for evaluation."""
+
+    scene: str
+    variant: str
+    seed: int
+    path: Path
+
+
+def train_scene(
     scene_name: str, variants: tuple[str, ...], config: PhotometricConfig, root: Path, quick: bool
-) -> tuple[list[dict], dict]:
+) -> list[TrainedRun]:
+    """Generate the scene, train the shared warm start, then every variant (CamP once per seed), one at a time."""
     scene_config = replace(SCENES[scene_name], output_dir=root / "scenes" / scene_name)
     if quick:
         scene_config = replace(scene_config, **QUICK_SCENE_SIZE)
@@ -294,30 +310,50 @@ def run_scene(
     work = root / "runs"
     shutil.rmtree(work / scene_name, ignore_errors=True)
     warm = warm_start(scene, work, scene_name, config) if config.warm_start > 0 else None
-    warm_step = config.warm_start
+    return [
+        TrainedRun(scene_name, variant, seed, train_variant(scene, work, scene_name, warm, variant, seed, config))
+        for variant in variants
+        for seed in (config.camp_seeds if variant == "camp" else (0,))
+    ]
+
+
+def _single_thread() -> None:
+    # Two evaluations side by side on two cores: one thread each, idle OpenMP threads not spinning.
+    torch.set_num_threads(1)
+
+
+def evaluate_runs(runs: list[TrainedRun], config: PhotometricConfig) -> list[dict]:
+    """``evaluate_run`` for every run, in ``config.eval_workers`` processes (results in the order of ``runs``)."""
+    paths = [run.path for run in runs]
+    if config.eval_workers <= 1 or len(runs) <= 1:
+        return [evaluate_run(path, config.warm_start, config) for path in paths]
+    context = multiprocessing.get_context("spawn")  # a forked torch (threads, OpenMP state) is not safe
+    with ProcessPoolExecutor(config.eval_workers, mp_context=context, initializer=_single_thread) as pool:
+        return list(pool.map(evaluate_run, paths, repeat(config.warm_start), repeat(config)))
+
+
+def summarize_scene(scene_name: str, results: list[tuple[TrainedRun, dict]]) -> tuple[list[dict], dict]:
+    """One row per variant (CamP: mean over its seeds) and the mean error curve, for one scene."""
     rows, histories = [], {}
+    variants = list(dict.fromkeys(run.variant for run, _ in results if run.scene == scene_name))
     for variant in variants:
-        seeds = config.camp_seeds if variant == "camp" else (0,)
-        results = [
-            evaluate_run(train_variant(scene, work, scene_name, warm, variant, seed, config), warm_step, config)
-            for seed in seeds
-        ]
-        start = results[0]["start"]
+        chosen = [result for run, result in results if run.scene == scene_name and run.variant == variant]
+        start = chosen[0]["start"]
         # mean curve over the seeds (same checkpoint steps)
         history = [{"iteration": 0, **start}] + [
             {"iteration": entries[0]["iteration"]}
             | {key: _mean([e[key] for e in entries]) for key in ("rot_err", "pos_err", "focal_err")}
-            for entries in zip(*[r["history"] for r in results], strict=True)
+            for entries in zip(*[r["history"] for r in chosen], strict=True)
         ]
         histories[(scene_name, variant)] = history
-        row = {"tier": 2, "scene": scene_name, "variant": variant, "seeds": len(seeds)}
+        row = {"tier": 2, "scene": scene_name, "variant": variant, "seeds": len(chosen)}
         for key in ("rot_err", "pos_err", "focal_err"):
             row[f"start_{key}"] = start[key]
-            row[key] = _mean([r["final"][key] for r in results])
+            row[key] = _mean([r["final"][key] for r in chosen])
             row[f"iters_to_half_{key}"] = iterations_to_fraction(history, start, key, 0.5)
         for key in ("psnr", "ssim", "lpips", "psnr_unaligned", "sec_per_iter"):
-            row[key] = _mean([r[key] for r in results])
-        row["eval_views"] = results[0]["eval_views"]
+            row[key] = _mean([r[key] for r in chosen])
+        row["eval_views"] = chosen[0]["eval_views"]
         rows.append(row)
         log(
             f"recovery tier 2 {scene_name:6s} {variant:12s} rot {row['rot_err']:.2e} pos {row['pos_err']:.2e} "
@@ -335,9 +371,12 @@ def run_photometric(
 ) -> tuple[list[dict], dict]:
     if quick:  # CI: every variant runs, on the first scene only (each ns-train start-up costs about 10 s)
         config, scenes = config.quick(), scenes[:1]
+    runs = [run for scene_name in scenes for run in train_scene(scene_name, variants, config, root, quick)]
+    log(f"  evaluating {len(runs)} runs ({config.eval_workers} processes)")
+    results = list(zip(runs, evaluate_runs(runs, config), strict=True))
     rows, histories = [], {}
     for scene_name in scenes:
-        scene_rows, scene_histories = run_scene(scene_name, variants, config, root, quick)
+        scene_rows, scene_histories = summarize_scene(scene_name, results)
         rows.extend(scene_rows)
         histories.update(scene_histories)
     return rows, histories

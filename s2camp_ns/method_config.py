@@ -25,6 +25,7 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from s2camp_ns.core.preconditioner import CAMP_T_FAR
 from s2camp_ns.nerfstudio.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
 from s2camp_ns.nerfstudio.model import S2CampModelConfig
@@ -108,7 +109,7 @@ s2camp_method = MethodSpecification(
 s2camp_camp_method = MethodSpecification(
     config=make_trainer_config(
         "s2camp-camp",
-        S2CampCameraOptimizerConfig(sampler="camp-random", num_points=5000, refresh_every=0),
+        S2CampCameraOptimizerConfig(sampler="camp-random", num_points=5000, refresh_every=0, t_far=CAMP_T_FAR),
     ),
     description="CamP baseline: as s2camp, but P from 5000 random frustum points, computed once.",
 )

@@ -43,15 +43,17 @@ def test_contraction_errors() -> None:
         contract(torch.tensor([[math.nan, 0.0, 1.0]], dtype=torch.float64))
 
 
-@pytest.mark.parametrize("transform", ["pyramid", "spherical"])
-def test_round_trip_and_radius(transform: str) -> None:
+@pytest.mark.parametrize(
+    ("transform", "radial"), [("pyramid", "volume"), ("spherical", "volume"), ("pixel", "ray"), ("pyramid", "ray")]
+)
+def test_round_trip_and_radius(transform: str, radial: str) -> None:
     u = uniform_cube(5000)
-    samples = sample_frustum(u, BOUNDS, 0.1, 1.99, transform)
+    samples = sample_frustum(u, BOUNDS, 0.1, 1.99, transform, radial)
     assert samples.contracted.shape == (3, 5000, 3) and samples.camera.shape == (3, 5000, 3)
     radius = samples.contracted.norm(dim=-1)
     assert float(radius.min()) >= 0.1 - 1e-12 and float(radius.max()) <= 1.99 + 1e-12
     assert torch.allclose(
-        frustum_to_unit(samples.contracted, BOUNDS, 0.1, 1.99, transform), u.expand(3, -1, -1), atol=1e-12
+        frustum_to_unit(samples.contracted, BOUNDS, 0.1, 1.99, transform, radial), u.expand(3, -1, -1), atol=1e-12
     )
     # Euclidean points: same direction, radius through the inverse contraction.
     assert torch.allclose(samples.camera.norm(dim=-1), uncontract_radius(radius), rtol=1e-12)
@@ -129,6 +131,24 @@ def test_camp_random_points() -> None:
     assert torch.allclose(first.camera.norm(dim=-1), uncontract_radius(r))
 
 
+def test_pixel_and_ray_maps_give_camps_measure_exactly() -> None:
+    # CamP's sampler draws (a, b, r) uniformly; the "pixel" / "ray" maps take the same numbers as (u3, u2, u1).
+    draws = torch.rand((3, 300, 3), generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    camp = camp_random_points(BOUNDS, 300, 0.1, 1.9, generator=torch.Generator().manual_seed(4))
+    mapped = sample_frustum(draws[..., [2, 1, 0]], BOUNDS, 0.1, 1.9, "pixel", "ray")
+    torch.testing.assert_close(mapped.contracted, camp.contracted, atol=1e-14, rtol=0)
+    torch.testing.assert_close(mapped.camera, camp.camera, atol=1e-12, rtol=1e-12)
+
+
+def test_ray_radial_map_is_uniform_in_contracted_distance() -> None:
+    u = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    points = torch.stack([u, torch.full_like(u, 0.5), torch.full_like(u, 0.5)], dim=-1)
+    radius = sample_frustum(points, ROOM, 0.4, 1.9, "pyramid", "ray").contracted.norm(dim=-1)[0]
+    torch.testing.assert_close(radius, 0.4 + 1.5 * u, atol=1e-14, rtol=0)
+    volume = sample_frustum(points, ROOM, 0.4, 1.9, "pyramid", "volume").contracted.norm(dim=-1)[0]
+    assert float(volume[5]) > float(radius[5]) + 0.2  # the paper's map puts the median far out (cube root)
+
+
 def test_frustum_errors_name_the_parameter() -> None:
     u = uniform_cube(10)
     with pytest.raises(ValueError, match="t_near"):
@@ -149,5 +169,7 @@ def test_frustum_errors_name_the_parameter() -> None:
         sample_frustum(u + 1.0, ROOM, 0.0, 1.5)
     with pytest.raises(ValueError, match="transform"):
         sample_frustum(u, ROOM, 0.0, 1.5, "cone")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="radial"):
+        sample_frustum(u, ROOM, 0.0, 1.5, "pyramid", "log")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="num_points"):
         camp_random_points(ROOM, 0, 0.0, 1.5)

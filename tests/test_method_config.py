@@ -45,6 +45,10 @@ def test_camp_baseline_differs_only_in_camera_sampling():
     assert (camp_camera.sampler, camp_camera.num_points, camp_camera.refresh_every) == ("camp-random", 5000, 0)
     s2camp_camera = s2camp.pipeline.model.camera_optimizer
     assert (s2camp_camera.sampler, s2camp_camera.num_points, s2camp_camera.transform) == ("frolov", 500, "pyramid")
+    # S2CamP's tuned range does not leak into the baseline: CamP keeps its published far radius.
+    assert (s2camp_camera.radial, s2camp_camera.t_far, camp_camera.t_far) == ("volume", 1.5, 1.99)
+    sampling = dataclasses.replace(s2camp_camera, transform="pixel", radial="ray").sampling_config()
+    assert (sampling.transform, sampling.radial, sampling.t_far) == ("pixel", "ray", 1.5)
     aligned = dataclasses.replace(
         camp,
         method_name=s2camp.method_name,

@@ -131,6 +131,7 @@ def test_batched_equals_per_camera() -> None:
         (SamplingConfig(t_near=1.0, t_far=0.5), "t_far"),
         (SamplingConfig(t_far=2.0), "t_far"),
         (SamplingConfig(sampler="magic"), "sampler"),  # type: ignore[arg-type]
+        (SamplingConfig(radial="log"), "radial"),  # type: ignore[arg-type]
     ],
 )
 def test_bad_sampling_config_names_the_parameter(config: SamplingConfig, name: str) -> None:

@@ -13,7 +13,9 @@ from s2camp_ns.core.alignment import Similarity
 from s2camp_ns.core.camera import Intrinsics, se3_exp
 from s2camp_ns.nerfstudio.test_time_alignment import (
     AlignmentConfig,
+    HeldOutView,
     align_and_evaluate,
+    align_and_evaluate_views,
     camera_rays,
     frame_similarity,
     map_camera,
@@ -55,6 +57,13 @@ def _c2w_gl() -> torch.Tensor:
 def _grid() -> torch.Tensor:
     ys, xs = torch.meshgrid(torch.arange(HEIGHT), torch.arange(WIDTH), indexing="ij")
     return torch.stack([xs, ys], dim=-1).reshape(-1, 2).double() + 0.5
+
+
+def _true_image(field: AnalyticField, c2w: torch.Tensor) -> torch.Tensor:
+    """The image [H, W, 3] the field renders through the unperturbed camera ``c2w``."""
+    rays = camera_rays(c2w, _intrinsics(), _grid(), torch.zeros(6), torch.zeros(()), "cpu")
+    with torch.no_grad():
+        return field(rays)["rgb"].reshape(HEIGHT, WIDTH, 3)
 
 
 def test_rays_at_zero_twist_match_nerfstudio_cameras():
@@ -104,9 +113,7 @@ def test_frame_similarity_maps_reference_cameras_onto_refined_ones():
 def test_alignment_recovers_a_perturbed_camera_and_leaves_the_field_alone():
     field = AnalyticField()
     truth = _c2w_gl()
-    rays = camera_rays(truth, _intrinsics(), _grid(), torch.zeros(6), torch.zeros(()), "cpu")
-    with torch.no_grad():
-        image = field(rays)["rgb"].reshape(HEIGHT, WIDTH, 3)
+    image = _true_image(field, truth)
     perturbation = se3_exp(torch.tensor([0.02, -0.01, 0.015, 0.01, -0.015, 0.01], dtype=torch.float64))
     start = torch.cat([truth[:, :3] @ perturbation[:, :3], truth[:, 3:] + truth[:, :3] @ perturbation[:, 3:]], -1)
     before = [p.detach().clone() for p in field.parameters()]
@@ -119,11 +126,34 @@ def test_alignment_recovers_a_perturbed_camera_and_leaves_the_field_alone():
     assert all(p.requires_grad for p in field.parameters()) and field.training
 
 
+def test_views_aligned_together_follow_the_same_steps_as_alone():
+    field = AnalyticField()
+    truth = _c2w_gl()
+    image = _true_image(field, truth)
+    twists = ([0.02, -0.01, 0.015, 0.01, -0.015, 0.01], [-0.01, 0.02, 0.0, -0.02, 0.01, 0.005])
+    views = [
+        HeldOutView(
+            image,
+            truth @ torch.block_diag(se3_exp(torch.tensor(t, dtype=torch.float64))[:, :3], torch.ones(1, 1)),
+            _intrinsics(),
+            index,
+        )
+        for index, t in enumerate(twists)
+    ]
+    config = AlignmentConfig(steps=20, rays=64, lr=3e-3)
+    alone = [align_and_evaluate(field, v.image, v.c2w_gl, v.intrinsics, config, index=v.index) for v in views]
+    calls = field.calls
+    together = align_and_evaluate_views(field, views, config)
+    assert field.calls - calls == 20 + 2 * 2  # one forward per step for both views, plus the full renders
+    for a, b in zip(alone, together, strict=True):
+        assert a.index == b.index and a.psnr_unaligned == pytest.approx(b.psnr_unaligned, abs=1e-9)
+        assert a.psnr == pytest.approx(b.psnr, abs=1e-6) and a.final_loss == pytest.approx(b.final_loss, rel=1e-6)
+    assert together[0].psnr != pytest.approx(together[1].psnr, abs=1e-3)
+
+
 def test_zero_steps_evaluates_the_mapped_camera_as_is():
     field = AnalyticField()
-    rays = camera_rays(_c2w_gl(), _intrinsics(), _grid(), torch.zeros(6), torch.zeros(()), "cpu")
-    with torch.no_grad():
-        image = field(rays)["rgb"].reshape(HEIGHT, WIDTH, 3)
+    image = _true_image(field, _c2w_gl())
     view = align_and_evaluate(field, image, _c2w_gl(), _intrinsics(), AlignmentConfig(steps=0))
     assert view.psnr == view.psnr_unaligned and view.psnr > 60.0
 

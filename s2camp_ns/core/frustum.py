@@ -6,8 +6,8 @@ cube root, so that equal volumes get equal mass), a vertical coordinate from ``u
 OpenCV (x right, y down, z forward); the angular extent is given per camera as ``tangent_bounds [N, 4] =
 (a_min, a_max, b_min, b_max)`` of the image-plane tangents ``a = x/z``, ``b = y/z``.
 
-Two angular transforms, both volume preserving up to the constant frustum volume (uniform in ``u`` means
-uniform in the contracted frustum):
+Three angular transforms; the first two are volume preserving up to the constant frustum volume (with the
+``"volume"`` radial map, uniform in ``u`` means uniform in the contracted frustum):
 
 ``"spherical"``
     The paper's separable transform (eqs. 11-12) written with a well-defined angle pair. Eq. 14 takes the polar
@@ -30,6 +30,19 @@ uniform in the contracted frustum):
       ``b = h sqrt(1 + a^2) / sqrt(1 - h^2)``.
 
     Every sample lies inside the tangent box, so every sample projects into the image.
+``"pixel"``
+    Uniform in the image-plane tangents, ``a = a0 + u3 (a1 - a0)``, ``b = b0 + u2 (b1 - b0)``: a uniform pixel of
+    the undistorted pinhole camera, CamP's angular measure. Not volume preserving: the solid-angle density grows
+    towards the image corners as ``(1 + a^2 + b^2)^(3/2)``.
+
+Two radial maps (``radial``):
+
+``"volume"``
+    The paper's ``Q_r`` (eq. 12): uniform in the contracted volume, so most points lie near ``t_far``.
+``"ray"``
+    Uniform in contracted distance along each ray, ``r = t0 + u1 (t1 - t0)``, CamP's radial measure (volume
+    density ``1 / r^2``, weighting near points). With ``"pixel"`` it gives CamP's sampling measure exactly, with
+    the deterministic lattice in place of random draws.
 """
 
 from __future__ import annotations
@@ -45,8 +58,10 @@ from s2camp_ns.core.contraction import uncontract_radius
 from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
 
 __all__ = [
+    "RADIALS",
     "TRANSFORMS",
     "FrustumSamples",
+    "Radial",
     "Transform",
     "camp_random_points",
     "directions_from_unit",
@@ -59,8 +74,10 @@ __all__ = [
     "validate_frustum",
 ]
 
-Transform = Literal["pyramid", "spherical"]
-TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical")
+Transform = Literal["pyramid", "spherical", "pixel"]
+TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical", "pixel")
+Radial = Literal["volume", "ray"]
+RADIALS: tuple[str, ...] = ("volume", "ray")
 
 
 @dataclass(frozen=True)
@@ -72,10 +89,15 @@ class FrustumSamples:
 
 
 def validate_frustum(
-    tangent_bounds: Float[Tensor, "n 4"], t_near: float, t_far: float, transform: str = "pyramid"
+    tangent_bounds: Float[Tensor, "n 4"],
+    t_near: float,
+    t_far: float,
+    transform: str = "pyramid",
+    radial: str = "volume",
 ) -> Float[Tensor, "n 4"]:
     """Check the frustum description and return the bounds as float64 on their own device."""
     check_choice("transform", transform, TRANSFORMS)
+    check_choice("radial", radial, RADIALS)
     check_range("t_far", t_far, low=0.0, high=2.0, low_inclusive=False, high_inclusive=False)
     check_range("t_near", t_near, low=0.0, high=float(t_far), high_inclusive=False)
     if not isinstance(tangent_bounds, Tensor) or tangent_bounds.ndim != 2 or tangent_bounds.shape[-1] != 4:
@@ -89,14 +111,20 @@ def validate_frustum(
     return bounds
 
 
-def radius_from_unit(u1: Tensor, t_near: float, t_far: float) -> Tensor:
-    """Radial inverse CDF ``Q_r(u1) = [t0^3 + u1 (t1^3 - t0^3)]^(1/3)`` (paper eq. 12)."""
+def radius_from_unit(u1: Tensor, t_near: float, t_far: float, radial: str = "volume") -> Tensor:
+    """Radial inverse CDF: ``Q_r(u1) = [t0^3 + u1 (t1^3 - t0^3)]^(1/3)`` (paper eq. 12, ``"volume"``) or
+    ``t0 + u1 (t1 - t0)`` (``"ray"``, CamP's uniform contracted distance)."""
+    if radial == "ray":
+        return t_near + u1 * (t_far - t_near)
     cube = t_near**3 + u1 * (t_far**3 - t_near**3)
     return cube.clamp_min(0.0).pow(1.0 / 3.0)
 
 
-def unit_from_radius(radius: Tensor, t_near: float, t_far: float) -> Tensor:
-    """Radial CDF ``F_r(r) = (r^3 - t0^3) / (t1^3 - t0^3)`` (paper eq. 11)."""
+def unit_from_radius(radius: Tensor, t_near: float, t_far: float, radial: str = "volume") -> Tensor:
+    """Radial CDF: ``F_r(r) = (r^3 - t0^3) / (t1^3 - t0^3)`` (paper eq. 11, ``"volume"``) or
+    ``(r - t0) / (t1 - t0)`` (``"ray"``)."""
+    if radial == "ray":
+        return (radius - t_near) / (t_far - t_near)
     return (radius**3 - t_near**3) / (t_far**3 - t_near**3)
 
 
@@ -131,6 +159,11 @@ def directions_from_unit(
     """
     a0, a1 = _column(bounds, 0, u_horizontal), _column(bounds, 1, u_horizontal)
     b0, b1 = _column(bounds, 2, u_vertical), _column(bounds, 3, u_vertical)
+    if transform == "pixel":
+        a = a0 + u_horizontal * (a1 - a0)
+        b = b0 + u_vertical * (b1 - b0)
+        direction = torch.stack([a, b, torch.ones_like(a)], dim=-1)
+        return direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True)
     if transform == "spherical":
         az = torch.atan(a0) + u_horizontal * (torch.atan(a1) - torch.atan(a0))
         sin_e0, sin_e1 = b0 / torch.sqrt(1.0 + b0 * b0), b1 / torch.sqrt(1.0 + b1 * b1)
@@ -158,6 +191,8 @@ def unit_from_directions(
     x, y, z = directions.unbind(-1)
     a0, a1 = _column(bounds, 0, x), _column(bounds, 1, x)
     b0, b1 = _column(bounds, 2, x), _column(bounds, 3, x)
+    if transform == "pixel":
+        return (y / z - b0) / (b1 - b0), (x / z - a0) / (a1 - a0)
     if transform == "spherical":
         az = torch.atan2(x, z)
         sin_el = y / torch.linalg.vector_norm(directions, dim=-1)
@@ -187,10 +222,15 @@ def _as_batched_unit(unit_points: Tensor, num_cameras: int, device: torch.device
 
 
 def map_unit_to_frustum(
-    unit_points: Float[Tensor, "n l 3"], bounds: Float[Tensor, "n 4"], t_near: float, t_far: float, transform: str
+    unit_points: Float[Tensor, "n l 3"],
+    bounds: Float[Tensor, "n 4"],
+    t_near: float,
+    t_far: float,
+    transform: str,
+    radial: str = "volume",
 ) -> Float[Tensor, "n l 3"]:
     """Contracted frustum points ``Q(u)`` (paper eqs. 8-9, 12), no validation (internal fast path)."""
-    radius = radius_from_unit(unit_points[..., 0], t_near, t_far)
+    radius = radius_from_unit(unit_points[..., 0], t_near, t_far, radial)
     directions = directions_from_unit(unit_points[..., 1], unit_points[..., 2], bounds, transform)
     return radius.unsqueeze(-1) * directions
 
@@ -201,16 +241,17 @@ def frustum_to_unit(
     t_near: float,
     t_far: float,
     transform: Transform = "pyramid",
+    radial: Radial = "volume",
 ) -> Float[Tensor, "n l 3"]:
     """Forward CDF ``F(p)`` of contracted frustum points (paper eqs. 6, 11): the inverse of :func:`sample_frustum`.
 
     Points outside the frustum get coordinates outside ``[0, 1]``; use this to test membership.
     """
-    bounds = validate_frustum(tangent_bounds, t_near, t_far, transform)
+    bounds = validate_frustum(tangent_bounds, t_near, t_far, transform, radial)
     points = contracted.to(device=bounds.device, dtype=torch.float64)
     radius = torch.linalg.vector_norm(points, dim=-1)
     u_v, u_h = unit_from_directions(points, bounds, transform)
-    return torch.stack([unit_from_radius(radius, t_near, t_far), u_v, u_h], dim=-1)
+    return torch.stack([unit_from_radius(radius, t_near, t_far, radial), u_v, u_h], dim=-1)
 
 
 def sample_frustum(
@@ -219,17 +260,18 @@ def sample_frustum(
     t_near: float,
     t_far: float,
     transform: Transform = "pyramid",
+    radial: Radial = "volume",
 ) -> FrustumSamples:
     """Map unit-cube points into each camera's contracted frustum and back to Euclidean camera-frame points.
 
-    Uniform points in ``[0, 1]^3`` become uniform points in the contracted frustum with radius in
-    ``[t_near, t_far]`` (paper eqs. 6-14; angular transforms described in the module docstring); the Euclidean
-    points follow from the inverse contraction (paper eq. 10). Output is float64 on the device of
-    ``tangent_bounds``. With ``t_near = 0`` a point with ``u1 = 0`` sits on the camera centre.
+    With the default ``"pyramid"`` / ``"volume"`` maps, uniform points in ``[0, 1]^3`` become uniform points in the
+    contracted frustum with radius in ``[t_near, t_far]`` (paper eqs. 6-14; the other maps are described in the
+    module docstring); the Euclidean points follow from the inverse contraction (paper eq. 10). Output is float64
+    on the device of ``tangent_bounds``. With ``t_near = 0`` a point with ``u1 = 0`` sits on the camera centre.
     """
-    bounds = validate_frustum(tangent_bounds, t_near, t_far, transform)
+    bounds = validate_frustum(tangent_bounds, t_near, t_far, transform, radial)
     u = _as_batched_unit(unit_points, bounds.shape[0], bounds.device)
-    contracted = map_unit_to_frustum(u, bounds, float(t_near), float(t_far), transform)
+    contracted = map_unit_to_frustum(u, bounds, float(t_near), float(t_far), transform, radial)
     radius = torch.linalg.vector_norm(contracted, dim=-1, keepdim=True)
     # Scale by r_euclid / r_contracted; for r <= 1 the ratio is exactly 1 (the contraction is the identity there).
     scale = torch.where(radius <= 1.0, torch.ones_like(radius), uncontract_radius(radius) / radius.clamp_min(1.0))

@@ -57,7 +57,9 @@ def reference_gram(
             points = camp_random_points(bounds, size, sampling.t_near, sampling.t_far, generator=generator).camera
         else:
             unit = draw[start : start + size].to(bounds.device)
-            points = sample_frustum(unit, bounds, sampling.t_near, sampling.t_far, sampling.transform).camera
+            points = sample_frustum(
+                unit, bounds, sampling.t_near, sampling.t_far, sampling.transform, sampling.radial
+            ).camera
         _, jacobian, mask = projection_jacobian(points, intrinsics, layout)
         jacobian = jacobian / intrinsics.image_scale()[:, None, None, None]
         jacobian = jacobian * mask[..., None, None].to(jacobian.dtype)

@@ -20,15 +20,17 @@ from jaxtyping import Float
 from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, tangent_bounds
-from s2camp_ns.core.frustum import camp_random_points, sample_frustum
+from s2camp_ns.core.frustum import RADIALS, Radial, camp_random_points, sample_frustum
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
 from s2camp_ns.core.lattice import unit_cube_points
 from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
 
 SamplerName = Literal["frolov", "sobol", "halton", "random", "camp-random"]
-TransformName = Literal["pyramid", "spherical"]
+TransformName = Literal["pyramid", "spherical", "pixel"]
 SAMPLERS: tuple[str, ...] = ("frolov", "sobol", "halton", "random", "camp-random")
-TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical")
+CAMP_T_FAR = 1.99
+"""Far contracted radius of the CamP baseline (its published sampling range, kept when S2CamP's was tuned)."""
+TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical", "pixel")
 
 
 @dataclass(frozen=True)
@@ -41,11 +43,18 @@ class SamplingConfig:
     """Unit-cube point set: the deterministic Frolov lattice (S2CamP), a quasi-random or random baseline, or
     CamP's random pixel + random distance sampling ("camp-random")."""
     transform: TransformName = "pyramid"
-    """Unit cube to frustum: the exact pinhole pyramid, or the paper's separable spherical transform."""
+    """Unit cube to frustum directions: the exact pinhole pyramid, the paper's separable spherical transform, or
+    uniform image-plane tangents ("pixel", CamP's angular measure)."""
+    radial: Radial = "volume"
+    """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray
+    ("ray", CamP's radial measure)."""
     t_near: float = 0.4
     """Near contracted radius of the frustum (scene units; the contraction is the identity below 1)."""
-    t_far: float = 1.99
-    """Far contracted radius, below 2 (1.99 reaches about 100 scene units, paper sec. 4)."""
+    t_far: float = 1.5
+    """Far contracted radius, below 2: Euclidean distance 1 / (2 - t_far) beyond 1 (paper eq. 10), so 1.5 reaches
+    2 scene units and the paper's 1.99 about 100 (sec. 4). 1.5 is tuned on the recovery benchmark's scenes, where
+    the content lies within about 2 units of the cameras (docs/benchmarks/recovery.md): volume-uniform samples out
+    to 1.99 put most of the Gram's weight on far points, where rotation and translation look alike."""
     seed: int = 0
     """Seed of the random and scrambled samplers; ignored by the deterministic lattice."""
 
@@ -53,6 +62,7 @@ class SamplingConfig:
         check_positive_int("num_points", self.num_points)
         check_choice("sampler", self.sampler, SAMPLERS)
         check_choice("transform", self.transform, TRANSFORMS)
+        check_choice("radial", self.radial, RADIALS)
         check_range("t_near", self.t_near, low=0.0)
         check_range("t_far", self.t_far, low=self.t_near, high=2.0, low_inclusive=False, high_inclusive=False)
 
@@ -121,7 +131,9 @@ def sample_proxy_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> Flo
             bounds, sampling.num_points, sampling.t_near, sampling.t_far, seed=sampling.seed
         ).camera
     unit = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed)
-    return sample_frustum(unit.to(bounds.device), bounds, sampling.t_near, sampling.t_far, sampling.transform).camera
+    return sample_frustum(
+        unit.to(bounds.device), bounds, sampling.t_near, sampling.t_far, sampling.transform, sampling.radial
+    ).camera
 
 
 def gram_from_points(

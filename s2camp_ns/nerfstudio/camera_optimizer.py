@@ -37,6 +37,7 @@ from s2camp_ns.core.camera import (
     pixel_to_ray_direction,
     se3_exp,
 )
+from s2camp_ns.core.frustum import Radial
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
     Preconditioner,
@@ -85,11 +86,16 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     """Proxy point set: "frolov" (deterministic lattice, S2CamP), "sobol"/"halton"/"random", or "camp-random"
     (CamP's random sampling)."""
     transform: TransformName = "pyramid"
-    """Unit cube to frustum map: exact pinhole "pyramid" or the paper's separable "spherical" transform."""
+    """Unit cube to frustum directions: exact pinhole "pyramid", the paper's separable "spherical" transform, or
+    uniform image-plane tangents "pixel" (CamP's angular measure)."""
+    radial: Radial = "volume"
+    """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray
+    ("ray", CamP's radial measure, weighting near points)."""
     t_near: float = 0.4
     """Near contracted radius of the proxy frustum (scene units, after the dataparser's scaling)."""
-    t_far: float = 1.99
-    """Far contracted radius of the proxy frustum, below 2 (1.99 reaches about 100 scene units)."""
+    t_far: float = SamplingConfig.t_far
+    """Far contracted radius of the proxy frustum, below 2: 1.5 reaches 2 scene units (tuned on the recovery
+    benchmark, docs/benchmarks/recovery.md); the paper's 1.99 about 100. Set it to where the scene's content ends."""
     seed: int = 0
     """Seed of the random samplers (ignored by the deterministic lattice)."""
     damping_abs: float = 1e-8
@@ -113,6 +119,7 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
             num_points=self.num_points,
             sampler=self.sampler,
             transform=self.transform,
+            radial=self.radial,
             t_near=self.t_near,
             t_far=self.t_far,
             seed=self.seed,
