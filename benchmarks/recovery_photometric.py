@@ -291,11 +291,10 @@ def _mean(values: list[float]) -> float:
 
 @dataclass(frozen=True)
 class TrainedRun:
-    """A finished ``ns-train`` run of one variant (and CamP seed) on one scene, waiting for evaluation."""
+    """A finished ``ns-train`` run of one variant (one of CamP's seeds) on one scene, waiting for evaluation."""
 
     scene: str
     variant: str
-    seed: int
     path: Path
 
 
@@ -311,7 +310,7 @@ def train_scene(
     shutil.rmtree(work / scene_name, ignore_errors=True)
     warm = warm_start(scene, work, scene_name, config) if config.warm_start > 0 else None
     return [
-        TrainedRun(scene_name, variant, seed, train_variant(scene, work, scene_name, warm, variant, seed, config))
+        TrainedRun(scene_name, variant, train_variant(scene, work, scene_name, warm, variant, seed, config))
         for variant in variants
         for seed in (config.camp_seeds if variant == "camp" else (0,))
     ]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -149,6 +150,10 @@ def test_views_aligned_together_follow_the_same_steps_as_alone():
         assert a.index == b.index and a.psnr_unaligned == pytest.approx(b.psnr_unaligned, abs=1e-9)
         assert a.psnr == pytest.approx(b.psnr, abs=1e-6) and a.final_loss == pytest.approx(b.final_loss, rel=1e-6)
     assert together[0].psnr != pytest.approx(together[1].psnr, abs=1e-3)
+    calls = field.calls
+    one_at_a_time = align_and_evaluate_views(field, views, dataclasses.replace(config, views_per_batch=1))
+    assert field.calls - calls == 2 * (20 + 2)  # views_per_batch bounds each forward pass to one view
+    assert [v.psnr for v in one_at_a_time] == pytest.approx([v.psnr for v in together], abs=1e-6)
 
 
 def test_zero_steps_evaluates_the_mapped_camera_as_is():

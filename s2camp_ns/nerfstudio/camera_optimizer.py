@@ -66,7 +66,11 @@ def _flip_yz(c2w: Float[Tensor, "*b 3 4"]) -> Float[Tensor, "*b 3 4"]:
 
 @dataclass
 class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
-    """Preconditioned refinement of pose, focal length, principal point, skew and radial distortion (S2CamP)."""
+    """Preconditioned refinement of pose, focal length, principal point, skew and radial distortion (S2CamP).
+
+    The sampling and damping defaults are the core's (``SamplingConfig``, ``DampingConfig``), so the plugin and the
+    framework-agnostic core cannot drift apart.
+    """
 
     _target: type = field(default_factory=lambda: S2CampCameraOptimizer)
 
@@ -80,29 +84,29 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     precondition: bool = True
     """Optimize whitened deltas phi_hat = P phi (paper eqs. 15-20). False optimizes the raw deltas (P = I), the
     "no preconditioning" ablation."""
-    num_points: int = 500
+    num_points: int = SamplingConfig.num_points
     """L, proxy points per camera frustum used for the Jacobian (paper eq. 4)."""
-    sampler: SamplerName = "frolov"
+    sampler: SamplerName = SamplingConfig.sampler
     """Proxy point set: "frolov" (deterministic lattice, S2CamP), "sobol"/"halton"/"random", or "camp-random"
     (CamP's random sampling)."""
-    transform: TransformName = "pyramid"
+    transform: TransformName = SamplingConfig.transform
     """Unit cube to frustum directions: exact pinhole "pyramid", the paper's separable "spherical" transform, or
     uniform image-plane tangents "pixel" (CamP's angular measure)."""
-    radial: Radial = "volume"
+    radial: Radial = SamplingConfig.radial
     """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray
     ("ray", CamP's radial measure, weighting near points)."""
-    t_near: float = 0.4
+    t_near: float = SamplingConfig.t_near
     """Near contracted radius of the proxy frustum (scene units, after the dataparser's scaling)."""
     t_far: float = SamplingConfig.t_far
     """Far contracted radius of the proxy frustum, below 2: 1.5 reaches 2 scene units (tuned on the recovery
     benchmark, docs/benchmarks/recovery.md); the paper's 1.99 about 100. Set it to where the scene's content ends."""
-    seed: int = 0
+    seed: int = SamplingConfig.seed
     """Seed of the random samplers (ignored by the deterministic lattice)."""
-    damping_abs: float = 1e-8
+    damping_abs: float = DampingConfig.damping_abs
     """Absolute damping floor added to Sigma's diagonal before the square root."""
-    damping_rel: float = 0.1
+    damping_rel: float = DampingConfig.damping_rel
     """Damping relative to Sigma's diagonal (CamP's camera-optimisation value)."""
-    diagonal_only: bool = False
+    diagonal_only: bool = DampingConfig.diagonal_only
     """Precondition with Sigma's diagonal only (per-parameter scaling, no decorrelation)."""
     refresh_every: int = 1000
     """Recompute P from the current refined intrinsics every this many steps; 0 computes it only at the start."""

@@ -171,14 +171,22 @@ class HeldOutView:
 def align_and_evaluate_views(model, views: list[HeldOutView], config: AlignmentConfig) -> list[AlignedView]:
     """Align held-out cameras to the frozen ``model`` and evaluate them (module docstring).
 
-    All views are optimised in one loop: each step renders every view's ``rays`` pixels in one batch and minimises
-    the sum of the per-view MSEs. Each view has its own twist, focal scale and pixel stream, and Adam is
-    elementwise, so every view follows exactly the steps it would follow alone; batching only saves the fixed cost
-    of a forward / backward pass per step.
+    Up to ``config.views_per_batch`` views are optimised in one loop: each step renders every view's ``rays``
+    pixels in one batch and minimises the sum of the per-view MSEs. Each view has its own twist, focal scale and
+    pixel stream, and Adam is elementwise, so every view follows exactly the steps it would follow alone; batching
+    only saves the fixed cost of a forward / backward pass per step.
     """
     config.validate()
-    if not views:
-        return []
+    step = config.views_per_batch
+    return [
+        aligned
+        for start in range(0, len(views), step)
+        for aligned in _align_batch(model, views[start : start + step], config)
+    ]
+
+
+def _align_batch(model, views: list[HeldOutView], config: AlignmentConfig) -> list[AlignedView]:
+    """:func:`align_and_evaluate_views` for one batch of (validated) views."""
     targets = [view.image[..., :3].float().cpu() for view in views]
     pixels = [_pixel_grid(target.shape[1], target.shape[0]) for target in targets]
     twists = [torch.zeros(6, dtype=torch.float64, requires_grad=True) for _ in views]
@@ -289,9 +297,4 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
         )
         for index in range(len(dataset))
     ]
-    step = config.views_per_batch
-    return [
-        aligned
-        for start in range(0, len(views), step)
-        for aligned in align_and_evaluate_views(model, views[start : start + step], config)
-    ]
+    return align_and_evaluate_views(model, views, config)
