@@ -12,6 +12,7 @@ import tyro
 from .common import DEFAULT_OUTPUT_DIR, emit_json, log
 from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
+from .lattice_search import LatticeSearchConfig
 from .recovery import RecoveryConfig
 from .speed import SpeedConfig
 from .train_time import TrainTimeConfig
@@ -23,6 +24,9 @@ MODULES = {
     RecoveryConfig: "recovery",
     TrainTimeConfig: "train_time",
 }
+"""The benchmarks ``s2camp-bench all`` runs."""
+TOOLS = {LatticeSearchConfig: "lattice_search"}
+"""Offline tools with the same command-line shape, not part of ``all``."""
 
 
 @dataclass
@@ -39,12 +43,13 @@ Command = Union[
     Annotated[SpeedConfig, tyro.conf.subcommand("speed")],
     Annotated[RecoveryConfig, tyro.conf.subcommand("recovery")],
     Annotated[TrainTimeConfig, tyro.conf.subcommand("train-time")],
+    Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]
 
 
 def run_benchmark(config) -> list[dict]:
-    module = importlib.import_module(f"{__package__}.{MODULES[type(config)]}")
+    module = importlib.import_module(f"{__package__}.{({**MODULES, **TOOLS})[type(config)]}")
     rows = module.run(config)
     if config.write:
         log(f"wrote {module.report(rows, config)}")

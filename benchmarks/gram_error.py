@@ -1,4 +1,6 @@
-"""Gram-matrix estimation error against L: deterministic lattice vs random sampling (paper eq. 5, DESIGN-NOTES 2).
+"""Gram-matrix estimation error against L: deterministic lattice vs random sampling.
+
+Paper eq. 5; why integration accuracy is the criterion: docs/DESIGN-NOTES.md sec. 2.
 
 For each frustum, the relative Frobenius error of Sigma_L against a 2^20-point reference, for the deterministic
 Frolov lattice (S2CamP), scrambled Sobol points, uniform random points in the same frustum (the paper's random

@@ -172,11 +172,11 @@ def report(rows: list[dict], config: RecoveryConfig) -> Path:
 
 
 def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
-    from s2camp_ns.nerfstudio.camera_optimizer import S2CampCameraOptimizerConfig
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 
     p = config.photometric.quick() if config.quick else config.photometric
     a = p.alignment
-    method = S2CampCameraOptimizerConfig()
+    sampling = S2CampCameraOptimizerConfig().sampling
     columns = [
         "scene", "variant", "seeds", "rot_err", "pos_err", "focal_err",
         "iters_to_half_rot_err", "iters_to_half_pos_err", "iters_to_half_focal_err",
@@ -195,13 +195,14 @@ def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
     )
     setup = (
         f"Tier 2: `ns-train` of every variant on generated scenes ({_scene_sizes(config)}, every 8th image held "
-        f"out), CPU-sized nerfacto (`s2camp_ns.demo.SMALL_MODEL`), {p.rays_per_batch} rays per step. A shared "
+        f"out), CPU-sized nerfacto "
+        f"(`s2camp_ns.nerfstudio.train_commands.SMALL_MODEL`), {p.rays_per_batch} rays per step. A shared "
         f"warm start of {p.warm_start} iterations on the accurate cameras (camera learning rate zero), then "
         f"{p.iterations} iterations per variant from the perturbed cameras (seed {p.perturbation_seed}; sigma "
         f"position {p.sigma_position:g}, look-at {p.sigma_look_at:g}, focal {p.sigma_focal_length:g}, dolly "
         f"{p.sigma_dolly_z:g}), camera lr {p.camera_lr:g} -> {p.camera_lr_final:g} for every variant; P refreshed "
-        f"every {p.refresh_every} iterations for s2camp; proxy frustum t in [{method.t_near:g}, {method.t_far:g}] "
-        f"for S2CamP, [{method.t_near:g}, {CAMP_T_FAR:g}] for CamP (the methods' defaults); CamP over seeds "
+        f"every {p.refresh_every} iterations for s2camp; proxy frustum t in [{sampling.t_near:g}, {sampling.t_far:g}] "
+        f"for S2CamP, [{sampling.t_near:g}, {CAMP_T_FAR:g}] for CamP (the methods' defaults); CamP over seeds "
         f"{list(p.camp_seeds)}. Errors as in tier 1, "
         f"evaluated on checkpoints every {p.checkpoint_every} iterations; start errors {starts}. Held-out views: "
         f"{a.steps} camera-only Adam steps (pose + focal scale, {a.rays} rays per step, lr {a.lr:g} -> "

@@ -36,14 +36,14 @@ from pathlib import Path
 
 import torch
 
-from s2camp_ns.demo import (
+from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
+from s2camp_ns.nerfstudio.train_commands import (
     FROZEN_LR,
     camera_schedule_arguments,
     ns_train_arguments,
     perturbation_arguments,
     training_environment,
 )
-from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import log
@@ -131,7 +131,7 @@ def _variant_arguments(variant: str, seed: int, config: PhotometricConfig) -> li
         "none": [prefix + "mode", "off"],
         "so3xr3": [],
         "raw": [prefix + "precondition", "False", prefix + "refresh-every", "0"],
-        "camp": [prefix + "seed", str(seed), prefix + "refresh-every", "0"],
+        "camp": [prefix + "sampling.seed", str(seed), prefix + "refresh-every", "0"],
         "s2camp": [prefix + "refresh-every", str(config.refresh_every)],
         "s2camp-once": [prefix + "refresh-every", "0"],
     }[variant]

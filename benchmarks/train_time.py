@@ -15,7 +15,7 @@ import statistics
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from s2camp_ns.demo import DATAPARSER_SUBCOMMAND, ns_train_arguments
+from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_arguments
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
@@ -122,7 +122,8 @@ def report(rows: list[dict], config: TrainTimeConfig) -> Path:
     s = config.scene
     setup = (
         f"`ns-train` on a generated {s.fov}-fov scene ({s.num_cameras} cameras, {s.width}x{s.height}), perturbed "
-        f"cameras, CPU-sized nerfacto (`s2camp_ns.demo.SMALL_MODEL`), {config.rays_per_batch} rays per step, "
+        f"cameras, CPU-sized nerfacto "
+        f"(`s2camp_ns.nerfstudio.train_commands.SMALL_MODEL`), {config.rays_per_batch} rays per step, "
         f"{config.iterations} iterations per run (the first steps untimed), {config.rounds} interleaved rounds; "
         f"P refreshed every {config.refresh_every} steps for s2camp, computed once for s2camp-camp. Baseline "
         f"`{config.methods[0]}`: nerfstudio's stock SO3xR3 pose optimizer in the same pipeline (data manager, "

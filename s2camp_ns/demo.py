@@ -26,11 +26,9 @@ import contextlib
 import io
 import json
 import math
-import os
 import re
 import shutil
 import subprocess
-import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -43,6 +41,13 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from s2camp_ns.nerfstudio.train_commands import (
+    FROZEN_LR,
+    camera_schedule_arguments,
+    ns_train_arguments,
+    perturbation_arguments,
+    training_environment,
+)
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 CONSOLE = Console()
@@ -50,19 +55,6 @@ CONSOLE = Console()
 EXPERIMENT = "demo"
 WARM_START_TIMESTAMP = "warm-start"
 REFINE_TIMESTAMP = "refine"
-DATAPARSER_SUBCOMMAND = "s2camp-data"
-"""nerfstudio takes the dataparser's options only after its subcommand (registered as an entry point)."""
-FROZEN_LR = 1e-12
-"""Camera learning rate of the warm start: effectively zero (the exponential schedule cannot start at 0)."""
-SMALL_MODEL = [
-    "--pipeline.model.log2-hashmap-size", "15",
-    "--pipeline.model.num-levels", "8",
-    "--pipeline.model.max-res", "128",
-    "--pipeline.model.num-nerf-samples-per-ray", "32",
-    "--pipeline.model.num-proposal-samples-per-ray", "64", "32",
-]  # fmt: skip
-"""A smaller nerfacto than the default (16 levels of 2^19 hash entries): same code paths, a fraction of a second per
-CPU step."""
 
 
 @dataclass
@@ -141,66 +133,6 @@ def ensure_scene(config: DemoConfig) -> Path:
     return make_scene(MakeSceneConfig(output_dir=config.scene_dir, **wanted))
 
 
-def _ns_train() -> str:
-    ns_train = Path(sys.executable).with_name("ns-train")
-    return str(ns_train) if ns_train.exists() else "ns-train"
-
-
-def ns_train_arguments(
-    method: str,
-    scene: Path,
-    output_dir: Path,
-    experiment: str,
-    timestamp: str,
-    iterations: int,
-    steps_per_save: int,
-    rays_per_batch: int,
-) -> list[str]:
-    """``ns-train <method>`` with what every CPU-sized run here shares (demo, e2e tests, benchmarks): no evaluation
-    during training, logs every 10 steps, the batch size and ``SMALL_MODEL``."""
-    return [
-        _ns_train(), method,
-        "--data", str(scene),
-        "--output-dir", str(output_dir),
-        "--experiment-name", experiment,
-        "--timestamp", timestamp,
-        "--max-num-iterations", str(iterations),
-        "--steps-per-save", str(steps_per_save),
-        "--steps-per-eval-batch", "0",
-        "--steps-per-eval-image", "0",
-        "--steps-per-eval-all-images", "0",
-        "--logging.steps-per-log", "10",
-        "--pipeline.datamanager.train-num-rays-per-batch", str(rays_per_batch),
-        *SMALL_MODEL,
-    ]  # fmt: skip
-
-
-def camera_schedule_arguments(lr: float, lr_final: float, max_steps: int | None = None) -> list[str]:
-    """Camera learning rate ``lr`` decaying exponentially to ``lr_final`` (over ``max_steps``), no warm-up."""
-    arguments = [
-        "--optimizers.camera-opt.optimizer.lr", str(lr),
-        "--optimizers.camera-opt.scheduler.warmup-steps", "0",
-        "--optimizers.camera-opt.scheduler.lr-final", str(lr_final),
-    ]  # fmt: skip
-    if max_steps is not None:
-        arguments += ["--optimizers.camera-opt.scheduler.max-steps", str(max_steps)]
-    return arguments
-
-
-def perturbation_arguments(config) -> list[str]:
-    """The dataparser subcommand with CamP's perturbation on, its seed and sigmas taken from ``config`` (a
-    ``DemoConfig`` or any config with the same ``perturbation_seed`` and ``sigma_*`` fields)."""
-    return [
-        DATAPARSER_SUBCOMMAND,
-        "--perturbation.enabled", "True",
-        "--perturbation.seed", str(config.perturbation_seed),
-        "--perturbation.sigma-position", str(config.sigma_position),
-        "--perturbation.sigma-look-at", str(config.sigma_look_at),
-        "--perturbation.sigma-focal-length", str(config.sigma_focal_length),
-        "--perturbation.sigma-dolly-z", str(config.sigma_dolly_z),
-    ]  # fmt: skip
-
-
 def _common_arguments(config: DemoConfig, scene: Path, timestamp: str, iterations: int) -> list[str]:
     """Options shared by both runs (the model must match for the refinement run to load the warm start)."""
     return [
@@ -240,13 +172,6 @@ def refine_command(config: DemoConfig, scene: Path) -> list[str]:
             "--load-scheduler", "False",
         ]  # fmt: skip
     return [*command, *perturbation_arguments(config)]
-
-
-def training_environment() -> dict[str, str]:
-    environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    # Idle OpenMP threads must not spin: on a busy 2-core machine spinning makes each step 5-10x slower.
-    environment.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    return environment
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")

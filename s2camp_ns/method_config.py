@@ -5,7 +5,7 @@ they differ only in the camera optimizer:
 
 - ``s2camp``: 500 deterministic Frolov-lattice points in each camera's frustum, P refreshed during training
   (paper sec. 4);
-- ``s2camp-camp``: the CamP baseline, 5000 random points, P computed once at the start (DESIGN-NOTES sec. 3);
+- ``s2camp-camp``: the CamP baseline, 5000 random points, P computed once at the start (docs/DESIGN-NOTES.md sec. 3);
 - ``s2camp-so3xr3``: the nerfacto baseline, nerfstudio's stock SO3xR3 pose optimizer (no intrinsics) with
   nerfacto's camera learning rate, in the same pipeline (data manager, offline LPIPS, camera-error logging), so
   the three are compared with everything else equal.
@@ -25,8 +25,8 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from s2camp_ns.core.preconditioner import CAMP_T_FAR
-from s2camp_ns.nerfstudio.camera_optimizer import S2CampCameraOptimizerConfig
+from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+from s2camp_ns.core.preconditioner import CAMP_T_FAR, SamplingConfig
 from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
 from s2camp_ns.nerfstudio.model import S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
@@ -109,7 +109,9 @@ s2camp_method = MethodSpecification(
 s2camp_camp_method = MethodSpecification(
     config=make_trainer_config(
         "s2camp-camp",
-        S2CampCameraOptimizerConfig(sampler="camp-random", num_points=5000, refresh_every=0, t_far=CAMP_T_FAR),
+        S2CampCameraOptimizerConfig(
+            sampling=SamplingConfig(sampler="camp-random", num_points=5000, t_far=CAMP_T_FAR), refresh_every=0
+        ),
     ),
     description="CamP baseline: as s2camp, but P from 5000 random frustum points, computed once.",
 )

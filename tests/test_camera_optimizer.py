@@ -9,12 +9,13 @@ import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 
-from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout
-from s2camp_ns.nerfstudio.camera_optimizer import (
+from s2camp_ns.camera_optimizer import (
     PIXEL_KEY,
     S2CampCameraOptimizer,
     S2CampCameraOptimizerConfig,
 )
+from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout
+from s2camp_ns.core.preconditioner import SamplingConfig
 
 NUM_CAMERAS = 3
 WIDTH, HEIGHT = 64, 48
@@ -49,8 +50,8 @@ def make_cameras(k1: float = 0.0, k2: float = 0.0) -> Cameras:
 
 
 def make_optimizer(cameras: Cameras | None = None, **overrides) -> S2CampCameraOptimizer:
-    defaults = {"num_points": 64, "sampler": "camp-random", "refresh_every": 10}
-    config = S2CampCameraOptimizerConfig(**{**defaults, **overrides})
+    sampling = SamplingConfig(num_points=64, sampler="camp-random", **overrides.pop("sampling", {}))
+    config = S2CampCameraOptimizerConfig(**{"refresh_every": 10, "sampling": sampling, **overrides})
     optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
     optimizer.set_train_cameras(cameras if cameras is not None else make_cameras(k1=-0.05, k2=0.01))
     return optimizer
@@ -231,4 +232,4 @@ def test_invalid_config_raises():
     with pytest.raises(ValueError, match="refresh_every"):
         make_optimizer(refresh_every=-1)
     with pytest.raises(ValueError, match="t_far"):
-        make_optimizer(t_far=2.5)
+        make_optimizer(sampling={"t_far": 2.5})

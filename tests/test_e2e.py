@@ -25,6 +25,7 @@ import pytest
 import torch
 
 from s2camp_ns import demo
+from s2camp_ns.nerfstudio import train_commands
 
 pytestmark = pytest.mark.slow
 
@@ -46,7 +47,11 @@ def _run(command: list[str], timeout: float) -> subprocess.CompletedProcess:
     if not (tool.is_absolute() and tool.exists()):
         pytest.fail(f"{command[0]} is not installed next to {sys.executable}")
     return subprocess.run(
-        command, capture_output=True, text=True, timeout=timeout, env={**demo.training_environment(), "COLUMNS": "200"}
+        command,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**train_commands.training_environment(), "COLUMNS": "200"},
     )
 
 
@@ -283,7 +288,7 @@ def test_demo_commands_resume_and_perturb(tmp_path: Path):
     assert "--load-dir" not in warm and "--perturbation.enabled" not in warm
     assert refine[refine.index("--load-dir") + 1].endswith(f"{demo.WARM_START_TIMESTAMP}/nerfstudio_models")
     # Dataparser options come after its subcommand, at the end.
-    assert refine.index(demo.DATAPARSER_SUBCOMMAND) < refine.index("--perturbation.enabled")
+    assert refine.index(train_commands.DATAPARSER_SUBCOMMAND) < refine.index("--perturbation.enabled")
     assert refine[refine.index("--perturbation.enabled") + 1] == "True"
     scratch = demo.refine_command(replace(config, warm_start=0), tmp_path)
     assert "--load-dir" not in scratch

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import ast
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -16,6 +18,7 @@ from s2camp_ns.core.lattice import (
     halton_points,
     random_points,
     sobol_points,
+    table_params,
     unit_cube_points,
 )
 
@@ -42,6 +45,31 @@ def test_frolov_lattice_exact_and_bit_identical(num_points: int) -> None:
 
 def test_table_covers_benchmark_sizes() -> None:
     assert {100, 500, 5000} <= set(lattice._TABLE)
+
+
+def test_untabled_size_takes_the_nearest_entry_without_a_search() -> None:
+    # 700 is nearer to 500 than to 5000 in log L; 3000 is nearer to 5000 (unless a 2000 entry exists).
+    assert table_params(700) == lattice._TABLE[500]
+    nearest = min(lattice._TABLE, key=lambda size: abs(math.log(size / 3000)))
+    assert table_params(3000) == lattice._TABLE[nearest]
+    assert frolov_lattice(700).shape == (700, 3)
+
+
+def test_runtime_lattice_imports_nothing_above_validation() -> None:
+    # Every import statement of the module, also those inside functions: only the validation helpers of the project.
+    tree = ast.parse(Path(lattice.__file__).read_text(encoding="utf8"))
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.module}
+    imported |= {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
+    assert {name for name in imported if name.startswith("s2camp_ns")} == {"s2camp_ns.core.validation"}
+
+
+def test_offline_search_scores_against_the_same_frustum_range() -> None:
+    # Regression: the reference Gram once followed SamplingConfig's default t_far (1.5) while the candidates were
+    # sampled to 1.99, so every candidate scored about 0.39 and the search chose blindly.
+    from s2camp_ns.benchmarks.lattice_search import LatticeSearchConfig, run
+
+    (row,) = run(LatticeSearchConfig(quick=True, write=False))
+    assert row["L"] == 100 and row["gram_error"] < 0.05
 
 
 def test_frolov_product_property() -> None:

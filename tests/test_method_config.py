@@ -19,7 +19,8 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from s2camp_ns import method_config
-from s2camp_ns.nerfstudio.camera_optimizer import PIXEL_KEY, TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.camera_optimizer import PIXEL_KEY, TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
 from s2camp_ns.nerfstudio.model import S2CampModel, S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
@@ -42,13 +43,16 @@ def test_camp_baseline_differs_only_in_camera_sampling():
     s2camp = method_config.s2camp_method.config
     camp = method_config.s2camp_camp_method.config
     camp_camera = camp.pipeline.model.camera_optimizer
-    assert (camp_camera.sampler, camp_camera.num_points, camp_camera.refresh_every) == ("camp-random", 5000, 0)
     s2camp_camera = s2camp.pipeline.model.camera_optimizer
-    assert (s2camp_camera.sampler, s2camp_camera.num_points, s2camp_camera.transform) == ("frolov", 500, "pyramid")
+    camp_sampling, s2camp_sampling = camp_camera.sampling, s2camp_camera.sampling
+    assert (camp_sampling.sampler, camp_sampling.num_points, camp_camera.refresh_every) == ("camp-random", 5000, 0)
+    assert (s2camp_sampling.sampler, s2camp_sampling.num_points, s2camp_sampling.transform) == (
+        "frolov",
+        500,
+        "pyramid",
+    )
     # S2CamP's tuned range does not leak into the baseline: CamP keeps its published far radius.
-    assert (s2camp_camera.radial, s2camp_camera.t_far, camp_camera.t_far) == ("volume", 1.5, 1.99)
-    sampling = dataclasses.replace(s2camp_camera, transform="pixel", radial="ray").sampling_config()
-    assert (sampling.transform, sampling.radial, sampling.t_far) == ("pixel", "ray", 1.5)
+    assert (s2camp_sampling.radial, s2camp_sampling.t_far, camp_sampling.t_far) == ("volume", 1.5, 1.99)
     aligned = dataclasses.replace(
         camp,
         method_name=s2camp.method_name,
@@ -67,7 +71,15 @@ def test_cli_help_documents_camera_optimizer_flags():
         tyro.cli(type(config), default=config, args=["pipeline.model.camera-optimizer", "--help"], console_outputs=True)
     assert exit_info.value.code == 0
     text = out.getvalue()
-    for flag in ("num-points", "sampler", "refresh-every", "damping-rel", "precondition", "parameters", "t-near"):
+    for flag in (
+        "sampling.num-points",
+        "sampling.sampler",
+        "refresh-every",
+        "damping.damping-rel",
+        "precondition",
+        "parameters",
+        "sampling.t-near",
+    ):
         assert f"--pipeline.model.camera-optimizer.{flag}" in text
     assert "proxy points" in text and "whitened" in text
 
@@ -117,14 +129,16 @@ def tiny_cameras() -> Cameras:
 def tiny_model() -> S2CampModel:
     """A nerfacto-sized-down S2CampModel on the CPU with LPIPS made unavailable (offline behaviour)."""
     with lpips_offline():
-        config = _tiny_model_config(S2CampCameraOptimizerConfig(num_points=64, sampler="camp-random"))
+        config = _tiny_model_config(
+            S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=64, sampler="camp-random"))
+        )
         model = config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=NUM_CAMERAS)
     model.camera_optimizer.set_train_cameras(tiny_cameras())
     return model
 
 
 def test_every_param_group_receives_gradients(tiny_model: S2CampModel):
-    """The grad scaler needs a gradient in every group (DESIGN-NOTES sec. 6), camera_opt included."""
+    """The grad scaler needs a gradient in every group (docs/DESIGN-NOTES.md sec. 6), camera_opt included."""
     tiny_model.train()
     generator = torch.Generator().manual_seed(0)
     num_rays = 64

@@ -8,7 +8,8 @@ import pytest
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
-from s2camp_ns.nerfstudio.camera_optimizer import PIXEL_KEY, S2CampCameraOptimizer, S2CampCameraOptimizerConfig
+from s2camp_ns.camera_optimizer import PIXEL_KEY, S2CampCameraOptimizer, S2CampCameraOptimizerConfig
+from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
 
 NUM_CAMERAS = 2
@@ -43,7 +44,9 @@ def all_ray_indices() -> torch.Tensor:
 
 
 def make_optimizer(cameras: Cameras, **overrides) -> S2CampCameraOptimizer:
-    config = S2CampCameraOptimizerConfig(**{"num_points": 32, "sampler": "camp-random", **overrides})
+    config = S2CampCameraOptimizerConfig(
+        **{"sampling": SamplingConfig(num_points=32, sampler="camp-random"), **overrides}
+    )
     optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
     optimizer.set_train_cameras(cameras)
     return optimizer

@@ -36,7 +36,8 @@ from nerfstudio.engine.callbacks import TrainingCallbackAttributes
 from nerfstudio.viewer.utils import parse_object
 from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerElement
 
-from s2camp_ns.nerfstudio.camera_optimizer import S2CampCameraOptimizerConfig
+from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio.model import S2CampModel, S2CampModelConfig
 from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, DisplayText, S2CampViewerPanel
 
@@ -84,7 +85,9 @@ def build_model(viewer_update_period: float = 0.0, initial: Cameras | None = Non
                 {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
             ],
             implementation="torch",
-            camera_optimizer=S2CampCameraOptimizerConfig(num_points=64, sampler="camp-random", parameters="pose+focal"),
+            camera_optimizer=S2CampCameraOptimizerConfig(
+                sampling=SamplingConfig(num_points=64, sampler="camp-random"), parameters="pose+focal"
+            ),
             viewer_update_period=viewer_update_period,
         )
         model = config.setup(
@@ -183,9 +186,8 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         assert panel.l_show_initial.gui_handle.visible and panel.m_show_reference.gui_handle.visible
         assert not panel.j_refresh_now.gui_handle.disabled
 
-        callbacks = panel.training_callbacks(
-            TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=None)
-        )
+        attributes = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=None)
+        callbacks = panel.training_callbacks(attributes)
         assert len(callbacks) == 1
         (callback,) = callbacks
         initial_positions = {i: p[0].copy() for i, p in panel._poses["initial"].items()}
@@ -204,12 +206,21 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         refined_position = optimizer.refined_c2w().detach()[1, :, 3].numpy() * 10.0
         assert panel._poses["refined"][1][0] == pytest.approx(refined_position)
 
-        # The button only sets a flag; the refresh happens in the training callback.
+        # The button only passes the request on; the model refreshes P in its own training callback, and the
+        # panel shows the refresh at its next update whatever its update period.
+        (refresh,) = [
+            c for c in model.get_training_callbacks(attributes) if c.func.__name__ == "refresh_preconditioner"
+        ]
         panel.request_refresh()
         assert int(optimizer.last_refresh_step) == 0
-        callback.func(step=9)
+        refresh.func(step=9)
         assert int(optimizer.last_refresh_step) == 9
+        refresh.func(step=10)  # a request is applied once
+        assert int(optimizer.last_refresh_step) == 9
+        panel._update_period = 1e9
+        callback.func(step=9)
         assert panel.i_since_refresh.value.startswith("0 steps ago")
+        panel._update_period = 0.0
 
         panel.set_frusta_visible("initial", False)
         assert not any(handle.visible for handle in panel._handles["initial"].values())
@@ -360,7 +371,7 @@ def ns_train_with_viewer(scene: Path, output_dir: Path, port: int, log_path: Pat
         "--pipeline.model.num-nerf-samples-per-ray", "8",
         "--pipeline.model.num-proposal-samples-per-ray", "8", "8",
         "--pipeline.model.camera-optimizer.parameters", "pose+focal",
-        "--pipeline.model.camera-optimizer.num-points", "64",
+        "--pipeline.model.camera-optimizer.sampling.num-points", "64",
         "--pipeline.model.camera-optimizer.refresh-every", "0",
         "--pipeline.model.viewer-update-period", "0.5",
         "--optimizers.camera-opt.optimizer.lr", "5e-4",

@@ -311,6 +311,18 @@ def tangent_bounds(intrinsics: Intrinsics, samples_per_edge: int = 129, inset: f
     return torch.stack([a_min + a_margin, a_max - a_margin, b_min + b_margin, b_max - b_margin], dim=-1)
 
 
+def opengl_to_opencv(c2w: Float[Tensor, "*batch 3 4"]) -> Float[Tensor, "*batch 3 4"]:
+    """Switch a camera-to-world matrix between the OpenGL (nerfstudio, viser: y up, z backwards) and the OpenCV
+    (COLMAP, this module: y down, z forward) camera frames: c2w F with F = diag(1, -1, -1), its own inverse, so the
+    same function also maps OpenCV to OpenGL. Works on [..., 3, 4] and [..., 4, 4] matrices and keeps dtype/device.
+    """
+    if c2w.shape[-2:] not in ((3, 4), (4, 4)):
+        raise ValueError(f"c2w must have shape [..., 3, 4] or [..., 4, 4], got {tuple(c2w.shape)}")
+    flip = c2w.new_ones(c2w.shape[-1])
+    flip[1:3] = -1.0
+    return c2w * flip
+
+
 def skew_matrix(v: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3 3"]:
     """[v]_x, the matrix with [v]_x w = v x w."""
     zero = torch.zeros_like(v[..., 0])

@@ -1,7 +1,7 @@
 """How well L proxy points estimate the Gram matrix: relative error against a dense reference (paper eq. 5).
 
 Sigma is a mean over the frustum of J(p)^T J(p), so a point set is an integration rule for it. What makes 10% of
-the samples enough is integration accuracy (DESIGN-NOTES sec. 2): a low-discrepancy rule integrates a smooth
+the samples enough is integration accuracy (docs/DESIGN-NOTES.md sec. 2): a low-discrepancy rule integrates a smooth
 integrand with error close to O(1/L) where random points give O(1/sqrt(L)). The reference uses at least 2^20
 scrambled Sobol points mapped through the same transform and is evaluated in chunks to bound memory.
 """

@@ -26,17 +26,18 @@ Exact ``L`` (scale sweep)
     admissible ``k3`` form an interval.
 
 Parameter choice
-    The free parameters are chosen by a deterministic two-stage search over Halton candidates in the parameter
-    box. The points exist to integrate the Gram matrix (paper eq. 5), so candidates are ranked first by their worst
-    relative Gram error on two *search cameras* (40 degrees 4:3 and 75 degrees 16:9, off-centre principal points;
-    pyramid transform, contracted radius in ``[0.4, 1.99]``); among those within ``SEARCH_GRAM_SLACK`` of the best,
-    the lowest worst dispersion / body-centred-cubic covering ratio (:mod:`s2camp_ns.core.dispersion`, radius in
-    ``[0, 1.99]``) wins. The search cameras are deliberately not the benchmark frusta ("room", "wide"), so the
+    The free parameters are chosen offline by a deterministic two-stage search over Halton candidates in the
+    parameter box (``benchmarks/lattice_search.py``, ``s2camp-bench lattice-search``). The points exist to integrate
+    the Gram matrix (paper eq. 5), so candidates are ranked first by their worst relative Gram error on two *search
+    cameras* (40 degrees 4:3 and 75 degrees 16:9, off-centre principal points; pyramid transform, contracted radius
+    in ``[0.4, 1.99]``); among those within a factor 1.5 of the best, the lowest worst dispersion / body-centred-cubic
+    covering ratio wins. The search cameras are deliberately not the benchmark frusta ("room", "wide"), so the
     benchmarks measure the lattice on cameras it was not tuned on. The choice matters: over 1024 candidates at
     L = 500 the Gram error spans more than a factor of ten, and a lattice chosen for dispersion alone integrates
-    about three times worse than scrambled Sobol points (DESIGN-NOTES sec. 5). Results for ``L`` = 100, 500 and
-    5000 are precomputed in ``_TABLE`` (``search_frolov_params`` with the arguments noted there reproduces them);
-    other ``L`` run a small search on first use (seconds, cached in-process with ``functools.lru_cache``).
+    about three times worse than scrambled Sobol points (docs/DESIGN-NOTES.md sec. 5). At run time this module only
+    looks the parameters up in ``_TABLE``; a size without an entry takes the entry of the nearest tabulated size
+    (``table_params``), so no search ever runs when training starts and this module imports nothing above
+    ``validation``.
 
 Also here: a 2-D Fibonacci lattice, seeded uniform random points, scrambled Sobol points and Halton points.
 """
@@ -57,12 +58,14 @@ from s2camp_ns.core.validation import check_choice, check_positive_int, check_ra
 __all__ = [
     "FrolovParams",
     "PointSetKind",
+    "halton_sequence",
     "fibonacci_lattice",
     "frolov_lattice",
     "frolov_points",
     "halton_points",
     "random_points",
     "sobol_points",
+    "table_params",
     "unit_cube_points",
 ]
 
@@ -171,119 +174,15 @@ def _radical_inverse(index: Tensor, base: int) -> Tensor:
     return result
 
 
-def _halton(num_points: int, bases: tuple[int, ...], start: int = 1) -> Tensor:
+def halton_sequence(num_points: int, bases: tuple[int, ...], start: int = 1) -> Float[Tensor, "l d"]:
+    """Radical-inverse (Halton) points in the given bases, indices ``start`` to ``start + num_points - 1``."""
     index = torch.arange(start, start + num_points, dtype=torch.int64)
     return torch.stack([_radical_inverse(index, b) for b in bases], dim=1)
 
 
-def _candidates(count: int) -> list[FrolovParams]:
-    """Deterministic candidate parameters from a 6-D Halton sequence; discriminant 81 for every fourth."""
-    h = _halton(count, (2, 3, 5, 7, 11, 13))
-    out = []
-    for i in range(count):
-        t1, t2, c1, c2, c3, orient = h[i].tolist()
-        code = int(orient * 8)
-        out.append(
-            FrolovParams(
-                discriminant=81 if i % 4 == 3 else 49,
-                t1=t1,
-                t2=t2,
-                shift=(c1, c2, c3),
-                signs=(1, 1 if code & 1 else -1, 1 if code & 2 else -1),
-                transpose=bool(code & 4),
-            )
-        )
-    return out
-
-
-# Cameras the parameter search optimises for. They are deliberately NOT the benchmark frusta ("room", "wide"), so
-# that the benchmarks measure the lattice on cameras it was not tuned on: (horizontal field of view in degrees,
-# width, height, principal-point offset as a fraction of width and height).
-SEARCH_CAMERAS: tuple[tuple[float, int, int, float, float], ...] = (
-    (40.0, 640, 480, 0.02, -0.01),
-    (75.0, 1280, 720, -0.015, 0.02),
-)
-SEARCH_T_NEAR = 0.4
-"""Near contracted radius of the Gram criterion: the default of ``SamplingConfig``."""
-SEARCH_GRAM_SLACK = 1.5
-"""Candidates whose Gram error is within this factor of the best one compete on dispersion."""
-
-
-def _search_intrinsics():
-    from s2camp_ns.core.camera import Intrinsics
-
-    cameras = []
-    for fov, width, height, off_x, off_y in SEARCH_CAMERAS:
-        focal = 0.5 * width / math.tan(math.radians(fov) / 2.0)
-        cameras.append(
-            Intrinsics.create(
-                fx=focal, fy=focal, cx=width * (0.5 + off_x), cy=height * (0.5 + off_y), width=width, height=height
-            )
-        )
-    return cameras
-
-
-@lru_cache(maxsize=2)
-def _search_references(num_points: int = 2**16) -> tuple[Tensor, ...]:
-    """Reference Gram matrices of the search cameras from scrambled Sobol points (ranking needs no 10^6)."""
-    from s2camp_ns.core.gram_error import reference_gram
-    from s2camp_ns.core.preconditioner import SamplingConfig
-
-    sampling = SamplingConfig(t_near=SEARCH_T_NEAR)
-    return tuple(reference_gram(c, sampling, num_points=num_points, min_points=1) for c in _search_intrinsics())
-
-
-def _gram_score(points: Tensor, reference_points: int = 2**16) -> float:
-    """Worst relative Gram-matrix error (paper eq. 5) over the search cameras: how well the points integrate."""
-    from s2camp_ns.core.camera import tangent_bounds
-    from s2camp_ns.core.frustum import sample_frustum
-    from s2camp_ns.core.jacobian import relative_gram_error
-    from s2camp_ns.core.preconditioner import gram_from_points
-
-    worst = 0.0
-    for camera, reference in zip(_search_intrinsics(), _search_references(reference_points), strict=True):
-        samples = sample_frustum(points, tangent_bounds(camera), SEARCH_T_NEAR, 1.99, "pyramid")
-        sigma, _ = gram_from_points(samples.camera, camera)
-        worst = max(worst, float(relative_gram_error(sigma, reference)[0]))
-    return worst
-
-
-def _dispersion_score(points: Tensor) -> float:
-    """Worst dispersion / BCC-covering ratio over the search cameras (pyramid transform, t in [0, 1.99])."""
-    from s2camp_ns.core.camera import tangent_bounds
-    from s2camp_ns.core.dispersion import covering_bound, dispersion, frustum_volume
-    from s2camp_ns.core.frustum import sample_frustum
-
-    worst = 0.0
-    for camera in _search_intrinsics():
-        bounds = tangent_bounds(camera)
-        bound = covering_bound(float(frustum_volume(bounds, 0.0, 1.99)[0]), points.shape[0])
-        contracted = sample_frustum(points, bounds, 0.0, 1.99, "pyramid").contracted
-        value = float(dispersion(contracted, bounds, 0.0, 1.99, "pyramid", tol=0.02 * bound).value[0])
-        worst = max(worst, value / bound)
-    return worst
-
-
-def search_frolov_params(
-    num_points: int, num_candidates: int, reference_points: int = 2**16
-) -> tuple[FrolovParams, float, float]:
-    """Deterministic two-stage choice among ``num_candidates`` Halton candidates.
-
-    The points exist to integrate the Gram matrix (paper eq. 5), so candidates are first ranked by their worst
-    Gram error on the search cameras; among those within ``SEARCH_GRAM_SLACK`` of the best, the one with the lowest
-    worst dispersion ratio wins (ties: the earlier candidate). Returns (params, gram score, dispersion score).
-    """
-    candidates = _candidates(num_candidates)
-    gram = [_gram_score(frolov_points(num_points, params), reference_points) for params in candidates]
-    best_gram = min(gram)
-    finalists = [i for i, value in enumerate(gram) if value <= SEARCH_GRAM_SLACK * best_gram]
-    spread = {i: _dispersion_score(frolov_points(num_points, candidates[i])) for i in finalists}
-    winner = min(finalists, key=lambda i: (spread[i], i))
-    return candidates[winner], gram[winner], spread[winner]
-
-
-# search_frolov_params(L, n, reference_points=2**18) with n = 1024, 1024, 256 candidates; comments: (worst Gram
-# error, worst dispersion / BCC covering ratio), both on the search cameras.
+# From the offline search (``s2camp-bench lattice-search``, benchmarks/lattice_search.py) with 2^18 reference points
+# and n = 1024, 1024, 256 candidates; comments: (worst Gram error, worst dispersion / BCC covering ratio), both on the
+# search cameras.
 _TABLE: dict[int, FrolovParams] = {
     100: FrolovParams(  # (1.27e-2, 1.94)
         49, 0.5126953125, 0.14677640603566527, (0.06432, 0.7559350270720533, 0.169045830202855), (1, 1, -1), False
@@ -297,21 +196,23 @@ _TABLE: dict[int, FrolovParams] = {
 }
 
 
-def _search_budget(num_points: int) -> int:
-    # Gram scores are cheap, dispersion is evaluated only for the finalists; keep first use of a new L to seconds.
-    if num_points <= 2048:
-        return 24
-    if num_points <= 8192:
-        return 8
-    return 2
+def table_params(num_points: int) -> FrolovParams:
+    """Parameters for ``num_points``: the table's entry, else that of the tabulated size nearest in log L.
+
+    No search runs here: the lattice with any parameters has exactly ``num_points`` points (scale sweep), and the
+    entries of nearby sizes integrate about as well (the table's comments give their Gram errors). Sizes that matter
+    get their own entry from the offline search (``s2camp-bench lattice-search``).
+    """
+    check_positive_int("num_points", num_points)
+    if num_points in _TABLE:
+        return _TABLE[num_points]
+    nearest = min(_TABLE, key=lambda size: (abs(math.log(size / num_points)), size))
+    return _TABLE[nearest]
 
 
 @lru_cache(maxsize=64)
 def _frolov_cached(num_points: int) -> Tensor:
-    params = _TABLE.get(num_points)
-    if params is None:
-        params, _, _ = search_frolov_params(num_points, _search_budget(num_points))
-    return frolov_points(num_points, params)
+    return frolov_points(num_points, table_params(num_points))
 
 
 def frolov_lattice(num_points: int) -> Float[Tensor, "l 3"]:
@@ -346,7 +247,7 @@ def sobol_points(num_points: int, seed: int = 0) -> Float[Tensor, "l 3"]:
 def halton_points(num_points: int) -> Float[Tensor, "l 3"]:
     """Halton points in bases 2, 3, 5, starting at index 1 (index 0 is the corner ``(0, 0, 0)``)."""
     check_positive_int("num_points", num_points)
-    return _halton(num_points, (2, 3, 5))
+    return halton_sequence(num_points, (2, 3, 5))
 
 
 def unit_cube_points(kind: PointSetKind, num_points: int, seed: int = 0) -> Float[Tensor, "l 3"]:

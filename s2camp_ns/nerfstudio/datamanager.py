@@ -19,7 +19,7 @@ from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.model_components.ray_generators import RayGenerator
 from torch import Tensor
 
-from s2camp_ns.nerfstudio.camera_optimizer import PIXEL_KEY
+from s2camp_ns.camera_optimizer import PIXEL_KEY
 
 
 class PixelRayGenerator(RayGenerator):

@@ -36,6 +36,7 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
 
+from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.core.validation import check_range
 
@@ -49,9 +50,6 @@ AUTO_DOWNSCALE_FACTOR = 4
 """``downscale_factor=None`` uses ``images_4`` when it exists (the mip-NeRF 360 convention), else ``images``."""
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
-
-# OpenGL (nerfstudio) <-> OpenCV (COLMAP, s2camp_ns.core) camera axes: flip y and z.
-_GL_CV_FLIP = torch.tensor([1.0, -1.0, -1.0])
 
 
 @dataclass
@@ -263,12 +261,6 @@ def _fit_intrinsics_to_images(
     return _replace_cameras(cameras, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
 
 
-def opengl_to_opencv(c2w: torch.Tensor) -> torch.Tensor:
-    """Flip the y and z camera axes (nerfstudio OpenGL <-> COLMAP OpenCV); its own inverse."""
-    flip = torch.cat([_GL_CV_FLIP, torch.ones(1)]).to(dtype=c2w.dtype, device=c2w.device)
-    return c2w * flip
-
-
 def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> Cameras:
     """Apply the CamP perturbation to nerfstudio (OpenGL) cameras; zero their distortion if configured."""
     if cameras.camera_type.ne(CameraType.PERSPECTIVE.value).any():
@@ -459,7 +451,6 @@ __all__ = [
     "SUPPORTED_COLMAP_MODELS",
     "c2w_to_colmap_world",
     "detect_format",
-    "opengl_to_opencv",
     "perturb_nerfstudio_cameras",
     "resolve_downscale",
     "validate_colmap_cameras",

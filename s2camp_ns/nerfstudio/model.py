@@ -18,12 +18,13 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
-from s2camp_ns.nerfstudio.camera_optimizer import (
+from s2camp_ns.camera_optimizer import (
     TRAIN_CAMERA_KEY,
     S2CampCameraOptimizer,
     S2CampCameraOptimizerConfig,
 )
-from s2camp_ns.nerfstudio.viewer_panel import S2CampViewerPanel
+from s2camp_ns.core.camera import opengl_to_opencv
+from s2camp_ns.nerfstudio.viewer_panel import CameraFrusta, FrustumSet, RefinementStatus, S2CampViewerPanel
 
 _LPIPS_WARNED = False
 
@@ -72,6 +73,7 @@ class S2CampModel(NerfactoModel):
             self.lpips = None
             self.step = 0
         self._camera_errors: dict[str, float] = {}
+        self._refresh_requested = False
         self._train_cameras: Cameras | None = None
         # --- S2CamP viewer panel (viewer_panel.py); inert unless nerfstudio's viewer installs it. The attribute name
         # is the panel's folder label in the viewer.
@@ -124,20 +126,16 @@ class S2CampModel(NerfactoModel):
         camera_optimizer = self.camera_optimizer
 
         def refresh_preconditioner(step: int) -> None:
-            if camera_optimizer.should_refresh(step):
+            # Scheduled refreshes and those requested (the viewer's button) happen here, in the training thread.
+            requested, self._refresh_requested = self._refresh_requested, False
+            if requested or camera_optimizer.should_refresh(step):
                 torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
                 camera_optimizer.refresh(step, torch_optimizer)
 
-        if (
-            isinstance(camera_optimizer, S2CampCameraOptimizer)
-            and camera_optimizer.enabled
-            and camera_optimizer.config.refresh_every > 0
-        ):
+        if isinstance(camera_optimizer, S2CampCameraOptimizer) and camera_optimizer.enabled:
             callbacks.append(
                 TrainingCallback(
-                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
-                    update_every_num_iters=camera_optimizer.config.refresh_every,
-                    func=refresh_preconditioner,
+                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=refresh_preconditioner
                 )
             )
         if self.config.camera_error_every > 0 and self.reference_cameras() is not None:
@@ -154,6 +152,53 @@ class S2CampModel(NerfactoModel):
             callbacks.extend(panel.training_callbacks(training_callback_attributes))
         # --- end viewer panel
         return callbacks
+
+    # ------------------------------------------------------------------ viewer panel (CameraRefinementSource)
+    def refinement_status(self) -> RefinementStatus | None:
+        optimizer = self.camera_optimizer
+        if not self.uses_s2camp_optimizer or not optimizer.has_cameras:
+            return None
+        preconditioned = optimizer.enabled and optimizer.config.precondition
+        computed = preconditioned and bool(optimizer.gram.abs().amax() > 0)
+        return RefinementStatus(
+            num_cameras=optimizer.num_cameras,
+            refinement_enabled=optimizer.enabled,
+            preconditioned=preconditioned,
+            last_refresh_step=int(optimizer.last_refresh_step),
+            refresh_every=optimizer.config.refresh_every,
+            gram=optimizer.gram if computed else None,
+            precond_inverse=optimizer.precond_inv if computed else None,
+        )
+
+    def camera_errors(self) -> dict[str, float]:
+        return self.update_camera_errors() if self.reference_cameras() is not None else {}
+
+    @torch.no_grad()
+    def camera_frusta(self, which: FrustumSet) -> CameraFrusta | None:
+        optimizer = self.camera_optimizer
+        if not self.uses_s2camp_optimizer or not optimizer.has_cameras:
+            return None
+        base = optimizer.base_intrinsics_struct()
+        if which == "refined":
+            deltas = optimizer.camera_deltas()
+            refined = optimizer.refined_intrinsics(deltas)
+            return CameraFrusta(optimizer.refined_c2w(deltas), refined.fy, refined.width, refined.height)
+        if which == "initial":
+            return CameraFrusta(optimizer.base_c2w_cv, base.fy, base.width, base.height)
+        reference = self.reference_cameras()
+        if reference is None:
+            return None
+        c2w = opengl_to_opencv(reference.camera_to_worlds.to(torch.float64)).cpu()
+        fy = reference.fy.reshape(-1).to(torch.float64).cpu()
+        same_poses = torch.allclose(c2w, optimizer.base_c2w_cv.cpu(), atol=1e-6)
+        if same_poses and torch.allclose(fy, base.fy.cpu()):
+            return None
+        return CameraFrusta(
+            c2w, fy, reference.width.reshape(-1).to(torch.float64), reference.height.reshape(-1).to(torch.float64)
+        )
+
+    def request_refresh(self) -> None:
+        self._refresh_requested = True
 
     # ---------------------------------------------------------------------------------------------- camera errors
     def reference_cameras(self) -> Cameras | None:

@@ -14,7 +14,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
-from s2camp_ns.nerfstudio.camera_optimizer import S2CampCameraOptimizer
+from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
 
 
 @dataclass

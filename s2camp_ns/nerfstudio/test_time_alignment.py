@@ -26,11 +26,8 @@ from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
 
 from s2camp_ns.core.alignment import Similarity, umeyama
-from s2camp_ns.core.camera import Intrinsics, pixel_to_ray_direction, se3_exp
+from s2camp_ns.core.camera import Intrinsics, opengl_to_opencv, pixel_to_ray_direction, se3_exp
 from s2camp_ns.core.validation import check_positive_int, check_range
-
-_FLIP_YZ = (1.0, -1.0, -1.0, 1.0)
-"""OpenGL <-> OpenCV camera frame (nerfstudio stores OpenGL c2w)."""
 
 
 @dataclass(frozen=True)
@@ -111,7 +108,7 @@ def camera_rays(
     """
     scaled = scale_focal(intrinsics.to(dtype=torch.float64), torch.exp(log_focal))
     directions_cam = pixel_to_ray_direction(pixels.double()[None], scaled)[0]
-    c2w_cv = c2w_gl.double() * c2w_gl.new_tensor(_FLIP_YZ).double()
+    c2w_cv = opengl_to_opencv(c2w_gl.double())
     delta = se3_exp(twist.double())
     rotation = c2w_cv[:, :3] @ delta[:, :3]
     origin = c2w_cv[:, 3] + c2w_cv[:, :3] @ delta[:, 3]
@@ -276,7 +273,7 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
     The reference training cameras (``metadata["reference_cameras"]``, present when the dataparser perturbed the
     training cameras) define the frame of the evaluation cameras; without them the training cameras as given do.
     """
-    from s2camp_ns.nerfstudio.camera_optimizer import intrinsics_from_cameras
+    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
 
     model = pipeline.model
     refined_c2w, refined_fx = model.refined_train_cameras()

@@ -1,9 +1,11 @@
 """The "S2CamP" panel of nerfstudio's viewer and the training-camera frusta: watch camera refinement live.
 
-The model declares the panel (``S2CampModel.S2CamP``) with nerfstudio's viewer elements. nerfstudio's viewer finds
-them on the pipeline's modules and installs them in its Control tab (folder Custom Elements > model > S2CamP), and
-hands its ``Viewer`` to the panel's ``ViewerControl``. Only then does the model add the panel's training callback,
-so training without the viewer (``--vis tensorboard``) never touches this module after start-up.
+The model declares the panel (``S2CampModel.S2CamP``) with nerfstudio's viewer elements and talks to it only through
+the small ``CameraRefinementSource`` protocol below (read-only views of the refinement, and one request).
+nerfstudio's viewer finds the elements on the pipeline's modules and installs them in its Control tab (folder Custom
+Elements > model > S2CamP), and hands its ``Viewer`` to the panel's ``ViewerControl``. Only then does the model add
+the panel's training callback, so training without the viewer (``--vis tensorboard``) never touches this module
+after start-up.
 
 The panel shows, updated at most every ``update_period`` seconds of training:
 - camera errors against the reference cameras, when the dataparser provides them (after a similarity alignment;
@@ -11,8 +13,8 @@ The panel shows, updated at most every ``update_period`` seconds of training:
 - the condition number of the Gram matrix Sigma of the last refresh of P, before and after whitening
   (P^-T Sigma P^-1), mean and worst over the cameras (Sigma is not saved in checkpoints: after a resume it is that of
   the initial cameras until the next refresh);
-- the steps since the last refresh of P, and a button that refreshes P at the next training step (in the training
-  thread; the button's own callback only sets a flag).
+- the steps since the last refresh of P, and a button that asks the model to refresh P (the model applies it in the
+  training thread at its next step; the button's own callback only passes the request on).
 
 Frusta (viser units are nerfstudio's times ``VISER_NERFSTUDIO_SCALE_RATIO``): the refined training cameras (amber),
 and, when the reference cameras differ from the initial ones (CamP perturbation), the initial (red) and the
@@ -31,21 +33,20 @@ import math
 import threading
 import time
 import weakref
-from typing import TYPE_CHECKING, Any, Literal
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerCheckbox, ViewerControl, ViewerText
-from torch import nn
+from torch import Tensor, nn
 
 from s2camp_ns.core.preconditioner import condition_number
 
 if TYPE_CHECKING:
     from viser import ViserServer
-
-    from s2camp_ns.nerfstudio.model import S2CampModel
 
 FrustumSet = Literal["refined", "initial", "reference"]
 FRUSTUM_COLORS: dict[FrustumSet, tuple[int, int, int]] = {
@@ -58,6 +59,53 @@ FRUSTUM_ROOT = "/s2camp_cameras"
 """Scene-tree folder of the panel's frusta (nerfstudio draws its own image frusta under /cameras)."""
 _POSE_TOLERANCE = 1e-6
 """Frusta whose pose and field of view moved less than this (viser units, radians) are not re-sent."""
+
+
+@dataclass(frozen=True)
+class CameraFrusta:
+    """Cameras to draw: OpenCV camera-to-world [n, 3, 4] (nerfstudio's scene units), fy, width and height [n]."""
+
+    c2w_cv: Tensor
+    fy: Tensor
+    width: Tensor
+    height: Tensor
+
+
+@dataclass(frozen=True)
+class RefinementStatus:
+    """The state of the camera refinement that the panel shows."""
+
+    num_cameras: int
+    refinement_enabled: bool
+    preconditioned: bool
+    last_refresh_step: int
+    """Training step of the last computation of P; -1 before the first."""
+    refresh_every: int
+    """Steps between scheduled refreshes of P; 0 = computed once."""
+    gram: Tensor | None
+    """Gram matrix Sigma [n, k, k] of the last refresh; None without preconditioning or before one."""
+    precond_inverse: Tensor | None
+    """P^-1 [n, k, k] of the last refresh (with ``gram``)."""
+
+
+class CameraRefinementSource(Protocol):
+    """What the panel needs from the model (``S2CampModel`` implements it); nothing else of the model is touched."""
+
+    def refinement_status(self) -> RefinementStatus | None:
+        """The refinement's state; None until the pipeline has handed over the training cameras."""
+        ...
+
+    def camera_errors(self) -> dict[str, float]:
+        """``camera_errors/*`` against the reference cameras (empty without reference cameras)."""
+        ...
+
+    def camera_frusta(self, which: FrustumSet) -> CameraFrusta | None:
+        """The refined, initial or reference training cameras; "reference" is None when it equals "initial"."""
+        ...
+
+    def request_refresh(self) -> None:
+        """Refresh P at the next training step (thread-safe: called from the viewer's websocket thread)."""
+        ...
 
 
 class DisplayText(ViewerText):
@@ -80,13 +128,6 @@ def _mean_max(errors: dict[str, float], key: str, scale: float = 1.0) -> str:
     return f"{mean:.3g} / {worst:.3g}"
 
 
-def _opencv_from_opengl(c2w: torch.Tensor) -> torch.Tensor:
-    """Right-multiply a c2w by diag(1, -1, -1) (OpenGL <-> OpenCV camera frame)."""
-    out = c2w.clone()
-    out[..., 1:3] = -out[..., 1:3]
-    return out
-
-
 class S2CampViewerPanel(nn.Module):
     """Viewer elements of the S2CamP panel, its frusta and its training callback.
 
@@ -94,9 +135,9 @@ class S2CampViewerPanel(nn.Module):
     parameters or buffers (nothing enters checkpoints) and refers to its model weakly (no module cycle).
     """
 
-    def __init__(self, model: S2CampModel, update_period: float = 1.0) -> None:
+    def __init__(self, source: CameraRefinementSource, update_period: float = 1.0) -> None:
         super().__init__()
-        self._model_ref = weakref.ref(model)
+        self._source_ref = weakref.ref(source)
         self._update_period = float(update_period)
         self.a_status = DisplayText("Status", "Training step of the last update, and the number of training cameras")
         self.b_errors = DisplayText("Cam. error", "The three rows below: mean / max over the training cameras", "")
@@ -135,18 +176,18 @@ class S2CampViewerPanel(nn.Module):
             "reference": {},
         }
         self._nerfstudio_frusta_hooked = False
-        self._refresh_requested = False
+        self._shown_refresh_step: int | None = None
         self._last_update = -math.inf
         self._failed = False
         self.num_updates = 0
 
     # --------------------------------------------------------------------------------------------------- state
-    def _model(self) -> S2CampModel:
+    def _source(self) -> CameraRefinementSource:
         # A method, not a property: nerfstudio's viewer walks public attributes (properties included) for elements.
-        model = self._model_ref()
-        if model is None:
+        source = self._source_ref()
+        if source is None:
             raise RuntimeError("the S2CamP viewer panel outlived its model")
-        return model
+        return source
 
     @property
     def attached(self) -> bool:
@@ -154,8 +195,8 @@ class S2CampViewerPanel(nn.Module):
         return self._viewer is not None and not self._failed
 
     def request_refresh(self) -> None:
-        """Ask for a refresh of P at the next training step (called from the viewer's websocket thread)."""
-        self._refresh_requested = True
+        """Ask the model for a refresh of P at its next training step (called from the viewer's websocket thread)."""
+        self._source().request_refresh()
 
     # --------------------------------------------------------------------------------------------- attachment
     def attach(self, viewer: Any) -> None:
@@ -165,18 +206,19 @@ class S2CampViewerPanel(nn.Module):
 
     @torch.no_grad()
     def _attach(self) -> None:
-        optimizer = self._model().camera_optimizer
-        if not optimizer.has_cameras:
+        status = self._source().refinement_status()
+        if status is None:
             return
-        distinct = self._reference_differs()
+        distinct = self._source().camera_frusta("reference") is not None
         for element in (self.l_show_initial, self.m_show_reference):
             element.set_visible(distinct)
         # No training (ns-viewer has no trainer), no refinement or no preconditioning: nothing to refresh.
-        if getattr(self._viewer, "trainer", None) is None or not (optimizer.enabled and optimizer.config.precondition):
+        refreshable = status.refinement_enabled and status.preconditioned
+        if getattr(self._viewer, "trainer", None) is None or not refreshable:
             self.j_refresh_now.set_disabled(True)
         if distinct:
             self._draw_static_sets()
-        self._update(step=int(optimizer.last_refresh_step.clamp(min=0)))
+        self._update(step=max(status.last_refresh_step, 0))
 
     def _guard(self, func, *args) -> None:
         if self._failed:
@@ -195,19 +237,13 @@ class S2CampViewerPanel(nn.Module):
         """The panel's per-step callback, or nothing when the viewer is off."""
         if not self.attached:
             return []
-        optimizers = attributes.optimizers
 
         def after_step(step: int) -> None:
-            if not self._model().camera_optimizer.has_cameras:
+            status = self._source().refinement_status()
+            if status is None:
                 return  # a pipeline that never handed the training cameras to the camera optimizer
-            force = False
-            if self._refresh_requested:
-                self._refresh_requested = False
-                torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
-                self._guard(self._model().camera_optimizer.refresh, step, torch_optimizer)
-                force = True
-            now = time.monotonic()
-            if force or now - self._last_update >= self._update_period:
+            refreshed = status.last_refresh_step != self._shown_refresh_step
+            if refreshed or time.monotonic() - self._last_update >= self._update_period:
                 self._guard(self._update, step)
 
         return [TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=after_step)]
@@ -216,10 +252,11 @@ class S2CampViewerPanel(nn.Module):
     @torch.no_grad()
     def panel_values(self, step: int) -> dict[str, str]:
         """The panel's text values at training step ``step`` (also used by tests)."""
-        model = self._model()
-        optimizer = model.camera_optimizer
-        values = {"a_status": f"step {step} · {optimizer.num_cameras} cams"}
-        errors = model.update_camera_errors() if model.reference_cameras() is not None else {}
+        source = self._source()
+        status = source.refinement_status()
+        assert status is not None
+        values = {"a_status": f"step {step} · {status.num_cameras} cams"}
+        errors = source.camera_errors()
         if errors:
             values["b_errors"] = "mean / max"
             values["c_rotation_error"] = _mean_max(errors, "rot_err", scale=180.0 / math.pi)
@@ -229,18 +266,19 @@ class S2CampViewerPanel(nn.Module):
         else:
             values["b_errors"] = "no reference cameras"
             values["c_rotation_error"] = values["d_position_error"] = values["e_focal_error"] = "n/a"
-        gram = optimizer.gram
-        if optimizer.enabled and optimizer.config.precondition and bool(gram.abs().amax() > 0):
-            inverse = optimizer.precond_inv.to(gram)
+        gram, inverse = status.gram, status.precond_inverse
+        if gram is not None and inverse is not None:
+            inverse = inverse.to(gram)
             whitened = inverse.transpose(-1, -2) @ gram @ inverse
             values["f_conditioning"] = "mean / worst"
             values["g_condition_sigma"] = self._condition_text(gram)
             values["h_condition_whitened"] = self._condition_text(0.5 * (whitened + whitened.transpose(-1, -2)))
         else:
-            values["f_conditioning"] = "camera refinement off" if not optimizer.enabled else "preconditioning off"
+            values["f_conditioning"] = (
+                "camera refinement off" if not status.refinement_enabled else "preconditioning off"
+            )
             values["g_condition_sigma"] = values["h_condition_whitened"] = "n/a"
-        last = int(optimizer.last_refresh_step)
-        every = optimizer.config.refresh_every
+        last, every = status.last_refresh_step, status.refresh_every
         since = f"{max(step - last, 0)} steps ago" if last >= 0 else "never"
         if every > 0 and last >= 0:
             since += f" (every {every})"
@@ -254,6 +292,8 @@ class S2CampViewerPanel(nn.Module):
 
     @torch.no_grad()
     def _update(self, step: int) -> None:
+        status = self._source().refinement_status()
+        self._shown_refresh_step = None if status is None else status.last_refresh_step
         values = self.panel_values(step)
         for name, value in values.items():
             element = getattr(self, name)
@@ -276,70 +316,50 @@ class S2CampViewerPanel(nn.Module):
 
     def drawn_indices(self) -> list[int]:
         """Training cameras drawn, evenly spaced up to the viewer's ``max_num_display_images`` (as nerfstudio)."""
-        total = self._model().camera_optimizer.num_cameras
+        status = self._source().refinement_status()
+        total = 0 if status is None else status.num_cameras
         limit = getattr(getattr(self._viewer, "config", None), "max_num_display_images", -1)
         count = total if limit is None or limit < 0 else min(limit, total)
         return np.linspace(0, total - 1, count, dtype=np.int64).tolist() if count > 0 else []
 
-    def _reference_differs(self) -> bool:
-        reference = self._model().reference_cameras()
-        if reference is None:
-            return False
-        optimizer = self._model().camera_optimizer
-        initial_c2w = _opencv_from_opengl(reference.camera_to_worlds.to(torch.float64)).cpu()
-        return not (
-            torch.allclose(initial_c2w, optimizer.base_c2w_cv.cpu(), atol=1e-6)
-            and torch.allclose(reference.fy.reshape(-1).double().cpu(), optimizer.base_intrinsics[:, 1].cpu())
-        )
-
     def _frustum_params(
-        self, c2w_cv: torch.Tensor, fy: torch.Tensor, height: torch.Tensor
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Positions (viser units), wxyz and vertical fields of view of OpenCV c2w's."""
+        self, frusta: CameraFrusta, indices: list[int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Positions (viser units), wxyz, vertical fields of view and aspect ratios of the cameras ``indices``."""
         import viser.transforms as vtf
 
-        c2w = c2w_cv.detach().double().cpu().numpy()
+        c2w = frusta.c2w_cv.detach().double().cpu().numpy()[indices]
         positions = c2w[:, :, 3] * self._scale_ratio()
         wxyz = vtf.SO3.from_matrix(c2w[:, :, :3]).wxyz.reshape(-1, 4)
-        fov = 2.0 * np.arctan(height.double().cpu().numpy() / (2.0 * fy.double().cpu().numpy()))
-        return positions, wxyz, fov
+        fy, width, height = (
+            value.detach().double().cpu().numpy()[indices] for value in (frusta.fy, frusta.width, frusta.height)
+        )
+        return positions, wxyz, 2.0 * np.arctan(height / (2.0 * fy)), width / height
 
     @torch.no_grad()
     def _draw_static_sets(self) -> None:
-        optimizer = self._model().camera_optimizer
-        reference = self._model().reference_cameras()
-        assert reference is not None
-        base = optimizer.base_intrinsics
-        sets: dict[FrustumSet, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {
-            "initial": (optimizer.base_c2w_cv, base[:, 1], base[:, 8]),
-            "reference": (
-                _opencv_from_opengl(reference.camera_to_worlds.to(torch.float64)),
-                reference.fy.reshape(-1),
-                reference.height.reshape(-1),
-            ),
-        }
         indices = self.drawn_indices()
-        for name, (c2w, fy, height) in sets.items():
-            positions, wxyz, fov = self._frustum_params(c2w[indices], fy[indices], height[indices])
+        for name in ("initial", "reference"):
+            frusta = self._source().camera_frusta(name)
+            if frusta is None:
+                continue
+            positions, wxyz, fov, aspect = self._frustum_params(frusta, indices)
             with self._lock:
                 for row, index in enumerate(indices):
-                    self._add_frustum(name, index, positions[row], wxyz[row], float(fov[row]))
+                    self._add_frustum(name, index, positions[row], wxyz[row], float(fov[row]), float(aspect[row]))
 
     def _update_refined_frusta(self) -> None:
-        optimizer = self._model().camera_optimizer
         indices = self.drawn_indices()
-        if not indices:
+        frusta = self._source().camera_frusta("refined")
+        if not indices or frusta is None:
             return
-        deltas = optimizer.camera_deltas()
-        intrinsics = optimizer.refined_intrinsics(deltas)
-        c2w = optimizer.refined_c2w(deltas)
-        positions, wxyz, fov = self._frustum_params(c2w[indices], intrinsics.fy[indices], intrinsics.height[indices])
+        positions, wxyz, fov, aspect = self._frustum_params(frusta, indices)
         with self._lock:
             handles, poses = self._handles["refined"], self._poses["refined"]
             for row, index in enumerate(indices):
                 old = poses.get(index)
                 if index not in handles or old is None or abs(old[2] - float(fov[row])) > _POSE_TOLERANCE:
-                    self._add_frustum("refined", index, positions[row], wxyz[row], float(fov[row]))
+                    self._add_frustum("refined", index, positions[row], wxyz[row], float(fov[row]), float(aspect[row]))
                     continue
                 if np.abs(old[0] - positions[row]).max() > _POSE_TOLERANCE or (
                     np.abs(np.abs(old[1] @ wxyz[row]) - 1.0) > _POSE_TOLERANCE
@@ -348,13 +368,14 @@ class S2CampViewerPanel(nn.Module):
                     handles[index].wxyz = wxyz[row]
                     poses[index] = (positions[row], wxyz[row], float(fov[row]))
 
-    def _add_frustum(self, name: FrustumSet, index: int, position: np.ndarray, wxyz: np.ndarray, fov: float) -> None:
+    def _add_frustum(
+        self, name: FrustumSet, index: int, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float
+    ) -> None:
         """(Re)create one frustum (viser cannot change a frustum's field of view in place). Caller holds the lock."""
-        intrinsics = self._model().camera_optimizer.base_intrinsics[index]
         handle = self._server().scene.add_camera_frustum(
             f"{FRUSTUM_ROOT}/{name}/camera_{index:05d}",
             fov=fov,
-            aspect=float(intrinsics[7] / intrinsics[8]),
+            aspect=aspect,
             scale=float(getattr(getattr(self._viewer, "config", None), "camera_frustum_scale", 0.1)),
             color=FRUSTUM_COLORS[name],
             wxyz=wxyz,
@@ -413,4 +434,12 @@ class _PanelControl(ViewerControl):
             panel.attach(viewer)
 
 
-__all__ = ["FRUSTUM_COLORS", "FRUSTUM_ROOT", "DisplayText", "S2CampViewerPanel"]
+__all__ = [
+    "FRUSTUM_COLORS",
+    "FRUSTUM_ROOT",
+    "CameraFrusta",
+    "CameraRefinementSource",
+    "DisplayText",
+    "RefinementStatus",
+    "S2CampViewerPanel",
+]

@@ -34,16 +34,14 @@ from s2camp_ns.core.camera import (
     PARAMETER_NAMES,
     Intrinsics,
     ParameterLayout,
+    opengl_to_opencv,
     pixel_to_ray_direction,
     se3_exp,
 )
-from s2camp_ns.core.frustum import Radial
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
     Preconditioner,
-    SamplerName,
     SamplingConfig,
-    TransformName,
     compute_preconditioner,
     reexpress_latent,
 )
@@ -54,22 +52,13 @@ PIXEL_KEY = "s2camp_pixels"
 TRAIN_CAMERA_KEY = "s2camp_train_camera_index"
 """Cameras metadata key marking a camera as training camera i: the model then renders it fully refined."""
 
-# nerfstudio's camera frame is OpenGL (y up, z backwards); COLMAP/OpenCV's is y down, z forward.
-_OPENGL_FROM_OPENCV = (1.0, -1.0, -1.0)
-
-
-def _flip_yz(c2w: Float[Tensor, "*b 3 4"]) -> Float[Tensor, "*b 3 4"]:
-    """Switch a c2w between the OpenGL and OpenCV camera frames (F = diag(1, -1, -1) is its own inverse)."""
-    flip = c2w.new_tensor([*_OPENGL_FROM_OPENCV, 1.0])
-    return c2w * flip
-
 
 @dataclass
 class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     """Preconditioned refinement of pose, focal length, principal point, skew and radial distortion (S2CamP).
 
-    The sampling and damping defaults are the core's (``SamplingConfig``, ``DampingConfig``), so the plugin and the
-    framework-agnostic core cannot drift apart.
+    Sampling and damping are the core's own configs (``SamplingConfig``, ``DampingConfig``), nested, so the plugin and
+    the framework-agnostic core share one definition of each option and its default.
     """
 
     _target: type = field(default_factory=lambda: S2CampCameraOptimizer)
@@ -84,30 +73,11 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     precondition: bool = True
     """Optimize whitened deltas phi_hat = P phi (paper eqs. 15-20). False optimizes the raw deltas (P = I), the
     "no preconditioning" ablation."""
-    num_points: int = SamplingConfig.num_points
-    """L, proxy points per camera frustum used for the Jacobian (paper eq. 4)."""
-    sampler: SamplerName = SamplingConfig.sampler
-    """Proxy point set: "frolov" (deterministic lattice, S2CamP), "sobol"/"halton"/"random", or "camp-random"
-    (CamP's random sampling)."""
-    transform: TransformName = SamplingConfig.transform
-    """Unit cube to frustum directions: exact pinhole "pyramid", the paper's separable "spherical" transform, or
-    uniform image-plane tangents "pixel" (CamP's angular measure)."""
-    radial: Radial = SamplingConfig.radial
-    """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray
-    ("ray", CamP's radial measure, weighting near points)."""
-    t_near: float = SamplingConfig.t_near
-    """Near contracted radius of the proxy frustum (scene units, after the dataparser's scaling)."""
-    t_far: float = SamplingConfig.t_far
-    """Far contracted radius of the proxy frustum, below 2: 1.5 reaches 2 scene units (tuned on the recovery
-    benchmark, docs/benchmarks/recovery.md); the paper's 1.99 about 100. Set it to where the scene's content ends."""
-    seed: int = SamplingConfig.seed
-    """Seed of the random samplers (ignored by the deterministic lattice)."""
-    damping_abs: float = DampingConfig.damping_abs
-    """Absolute damping floor added to Sigma's diagonal before the square root."""
-    damping_rel: float = DampingConfig.damping_rel
-    """Damping relative to Sigma's diagonal (CamP's camera-optimisation value)."""
-    diagonal_only: bool = DampingConfig.diagonal_only
-    """Precondition with Sigma's diagonal only (per-parameter scaling, no decorrelation)."""
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    """Where the proxy points go (paper sec. 4): point set, frustum transform, radial measure and contracted range
+    (``s2camp_ns.core.preconditioner.SamplingConfig``; e.g. ``--pipeline.model.camera-optimizer.sampling.t-far``)."""
+    damping: DampingConfig = field(default_factory=DampingConfig)
+    """Diagonal damping added to Sigma before its square root (``s2camp_ns.core.preconditioner.DampingConfig``)."""
     refresh_every: int = 1000
     """Recompute P from the current refined intrinsics every this many steps; 0 computes it only at the start."""
     trans_l2_penalty: float = 0.0
@@ -118,26 +88,10 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     def layout(self) -> ParameterLayout:
         return ParameterLayout.from_preset(self.parameters)
 
-    def sampling_config(self) -> SamplingConfig:
-        return SamplingConfig(
-            num_points=self.num_points,
-            sampler=self.sampler,
-            transform=self.transform,
-            radial=self.radial,
-            t_near=self.t_near,
-            t_far=self.t_far,
-            seed=self.seed,
-        )
-
-    def damping_config(self) -> DampingConfig:
-        return DampingConfig(
-            damping_abs=self.damping_abs, damping_rel=self.damping_rel, diagonal_only=self.diagonal_only
-        )
-
     def validate(self) -> None:
         self.layout()
-        self.sampling_config().validate()
-        self.damping_config().validate()
+        self.sampling.validate()
+        self.damping.validate()
         check_range("refresh_every", self.refresh_every, low=0)
 
 
@@ -188,7 +142,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         **kwargs,
     ) -> None:
         # Skip CameraOptimizer.__init__: it would create a pose_adjustment parameter that never gets a gradient
-        # and would sit in the "camera_opt" group (grad-scaler trouble, DESIGN-NOTES sec. 6).
+        # and would sit in the "camera_opt" group (grad-scaler trouble, docs/DESIGN-NOTES.md sec. 6).
         nn.Module.__init__(self)
         config.validate()
         self.config = config
@@ -225,7 +179,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
             raise ValueError(f"cameras must hold {self.num_cameras} training cameras, got {cameras.shape[0]}")
         intrinsics = intrinsics_from_cameras(cameras)
         device = self.precond.device
-        self.base_c2w_cv = _flip_yz(cameras.camera_to_worlds.to(torch.float64)).to(device)
+        self.base_c2w_cv = opengl_to_opencv(cameras.camera_to_worlds.to(torch.float64)).to(device)
         self.base_intrinsics = torch.stack(
             [getattr(intrinsics, name) for name in ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "width", "height")],
             dim=-1,
@@ -267,7 +221,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         rotation = self.base_c2w_cv[:, :, :3] @ delta[:, :, :3]
         translation = self.base_c2w_cv[:, :, 3:] + self.base_c2w_cv[:, :, :3] @ delta[:, :, 3:]
         c2w = torch.cat([rotation, translation], dim=-1)
-        return _flip_yz(c2w) if opengl else c2w
+        return opengl_to_opencv(c2w) if opengl else c2w
 
     def forward(self, indices: Int[Tensor, " camera_indices"]) -> Float[Tensor, "camera_indices 3 4"]:
         """Pose corrections D with c2w_gl' = c2w_gl D (right-multiplied, nerfstudio's OpenGL camera frame).
@@ -276,7 +230,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         """
         deltas = self.camera_deltas()[indices.to(self.precond.device)]
         # c2w_gl' = c2w_cv E F = c2w_gl (F E F): flip the rows and the columns of E.
-        correction = _flip_yz(se3_exp(deltas[:, :6]))
+        correction = opengl_to_opencv(se3_exp(deltas[:, :6]))
         correction[:, 1:3, :] = -correction[:, 1:3, :]
         return correction.to(torch.float32)
 
@@ -443,9 +397,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
             device = self.precond.device
             intrinsics = self.refined_intrinsics().detach()
             try:
-                result = compute_preconditioner(
-                    intrinsics, self.layout, self.config.sampling_config(), self.config.damping_config()
-                )
+                result = compute_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
             except ValueError as error:
                 warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
                 return
