@@ -14,6 +14,7 @@ from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
 from .lattice_search import LatticeSearchConfig
 from .recovery import RecoveryConfig
+from .shared_intrinsics import SharedIntrinsicsConfig
 from .speed import SpeedConfig
 from .train_time import TrainTimeConfig
 
@@ -23,6 +24,7 @@ MODULES = {
     SpeedConfig: "speed",
     RecoveryConfig: "recovery",
     TrainTimeConfig: "train_time",
+    SharedIntrinsicsConfig: "shared_intrinsics",
 }
 """The benchmarks ``s2camp-bench all`` runs."""
 TOOLS = {LatticeSearchConfig: "lattice_search"}
@@ -43,6 +45,7 @@ Command = Union[
     Annotated[SpeedConfig, tyro.conf.subcommand("speed")],
     Annotated[RecoveryConfig, tyro.conf.subcommand("recovery")],
     Annotated[TrainTimeConfig, tyro.conf.subcommand("train-time")],
+    Annotated[SharedIntrinsicsConfig, tyro.conf.subcommand("shared-intrinsics")],
     Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]
