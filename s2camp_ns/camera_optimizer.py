@@ -45,6 +45,7 @@ from s2camp_ns.core.preconditioner import (
     compute_preconditioner,
     reexpress_latent,
 )
+from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS, compute_shared_preconditioner, reexpress_shared_latents
 from s2camp_ns.core.validation import check_range
 
 PIXEL_KEY = "s2camp_pixels"
@@ -78,6 +79,11 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     (``s2camp_ns.core.preconditioner.SamplingConfig``; e.g. ``--pipeline.model.camera-optimizer.sampling.t-far``)."""
     damping: DampingConfig = field(default_factory=DampingConfig)
     """Diagonal damping added to Sigma before its square root (``s2camp_ns.core.preconditioner.DampingConfig``)."""
+    intrinsics: Literal["per-camera", "per-image"] = "per-camera"
+    """"per-camera": one set of intrinsics per physical camera, shared by all its images (the dataparser's
+    ``metadata["camera_ids"]``: COLMAP's camera_id, or in transforms.json the global intrinsics / each frame's
+    own), the pose per image; the preconditioner is the block-triangular factor of ``core.shared_intrinsics``.
+    "per-image": intrinsics refined per image (CamP's way), P the symmetric root per image (paper eq. 20)."""
     refresh_every: int = 1000
     """Recompute P from the current refined intrinsics every this many steps; 0 computes it only at the start."""
     trans_l2_penalty: float = 0.0
@@ -93,6 +99,18 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
         self.sampling.validate()
         self.damping.validate()
         check_range("refresh_every", self.refresh_every, low=0)
+
+
+def group_identical_intrinsics(cameras: Cameras) -> Tensor:
+    """Physical-camera id per camera: cameras with identical intrinsics, distortion, size and type share one."""
+    n = cameras.shape[0]
+    columns = [getattr(cameras, name).reshape(n, -1).to(torch.float64).cpu() for name in ("fx", "fy", "cx", "cy")]
+    columns += [cameras.width.reshape(n, -1).double().cpu(), cameras.height.reshape(n, -1).double().cpu()]
+    columns.append(cameras.camera_type.reshape(n, -1).double().cpu())
+    if cameras.distortion_params is not None:
+        columns.append(cameras.distortion_params.reshape(n, -1).to(torch.float64).cpu())
+    _, ids = torch.unique(torch.cat(columns, dim=-1), dim=0, return_inverse=True)
+    return ids
 
 
 def intrinsics_from_cameras(cameras: Cameras, dtype: torch.dtype = torch.float64) -> Intrinsics:
@@ -152,8 +170,14 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.layout = config.layout()
         k = self.layout.num_params
         self.enabled = config.mode != "off"
+        # Shared intrinsics: the latent splits into a pose part per image and an intrinsics part per physical camera.
+        self.shared = self.enabled and config.intrinsics == "per-camera" and k > NUM_POSE_PARAMS
         if self.enabled:
-            self.whitened_delta = nn.Parameter(torch.zeros(num_cameras, k, device=device))
+            self.whitened_delta = nn.Parameter(
+                torch.zeros(num_cameras, NUM_POSE_PARAMS if self.shared else k, device=device)
+            )
+        if self.shared:  # one physical camera per image until ``set_camera_groups`` says otherwise
+            self.whitened_intrinsics = nn.Parameter(torch.zeros(num_cameras, k - NUM_POSE_PARAMS, device=device))
         eye = torch.eye(k, dtype=torch.float64, device=device).expand(num_cameras, k, k).clone()
         # P and P^-1 (paper eq. 20) and the schedule state are persistent so that a resumed run continues with
         # the identical camera parameters.
@@ -166,10 +190,35 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 9, dtype=torch.float64), persistent=False)
         # Undamped Gram Sigma of the last refresh (zero until one computes it; the viewer panel's condition numbers).
         self.register_buffer("gram", torch.zeros_like(eye), persistent=False)
+        # Physical camera of each image (0..C-1); one camera per image until ``set_camera_groups`` says otherwise.
+        self.register_buffer("camera_of_image", torch.arange(num_cameras, device=device), persistent=False)
+        self.groups_known = False
         self.has_cameras = False
         self._warned_no_pixels = False
 
     # ----------------------------------------------------------------------------------------------------- setup
+    @property
+    def num_physical_cameras(self) -> int:
+        return int(self.camera_of_image.max()) + 1 if self.num_cameras else 0
+
+    def set_camera_groups(self, camera_ids: Tensor | list[int]) -> None:
+        """Which training images share a physical camera (any integer ids, one per image; relabelled 0..C-1 in
+        order of first appearance). With shared intrinsics this sizes the intrinsics latent [C, m]; call it before
+        the optimizers are built (the model does, from the dataparser's metadata)."""
+        ids = torch.as_tensor(camera_ids).reshape(-1)
+        if ids.shape[0] != self.num_cameras:
+            raise ValueError(f"camera_ids must hold {self.num_cameras} entries (one per image), got {ids.shape[0]}")
+        _, first = torch.unique(ids, return_inverse=True)
+        order = {}
+        labels = [order.setdefault(int(value), len(order)) for value in first.tolist()]
+        self.camera_of_image = torch.tensor(labels, dtype=torch.long, device=self.precond.device)
+        self.groups_known = True
+        if self.shared:
+            m = self.layout.num_params - NUM_POSE_PARAMS
+            existing = getattr(self, "whitened_intrinsics", None)
+            if existing is None or existing.shape != (len(order), m):
+                self.whitened_intrinsics = nn.Parameter(torch.zeros(len(order), m, device=self.precond.device))
+
     def set_train_cameras(self, cameras: Cameras) -> None:
         """Store the dataparser's training cameras and compute the initial P (called by the pipeline).
 
@@ -180,13 +229,39 @@ class S2CampCameraOptimizer(CameraOptimizer):
         intrinsics = intrinsics_from_cameras(cameras)
         device = self.precond.device
         self.base_c2w_cv = opengl_to_opencv(cameras.camera_to_worlds.to(torch.float64)).to(device)
-        self.base_intrinsics = torch.stack(
+        base = torch.stack(
             [getattr(intrinsics, name) for name in ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "width", "height")],
             dim=-1,
         ).to(device)
+        if self.shared and not self.groups_known:
+            self.set_camera_groups(group_identical_intrinsics(cameras))
+        self.base_intrinsics = self._shared_base(base) if self.shared else base
         self.has_cameras = True
         if int(self.last_refresh_step) < 0:
             self.refresh(step=0)
+
+    def _first_image_of_each_camera(self) -> Tensor:
+        index = self.camera_of_image
+        first = torch.full((self.num_physical_cameras,), self.num_cameras, dtype=torch.long, device=index.device)
+        return first.scatter_reduce_(0, index, torch.arange(self.num_cameras, device=index.device), "amin")
+
+    def _shared_base(self, base: Tensor) -> Tensor:
+        """One set of base intrinsics per physical camera: the mean over its images (they agree for SfM cameras;
+        a per-image perturbation averages out). Images of one camera must have the same size."""
+        count = torch.bincount(self.camera_of_image, minlength=self.num_physical_cameras).to(base)
+        mean = torch.zeros(self.num_physical_cameras, base.shape[1], dtype=base.dtype, device=base.device)
+        mean = mean.index_add_(0, self.camera_of_image, base) / count[:, None]
+        first = self._first_image_of_each_camera()
+        size_mismatch = (base[first][self.camera_of_image, 7:] != base[:, 7:]).any(dim=-1)
+        if bool(size_mismatch.any()):
+            i = int(torch.nonzero(size_mismatch)[0])
+            j = int(first[self.camera_of_image[i]])
+            raise ValueError(
+                f"training image {i} is {int(base[i, 7])}x{int(base[i, 8])} but image {j} of the same physical camera "
+                f"{int(self.camera_of_image[i])} is {int(base[j, 7])}x{int(base[j, 8])}: shared intrinsics need one "
+                "image size per camera (or --pipeline.model.camera-optimizer.intrinsics per-image)"
+            )
+        return mean[self.camera_of_image]
 
     def _require_cameras(self) -> None:
         if not self.has_cameras:
@@ -200,7 +275,10 @@ class S2CampCameraOptimizer(CameraOptimizer):
         """Camera-parameter deltas phi = P^-1 phi_hat of every camera (paper eq. 15), all 12 columns, float64."""
         if not self.enabled:
             return self.precond.new_zeros(self.num_cameras, len(PARAMETER_NAMES))
-        phi = (self.precond_inv @ self.whitened_delta.to(torch.float64)[..., None])[..., 0]
+        latent = self.whitened_delta.to(torch.float64)
+        if self.shared:  # [z_i; w_c]: the pose latent of the image and the intrinsics latent of its camera
+            latent = torch.cat([latent, self.whitened_intrinsics.to(torch.float64)[self.camera_of_image]], dim=-1)
+        phi = (self.precond_inv @ latent[..., None])[..., 0]
         if self.non_trainable_camera_indices is not None:
             keep = torch.ones(self.num_cameras, 1, dtype=phi.dtype, device=phi.device)
             keep[self.non_trainable_camera_indices.to(phi.device)] = 0.0
@@ -393,7 +471,10 @@ class S2CampCameraOptimizer(CameraOptimizer):
         says why, so a refresh never stops training.
         """
         self._require_cameras()
-        if self.config.precondition and self.enabled:
+        if self.config.precondition and self.enabled and self.shared:
+            if not self._refresh_shared(step, optimizer):
+                return
+        elif self.config.precondition and self.enabled:
             device = self.precond.device
             intrinsics = self.refined_intrinsics().detach()
             try:
@@ -413,6 +494,31 @@ class S2CampCameraOptimizer(CameraOptimizer):
             self.gram.copy_(result.gram.to(device))
         self.last_refresh_step.fill_(step)
         self.num_refreshes.add_(1)
+
+    @torch.no_grad()
+    def _refresh_shared(self, step: int, optimizer: torch.optim.Optimizer | None) -> bool:
+        """The shared-intrinsics refresh: T per physical camera from its refined intrinsics, latents re-expressed
+        without moving any camera (``core.shared_intrinsics``). False if the refresh had to be skipped."""
+        device = self.precond.device
+        first = self._first_image_of_each_camera()
+        intrinsics = self.refined_intrinsics().detach()[first]
+        try:
+            result = compute_shared_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
+        except ValueError as error:
+            warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
+            return False
+        matrix, inverse = result.matrix.to(device), result.inverse.to(device)
+        states = [None, None]
+        if optimizer is not None:
+            states = [optimizer.state.get(self.whitened_delta), optimizer.state.get(self.whitened_intrinsics)]
+        reexpress_shared_latents(
+            self.whitened_delta, self.whitened_intrinsics, self.camera_of_image, self.precond[first],
+            self.precond_inv[first], matrix, inverse, *states,
+        )  # fmt: skip
+        self.precond.copy_(matrix[self.camera_of_image])
+        self.precond_inv.copy_(inverse[self.camera_of_image])
+        self.gram.copy_(result.gram.to(device)[self.camera_of_image])
+        return True
 
     def should_refresh(self, step: int) -> bool:
         every = self.config.refresh_every
@@ -454,5 +560,6 @@ __all__ = [
     "TRAIN_CAMERA_KEY",
     "S2CampCameraOptimizer",
     "S2CampCameraOptimizerConfig",
+    "group_identical_intrinsics",
     "intrinsics_from_cameras",
 ]

@@ -51,7 +51,9 @@ def make_cameras(k1: float = 0.0, k2: float = 0.0) -> Cameras:
 
 def make_optimizer(cameras: Cameras | None = None, **overrides) -> S2CampCameraOptimizer:
     sampling = SamplingConfig(num_points=64, sampler="camp-random", **overrides.pop("sampling", {}))
-    config = S2CampCameraOptimizerConfig(**{"refresh_every": 10, "sampling": sampling, **overrides})
+    # Per image unless a test asks otherwise: most tests here pin per-image mechanics (one latent row of K per image).
+    defaults = {"refresh_every": 10, "sampling": sampling, "intrinsics": "per-image"}
+    config = S2CampCameraOptimizerConfig(**{**defaults, **overrides})
     optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
     optimizer.set_train_cameras(cameras if cameras is not None else make_cameras(k1=-0.05, k2=0.01))
     return optimizer

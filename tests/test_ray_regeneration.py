@@ -45,7 +45,7 @@ def all_ray_indices() -> torch.Tensor:
 
 def make_optimizer(cameras: Cameras, **overrides) -> S2CampCameraOptimizer:
     config = S2CampCameraOptimizerConfig(
-        **{"sampling": SamplingConfig(num_points=32, sampler="camp-random"), **overrides}
+        **{"sampling": SamplingConfig(num_points=32, sampler="camp-random"), "intrinsics": "per-image", **overrides}
     )
     optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
     optimizer.set_train_cameras(cameras)

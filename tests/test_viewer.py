@@ -86,7 +86,9 @@ def build_model(viewer_update_period: float = 0.0, initial: Cameras | None = Non
             ],
             implementation="torch",
             camera_optimizer=S2CampCameraOptimizerConfig(
-                sampling=SamplingConfig(num_points=64, sampler="camp-random"), parameters="pose+focal"
+                sampling=SamplingConfig(num_points=64, sampler="camp-random"),
+                parameters="pose+focal",
+                intrinsics="per-image",
             ),
             viewer_update_period=viewer_update_period,
         )

@@ -36,6 +36,7 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
 
+from s2camp_ns.camera_optimizer import group_identical_intrinsics
 from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.core.validation import check_range
@@ -334,6 +335,9 @@ class S2CampDataParser(DataParser):
         metadata.update(extra)
         metadata.update(
             reference_cameras=reference,
+            # One id per physical camera: images whose given intrinsics agree (COLMAP's camera_id in practice; the
+            # global intrinsics of a transforms.json), grouped before any perturbation.
+            camera_ids=group_identical_intrinsics(reference).tolist(),
             dataparser_scale=float(outputs.dataparser_scale),
             dataparser_transform=outputs.dataparser_transform.clone(),
             perturbed=perturbed,
