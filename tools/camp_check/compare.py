@@ -40,6 +40,39 @@ def entry_error(a: np.ndarray, reference: np.ndarray) -> float:
     return float(np.max(np.abs(a - reference) / scale))
 
 
+def _spd_sqrt(a: np.ndarray) -> np.ndarray:
+    values, vectors = np.linalg.eigh(0.5 * (a + a.T))
+    return (vectors * np.sqrt(values)) @ vectors.T
+
+
+def damping_basis_effect(sigma_13: np.ndarray, mapping: np.ndarray) -> tuple[float, float]:
+    """How much CamP's damping, applied in CamP's basis, changes the preconditioned step against ours.
+
+    On the 11 parameters both refine (ours: twist, additive focal, cx, cy, k1, k2; no skew), plain gradient descent
+    on whitened parameters moves the camera by -lr (Sigma + D)^-1 g; the Gram part is basis-independent, the
+    damping D = diag(max(1e-8, 0.1 diag)) is not. Returns the extreme eigenvalues of
+    (Sigma + D_ours)^1/2 (Sigma + D_CamP)^-1 (Sigma + D_ours)^1/2, CamP's damping expressed in our basis; 1 means
+    identical steps.
+    """
+    to_13 = np.zeros((13, 11))
+    for k in range(6):
+        to_13[k, k] = 1.0
+    to_13[6, 6] = to_13[7, 6] = 1.0  # our focal delta adds to fx and fy
+    for ours_index, split_index in ((7, 8), (8, 9), (9, 11), (10, 12)):
+        to_13[split_index, ours_index] = 1.0
+    sigma = to_13.T @ sigma_13 @ to_13
+    # CamP's parameters in ours (exact up to the fx / fy ratio of the log focal scale).
+    basis = np.linalg.lstsq(to_13, mapping, rcond=None)[0]
+    sigma_camp = mapping.T @ sigma_13 @ mapping
+    damping_ours = np.diag(np.maximum(1e-8, 0.1 * np.diag(sigma)))
+    damping_camp = np.diag(np.maximum(1e-8, 0.1 * np.diag(sigma_camp)))
+    inverse = np.linalg.inv(basis)
+    root = _spd_sqrt(sigma + damping_ours)
+    ratio = root @ np.linalg.inv(sigma + inverse.T @ damping_camp @ inverse) @ root
+    values = np.linalg.eigvalsh(0.5 * (ratio + ratio.T))
+    return float(values[0]), float(values[-1])
+
+
 def compare(ours: dict, camp: dict) -> list[dict]:
     rows = []
     for i, name in enumerate(ours["names"]):
@@ -67,6 +100,7 @@ def compare(ours: dict, camp: dict) -> list[dict]:
                 "entry_ref": entry_error(ours_ref, camp_ref),
                 "entry_mc_camp": math.sqrt(np.mean([entry_error(e, camp_ref) ** 2 for e in camp_est])),
                 "within_mc": fro(ours_ref - camp_ref) / norm < min(mc_camp, mc_ours),
+                "damping_basis": damping_basis_effect(ours["reference"][i], mapping),
             }
         )
     return rows
@@ -85,6 +119,14 @@ def table(rows: list[dict]) -> str:
             f"| {r['published']:.2e} | {r['entry_ref']:.2e} | {r['entry_mc_camp']:.2e} | "
             f"{'yes' if r['within_mc'] else 'NO'} |"
         )
+    return "\n".join(lines)
+
+
+def damping_table(rows: list[dict]) -> str:
+    lines = ["| camera | smallest | largest |", "|---|---|---|"]
+    for r in rows:
+        low, high = r["damping_basis"]
+        lines.append(f"| {r['camera']} | {low:.3g} | {high:.3g} |")
     return "\n".join(lines)
 
 
@@ -142,6 +184,19 @@ def report(rows: list[dict], ours: dict, camp: dict, command: str, previous: lis
                 if previous
                 else []
             ),
+            "What still differs: the parameterisation. s2camp-camp keeps our 12 deltas (the paper compares sampling "
+            "strategies, not parameterisations), so CamP's damping diag(max(1e-8, 0.1 diag)) acts in our basis. "
+            "The Gram part of a preconditioned step does not depend on the basis, the damping does: the extreme "
+            "eigenvalues of (Sigma + D_ours)^1/2 (Sigma + D_CamP)^-1 (Sigma + D_ours)^1/2 on the 11 parameters "
+            "both refine (1 = identical plain-gradient steps; Adam's per-coordinate scaling differs further):",
+            "",
+            damping_table(rows),
+            "",
+            "At the identity pose CamP's screw parameters are our twist up to order and sign, and the steps agree; "
+            "at the generic pose (camera 2.8 units from the world origin) CamP's exp(log T + d) mixes rotation and "
+            "translation, and its damping shortens some step directions severalfold. That difference depends on "
+            "where the world origin is, which differs between CamP's data pipeline and nerfstudio's dataparser.",
+            "",
             "CamP's published configuration as read by gin from configs/camp/camera_optim.gin:",
             "",
             f"`{camp['settings']}`",
