@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from s2camp_ns.core.camera import Intrinsics, project
+from s2camp_ns.core.camera import Intrinsics, pixel_to_ray_direction, project
 from s2camp_ns.core.camp_sampling import (
     camp_frustum_points,
     inverse_power_ladder,
@@ -69,6 +69,17 @@ def test_points_reproduce_the_uniform_pixel_and_distance_draws(intrinsics: Intri
     near, far = q / -2.0 * ((1 + 0.3 / q) ** -2.0 - 1), q / -2.0 * ((1 + 50.0 / q) ** -2.0 - 1)
     y = near + draws[..., 2] * (far - near)
     torch.testing.assert_close(points.norm(dim=-1), q * ((1 - 2.0 * y / q) ** -0.5 - 1), rtol=1e-12, atol=0)
+
+
+def test_pinhole_shortcut_gives_the_undistortion_path_bit_for_bit() -> None:
+    skewed = Intrinsics.create(fx=500.0, fy=480.0, cx=300.0, cy=200.0, width=640, height=400, skew=3.0)
+    for intrinsics in (ROOM, skewed):
+        points = camp_frustum_points(intrinsics, 500, seed=2)
+        draws = torch.rand((1, 500, 3), generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+        size = torch.tensor([intrinsics.width.item(), intrinsics.height.item()], dtype=torch.float64) - 0.5
+        directions = pixel_to_ray_direction(draws[..., :2] * size, intrinsics)
+        distance = ladder_distance(draws[..., 2], 0.4, 1000.0, -1.5)
+        assert torch.equal(points, distance.unsqueeze(-1) * directions)
 
 
 def test_camp_points_are_deterministic_per_seed() -> None:
