@@ -169,7 +169,8 @@ def report(rows: list[dict], config: GramErrorConfig) -> Path:
     )
     reference_note = (
         f"Reference: {rows[0]['reference_points']} scrambled Sobol points through the {rows[0]['transform']} "
-        f"transform (CamP's sampler: as many of its own random points); two references with different "
+        f"transform (CamP's sampler, its published configuration listed under t_near 0.4, its own near distance: as "
+        "many of its own random points); two references with different "
         f"scrambles differ by {rows[0]['reference_error']:.1e} (relative), a floor below which errors are not "
         "resolved. All 12 camera parameters, pinhole intrinsics, pixels divided by max(W, H)."
     )
