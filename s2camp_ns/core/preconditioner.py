@@ -51,12 +51,14 @@ class SamplingConfig:
     """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray
     ("ray", density 1 / r^2 in the contracted ball; CamP's own radial measure is the power ladder of "camp-random")."""
     t_near: float = 0.4
-    """Near contracted radius of the frustum (scene units; the contraction is the identity below 1)."""
+    """Near contracted radius of the frustum (scene units; the contraction is the identity below 1); for
+    "camp-random" the near distance along the ray."""
     t_far: float = 1.5
     """Far contracted radius, below 2: Euclidean distance 1 / (2 - t_far) beyond 1 (paper eq. 10), so 1.5 reaches
     2 scene units and the paper's 1.99 about 100 (sec. 4). 1.5 is tuned on the recovery benchmark's scenes, where
     the content lies within about 2 units of the cameras (docs/benchmarks/recovery.md): volume-uniform samples out
-    to 1.99 put most of the Gram's weight on far points, where rotation and translation look alike."""
+    to 1.99 put most of the Gram's weight on far points, where rotation and translation look alike. For "camp-random"
+    the far distance along the ray (any value above ``t_near``; CamP's 1000)."""
     seed: int = 0
     """Seed of the random and scrambled samplers; ignored by the deterministic lattice."""
     ladder_p: float = CAMP_LADDER_P
