@@ -67,11 +67,11 @@ class SamplingConfig:
     def validate(self) -> None:
         check_positive_int("num_points", self.num_points)
         check_choice("sampler", self.sampler, SAMPLERS)
+        check_choice("transform", self.transform, TRANSFORMS)
+        check_choice("radial", self.radial, RADIALS)
         if self.sampler == "camp-random":
             validate_ladder(self.t_near, self.t_far, self.ladder_p)
             return
-        check_choice("transform", self.transform, TRANSFORMS)
-        check_choice("radial", self.radial, RADIALS)
         check_range("t_near", self.t_near, low=0.0)
         check_range("t_far", self.t_far, low=self.t_near, high=2.0, low_inclusive=False, high_inclusive=False)
 
