@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +29,7 @@ from s2camp_ns.core.alignment import camera_errors
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, apply_local_transform, in_image, project, se3_exp
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.core.preconditioner import (
-    CAMP_T_FAR,
+    CAMP_SAMPLING,
     DampingConfig,
     Preconditioner,
     SamplingConfig,
@@ -125,9 +125,7 @@ class Refinement:
         if variant in ("camp", "s2camp", "s2camp-once"):
             sampling = config.sampling
             if variant == "camp":
-                sampling = SamplingConfig(
-                    sampler="camp-random", num_points=5000, t_near=sampling.t_near, t_far=CAMP_T_FAR, seed=seed
-                )
+                sampling = replace(CAMP_SAMPLING, seed=seed)
             self.sampling = sampling
             self.preconditioner = compute_preconditioner(start, self.layout, sampling, config.damping)
         lr, lr_final = (

@@ -1,8 +1,9 @@
 """Time and peak memory to compute P for many cameras: S2CamP against a CamP-style baseline, in one run.
 
 S2CamP: L = 500 deterministic lattice points per camera and the closed-form Jacobian (s2camp_ns.core.jacobian).
-CamP-style baseline: 5000 random frustum points per camera (random pixel, random contracted distance) and the
-Jacobian by forward-mode autodiff (torch.func.jacfwd, vmapped over cameras), as CamP does with JAX.
+CamP-style baseline: CamP's published proxy points (5000 per camera: random pixel, power-ladder distance along the
+ray, ``CAMP_SAMPLING``) and the Jacobian by forward-mode autodiff (torch.func.jacfwd, vmapped over cameras), as CamP
+does with JAX.
 Both then form the Gram matrix in float64, damp it and take the symmetric square root by eigendecomposition.
 Each method runs in a fresh subprocess so that its peak memory (resident set growth on the CPU, allocator peak on
 CUDA) is its own. Scaling in L and in the number of cameras is measured for S2CamP in-process.
@@ -24,6 +25,7 @@ from torch.func import jacfwd, vmap
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, in_image, project, project_with_delta
 from s2camp_ns.core.jacobian import gram_matrix
 from s2camp_ns.core.preconditioner import (
+    CAMP_SAMPLING,
     DampingConfig,
     SamplingConfig,
     compute_preconditioner,
@@ -113,7 +115,7 @@ def _autodiff_jacobian(points: torch.Tensor, intrinsics: Intrinsics) -> torch.Te
 
 
 def camp_baseline_preconditioner(intrinsics: Intrinsics, num_points: int, chunk: int) -> torch.Tensor:
-    points = sample_proxy_points(intrinsics, SamplingConfig(sampler="camp-random", num_points=num_points))
+    points = sample_proxy_points(intrinsics, replace(CAMP_SAMPLING, num_points=num_points))
     sigmas = []
     for start in range(0, intrinsics.num_cameras, chunk):
         part = intrinsics[start : start + chunk]

@@ -233,5 +233,6 @@ def test_unsupported_distortion_raises():
 def test_invalid_config_raises():
     with pytest.raises(ValueError, match="refresh_every"):
         make_optimizer(refresh_every=-1)
+    # These optimizers use CamP's sampler, whose t_far is a ray distance: invalid only at or below t_near.
     with pytest.raises(ValueError, match="t_far"):
-        make_optimizer(sampling={"t_far": 2.5})
+        make_optimizer(sampling={"t_near": 0.4, "t_far": 0.3})

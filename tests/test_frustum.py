@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from s2camp_ns.core.contraction import contract, contract_radius, uncontract, uncontract_radius
-from s2camp_ns.core.frustum import camp_random_points, frustum_to_unit, sample_frustum
+from s2camp_ns.core.frustum import frustum_to_unit, sample_frustum
 
 ROOM = torch.tensor([[-389.25 / 793.13, 388.75 / 793.13, -259.375 / 793.49, 258.625 / 793.49]], dtype=torch.float64)
 OFF_CENTRE = torch.tensor([[-0.3, 0.9, 0.1, 0.6]], dtype=torch.float64)  # principal point far off centre
@@ -120,26 +120,6 @@ def test_pyramid_inside_box_spherical_not() -> None:
     assert torch.allclose(p[..., 1] / p[..., 2], BOUNDS[:, [2, 2, 3, 3]], atol=1e-14)
 
 
-def test_camp_random_points() -> None:
-    first = camp_random_points(BOUNDS, 300, 0.1, 1.9, seed=4)
-    again = camp_random_points(BOUNDS, 300, 0.1, 1.9, generator=torch.Generator().manual_seed(4))
-    assert torch.equal(first.contracted, again.contracted)
-    r = first.contracted.norm(dim=-1)
-    assert float(r.min()) >= 0.1 and float(r.max()) <= 1.9
-    a = first.contracted[..., 0] / first.contracted[..., 2]
-    assert bool(((a >= BOUNDS[:, 0:1]) & (a <= BOUNDS[:, 1:2])).all())
-    assert torch.allclose(first.camera.norm(dim=-1), uncontract_radius(r))
-
-
-def test_pixel_and_ray_maps_give_camps_measure_exactly() -> None:
-    # CamP's sampler draws (a, b, r) uniformly; the "pixel" / "ray" maps take the same numbers as (u3, u2, u1).
-    draws = torch.rand((3, 300, 3), generator=torch.Generator().manual_seed(4), dtype=torch.float64)
-    camp = camp_random_points(BOUNDS, 300, 0.1, 1.9, generator=torch.Generator().manual_seed(4))
-    mapped = sample_frustum(draws[..., [2, 1, 0]], BOUNDS, 0.1, 1.9, "pixel", "ray")
-    torch.testing.assert_close(mapped.contracted, camp.contracted, atol=1e-14, rtol=0)
-    torch.testing.assert_close(mapped.camera, camp.camera, atol=1e-12, rtol=1e-12)
-
-
 def test_ray_radial_map_is_uniform_in_contracted_distance() -> None:
     u = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
     points = torch.stack([u, torch.full_like(u, 0.5), torch.full_like(u, 0.5)], dim=-1)
@@ -171,5 +151,3 @@ def test_frustum_errors_name_the_parameter() -> None:
         sample_frustum(u, ROOM, 0.0, 1.5, "cone")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="radial"):
         sample_frustum(u, ROOM, 0.0, 1.5, "pyramid", "log")  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="num_points"):
-        camp_random_points(ROOM, 0, 0.0, 1.5)

@@ -32,17 +32,17 @@ Three angular transforms; the first two are volume preserving up to the constant
     Every sample lies inside the tangent box, so every sample projects into the image.
 ``"pixel"``
     Uniform in the image-plane tangents, ``a = a0 + u3 (a1 - a0)``, ``b = b0 + u2 (b1 - b0)``: a uniform pixel of
-    the undistorted pinhole camera, CamP's angular measure. Not volume preserving: the solid-angle density grows
-    towards the image corners as ``(1 + a^2 + b^2)^(3/2)``.
+    the undistorted pinhole camera, CamP's angular measure (without distortion). Not volume preserving: the
+    solid-angle density grows towards the image corners as ``(1 + a^2 + b^2)^(3/2)``.
 
 Two radial maps (``radial``):
 
 ``"volume"``
     The paper's ``Q_r`` (eq. 12): uniform in the contracted volume, so most points lie near ``t_far``.
 ``"ray"``
-    Uniform in contracted distance along each ray, ``r = t0 + u1 (t1 - t0)``, CamP's radial measure (volume
-    density ``1 / r^2``, weighting near points). With ``"pixel"`` it gives CamP's sampling measure exactly, with
-    the deterministic lattice in place of random draws.
+    Uniform in contracted distance along each ray, ``r = t0 + u1 (t1 - t0)`` (volume density ``1 / r^2`` in the
+    contracted ball, weighting near points). This is not CamP's radial measure: CamP's published configuration
+    warps Euclidean distance with a power ladder and does not contract (s2camp_ns/core/camp_sampling.py).
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from s2camp_ns.core.contraction import uncontract_radius
-from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
+from s2camp_ns.core.validation import check_choice, check_finite, check_range
 
 __all__ = [
     "RADIALS",
@@ -63,7 +63,6 @@ __all__ = [
     "FrustumSamples",
     "Radial",
     "Transform",
-    "camp_random_points",
     "directions_from_unit",
     "frustum_to_unit",
     "map_unit_to_frustum",
@@ -113,7 +112,7 @@ def validate_frustum(
 
 def radius_from_unit(u1: Tensor, t_near: float, t_far: float, radial: str = "volume") -> Tensor:
     """Radial inverse CDF: ``Q_r(u1) = [t0^3 + u1 (t1^3 - t0^3)]^(1/3)`` (paper eq. 12, ``"volume"``) or
-    ``t0 + u1 (t1 - t0)`` (``"ray"``, CamP's uniform contracted distance)."""
+    ``t0 + u1 (t1 - t0)`` (``"ray"``, uniform contracted distance)."""
     if radial == "ray":
         return t_near + u1 * (t_far - t_near)
     cube = t_near**3 + u1 * (t_far**3 - t_near**3)
@@ -276,36 +275,3 @@ def sample_frustum(
     # Scale by r_euclid / r_contracted; for r <= 1 the ratio is exactly 1 (the contraction is the identity there).
     scale = torch.where(radius <= 1.0, torch.ones_like(radius), uncontract_radius(radius) / radius.clamp_min(1.0))
     return FrustumSamples(contracted=contracted, camera=contracted * scale)
-
-
-def camp_random_points(
-    tangent_bounds: Float[Tensor, "n 4"],
-    num_points: int,
-    t_near: float,
-    t_far: float,
-    generator: torch.Generator | None = None,
-    seed: int = 0,
-) -> FrustumSamples:
-    """CamP's random baseline ("frustum_contracted" sampling of Park et al. 2023): uniform random image-plane
-    tangents (a uniform random pixel of an undistorted pinhole camera) and a uniform random contracted distance
-    along the unit ray in ``[t_near, t_far]``; Euclidean points through the inverse contraction (paper eq. 10).
-
-    This is not uniform in volume: the density falls off as ``1 / r^2`` and grows towards the image corners.
-    Random numbers come from ``generator`` (CPU) or a CPU generator seeded with ``seed``, then move to the device
-    of ``tangent_bounds``, so the points are the same on every device.
-    """
-    bounds = validate_frustum(tangent_bounds, t_near, t_far)
-    check_positive_int("num_points", num_points)
-    if generator is None:
-        generator = torch.Generator().manual_seed(int(seed))
-    n = bounds.shape[0]
-    draws = torch.rand((n, num_points, 3), generator=generator, dtype=torch.float64).to(bounds.device)
-    a0, a1 = _column(bounds, 0, draws[..., 0]), _column(bounds, 1, draws[..., 0])
-    b0, b1 = _column(bounds, 2, draws[..., 0]), _column(bounds, 3, draws[..., 0])
-    a = a0 + draws[..., 0] * (a1 - a0)
-    b = b0 + draws[..., 1] * (b1 - b0)
-    radius = t_near + draws[..., 2] * (t_far - t_near)
-    direction = torch.stack([a, b, torch.ones_like(a)], dim=-1)
-    direction = direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True)
-    contracted = radius.unsqueeze(-1) * direction
-    return FrustumSamples(contracted=contracted, camera=uncontract_radius(radius).unsqueeze(-1) * direction)

@@ -15,7 +15,8 @@ from jaxtyping import Float
 from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, tangent_bounds
-from s2camp_ns.core.frustum import camp_random_points, sample_frustum
+from s2camp_ns.core.camp_sampling import camp_frustum_points
+from s2camp_ns.core.frustum import sample_frustum
 from s2camp_ns.core.jacobian import projection_jacobian, relative_gram_error
 from s2camp_ns.core.lattice import unit_cube_points
 from s2camp_ns.core.preconditioner import SamplingConfig, gram_from_points, sample_proxy_points
@@ -54,7 +55,9 @@ def reference_gram(
     for start in range(0, num_points, chunk):
         size = min(chunk, num_points - start)
         if draw is None:
-            points = camp_random_points(bounds, size, sampling.t_near, sampling.t_far, generator=generator).camera
+            points = camp_frustum_points(
+                intrinsics, size, sampling.t_near, sampling.t_far, sampling.ladder_p, generator=generator
+            )
         else:
             unit = draw[start : start + size].to(bounds.device)
             points = sample_frustum(

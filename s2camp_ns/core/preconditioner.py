@@ -20,7 +20,8 @@ from jaxtyping import Float
 from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, tangent_bounds
-from s2camp_ns.core.frustum import RADIALS, Radial, camp_random_points, sample_frustum
+from s2camp_ns.core.camp_sampling import CAMP_LADDER_P, CAMP_T_FAR, CAMP_T_NEAR, camp_frustum_points, validate_ladder
+from s2camp_ns.core.frustum import RADIALS, Radial, sample_frustum
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
 from s2camp_ns.core.lattice import unit_cube_points
 from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
@@ -28,8 +29,6 @@ from s2camp_ns.core.validation import check_choice, check_finite, check_positive
 SamplerName = Literal["frolov", "sobol", "halton", "random", "camp-random"]
 TransformName = Literal["pyramid", "spherical", "pixel"]
 SAMPLERS: tuple[str, ...] = ("frolov", "sobol", "halton", "random", "camp-random")
-CAMP_T_FAR = 1.99
-"""Far contracted radius of the CamP baseline (its published sampling range, kept when S2CamP's was tuned)."""
 TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical", "pixel")
 
 
@@ -41,35 +40,52 @@ class SamplingConfig:
     """L, proxy points per camera."""
     sampler: SamplerName = "frolov"
     """Unit-cube point set: the deterministic Frolov lattice (S2CamP), a quasi-random or random baseline, or
-    CamP's random pixel + random distance sampling ("camp-random")."""
+    CamP's published sampler ("camp-random": random pixel, random power-ladder distance along the ray, no
+    contraction; s2camp_ns/core/camp_sampling.py). For "camp-random", ``t_near`` and ``t_far`` are Euclidean
+    distances along the unit ray (CamP's 0.4 and 1000, see ``CAMP_SAMPLING``) and ``transform`` / ``radial`` are
+    not used."""
     transform: TransformName = "pyramid"
     """Unit cube to frustum directions: the exact pinhole pyramid, the paper's separable spherical transform, or
-    uniform image-plane tangents ("pixel", CamP's angular measure)."""
+    uniform image-plane tangents ("pixel", CamP's angular measure for an undistorted camera)."""
     radial: Radial = "volume"
     """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray
-    ("ray", CamP's radial measure)."""
+    ("ray", density 1 / r^2 in the contracted ball; CamP's own radial measure is the power ladder of "camp-random")."""
     t_near: float = 0.4
-    """Near contracted radius of the frustum (scene units; the contraction is the identity below 1)."""
+    """Near contracted radius of the frustum (scene units; the contraction is the identity below 1); for
+    "camp-random" the near distance along the ray."""
     t_far: float = 1.5
     """Far contracted radius, below 2: Euclidean distance 1 / (2 - t_far) beyond 1 (paper eq. 10), so 1.5 reaches
     2 scene units and the paper's 1.99 about 100 (sec. 4). 1.5 is tuned on the recovery benchmark's scenes, where
     the content lies within about 2 units of the cameras (docs/benchmarks/recovery.md): volume-uniform samples out
-    to 1.99 put most of the Gram's weight on far points, where rotation and translation look alike."""
+    to 1.99 put most of the Gram's weight on far points, where rotation and translation look alike. For "camp-random"
+    the far distance along the ray (any value above ``t_near``; CamP's 1000)."""
     seed: int = 0
     """Seed of the random and scrambled samplers; ignored by the deterministic lattice."""
+    ladder_p: float = CAMP_LADDER_P
+    """Exponent of the power-ladder ray warp of "camp-random" (negative; CamP's -1.5); ignored by the others."""
 
     def validate(self) -> None:
         check_positive_int("num_points", self.num_points)
         check_choice("sampler", self.sampler, SAMPLERS)
         check_choice("transform", self.transform, TRANSFORMS)
         check_choice("radial", self.radial, RADIALS)
+        if self.sampler == "camp-random":
+            validate_ladder(self.t_near, self.t_far, self.ladder_p)
+            return
         check_range("t_near", self.t_near, low=0.0)
         check_range("t_far", self.t_far, low=self.t_near, high=2.0, low_inclusive=False, high_inclusive=False)
 
 
+CAMP_SAMPLING = SamplingConfig(num_points=5000, sampler="camp-random", t_near=CAMP_T_NEAR, t_far=CAMP_T_FAR)
+"""CamP's published proxy points (configs/camp/camera_optim.gin of Park et al.'s code): NUM_POINTS 5000,
+'frustum_raydist_fn' sampling, near 0.4, far 1000, power ladder p = -1.5. Checked against CamP's own code by
+tools/camp_check (docs/benchmarks/camp-check.md)."""
+
+
 @dataclass(frozen=True)
 class DampingConfig:
-    """Diagonal damping added to Sigma before the square root (CamP's default for camera optimisation)."""
+    """Diagonal damping added to Sigma before the square root; the defaults are CamP's published camera-optimisation
+    values (precondition_diagonal_absolute_padding 1e-8, DIAG_RELPAD 0.1 in configs/camp/camera_optim.gin)."""
 
     damping_abs: float = 1e-8
     """Absolute floor of the damping, > 0; it is what keeps P finite when a parameter is unobservable."""
@@ -125,11 +141,11 @@ def symmetric_sqrt_and_inverse(
 def sample_proxy_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> Float[Tensor, "n l 3"]:
     """Euclidean camera-frame proxy points filling each camera's contracted view frustum (paper eqs. 6-14)."""
     sampling.validate()
-    bounds = tangent_bounds(intrinsics.to(dtype=torch.float64))
     if sampling.sampler == "camp-random":
-        return camp_random_points(
-            bounds, sampling.num_points, sampling.t_near, sampling.t_far, seed=sampling.seed
-        ).camera
+        return camp_frustum_points(
+            intrinsics, sampling.num_points, sampling.t_near, sampling.t_far, sampling.ladder_p, seed=sampling.seed
+        )
+    bounds = tangent_bounds(intrinsics.to(dtype=torch.float64))
     unit = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed)
     return sample_frustum(
         unit.to(bounds.device), bounds, sampling.t_near, sampling.t_far, sampling.transform, sampling.radial
