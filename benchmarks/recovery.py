@@ -18,7 +18,7 @@ from s2camp_ns.core.preconditioner import CAMP_SAMPLING
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
-from .recovery_geometric import VARIANTS, GeometricConfig, iterations_to, load_scene, run_variant
+from .recovery_geometric import SHARED_VARIANTS, VARIANTS, GeometricConfig, iterations_to, load_scene, run_variant
 from .recovery_photometric import PhotometricConfig, run_photometric
 
 SCENES = {
@@ -81,6 +81,7 @@ def run_geometric(config: RecoveryConfig, scene_root: Path) -> tuple[list[dict],
             results = [run_variant(scene, variant, config.geometric, seed=seed) for seed in seeds]
             histories[(scene_name, variant)] = results[0]["history"]
             row = {"tier": 1, "scene": scene_name, "variant": variant, "seeds": len(seeds)}
+            row["intrinsics"] = "per-camera" if variant in SHARED_VARIANTS else "per-image"
             for key in ("rot_err", "pos_err", "focal_err", "pp_err", "k1_err"):
                 row[key] = _mean([r["final"][key] for r in results])
             for key, threshold in config.geometric.thresholds.items():

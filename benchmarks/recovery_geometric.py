@@ -10,15 +10,21 @@ that the preconditioner is meant to fix:
   nerfacto's camera learning rate 1e-3 decaying to 1e-4);
 - ``raw``: the 12 raw deltas, same optimizer and schedule as ``s2camp``;
 - ``camp``: whitened deltas, P from 5000 CamP random points, computed once (averaged over seeds);
-- ``s2camp``: whitened deltas, P from 500 deterministic lattice points, refreshed on schedule;
-- ``s2camp-once``: as ``s2camp`` with P computed once.
+- ``s2camp``: whitened deltas, P from 500 deterministic lattice points, refreshed on schedule, intrinsics per image;
+- ``s2camp-once``: as ``s2camp`` with P computed once;
+- ``s2camp-per-camera``: as ``s2camp``, but one set of intrinsics shared by all cameras (the generated scenes have
+  one physical camera; its start is the mean of the perturbed per-image intrinsics) and the pose per image,
+  preconditioned with the block-triangular factor of ``s2camp_ns.core.shared_intrinsics``.
+
+Rows carry ``intrinsics``: "per-camera" for ``s2camp-per-camera``, "per-image" for every other variant (the
+baselines refine or keep intrinsics per image).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,8 +42,14 @@ from s2camp_ns.core.preconditioner import (
     compute_preconditioner,
     reexpress_latent,
 )
+from s2camp_ns.core.shared_intrinsics import (
+    compute_shared_preconditioner,
+    deltas_from_latents,
+    reexpress_shared_latents,
+)
 
-VARIANTS = ("none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once")
+VARIANTS = ("none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once", "s2camp-per-camera")
+SHARED_VARIANTS = ("s2camp-per-camera",)
 
 
 @dataclass
@@ -120,8 +132,14 @@ class Refinement:
         self.config = config
         self.layout = ParameterLayout.from_preset("pose" if variant == "so3xr3" else "all")
         k = self.layout.num_params
-        self.latent = torch.zeros(num_cameras, k, dtype=torch.float64, requires_grad=True)
+        self.shared = variant in SHARED_VARIANTS
+        self.latent = torch.zeros(num_cameras, 6 if self.shared else k, dtype=torch.float64, requires_grad=True)
         self.preconditioner: Preconditioner | None = None
+        self.camera_of_image = torch.zeros(num_cameras, dtype=torch.long)
+        if self.shared:
+            self.sampling = config.sampling
+            self.shared_latent = torch.zeros(1, k - 6, dtype=torch.float64, requires_grad=True)
+            self.factor = compute_shared_preconditioner(start[0], self.layout, self.sampling, config.damping)
         if variant in ("camp", "s2camp", "s2camp-once"):
             sampling = config.sampling
             if variant == "camp":
@@ -131,13 +149,16 @@ class Refinement:
         lr, lr_final = (
             (config.so3xr3_lr, config.so3xr3_lr_final) if variant == "so3xr3" else (config.lr, config.lr_final)
         )
-        self.optimizer = torch.optim.Adam([self.latent], lr=lr, betas=(0.9, 0.99), eps=1e-15)
+        parameters = [self.latent, self.shared_latent] if self.shared else [self.latent]
+        self.optimizer = torch.optim.Adam(parameters, lr=lr, betas=(0.9, 0.99), eps=1e-15)
         gamma = (lr_final / lr) ** (1.0 / max(config.iterations, 1))
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma)
 
     def deltas(self) -> torch.Tensor:
         """Full 12-column camera deltas phi (paper eq. 15: phi = P^-1 phi_hat for the whitened variants)."""
         latent = self.latent
+        if self.shared:
+            return deltas_from_latents(latent, self.shared_latent, self.camera_of_image, self.factor.inverse)
         if self.preconditioner is not None:
             latent = (self.preconditioner.inverse @ latent[..., None])[..., 0]
         return self.layout.expand(latent)
@@ -150,7 +171,19 @@ class Refinement:
 
     def maybe_refresh(self, iteration: int, current: Intrinsics) -> None:
         every = self.config.refresh_every
-        if self.variant != "s2camp" or every <= 0 or iteration == 0 or iteration % every:
+        if self.variant not in ("s2camp", *SHARED_VARIANTS) or every <= 0 or iteration == 0 or iteration % every:
+            return
+        if self.shared:
+            new_factor = compute_shared_preconditioner(
+                current[0].detach(), self.layout, self.sampling, self.config.damping
+            )
+            state = self.optimizer.state
+            reexpress_shared_latents(
+                self.latent.data, self.shared_latent.data, self.camera_of_image, self.factor.matrix,
+                self.factor.inverse, new_factor.matrix, new_factor.inverse, state.get(self.latent),
+                state.get(self.shared_latent),
+            )  # fmt: skip
+            self.factor = new_factor
             return
         new = compute_preconditioner(current.detach(), self.layout, self.sampling, self.config.damping)
         reexpress_latent(self.latent, self.preconditioner, new, self.optimizer.state.get(self.latent))
@@ -227,6 +260,8 @@ def run_variant(scene: GeometricScene, variant: str, config: GeometricConfig, se
     base_c2w, start = perturbed_start(scene, config.perturbation_seed)
     base_points_cam = world_to_camera(scene.points, base_c2w)
     history = [{"iteration": 0, **errors(base_c2w, start, scene)}]
+    if variant in SHARED_VARIANTS:  # one physical camera: its intrinsics start at the mean of the given ones
+        start = Intrinsics(*[value.mean().expand_as(value).clone() for value in astuple_intrinsics(start)])
     if variant == "none":
         return {"history": history, "final": history[-1], "sec_per_iter": 0.0}
     refinement = Refinement(variant, start, scene.c2w.shape[0], config, seed=seed)
@@ -242,12 +277,16 @@ def run_variant(scene: GeometricScene, variant: str, config: GeometricConfig, se
             with torch.no_grad():
                 c2w, intrinsics = refined_cameras(base_c2w, start, refinement.deltas(), variant)
             history.append({"iteration": iteration, "loss": loss.item(), **errors(c2w, intrinsics, scene)})
-        if variant == "s2camp":
+        if variant in ("s2camp", *SHARED_VARIANTS):
             with torch.no_grad():
                 _, current = refined_cameras(base_c2w, start, refinement.deltas(), variant)
             refinement.maybe_refresh(iteration, current)
     seconds = time.perf_counter() - began
     return {"history": history, "final": history[-1], "sec_per_iter": seconds / config.iterations}
+
+
+def astuple_intrinsics(intrinsics: Intrinsics) -> tuple[torch.Tensor, ...]:
+    return tuple(getattr(intrinsics, f.name) for f in fields(intrinsics))
 
 
 def iterations_to(history: list[dict], key: str, threshold: float) -> float:
