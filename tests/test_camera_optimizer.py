@@ -306,6 +306,35 @@ def test_all_preset_refines_the_distortion_of_the_camera_model(distortion, camer
     assert without_distortion.layout.num_params == 10
 
 
+@pytest.mark.parametrize("announced", [False, True])
+@pytest.mark.parametrize(
+    ("distortion", "camera_type", "model"),
+    [
+        ([-0.05, 0.01, 0.0, 0.0, 0.003, -0.001], CameraType.PERSPECTIVE, "OPENCV"),
+        ([0.05, -0.01, 0.002, -0.0003, 0.0, 0.0], CameraType.FISHEYE, "OPENCV_FISHEYE"),
+    ],
+)
+def test_shared_intrinsics_latent_follows_the_camera_model(distortion, camera_type, model, announced: bool):
+    """Per physical camera (the default): the intrinsics latent gets the model's K - 6 columns, whether the model is
+    announced first (the dataparser's metadata, before DDP and the optimizers) or only seen in the cameras."""
+    config = S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=64, sampler="camp-random"))
+    optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
+    if announced:
+        optimizer.set_camera_model(model)
+        assert optimizer.whitened_intrinsics.shape == (NUM_CAMERAS, 8)
+    optimizer.set_camera_groups([0, 0, 0])
+    announced_latent = optimizer.whitened_intrinsics
+    optimizer.set_train_cameras(_with(make_cameras(), distortion, camera_type))
+    assert optimizer.layout == ParameterLayout.from_preset("all", model)
+    assert optimizer.whitened_delta.shape == (NUM_CAMERAS, 6) and optimizer.whitened_intrinsics.shape == (1, 8)
+    if announced:  # no resize after the announcement: optimizers built on the parameter keep it
+        assert optimizer.whitened_intrinsics is announced_latent
+    bundle = random_ray_bundle()
+    optimizer.apply_to_raybundle(bundle)
+    (bundle.directions.sum() + bundle.origins.sum()).backward()
+    assert (optimizer.whitened_intrinsics.grad.abs() > 0).all()
+
+
 def test_invalid_config_raises():
     with pytest.raises(ValueError, match="refresh_every"):
         make_optimizer(refresh_every=-1)

@@ -191,6 +191,7 @@ def test_every_supported_colmap_model_reaches_the_camera_optimizer(scene: Path, 
     fisheye = model == "OPENCV_FISHEYE"
     assert (out.cameras.camera_type == (CameraType.FISHEYE if fisheye else CameraType.PERSPECTIVE).value).all()
     assert float(out.cameras.fx[0]) == pytest.approx(params[0]) and float(out.cameras.cx[0]) == pytest.approx(25.0)
+    assert out.metadata["camera_model"] == LAYOUT_MODEL.get(model, "RADIAL")
     optimizer = _camera_optimizer(out.cameras)
     assert optimizer.layout.camera_model == LAYOUT_MODEL.get(model, "RADIAL")
     assert optimizer.base_intrinsics_struct().model == ("fisheye" if fisheye else "perspective")

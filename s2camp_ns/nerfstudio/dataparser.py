@@ -44,8 +44,8 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
 
-from s2camp_ns.camera_optimizer import group_identical_intrinsics, intrinsics_from_cameras
-from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, opengl_to_opencv
+from s2camp_ns.camera_optimizer import camera_model_of, group_identical_intrinsics, intrinsics_from_cameras
+from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics, opengl_to_opencv
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, colmap_to_values
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.core.validation import check_range
@@ -335,11 +335,12 @@ def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> 
     )
 
 
-def check_supported_cameras(cameras: Cameras, source: Path) -> None:
+def check_supported_cameras(cameras: Cameras, source: Path) -> Intrinsics:
     """Cameras the S2CamP camera optimizer can refine (its ``intrinsics_from_cameras`` mapping and validation:
-    perspective or fisheye, distortion one-to-one over the image); names the source file otherwise."""
+    perspective or fisheye, distortion one-to-one over the image), as ``Intrinsics``; names the source file
+    otherwise."""
     try:
-        intrinsics_from_cameras(cameras)
+        return intrinsics_from_cameras(cameras)
     except ValueError as error:
         raise ValueError(f"{source}: {error}") from error
 
@@ -375,7 +376,7 @@ class S2CampDataParser(DataParser):
             outputs, extra = self._parse_colmap(data, source, split)
         else:
             outputs, extra = self._parse_transforms(source, split)
-        check_supported_cameras(outputs.cameras, source)
+        intrinsics = check_supported_cameras(outputs.cameras, source)
 
         reference = copy.deepcopy(outputs.cameras)
         cameras = outputs.cameras
@@ -389,6 +390,9 @@ class S2CampDataParser(DataParser):
             # One id per physical camera: images whose given intrinsics agree (COLMAP's camera_id in practice; the
             # global intrinsics of a transforms.json), grouped before any perturbation.
             camera_ids=group_identical_intrinsics(reference).tolist(),
+            # The COLMAP model whose distortion the camera optimizer's "all" preset refines (sizes its latent before
+            # DDP wraps the model and before the optimizers are built).
+            camera_model=camera_model_of(intrinsics),
             dataparser_scale=float(outputs.dataparser_scale),
             dataparser_transform=outputs.dataparser_transform.clone(),
             perturbed=perturbed,
