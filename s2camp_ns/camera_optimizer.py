@@ -172,7 +172,8 @@ def intrinsics_from_cameras(cameras: Cameras, dtype: torch.dtype = torch.float64
         reason = "a polynomial r^8 term in nerfstudio; COLMAP FULL_OPENCV's k4 divides instead (nerfstudio issue 3355)"
         must_be_zero = [(3, "k4", reason)]
     else:
-        must_be_zero = [(4, "p1", "OPENCV_FISHEYE has no tangential terms"), (5, "p2", "OPENCV_FISHEYE has none")]
+        reason = "OPENCV_FISHEYE has no tangential terms"
+        must_be_zero = [(4, "p1", reason), (5, "p2", reason)]
     for column, name, reason in must_be_zero:
         if bool((params[:, column] != 0).any()):
             i = int(torch.nonzero(params[:, column] != 0)[0])
