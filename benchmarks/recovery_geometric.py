@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,15 @@ import pycolmap
 import torch
 
 from s2camp_ns.core.alignment import camera_errors
-from s2camp_ns.core.camera import Intrinsics, ParameterLayout, apply_local_transform, in_image, project, se3_exp
+from s2camp_ns.core.camera import (
+    TENSOR_FIELDS,
+    Intrinsics,
+    ParameterLayout,
+    apply_local_transform,
+    in_image,
+    project,
+    se3_exp,
+)
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.core.preconditioner import (
     CAMP_SAMPLING,
@@ -286,7 +294,8 @@ def run_variant(scene: GeometricScene, variant: str, config: GeometricConfig, se
 
 
 def astuple_intrinsics(intrinsics: Intrinsics) -> tuple[torch.Tensor, ...]:
-    return tuple(getattr(intrinsics, f.name) for f in fields(intrinsics))
+    """The per-camera tensor fields, in the positional order of ``Intrinsics`` (its projection tag left out)."""
+    return tuple(getattr(intrinsics, name) for name in TENSOR_FIELDS)
 
 
 def iterations_to(history: list[dict], key: str, threshold: float) -> float:

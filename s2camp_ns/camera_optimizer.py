@@ -7,7 +7,14 @@ P = (Sigma + damping)^(1/2) computed from deterministic proxy points in each cam
 Refined camera = base camera from the dataparser plus phi:
 - pose: c2w' = c2w exp(xi) with the local twist xi in the OpenCV camera frame (``core.camera`` convention);
   nerfstudio stores OpenGL c2w, c2w_gl = c2w_cv F with F = diag(1, -1, -1);
-- intrinsics: additive residual update (paper sec. 4, Phi' = Phi + dPhi) of focal, principal point, skew, k1, k2.
+- intrinsics: additive residual update (paper sec. 4, Phi' = Phi + dPhi) of focal, principal point, skew and the
+  distortion coefficients of the cameras' model (``camera_model_of``: RADIAL k1, k2; OPENCV + p1, p2; FULL_OPENCV
+  + k3; OPENCV_FISHEYE k1..k4), so K is 12, 14 or 15 with the "all" preset.
+
+nerfstudio cameras map explicitly (``intrinsics_from_cameras``, ``nerfstudio_distortion``): PERSPECTIVE cameras'
+distortion_params [k1, k2, k3, k4, p1, p2] are OpenCV's k1, k2, k3, p1, p2 plus a polynomial r^8 term k4 that no
+COLMAP model has (nerfstudio issue 3355) and that must be zero; FISHEYE cameras' [k1, k2, k3, k4, 0, 0] are
+OPENCV_FISHEYE's k1..k4.
 
 Training rays are regenerated from each ray's pixel coordinates (carried by ``PixelRayGenerator`` in
 ``ray_bundle.metadata[PIXEL_KEY]``), so intrinsics really move the rays, differentiably.
@@ -38,6 +45,7 @@ from s2camp_ns.core.camera import (
     pixel_to_ray_direction,
     se3_exp,
 )
+from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
     Preconditioner,
@@ -69,8 +77,9 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     (sec. 4, screw-axis form); S2CamP does not use nerfstudio's SO3xR3 split, the value only exists for
     compatibility with nerfstudio's config."""
     parameters: Literal["pose", "pose+focal", "pose+intrinsics", "all"] = "all"
-    """Refined parameter groups: se(3) pose; + focal length; + principal point and skew; + radial k1, k2 ("all",
-    K = 12, the paper's setting)."""
+    """Refined parameter groups: se(3) pose; + focal length; + principal point and skew; + the distortion
+    coefficients of the cameras' model ("all": k1, k2 for pinhole and radial cameras, K = 12 as in the paper; + p1, p2
+    for OPENCV; + k3 for FULL_OPENCV; k1..k4 for OPENCV_FISHEYE)."""
     precondition: bool = True
     """Optimize whitened deltas phi_hat = P phi (paper eqs. 15-20). False optimizes the raw deltas (P = I), the
     "no preconditioning" ablation."""
@@ -91,8 +100,8 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     rot_l2_penalty: float = 0.0
     """L2 penalty on the raw rotation delta (radians); 0 = none, as in the paper."""
 
-    def layout(self) -> ParameterLayout:
-        return ParameterLayout.from_preset(self.parameters)
+    def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
+        return ParameterLayout.from_preset(self.parameters, camera_model)
 
     def validate(self) -> None:
         self.layout()
@@ -113,26 +122,66 @@ def group_identical_intrinsics(cameras: Cameras) -> Tensor:
     return ids
 
 
-def intrinsics_from_cameras(cameras: Cameras, dtype: torch.dtype = torch.float64) -> Intrinsics:
-    """Base intrinsics of nerfstudio cameras; raises ValueError for camera models S2CamP cannot represent.
+SUPPORTED_CAMERA_TYPES = {
+    CameraType.PERSPECTIVE.value: "perspective",
+    CameraType.FISHEYE.value: "fisheye",
+}
+"""nerfstudio camera types S2CamP refines, and the core projection each one is."""
 
-    nerfstudio's distortion_params are [k1, k2, k3, k4, p1, p2]; only the radial k1, k2 exist in the S2CamP
-    camera model (COLMAP RADIAL), so nonzero k3, k4, p1, p2 would make the regenerated rays disagree with the
-    images.
+
+def _supported_types_message() -> str:
+    return (
+        "supported are PERSPECTIVE (COLMAP "
+        + ", ".join(m for m in SUPPORTED_COLMAP_MODELS if "FISHEYE" not in m)
+        + " with k4 = k5 = k6 = 0) and FISHEYE (COLMAP OPENCV_FISHEYE)"
+    )
+
+
+def projection_of(cameras: Cameras) -> str:
+    """The core projection ("perspective" or "fisheye") of nerfstudio cameras; ValueError naming any camera type
+    S2CamP cannot refine (equirectangular, omnidirectional, orthographic, ...) or a mix of types."""
+    types = sorted({int(t) for t in cameras.camera_type.reshape(-1).tolist()})
+    unsupported = [CameraType(t).name for t in types if t not in SUPPORTED_CAMERA_TYPES]
+    if unsupported:
+        raise ValueError(
+            f"camera type {', '.join(unsupported)} is not supported by S2CamP's camera refinement; "
+            + _supported_types_message()
+        )
+    if len(types) > 1:
+        raise ValueError(
+            f"cameras mix the types {[CameraType(t).name for t in types]}; S2CamP refines one camera type per scene"
+        )
+    return SUPPORTED_CAMERA_TYPES[types[0]]
+
+
+def intrinsics_from_cameras(cameras: Cameras, dtype: torch.dtype = torch.float64) -> Intrinsics:
+    """Base intrinsics of nerfstudio cameras, mapped explicitly; raises ValueError for cameras S2CamP cannot represent.
+
+    nerfstudio's distortion_params are [k1, k2, k3, k4, p1, p2]. PERSPECTIVE: k1, k2, k3, p1, p2 are OpenCV's (the
+    radial-tangential model of ``core.camera``); k4 multiplies r^8 in nerfstudio, which no COLMAP model can hold
+    (FULL_OPENCV's k4 is a rational coefficient, nerfstudio issue 3355), so it must be zero. FISHEYE: k1..k4 are
+    OPENCV_FISHEYE's (theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8), what nerfstudio renders) and p1, p2,
+    which OpenCV's fisheye model lacks, must be zero.
     """
-    if not bool((cameras.camera_type == CameraType.PERSPECTIVE.value).all()):
-        raise ValueError("camera_type must be PERSPECTIVE for every camera; S2CamP models pinhole cameras only")
+    projection = projection_of(cameras)
     n = cameras.shape[0]
-    k1 = k2 = torch.zeros(n, dtype=dtype)
+    params = torch.zeros(n, 6, dtype=dtype)
     if cameras.distortion_params is not None:
         params = cameras.distortion_params.reshape(n, 6).to(dtype).cpu()
-        for column, name in ((2, "k3"), (3, "k4"), (4, "p1"), (5, "p2")):
-            if bool((params[:, column] != 0).any()):
-                raise ValueError(
-                    f"distortion parameter {name} = {params[:, column].abs().max().item():g} is not supported; "
-                    "allowed are radial k1, k2 only (COLMAP PINHOLE, SIMPLE_RADIAL or RADIAL cameras)"
-                )
-        k1, k2 = params[:, 0], params[:, 1]
+    if projection == "perspective":
+        reason = "a polynomial r^8 term in nerfstudio; COLMAP FULL_OPENCV's k4 divides instead (nerfstudio issue 3355)"
+        must_be_zero = [(3, "k4", reason)]
+    else:
+        reason = "OPENCV_FISHEYE has no tangential terms"
+        must_be_zero = [(4, "p1", reason), (5, "p2", reason)]
+    for column, name, reason in must_be_zero:
+        if bool((params[:, column] != 0).any()):
+            i = int(torch.nonzero(params[:, column] != 0)[0])
+            raise ValueError(
+                f"distortion parameter {name} = {params[i, column].item():g} of {projection} camera {i} is not "
+                f"supported ({reason}); allowed is {name} = 0"
+            )
+    k1, k2, k3, k4, p1, p2 = params.unbind(dim=-1)
     return Intrinsics.create(
         fx=cameras.fx.reshape(n).cpu(),
         fy=cameras.fy.reshape(n).cpu(),
@@ -142,8 +191,37 @@ def intrinsics_from_cameras(cameras: Cameras, dtype: torch.dtype = torch.float64
         height=cameras.height.reshape(n).cpu(),
         k1=k1,
         k2=k2,
+        k3=k3,
+        k4=k4 if projection == "fisheye" else 0.0,
+        p1=p1 if projection == "perspective" else 0.0,
+        p2=p2 if projection == "perspective" else 0.0,
+        model=projection,
         dtype=dtype,
     )
+
+
+def nerfstudio_distortion(intrinsics: Intrinsics) -> Float[Tensor, "n 6"]:
+    """nerfstudio's distortion_params [k1, k2, k3, k4, p1, p2] of ``intrinsics`` (the inverse of
+    ``intrinsics_from_cameras``): the same slots for both projections, p1 = p2 = 0 for fisheye cameras."""
+    zeros = torch.zeros_like(intrinsics.k1)
+    tangential = (zeros, zeros) if intrinsics.is_fisheye else (intrinsics.p1, intrinsics.p2)
+    return torch.stack([intrinsics.k1, intrinsics.k2, intrinsics.k3, intrinsics.k4, *tangential], dim=-1)
+
+
+def camera_model_of(intrinsics: Intrinsics) -> str:
+    """The COLMAP camera model whose distortion groups the "all" preset refines: OPENCV_FISHEYE for fisheye
+    cameras; FULL_OPENCV when some camera has k3; OPENCV when some camera has p1 or p2; RADIAL otherwise.
+
+    Decided by the values (nerfstudio's cameras do not keep the model's name): an OPENCV camera with
+    p1 = p2 = 0 is a RADIAL camera, as COLMAP's models nest.
+    """
+    if intrinsics.is_fisheye:
+        return "OPENCV_FISHEYE"
+    if bool((intrinsics.k3 != 0).any()):
+        return "FULL_OPENCV"
+    if bool((intrinsics.p1 != 0).any() | (intrinsics.p2 != 0).any()):
+        return "OPENCV"
+    return "RADIAL"
 
 
 class S2CampCameraOptimizer(CameraOptimizer):
@@ -187,7 +265,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.register_buffer("num_refreshes", torch.tensor(0, dtype=torch.long, device=device))
         # Base cameras come from the dataparser on every run, so they are not saved.
         self.register_buffer("base_c2w_cv", torch.zeros(num_cameras, 3, 4, dtype=torch.float64), persistent=False)
-        self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 9, dtype=torch.float64), persistent=False)
+        self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 13, dtype=torch.float64), persistent=False)
+        self.projection = "perspective"
         # Undamped Gram Sigma of the last refresh (zero until one computes it; the viewer panel's condition numbers).
         self.register_buffer("gram", torch.zeros_like(eye), persistent=False)
         # Physical camera of each image (0..C-1); one camera per image until ``set_camera_groups`` says otherwise.
@@ -229,10 +308,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         intrinsics = intrinsics_from_cameras(cameras)
         device = self.precond.device
         self.base_c2w_cv = opengl_to_opencv(cameras.camera_to_worlds.to(torch.float64)).to(device)
-        base = torch.stack(
-            [getattr(intrinsics, name) for name in ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "width", "height")],
-            dim=-1,
-        ).to(device)
+        base = intrinsics.tensors().to(device)
+        self.projection = intrinsics.model
+        self.set_camera_model(camera_model_of(intrinsics))
         if self.shared and not self.groups_known:
             self.set_camera_groups(group_identical_intrinsics(cameras))
         self.base_intrinsics = self._shared_base(base) if self.shared else base
@@ -252,7 +330,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         mean = torch.zeros(self.num_physical_cameras, base.shape[1], dtype=base.dtype, device=base.device)
         mean = mean.index_add_(0, self.camera_of_image, base) / count[:, None]
         first = self._first_image_of_each_camera()
-        size_mismatch = (base[first][self.camera_of_image, 7:] != base[:, 7:]).any(dim=-1)
+        size_mismatch = (base[first][self.camera_of_image, 7:9] != base[:, 7:9]).any(dim=-1)
         if bool(size_mismatch.any()):
             i = int(torch.nonzero(size_mismatch)[0])
             j = int(first[self.camera_of_image[i]])
@@ -263,16 +341,36 @@ class S2CampCameraOptimizer(CameraOptimizer):
             )
         return mean[self.camera_of_image]
 
+    def set_camera_model(self, camera_model: str) -> None:
+        """Use the layout of the cameras' COLMAP model (``camera_model_of``): the "all" preset refines its distortion
+        coefficients. Resizes the latents, P, P^-1 and Sigma to the layout's K; a no-op when the layout is unchanged
+        (RADIAL, the default). Call it before the optimizers and DDP see the parameters (the model does, from the
+        dataparser's metadata); ``set_train_cameras`` calls it again from the cameras themselves.
+        """
+        layout = self.config.layout(camera_model)
+        if layout == self.layout:
+            return
+        self.layout = layout
+        k = layout.num_params
+        device = self.precond.device
+        if self.enabled and self.shared:
+            m = k - NUM_POSE_PARAMS
+            self.whitened_intrinsics = nn.Parameter(torch.zeros(self.num_physical_cameras, m, device=device))
+        elif self.enabled:
+            self.whitened_delta = nn.Parameter(torch.zeros(self.num_cameras, k, device=device))
+        eye = torch.eye(k, dtype=torch.float64, device=device).expand(self.num_cameras, k, k).clone()
+        self.precond, self.precond_inv, self.gram = eye.clone(), eye.clone(), torch.zeros_like(eye)
+
     def _require_cameras(self) -> None:
         if not self.has_cameras:
             raise RuntimeError("S2CampCameraOptimizer.set_train_cameras must be called before use (the pipeline does)")
 
     def base_intrinsics_struct(self) -> Intrinsics:
-        return Intrinsics(*self.base_intrinsics.unbind(dim=-1))
+        return Intrinsics.from_tensors(self.base_intrinsics, model=self.projection)
 
     # ------------------------------------------------------------------------------------------- refined cameras
-    def camera_deltas(self) -> Float[Tensor, "n 12"]:
-        """Camera-parameter deltas phi = P^-1 phi_hat of every camera (paper eq. 15), all 12 columns, float64."""
+    def camera_deltas(self) -> Float[Tensor, "n 16"]:
+        """Camera-parameter deltas phi = P^-1 phi_hat of every camera (paper eq. 15), all 16 columns, float64."""
         if not self.enabled:
             return self.precond.new_zeros(self.num_cameras, len(PARAMETER_NAMES))
         latent = self.whitened_delta.to(torch.float64)
@@ -335,8 +433,12 @@ class S2CampCameraOptimizer(CameraOptimizer):
             c2w_rays = c2w[camera_indices]
             directions = (c2w_rays[:, :, :3] @ directions_cam[:, :, None])[..., 0]
             origins = c2w_rays[:, :, 3]
-            # nerfstudio's directions_norm is |(a, b, 1)| of the unnormalized camera direction = 1 / d_z.
-            directions_norm = 1.0 / directions_cam[:, 2:3]
+            # nerfstudio's directions_norm is |(a, b, 1)| of the unnormalized camera direction = 1 / d_z; its fisheye
+            # directions are unit vectors already (norm 1).
+            if intrinsics.is_fisheye:
+                directions_norm = torch.ones_like(directions_cam[:, 2:3])
+            else:
+                directions_norm = 1.0 / directions_cam[:, 2:3]
         return origins, directions, directions_norm
 
     def apply_to_raybundle(self, raybundle: RayBundle) -> None:
@@ -426,7 +528,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
 
     @torch.no_grad()
     def refine_cameras(self, cameras: Cameras, indices: Tensor | None = None) -> Cameras:
-        """nerfstudio Cameras of the training cameras ``indices`` with refined pose, fx, fy, cx, cy, k1, k2.
+        """nerfstudio Cameras of the training cameras ``indices`` with refined pose, fx, fy, cx, cy and distortion
+        (``nerfstudio_distortion``: nerfstudio's [k1, k2, k3, k4, p1, p2] meaning).
 
         Skew is not representable in nerfstudio's Cameras and is dropped here (a warning says so when nonzero);
         ``train_camera_raybundle`` renders with it.
@@ -439,8 +542,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
             warnings.warn("refined skew is dropped: nerfstudio Cameras cannot represent skew", stacklevel=2)
         c2w = self.refined_c2w(deltas, opengl=True)[indices.to(self.precond.device)]
         selected = cameras[indices]
-        distortion = torch.zeros(indices.shape[0], 6, dtype=torch.float64)
-        distortion[:, 0], distortion[:, 1] = intrinsics.k1.cpu(), intrinsics.k2.cpu()
+        distortion = nerfstudio_distortion(intrinsics).cpu()
         device = selected.device
         return Cameras(
             camera_to_worlds=c2w.to(device=device, dtype=torch.float32),
@@ -560,6 +662,9 @@ __all__ = [
     "TRAIN_CAMERA_KEY",
     "S2CampCameraOptimizer",
     "S2CampCameraOptimizerConfig",
+    "camera_model_of",
     "group_identical_intrinsics",
     "intrinsics_from_cameras",
+    "nerfstudio_distortion",
+    "projection_of",
 ]

@@ -123,7 +123,7 @@ def test_project_with_zero_delta_is_project() -> None:
     intrinsics = Intrinsics.create(**ROOM_QUARTER, k1=0.01)
     points = _random_points_in_view(intrinsics, 50, seed=5)
     torch.testing.assert_close(
-        project_with_delta(points, intrinsics, torch.zeros(1, 12, dtype=torch.float64)), project(points, intrinsics)[0]
+        project_with_delta(points, intrinsics, torch.zeros(1, 16, dtype=torch.float64)), project(points, intrinsics)[0]
     )
 
 

@@ -13,6 +13,8 @@ from s2camp_ns.camera_optimizer import (
     PIXEL_KEY,
     S2CampCameraOptimizer,
     S2CampCameraOptimizerConfig,
+    intrinsics_from_cameras,
+    nerfstudio_distortion,
 )
 from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout
 from s2camp_ns.core.preconditioner import SamplingConfig
@@ -101,7 +103,8 @@ def test_whitening_round_trip():
     phi = 1e-3 * torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     with torch.no_grad():
         optimizer.whitened_delta.copy_((optimizer.precond @ phi[..., None])[..., 0])
-    torch.testing.assert_close(optimizer.camera_deltas(), phi, atol=1e-9, rtol=1e-5)
+    torch.testing.assert_close(optimizer.camera_deltas()[:, :12], phi, atol=1e-9, rtol=1e-5)
+    assert optimizer.camera_deltas()[:, 12:].abs().max() == 0  # k3, k4, p1, p2: not in a RADIAL camera
 
 
 @pytest.mark.parametrize("parameters", ["pose", "pose+focal", "pose+intrinsics", "all"])
@@ -110,14 +113,16 @@ def test_layout_selects_columns(parameters: str):
     layout = ParameterLayout.from_preset(parameters)
     assert optimizer.whitened_delta.shape == (NUM_CAMERAS, layout.num_params)
     set_latent(optimizer)
-    disabled = [i for i in range(12) if i not in layout.indices]
+    disabled = [i for i in range(16) if i not in layout.indices]
     assert torch.all(optimizer.camera_deltas()[:, disabled] == 0)
 
 
 def test_precondition_false_uses_raw_deltas():
     optimizer = make_optimizer(precondition=False)
     set_latent(optimizer)
-    torch.testing.assert_close(optimizer.camera_deltas(), optimizer.whitened_delta.detach().double())
+    torch.testing.assert_close(
+        optimizer.camera_deltas(), optimizer.layout.expand(optimizer.whitened_delta.detach().double())
+    )
 
 
 def test_refresh_keeps_cameras_and_transforms_adam_state():
@@ -223,11 +228,111 @@ def test_param_group_is_camera_opt():
     assert list(groups) == ["camera_opt"] and groups["camera_opt"] == [optimizer.whitened_delta]
 
 
-def test_unsupported_distortion_raises():
-    cameras = make_cameras()
-    cameras.distortion_params[:, 4] = 1e-3  # p1
-    with pytest.raises(ValueError, match="p1"):
+def _with(cameras: Cameras, distortion: list[float], camera_type: CameraType = CameraType.PERSPECTIVE) -> Cameras:
+    """``cameras`` with nerfstudio distortion_params [k1, k2, k3, k4, p1, p2] and one camera type."""
+    return Cameras(
+        camera_to_worlds=cameras.camera_to_worlds,
+        fx=cameras.fx,
+        fy=cameras.fy,
+        cx=cameras.cx,
+        cy=cameras.cy,
+        width=cameras.width,
+        height=cameras.height,
+        distortion_params=torch.tensor(distortion).expand(cameras.shape[0], 6).clone(),
+        camera_type=camera_type,
+    )
+
+
+def test_nerfstudio_distortion_maps_explicitly_and_back():
+    perspective = _with(make_cameras(), [-0.05, 0.01, 0.002, 0.0, 0.003, -0.001])
+    intrinsics = intrinsics_from_cameras(perspective)
+    assert intrinsics.model == "perspective"
+    values = [float(getattr(intrinsics, name)[0]) for name in ("k1", "k2", "k3", "k4", "p1", "p2")]
+    assert values == pytest.approx([-0.05, 0.01, 0.002, 0.0, 0.003, -0.001], rel=1e-6)
+    fisheye = _with(make_cameras(), [0.05, -0.01, 0.002, -0.0003, 0.0, 0.0], CameraType.FISHEYE)
+    intrinsics = intrinsics_from_cameras(fisheye)
+    assert intrinsics.model == "fisheye"
+    values = [float(getattr(intrinsics, name)[0]) for name in ("k1", "k2", "k3", "k4", "p1", "p2")]
+    assert values == pytest.approx([0.05, -0.01, 0.002, -0.0003, 0.0, 0.0], rel=1e-6)
+    for cameras in (perspective, fisheye):
+        torch.testing.assert_close(
+            nerfstudio_distortion(intrinsics_from_cameras(cameras)).float(), cameras.distortion_params
+        )
+
+
+def test_nerfstudio_perspective_k4_and_fisheye_tangential_are_refused():
+    with pytest.raises(ValueError, match=r"k4 = 0\.001 of perspective camera 0 .*r\^8.*issue 3355.*allowed is k4 = 0"):
+        make_optimizer(_with(make_cameras(), [0.0, 0.0, 0.0, 0.001, 0.0, 0.0]))
+    with pytest.raises(ValueError, match=r"p1 = 0\.002 of fisheye camera 0 .*allowed is p1 = 0"):
+        make_optimizer(_with(make_cameras(), [0.01, 0.0, 0.0, 0.0, 0.002, 0.0], CameraType.FISHEYE))
+
+
+@pytest.mark.parametrize("camera_type", [CameraType.EQUIRECTANGULAR, CameraType.OMNIDIRECTIONALSTEREO_L])
+def test_unsupported_camera_types_are_named(camera_type: CameraType):
+    cameras = _with(make_cameras(), [0.0] * 6, camera_type)
+    with pytest.raises(
+        ValueError, match=rf"camera type {camera_type.name} is not supported.*supported are PERSPECTIVE"
+    ):
         make_optimizer(cameras)
+    mixed = make_cameras()
+    mixed.camera_type = mixed.camera_type.clone()
+    mixed.camera_type[0] = CameraType.FISHEYE.value
+    with pytest.raises(ValueError, match="mix the types"):
+        make_optimizer(mixed)
+
+
+@pytest.mark.parametrize(
+    ("distortion", "camera_type", "model", "tail"),
+    [
+        ([-0.05, 0.01, 0.0, 0.0, 0.0, 0.0], CameraType.PERSPECTIVE, "RADIAL", ("k1", "k2")),
+        ([-0.05, 0.01, 0.0, 0.0, 0.003, -0.001], CameraType.PERSPECTIVE, "OPENCV", ("k2", "p1", "p2")),
+        ([-0.05, 0.01, 0.002, 0.0, 0.003, -0.001], CameraType.PERSPECTIVE, "FULL_OPENCV", ("k3", "p1", "p2")),
+        ([0.05, -0.01, 0.002, -0.0003, 0.0, 0.0], CameraType.FISHEYE, "OPENCV_FISHEYE", ("k2", "k3", "k4")),
+    ],
+)
+def test_all_preset_refines_the_distortion_of_the_camera_model(distortion, camera_type, model, tail):
+    optimizer = make_optimizer(_with(make_cameras(), distortion, camera_type))
+    layout = optimizer.layout
+    assert layout == ParameterLayout.from_preset("all", model)
+    assert layout.names[-len(tail) :] == tail
+    assert optimizer.whitened_delta.shape == (NUM_CAMERAS, layout.num_params)
+    assert optimizer.precond.shape == (NUM_CAMERAS, layout.num_params, layout.num_params)
+    assert torch.isfinite(optimizer.precond).all() and optimizer.gram.abs().amax() > 0
+    bundle = random_ray_bundle()
+    optimizer.apply_to_raybundle(bundle)
+    (bundle.directions.sum() + bundle.origins.sum()).backward()
+    assert (optimizer.whitened_delta.grad.abs().amax(dim=0) > 0).all(), "every refined parameter gets a gradient"
+    without_distortion = make_optimizer(_with(make_cameras(), distortion, camera_type), parameters="pose+intrinsics")
+    assert without_distortion.layout.num_params == 10
+
+
+@pytest.mark.parametrize("announced", [False, True])
+@pytest.mark.parametrize(
+    ("distortion", "camera_type", "model"),
+    [
+        ([-0.05, 0.01, 0.0, 0.0, 0.003, -0.001], CameraType.PERSPECTIVE, "OPENCV"),
+        ([0.05, -0.01, 0.002, -0.0003, 0.0, 0.0], CameraType.FISHEYE, "OPENCV_FISHEYE"),
+    ],
+)
+def test_shared_intrinsics_latent_follows_the_camera_model(distortion, camera_type, model, announced: bool):
+    """Per physical camera (the default): the intrinsics latent gets the model's K - 6 columns, whether the model is
+    announced first (the dataparser's metadata, before DDP and the optimizers) or only seen in the cameras."""
+    config = S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=64, sampler="camp-random"))
+    optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
+    if announced:
+        optimizer.set_camera_model(model)
+        assert optimizer.whitened_intrinsics.shape == (NUM_CAMERAS, 8)
+    optimizer.set_camera_groups([0, 0, 0])
+    announced_latent = optimizer.whitened_intrinsics
+    optimizer.set_train_cameras(_with(make_cameras(), distortion, camera_type))
+    assert optimizer.layout == ParameterLayout.from_preset("all", model)
+    assert optimizer.whitened_delta.shape == (NUM_CAMERAS, 6) and optimizer.whitened_intrinsics.shape == (1, 8)
+    if announced:  # no resize after the announcement: optimizers built on the parameter keep it
+        assert optimizer.whitened_intrinsics is announced_latent
+    bundle = random_ray_bundle()
+    optimizer.apply_to_raybundle(bundle)
+    (bundle.directions.sum() + bundle.origins.sum()).backward()
+    assert (optimizer.whitened_intrinsics.grad.abs() > 0).all()
 
 
 def test_invalid_config_raises():

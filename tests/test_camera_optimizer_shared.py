@@ -108,7 +108,7 @@ def _train(optimizer: S2CampCameraOptimizer, adam: torch.optim.Optimizer, target
 @pytest.mark.parametrize("intrinsics", ["per-camera", "per-image"])
 def test_refresh_keeps_the_cameras_and_nearly_the_next_adam_step(intrinsics: str) -> None:
     optimizer = make_optimizer(refresh_every=0, intrinsics=intrinsics)
-    target = torch.zeros(4, 12, dtype=torch.float64)
+    target = torch.zeros(4, 16, dtype=torch.float64)
     target[:, 6] = 2.0  # a focal change of 2 px and a little of everything else
     target[:, :6] = 1e-3
     adam = torch.optim.Adam(optimizer.parameters(), lr=1e-4)  # the default camera learning rate

@@ -10,6 +10,7 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
+from nerfstudio.cameras.cameras import CameraType
 from PIL import Image
 
 from s2camp_ns.core.camera import opengl_to_opencv
@@ -146,22 +147,92 @@ def _set_camera(scene: Path, model: str, params: list[float]) -> None:
 
 
 def test_unsupported_camera_model_is_named(scene: Path):
-    _set_camera(scene, "OPENCV_FISHEYE", [50, 50, 25, 19, 0, 0, 0, 0])
+    _set_camera(scene, "FOV", [50, 50, 25, 19, 0.9])
     with pytest.raises(
         ValueError,
-        match=r"cameras\.bin: camera 1 uses the COLMAP camera model OPENCV_FISHEYE.*"
-        r"supported: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV",
+        match=r"cameras\.bin: camera 1 uses the COLMAP camera model FOV.*"
+        r"supported: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV, OPENCV_FISHEYE",
     ):
         parse(scene)
 
 
-def test_opencv_needs_zero_tangential(scene: Path):
-    _set_camera(scene, "OPENCV", [50, 50, 25, 19, -0.02, 0.005, 1e-3, 0])
-    with pytest.raises(ValueError, match=r"p1 = 0\.001"):
-        parse(scene)
-    _set_camera(scene, "OPENCV", [50, 51, 25, 19, -0.02, 0.005, 0, 0])
+# COLMAP parameters, and the nerfstudio distortion_params [k1, k2, k3, k4, p1, p2] they must become.
+COLMAP_CASES = {
+    "SIMPLE_PINHOLE": ([50, 25, 19], [0, 0, 0, 0, 0, 0]),
+    "PINHOLE": ([50, 51, 25, 19], [0, 0, 0, 0, 0, 0]),
+    "SIMPLE_RADIAL": ([50, 25, 19, -0.03], [-0.03, 0, 0, 0, 0, 0]),
+    "RADIAL": ([50, 25, 19, -0.03, 0.005], [-0.03, 0.005, 0, 0, 0, 0]),
+    "OPENCV": ([50, 51, 25, 19, -0.03, 0.005, 1e-3, -2e-3], [-0.03, 0.005, 0, 0, 1e-3, -2e-3]),
+    "FULL_OPENCV": (
+        [50, 51, 25, 19, -0.03, 0.005, 1e-3, -2e-3, 4e-4, 0, 0, 0],
+        [-0.03, 0.005, 4e-4, 0, 1e-3, -2e-3],
+    ),
+    "OPENCV_FISHEYE": ([30, 31, 25, 19, 0.02, -0.004, 1e-3, -2e-4], [0.02, -0.004, 1e-3, -2e-4, 0, 0]),
+}
+LAYOUT_MODEL = {"OPENCV": "OPENCV", "FULL_OPENCV": "FULL_OPENCV", "OPENCV_FISHEYE": "OPENCV_FISHEYE"}
+
+
+def _camera_optimizer(cameras):
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+    from s2camp_ns.core.preconditioner import SamplingConfig
+
+    config = S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=32, sampler="camp-random"))
+    optimizer = config.setup(num_cameras=cameras.shape[0], device="cpu")
+    optimizer.set_train_cameras(cameras)
+    return optimizer
+
+
+@pytest.mark.parametrize("model", list(COLMAP_CASES))
+def test_every_supported_colmap_model_reaches_the_camera_optimizer(scene: Path, model: str):
+    params, expected = COLMAP_CASES[model]
+    _set_camera(scene, model, params)
     out = parse(scene)
-    assert float(out.cameras.fy[0]) == pytest.approx(51.0)
+    torch.testing.assert_close(out.cameras.distortion_params, torch.tensor(expected).expand(8, 6).float())
+    fisheye = model == "OPENCV_FISHEYE"
+    assert (out.cameras.camera_type == (CameraType.FISHEYE if fisheye else CameraType.PERSPECTIVE).value).all()
+    assert float(out.cameras.fx[0]) == pytest.approx(params[0]) and float(out.cameras.cx[0]) == pytest.approx(25.0)
+    assert out.metadata["camera_model"] == LAYOUT_MODEL.get(model, "RADIAL")
+    optimizer = _camera_optimizer(out.cameras)
+    assert optimizer.layout.camera_model == LAYOUT_MODEL.get(model, "RADIAL")
+    assert optimizer.base_intrinsics_struct().model == ("fisheye" if fisheye else "perspective")
+
+
+def test_full_opencv_with_a_rational_factor_is_refused(scene: Path):
+    _set_camera(scene, "FULL_OPENCV", [50, 51, 25, 19, -0.03, 0.005, 0, 0, 0, 0.01, 0, 0])
+    with pytest.raises(ValueError, match=r"cameras\.bin: camera 1: COLMAP FULL_OPENCV .*k4 = 0\.01"):
+        parse(scene)
+
+
+def _write_ns_process_data_transforms(scene: Path, data: Path) -> dict:
+    """transforms.json exactly as ns-process-data writes it (nerfstudio's colmap_to_json), images alongside."""
+    from nerfstudio.process_data.colmap_utils import colmap_to_json
+
+    shutil.copytree(scene / "images", data / "images")
+    colmap_to_json(scene / "sparse" / "0", data)
+    return json.loads((data / "transforms.json").read_text())
+
+
+@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
+def test_ns_process_data_transforms_reach_the_camera_optimizer(scene: Path, tmp_path: Path, model: str):
+    params, expected = COLMAP_CASES[model]
+    _set_camera(scene, model, params)
+    meta = _write_ns_process_data_transforms(scene, tmp_path / "ns")
+    assert meta["camera_model"] == model
+    assert (meta["p1"], meta["p2"]) == (1e-3, -2e-3) if model == "OPENCV" else meta["k4"] == -2e-4
+    out = parse(tmp_path / "ns" / "transforms.json")
+    assert out.metadata["source_format"] == "nerfstudio"
+    torch.testing.assert_close(out.cameras.distortion_params[0], torch.tensor(expected).float())
+    optimizer = _camera_optimizer(out.cameras)
+    assert optimizer.layout.camera_model == model
+    assert optimizer.layout.num_params == 14 and optimizer.precond.shape[-1] == 14
+
+
+def test_equirectangular_transforms_are_refused_by_name(scene: Path, tmp_path: Path):
+    meta = _write_ns_process_data_transforms(scene, tmp_path / "ns")
+    meta["camera_model"] = "EQUIRECTANGULAR"
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"transforms\.json: camera type EQUIRECTANGULAR is not supported.*FISHEYE"):
+        parse(tmp_path / "ns" / "transforms.json")
 
 
 def test_empty_scenes(scene: Path, tmp_path: Path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -108,7 +109,10 @@ def test_conversion_rejects_bad_input():
 def input_arrays(scene: Path, names: list[str]) -> dict:
     arrays = reconstruction_to_arrays(pycolmap.Reconstruction(str(scene / "sparse" / "0")))
     order = [arrays["names"].index(name) for name in names]
-    return {key: ([value[i] for i in order] if key == "names" else value[order]) for key, value in arrays.items()}
+    return {
+        key: ([value[i] for i in order] if key in ("names", "models") else value[order])
+        for key, value in arrays.items()
+    }
 
 
 @pytest.mark.parametrize("downscale", [1, 2])
@@ -171,3 +175,72 @@ def test_cli_main_writes_a_readable_model(scene: Path, tmp_path: Path, monkeypat
     assert (tmp_path / "sparse" / "0" / "text" / "cameras.txt").exists()
     with pytest.raises(FileNotFoundError, match="--load-config"):
         export.main(ExportCamerasConfig(load_config=tmp_path / "missing.yml", output_dir=tmp_path / "x"))
+
+
+MODEL_PARAMS = {
+    "OPENCV": [50.0, 51.0, 20.0, 15.0, -0.03, 0.005, 1e-3, -2e-3],
+    "FULL_OPENCV": [50.0, 51.0, 20.0, 15.0, -0.03, 0.005, 1e-3, -2e-3, 4e-4, 0.0, 0.0, 0.0],
+    "OPENCV_FISHEYE": [30.0, 31.0, 20.0, 15.0, 0.02, -0.004, 1e-3, -2e-4],
+}
+
+
+def scene_with_model(scene: Path, tmp_path: Path, model: str) -> Path:
+    copy = Path(shutil.copytree(scene, tmp_path / "scene"))
+    reconstruction = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
+    camera = reconstruction.cameras[1]
+    camera.model = getattr(pycolmap.CameraModelId, model)
+    camera.params = MODEL_PARAMS[model]
+    reconstruction.write_binary(str(copy / "sparse" / "0"))
+    return copy
+
+
+@pytest.mark.parametrize("model", list(MODEL_PARAMS))
+def test_each_camera_model_exports_in_colmap_meaning(scene: Path, tmp_path: Path, model: str):
+    """Unrefined cameras come back as the same COLMAP model with the same parameters; refined ones project, for
+    pycolmap, exactly as S2CamP's refined camera does."""
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+    from s2camp_ns.core.camera import project
+    from s2camp_ns.core.preconditioner import SamplingConfig
+
+    data = scene_with_model(scene, tmp_path, model)
+    out = S2CampDataParserConfig(data=data).setup().get_dataparser_outputs("train")
+    names = out.metadata["image_names"]
+    reconstruction = export.export_cameras(out.cameras, out.dataparser_transform, out.dataparser_scale, names)
+    (tmp_path / "unrefined").mkdir()
+    reconstruction.write_binary(str(tmp_path / "unrefined"))
+    loaded = pycolmap.Reconstruction(str(tmp_path / "unrefined"))
+    assert {camera.model.name for camera in loaded.cameras.values()} == {model}
+    for camera in loaded.cameras.values():
+        np.testing.assert_allclose(camera.params, MODEL_PARAMS[model], rtol=1e-6, atol=1e-9)
+
+    # Per image, so that each image's deltas can be set directly.
+    config = S2CampCameraOptimizerConfig(
+        sampling=SamplingConfig(num_points=32, sampler="camp-random"), intrinsics="per-image"
+    )
+    optimizer = config.setup(num_cameras=len(names), device="cpu")
+    optimizer.set_train_cameras(out.cameras)
+    layout = optimizer.layout
+    with torch.no_grad():  # raw focal, principal point and distortion deltas (skew stays zero: COLMAP has none)
+        phi = torch.zeros(len(names), 16, dtype=torch.float64)
+        phi[:, 6:9] = torch.tensor([1.5, -0.5, 0.7])
+        phi[:, 10:] = torch.tensor([0.004, -0.001, 2e-4, 3e-5, 2e-4, -3e-4])
+        optimizer.whitened_delta.copy_((optimizer.precond @ phi[:, list(layout.indices), None])[..., 0])
+    refined = optimizer.refine_cameras(out.cameras)
+    reconstruction = export.export_cameras(refined, out.dataparser_transform, out.dataparser_scale, names)
+    intrinsics = optimizer.refined_intrinsics().detach()
+    points = torch.tensor([[[0.1, -0.2, 1.0], [0.3, 0.2, 2.0], [-0.25, 0.1, 1.5]]], dtype=torch.float64)
+    for index, name in enumerate(names):
+        image = next(image for image in reconstruction.images.values() if image.name == name)
+        camera = reconstruction.cameras[image.camera_id]
+        assert camera.model.name == model
+        expected, _ = project(points, intrinsics[index])
+        # float32 storage of nerfstudio's Cameras bounds the agreement.
+        np.testing.assert_allclose(camera.img_from_cam(points[0].numpy()), expected[0].numpy(), rtol=1e-5)
+
+
+def test_perspective_r8_coefficient_cannot_be_exported():
+    cams = random_cameras(2)
+    with pytest.raises(ValueError, match=r"camera 0 \(dir/img_000\.jpg\): k4 = 0\.001 \(a polynomial r\^8 term\)"):
+        cameras_to_reconstruction(**cams, k4=0.001)
+    with pytest.raises(ValueError, match="camera_model must be one of"):
+        cameras_to_reconstruction(**cams, camera_model="FOV")

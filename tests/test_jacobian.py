@@ -6,7 +6,14 @@ import pytest
 import torch
 from torch.func import jacrev
 
-from s2camp_ns.core.camera import Intrinsics, ParameterLayout, project_with_delta, unproject
+from s2camp_ns.core.camera import (
+    NUM_CAMERA_PARAMS,
+    Intrinsics,
+    ParameterLayout,
+    pixel_to_ray_direction,
+    project_with_delta,
+    unproject,
+)
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian, relative_gram_error
 
 
@@ -31,31 +38,112 @@ def _camera_and_points(seed: int, count: int = 64) -> tuple[Intrinsics, torch.Te
 
 
 def _autodiff_jacobian(points: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
+    """All 16 columns by torch.func.jacrev of project_with_delta."""
+
     def stacked_projection(delta: torch.Tensor) -> torch.Tensor:
         return project_with_delta(points, intrinsics, delta)
 
-    jacobian = jacrev(stacked_projection)(torch.zeros(intrinsics.num_cameras, 12, dtype=torch.float64))
-    # [n, l, 2, n, 12] -> per-camera block [n, l, 2, 12]
+    jacobian = jacrev(stacked_projection)(torch.zeros(intrinsics.num_cameras, NUM_CAMERA_PARAMS, dtype=torch.float64))
+    # [n, l, 2, n, 16] -> per-camera block [n, l, 2, 16]
     return torch.stack([jacobian[i, :, :, i, :] for i in range(intrinsics.num_cameras)])
+
+
+def _finite_difference_jacobian(points: torch.Tensor, intrinsics: Intrinsics, step: float = 1e-6) -> torch.Tensor:
+    columns = []
+    for k in range(NUM_CAMERA_PARAMS):
+        delta = torch.zeros(intrinsics.num_cameras, NUM_CAMERA_PARAMS, dtype=torch.float64)
+        delta[:, k] = step
+        central = project_with_delta(points, intrinsics, delta) - project_with_delta(points, intrinsics, -delta)
+        columns.append(central / (2 * step))
+    return torch.stack(columns, dim=-1)
+
+
+def _distorted_camera_and_points(model: str, seed: int, count: int = 48) -> tuple[Intrinsics, torch.Tensor]:
+    """Two cameras with every coefficient of ``model`` nonzero (perspective: also nerfstudio's r^8 k4), and points
+    from pixels all over the image; fisheye points reach past 90 degrees, one sits on the axis, one next to it."""
+    if model == "fisheye":
+        intrinsics = Intrinsics.create(
+            fx=[170.0, 200.0],
+            fy=[168.0, 203.0],
+            cx=[322.0, 300.0],
+            cy=[239.0, 250.0],
+            width=[640, 600],
+            height=[480, 500],
+            skew=[0.0, 0.8],
+            k1=[0.04, -0.02],
+            k2=[-0.004, 0.006],
+            k3=[0.001, -0.0005],
+            k4=[0.0001, 0.00002],
+            model="fisheye",
+        )
+    else:
+        intrinsics = Intrinsics.create(
+            fx=[500.0, 410.0],
+            fy=[505.0, 405.0],
+            cx=[322.0, 300.0],
+            cy=[239.0, 250.0],
+            width=[640, 600],
+            height=[480, 500],
+            skew=[0.0, 1.5],
+            k1=[-0.06, 0.03],
+            k2=[0.01, -0.004],
+            k3=[-0.001, 0.0008],
+            k4=[0.0002, -0.0001],
+            p1=[0.002, -0.0015],
+            p2=[-0.001, 0.0025],
+        )
+    generator = torch.Generator().manual_seed(seed)
+    pixels = torch.rand(2, count, 2, generator=generator, dtype=torch.float64)
+    pixels = pixels * torch.stack([intrinsics.width, intrinsics.height], dim=-1)[:, None, :]
+    pixels[:, 0] = torch.stack([intrinsics.cx, intrinsics.cy], dim=-1)  # on the optical axis
+    pixels[:, 1] = pixels[:, 0] + 1e-5  # next to it (Taylor branch of the fisheye)
+    depth = 0.4 + 30.0 * torch.rand(2, count, 1, generator=generator, dtype=torch.float64)
+    return intrinsics, pixel_to_ray_direction(pixels, intrinsics) * depth
 
 
 def test_analytic_jacobian_matches_autodiff() -> None:
     intrinsics, points = _camera_and_points(seed=0)
     _, analytic, _ = projection_jacobian(points, intrinsics)
-    torch.testing.assert_close(analytic, _autodiff_jacobian(points, intrinsics), rtol=1e-9, atol=1e-9)
+    expected = _autodiff_jacobian(points, intrinsics)[..., list(ParameterLayout().indices)]
+    torch.testing.assert_close(analytic, expected, rtol=1e-9, atol=1e-9)
 
 
 def test_analytic_jacobian_matches_finite_differences() -> None:
     intrinsics, points = _camera_and_points(seed=1, count=32)
     _, analytic, _ = projection_jacobian(points, intrinsics)
-    step = 1e-6
-    for k in range(12):
-        delta = torch.zeros(2, 12, dtype=torch.float64)
-        delta[:, k] = step
-        central = project_with_delta(points, intrinsics, delta) - project_with_delta(points, intrinsics, -delta)
-        numeric = central / (2 * step)
+    numeric_all = _finite_difference_jacobian(points, intrinsics)
+    for column, k in enumerate(ParameterLayout().indices):
+        numeric = numeric_all[..., k]
         scale = numeric.abs().max().clamp(min=1.0)
-        assert (analytic[..., k] - numeric).abs().max() / scale < 1e-6, f"column {k}"
+        assert (analytic[..., column] - numeric).abs().max() / scale < 1e-6, f"column {k}"
+
+
+# Layouts whose columns together cover all 16 parameters for each projection.
+COVERING_LAYOUTS = {
+    "perspective": ("FULL_OPENCV", "OPENCV_FISHEYE"),  # the second adds the perspective k4 (r^8) column
+    "fisheye": ("OPENCV_FISHEYE", "FULL_OPENCV"),  # the second adds the (zero) p1, p2 columns
+}
+
+
+@pytest.mark.parametrize("model", ["perspective", "fisheye"])
+def test_every_parameter_matches_autodiff_and_finite_differences(model: str) -> None:
+    intrinsics, points = _distorted_camera_and_points(model, seed=11)
+    autodiff = _autodiff_jacobian(points, intrinsics)
+    numeric = _finite_difference_jacobian(points, intrinsics)
+    covered = set()
+    for camera_model in COVERING_LAYOUTS[model]:
+        layout = ParameterLayout(camera_model=camera_model)
+        _, analytic, mask = projection_jacobian(points, intrinsics, layout)
+        assert mask.all(), "every point is in the image"
+        for column, k in enumerate(layout.indices):
+            torch.testing.assert_close(analytic[..., column], autodiff[..., k], rtol=1e-9, atol=1e-7, msg=f"{k}")
+            scale = numeric[..., k].abs().max().clamp(min=1.0)
+            assert (analytic[..., column] - numeric[..., k]).abs().max() / scale < 1e-6, f"column {k}"
+            covered.add(k)
+    assert covered == set(range(NUM_CAMERA_PARAMS))
+    if model == "fisheye":
+        assert (points[..., 2] < 0).any(), "fisheye points must reach past 90 degrees"
+        assert autodiff[..., 14:].abs().max() == 0  # no tangential terms in the fisheye model
 
 
 @pytest.mark.parametrize("preset", ["pose", "pose+focal", "pose+intrinsics"])
@@ -110,7 +198,7 @@ def test_gram_does_not_depend_on_resolution() -> None:
     _, jacobian_half, mask_half = projection_jacobian(points, half)
     sigma_half, _ = gram_matrix(jacobian_half, mask_half, half.image_scale())
     # Pixel-unit parameters (focal, principal point, skew) scale with the resolution: compare the others.
-    keep = [0, 1, 2, 3, 4, 5, 10, 11]
+    keep = [0, 1, 2, 3, 4, 5, 10, 11]  # columns of the default (RADIAL) layout
     torch.testing.assert_close(sigma_half[:, keep][:, :, keep], sigma[:, keep][:, :, keep], rtol=1e-10, atol=1e-12)
 
 

@@ -130,6 +130,45 @@ def test_unprojection_is_consistent_with_colmap(tiny_scene_config: MakeSceneConf
     assert np.abs(back - pixels).max() < 1e-6
 
 
+MODELS = {
+    "SIMPLE_PINHOLE": dict(k1=0.0, k2=0.0),
+    "SIMPLE_RADIAL": dict(k1=-0.03, k2=0.0),
+    "OPENCV": dict(k1=-0.03, k2=0.004, p1=0.002, p2=-0.0015),
+    "FULL_OPENCV": dict(k1=-0.03, k2=0.004, k3=0.001, p1=0.002, p2=-0.0015),
+    "OPENCV_FISHEYE": dict(k1=0.02, k2=-0.004, k3=0.001, k4=-0.0002, fov="wide"),
+}
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_each_camera_model_is_written_and_self_consistent(tmp_path: Path, model: str) -> None:
+    cfg = MakeSceneConfig(
+        output_dir=tmp_path / "s", num_cameras=3, width=32, height=24, points_per_image=20, camera_model=model,
+        **MODELS[model],
+    )  # fmt: skip
+    make_scene(cfg)
+    camera = pycolmap.Reconstruction(tmp_path / "s" / "sparse" / "0").cameras[1]
+    assert camera.model.name == model
+    focal, cx, cy = validate(cfg)
+    coefficients = {name: getattr(cfg, name) for name in ("k1", "k2", "k3", "k4", "p1", "p2")}
+    expected = {
+        "SIMPLE_PINHOLE": [focal, cx, cy],
+        "SIMPLE_RADIAL": [focal, cx, cy, cfg.k1],
+        "OPENCV": [focal, focal, cx, cy, cfg.k1, cfg.k2, cfg.p1, cfg.p2],
+        "FULL_OPENCV": [focal, focal, cx, cy, cfg.k1, cfg.k2, cfg.p1, cfg.p2, cfg.k3, 0.0, 0.0, 0.0],
+        "OPENCV_FISHEYE": [focal, focal, cx, cy, cfg.k1, cfg.k2, cfg.k3, cfg.k4],
+    }[model]
+    np.testing.assert_allclose(camera.params, expected, rtol=1e-12)
+    info = json.loads((tmp_path / "s" / "scene_info.json").read_text())
+    assert {name: info["camera"][name] for name in coefficients} == coefficients
+    if model == "OPENCV_FISHEYE":  # equidistant: the wide preset's 80 degrees span the image width
+        assert np.degrees(cfg.width / camera.params[0]) == pytest.approx(80.0)
+    u, v = np.meshgrid(np.arange(cfg.width) + 0.5, np.arange(cfg.height) + 0.5)
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1)
+    normalized = camera.cam_from_img(pixels)
+    back = camera.img_from_cam(np.concatenate([normalized, np.ones((len(pixels), 1))], axis=1))
+    assert np.abs(back - pixels).max() < 1e-6
+
+
 @pytest.mark.parametrize(
     ("change", "pattern"),
     [
@@ -144,6 +183,9 @@ def test_unprojection_is_consistent_with_colmap(tiny_scene_config: MakeSceneConf
         ({"principal_point": (70.0, 24.0)}, r"principal_point\[0\] \(cx\) must lie in \(0, 64\), got 70.0"),
         ({"ring_radius": 1.0}, r"ring_radius must lie in"),
         ({"fov": "fisheye"}, r"fov must be one of 'narrow', 'wide', got 'fisheye'"),
+        ({"p1": 0.001}, r"COLMAP RADIAL has no p1, but the camera's p1 = 0.001"),
+        ({"camera_model": "FOV"}, r"camera_model must be one of 'auto', 'SIMPLE_PINHOLE'"),
+        ({"camera_model": "OPENCV_FISHEYE", "focal": 15.0}, r"fisheye corner angle .* must lie in \(-inf, 85"),
     ],
 )
 def test_bad_input_raises(tmp_path: Path, change: dict, pattern: str) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from s2camp_ns.core.camera import Intrinsics, ParameterLayout, project_with_delta
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout, in_image, project, project_with_delta
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
     SamplingConfig,
@@ -163,3 +163,57 @@ def test_reexpress_latent_keeps_the_camera_and_maps_adam_moments() -> None:
     torch.testing.assert_close((new.inverse @ latent[..., None])[..., 0], phi_before, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(state["exp_avg"], expected_moment)
     assert (state["exp_avg_sq"] >= 0).all()
+
+
+FISHEYE = Intrinsics.create(
+    fx=[170.0, 300.0],
+    fy=[171.0, 298.0],
+    cx=[320.0, 310.0],
+    cy=[240.0, 245.0],
+    width=[640, 640],
+    height=[480, 480],
+    k1=[0.03, -0.01],
+    k2=[-0.002, 0.004],
+    k3=[0.0005, 0.0],
+    k4=[0.00005, 0.0],
+    model="fisheye",
+)
+
+
+@pytest.mark.parametrize("sampler", ["frolov", "camp-random"])
+def test_fisheye_proxy_points_fill_the_image_past_90_degrees(sampler: str) -> None:
+    sampling = SamplingConfig(num_points=400, sampler=sampler)
+    points = sample_proxy_points(FISHEYE, sampling)
+    pixels, margin = project(points, FISHEYE)
+    assert (margin > 0).all()
+    assert in_image(pixels, margin, FISHEYE).all()
+    assert (points[0, :, 2] < 0).any(), "the wide fisheye's samples must reach past 90 degrees"
+    # The unit square maps onto the whole image: every quarter of it holds samples.
+    u = (pixels[..., 0] / FISHEYE.width[:, None] > 0.5).to(torch.int64)
+    v = (pixels[..., 1] / FISHEYE.height[:, None] > 0.5).to(torch.int64)
+    counts = torch.stack([((2 * v + u) == q).sum(dim=-1) for q in range(4)], dim=-1)
+    assert (counts > 0.15 * 400).all()
+    radius = points.norm(dim=-1)
+    assert radius.min() >= 0.4 - 1e-12 and radius.max() <= 1.0 / (2.0 - 1.5) + 1e-12
+
+
+def test_fisheye_preconditioner_whitens_its_fourteen_parameters() -> None:
+    layout = ParameterLayout.from_preset("all", "OPENCV_FISHEYE")
+    result = compute_preconditioner(FISHEYE, layout)
+    assert result.matrix.shape == (2, 14, 14) and (result.num_valid == 500).all()
+    _, inverse = symmetric_sqrt_and_inverse(result.gram)
+    assert whitening_error(inverse, result.gram).max() < 1e-6
+    assert (torch.diagonal(result.gram, dim1=-2, dim2=-1)[:, 10:] > 0).all()  # k1..k4 are observed
+
+
+def test_tangential_preconditioner_observes_p1_p2() -> None:
+    camera = Intrinsics.create(
+        fx=410.0, fy=405.0, cx=330.0, cy=210.0, width=640, height=420, k1=-0.03, k2=0.004, p1=0.001, p2=-0.002
+    )
+    layout = ParameterLayout.from_preset("all", "OPENCV")
+    result = compute_preconditioner(camera, layout)
+    assert layout.names[-2:] == ("p1", "p2") and result.matrix.shape == (1, 14, 14)
+    assert (result.num_valid == 500).all()
+    assert (torch.diagonal(result.gram, dim1=-2, dim2=-1)[0, 12:] > 0).all()
+    _, inverse = symmetric_sqrt_and_inverse(result.gram)
+    assert whitening_error(inverse, result.gram).item() < 1e-6

@@ -16,25 +16,34 @@ NUM_CAMERAS = 2
 WIDTH, HEIGHT = 80, 60
 
 
-def make_cameras(k1: float, k2: float) -> Cameras:
+def make_cameras(
+    k1: float,
+    k2: float,
+    k3: float = 0.0,
+    k4: float = 0.0,
+    p1: float = 0.0,
+    p2: float = 0.0,
+    camera_type: CameraType = CameraType.PERSPECTIVE,
+    focal_scale: float = 1.0,
+) -> Cameras:
+    """Two cameras with nerfstudio distortion_params [k1, k2, k3, k4, p1, p2] (its own meaning)."""
     angle = torch.tensor([0.3, -0.4])
     rotation = torch.zeros(NUM_CAMERAS, 3, 3)
     rotation[:, 0, 0], rotation[:, 0, 2] = angle.cos(), angle.sin()
     rotation[:, 1, 1] = 1.0
     rotation[:, 2, 0], rotation[:, 2, 2] = -angle.sin(), angle.cos()
     c2w = torch.cat([rotation, torch.tensor([[0.5, -0.2, 1.0], [-0.3, 0.4, 2.0]])[:, :, None]], dim=-1)
-    distortion = torch.zeros(NUM_CAMERAS, 6)
-    distortion[:, 0], distortion[:, 1] = k1, k2
+    distortion = torch.tensor([k1, k2, k3, k4, p1, p2]).expand(NUM_CAMERAS, 6).clone()
     return Cameras(
         camera_to_worlds=c2w,
-        fx=torch.tensor([[70.0], [75.0]]),
-        fy=torch.tensor([[71.0], [74.0]]),
+        fx=torch.tensor([[70.0], [75.0]]) * focal_scale,
+        fy=torch.tensor([[71.0], [74.0]]) * focal_scale,
         cx=torch.tensor([[40.0], [41.5]]),
         cy=torch.tensor([[30.0], [29.0]]),
         width=WIDTH,
         height=HEIGHT,
         distortion_params=distortion,
-        camera_type=CameraType.PERSPECTIVE,
+        camera_type=camera_type,
     )
 
 
@@ -60,10 +69,26 @@ def test_pixel_ray_generator_carries_pixel_centres():
     torch.testing.assert_close(bundle.metadata[PIXEL_KEY], expected)
 
 
-@pytest.mark.parametrize("k1, k2", [(0.0, 0.0), (-0.12, 0.03), (0.08, 0.01)])
-def test_zero_delta_rays_equal_nerfstudio_rays(k1: float, k2: float):
-    """With zero deltas, regenerated rays reproduce nerfstudio's (including its undistortion) to ~1e-5."""
-    cameras = make_cameras(k1, k2)
+OPENCV = dict(k1=-0.12, k2=0.03, p1=0.004, p2=-0.003)
+FULL_OPENCV = dict(k1=-0.1, k2=0.02, k3=-0.002, p1=-0.002, p2=0.003)
+FISHEYE = dict(k1=0.03, k2=-0.01, k3=0.002, k4=-0.0003, camera_type=CameraType.FISHEYE)
+WIDE_FISHEYE = dict(FISHEYE, focal_scale=0.42)  # corners about 96 degrees off the axis
+CAMERA_MODELS = {
+    "pinhole": dict(k1=0.0, k2=0.0),
+    "radial_barrel": dict(k1=-0.12, k2=0.03),
+    "radial_pincushion": dict(k1=0.08, k2=0.01),
+    "opencv": OPENCV,
+    "full_opencv": FULL_OPENCV,
+    "fisheye": FISHEYE,
+    "wide_fisheye": WIDE_FISHEYE,
+}
+
+
+@pytest.mark.parametrize("model", list(CAMERA_MODELS))
+def test_zero_delta_rays_equal_nerfstudio_rays(model: str):
+    """With zero deltas, regenerated rays reproduce nerfstudio's (including its undistortion) to ~1e-5: nerfstudio's
+    distortion_params mean for S2CamP what they mean for nerfstudio's own renderer."""
+    cameras = make_cameras(**CAMERA_MODELS[model])
     stock = PixelRayGenerator(cameras)(all_ray_indices())
     bundle = PixelRayGenerator(cameras)(all_ray_indices())
     optimizer = make_optimizer(cameras)
@@ -94,14 +119,19 @@ def test_each_parameter_moves_the_rays(column: int, value: float):
     assert moved > 1e-4
 
 
-def test_refined_nerfstudio_cameras_match_regenerated_rays():
-    """Eval-style rendering through refine_cameras (nerfstudio's own ray generation) equals the training rays."""
-    cameras = make_cameras(-0.05, 0.01)
+@pytest.mark.parametrize("model", ["radial", "opencv", "full_opencv", "fisheye", "wide_fisheye"])
+def test_refined_nerfstudio_cameras_match_regenerated_rays(model: str):
+    """Eval-style rendering through refine_cameras (nerfstudio's own ray generation) equals the training rays: the
+    refined distortion goes back in nerfstudio's meaning."""
+    cameras = make_cameras(**(CAMERA_MODELS[model] if model != "radial" else dict(k1=-0.05, k2=0.01)))
     # Raw deltas (P = I) so that skew, which nerfstudio's Cameras cannot express, stays exactly zero.
     optimizer = make_optimizer(cameras, precondition=False)
-    raw = torch.tensor([0.02, -0.01, 0.03, 0.01, -0.02, 0.015, 2.0, 1.0, -1.5, 0.0, 0.02, -0.005])
+    full = torch.tensor([0.02, -0.01, 0.03, 0.01, -0.02, 0.015, 2.0, 1.0, -1.5, 0.0, 0.02, -0.005])
+    full = torch.cat([full, torch.tensor([0.001, 0.0001, 0.001, -0.0005])])  # k3, k4, p1, p2
+    raw = full[list(optimizer.layout.indices)]
+    assert optimizer.layout.num_params == {"radial": 12, "opencv": 14, "full_opencv": 15}.get(model, 14)
     with torch.no_grad():
-        optimizer.whitened_delta.copy_(raw.expand(NUM_CAMERAS, 12) * torch.tensor([[1.0], [-0.5]]))
+        optimizer.whitened_delta.copy_(raw.expand(NUM_CAMERAS, raw.shape[0]) * torch.tensor([[1.0], [-0.5]]))
     refined = optimizer.refine_cameras(cameras)
     stock = PixelRayGenerator(refined)(all_ray_indices())
     bundle = PixelRayGenerator(cameras)(all_ray_indices())

@@ -83,10 +83,11 @@ def ladder_distance_density(t: Tensor, t_near: float, t_far: float, ladder_p: fl
 
 
 def _pixel_directions(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 3"]:
-    """Unit rays through pixels; without distortion the inverse intrinsics directly (as jaxcam does), the same
-    numbers as :func:`pixel_to_ray_direction`, whose Newton undistortion returns exactly 1 there, at a fraction of
-    the cost (it dominated the sampling time of the speed benchmark's CamP baseline)."""
-    if bool((intrinsics.k1 != 0).any()) or bool((intrinsics.k2 != 0).any()):
+    """Unit rays through pixels; for a perspective camera without distortion the inverse intrinsics directly (as
+    jaxcam does), the same numbers as :func:`pixel_to_ray_direction`, whose Newton undistortion returns exactly 1
+    there, at a fraction of the cost (it dominated the sampling time of the speed benchmark's CamP baseline)."""
+    distortion = torch.stack([getattr(intrinsics, name) for name in ("k1", "k2", "k3", "k4", "p1", "p2")])
+    if intrinsics.is_fisheye or bool((distortion != 0).any()):
         return pixel_to_ray_direction(pixels, intrinsics)
     b = (pixels[..., 1] - intrinsics.cy[:, None]) / intrinsics.fy[:, None]
     a = (pixels[..., 0] - intrinsics.cx[:, None] - intrinsics.skew[:, None] * b) / intrinsics.fx[:, None]

@@ -19,9 +19,10 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics, ParameterLayout, tangent_bounds
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout, pixel_to_ray_direction, tangent_bounds
 from s2camp_ns.core.camp_sampling import CAMP_LADDER_P, CAMP_T_FAR, CAMP_T_NEAR, camp_frustum_points, validate_ladder
-from s2camp_ns.core.frustum import RADIALS, Radial, sample_frustum
+from s2camp_ns.core.contraction import uncontract_radius
+from s2camp_ns.core.frustum import RADIALS, Radial, radius_from_unit, sample_frustum
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
 from s2camp_ns.core.lattice import unit_cube_points
 from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
@@ -46,7 +47,8 @@ class SamplingConfig:
     not used."""
     transform: TransformName = "pyramid"
     """Unit cube to frustum directions: the exact pinhole pyramid, the paper's separable spherical transform, or
-    uniform image-plane tangents ("pixel", CamP's angular measure for an undistorted camera)."""
+    uniform image-plane tangents ("pixel", CamP's angular measure for an undistorted camera). Perspective cameras
+    only: fisheye cameras are always sampled uniformly in the image (``sample_fisheye_points``)."""
     radial: Radial = "volume"
     """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray
     ("ray", density 1 / r^2 in the contracted ball; CamP's own radial measure is the power ladder of "camp-random")."""
@@ -138,13 +140,38 @@ def symmetric_sqrt_and_inverse(
     return 0.5 * (root + root.transpose(-1, -2)), 0.5 * (inverse_root + inverse_root.transpose(-1, -2))
 
 
+def sample_fisheye_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> Float[Tensor, "n l 3"]:
+    """Proxy points of fisheye cameras: uniform in the image, unprojected, at the usual contracted radii.
+
+    The pinhole pyramid of ``sample_frustum`` does not exist past 90 degrees, so the two angular unit coordinates
+    (u2 vertical, u3 horizontal) become a pixel (u3 W, u2 H), whose ray (``pixel_to_ray_direction``, any angle)
+    carries the point at contracted radius Q_r(u1) (paper eq. 12) mapped back through the inverse contraction
+    (paper eq. 10). Every sample therefore projects inside the image. The angular measure is uniform in the image,
+    like the "pixel" transform (``transform`` is not used).
+    """
+    intrinsics = intrinsics.detach().to(dtype=torch.float64)
+    unit = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed).to(torch.float64)
+    unit = unit.to(intrinsics.device).expand(intrinsics.num_cameras, -1, -1)
+    size = torch.stack([intrinsics.width, intrinsics.height], dim=-1)[:, None, :]
+    pixels = torch.stack([unit[..., 2], unit[..., 1]], dim=-1) * size
+    with torch.no_grad():
+        directions = pixel_to_ray_direction(pixels, intrinsics)
+    radius = radius_from_unit(unit[..., 0], sampling.t_near, sampling.t_far, sampling.radial)
+    return uncontract_radius(radius)[..., None] * directions
+
+
 def sample_proxy_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> Float[Tensor, "n l 3"]:
-    """Euclidean camera-frame proxy points filling each camera's contracted view frustum (paper eqs. 6-14)."""
+    """Euclidean camera-frame proxy points filling each camera's contracted view frustum (paper eqs. 6-14).
+
+    Fisheye cameras are sampled in their image (``sample_fisheye_points``); "camp-random" samples pixels of any model.
+    """
     sampling.validate()
-    if sampling.sampler == "camp-random":
+    if sampling.sampler == "camp-random":  # random pixels, unprojected: any camera model
         return camp_frustum_points(
             intrinsics, sampling.num_points, sampling.t_near, sampling.t_far, sampling.ladder_p, seed=sampling.seed
         )
+    if intrinsics.is_fisheye:
+        return sample_fisheye_points(intrinsics, sampling)
     bounds = tangent_bounds(intrinsics.to(dtype=torch.float64))
     unit = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed)
     return sample_frustum(

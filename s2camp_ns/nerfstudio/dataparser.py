@@ -14,6 +14,12 @@ point by half a pixel.
 Before training, the scene is validated (images listed by the model but missing on disk, unsupported camera
 models, empty scenes) with errors that name the file and what was expected.
 
+Camera models: COLMAP SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV (k4 = k5 = k6 = 0) and
+OPENCV_FISHEYE; transforms.json with camera_model OPENCV or OPENCV_FISHEYE (what ``ns-process-data`` writes).
+COLMAP parameters map explicitly to nerfstudio's distortion_params [k1, k2, k3, k4, p1, p2]
+(``core.colmap_models``): nerfstudio's own COLMAP reader refuses FULL_OPENCV and any nonzero k4, including the
+OPENCV_FISHEYE k4 it does represent, so this parser fills the distortion in itself.
+
 The CamP perturbation (off by default; ``ns-train s2camp --data D s2camp-data --perturbation.enabled True``) is applied
 to the training cameras after nerfstudio's orientation and scale normalization, so its sigmas are in normalized
 scene units (the cameras fit in [-1, 1]^3), as CamP applies them in its own normalized scene. The unperturbed
@@ -24,25 +30,28 @@ from __future__ import annotations
 
 import copy
 import json
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers import colmap_dataparser
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
 
-from s2camp_ns.camera_optimizer import group_identical_intrinsics
-from s2camp_ns.core.camera import opengl_to_opencv
+from s2camp_ns.camera_optimizer import camera_model_of, group_identical_intrinsics, intrinsics_from_cameras
+from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics, opengl_to_opencv
+from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, colmap_to_values
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.core.validation import check_range
 
-SUPPORTED_COLMAP_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
-"""Camera models whose parameters map onto S2CamP's (focal, principal point, k1, k2); OPENCV needs p1 = p2 = 0."""
+NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+"""nerfstudio's distortion_params order."""
 
 COLMAP_PATH_CANDIDATES = (Path("sparse/0"), Path("colmap/sparse/0"), Path("sparse"))
 """Where a COLMAP model is looked for when ``colmap_path`` is not given (mip-NeRF 360 first, then nerfstudio's)."""
@@ -168,34 +177,70 @@ def validate_colmap_cameras(recon_dir: Path) -> dict[int, str]:
         if camera.model not in SUPPORTED_COLMAP_MODELS:
             raise ValueError(
                 f"{path}: camera {camera_id} uses the COLMAP camera model {camera.model}, which is not supported; "
-                f"supported: {', '.join(SUPPORTED_COLMAP_MODELS)} (OPENCV with p1 = p2 = 0)"
+                f"supported: {', '.join(SUPPORTED_COLMAP_MODELS)} (FULL_OPENCV with k4 = k5 = k6 = 0)"
             )
-        if camera.model == "OPENCV" and (camera.params[6] != 0.0 or camera.params[7] != 0.0):
-            raise ValueError(
-                f"{path}: camera {camera_id} is OPENCV with tangential distortion p1 = {camera.params[6]:g}, "
-                f"p2 = {camera.params[7]:g}; only p1 = p2 = 0 is supported (radial k1, k2 only)"
-            )
+        try:
+            colmap_to_values(camera.model, camera.params)
+        except ValueError as error:
+            raise ValueError(f"{path}: camera {camera_id}: {error}") from error
         models[camera_id] = camera.model
     if len(set(models.values())) > 1:
         raise ValueError(f"{path}: cameras use several models {sorted(set(models.values()))}; use one model")
     return models
 
 
+def nerfstudio_frame_intrinsics(camera) -> dict:
+    """Per-frame intrinsics in the keys of nerfstudio's COLMAP reader, mapped explicitly (``core.colmap_models``).
+
+    k4 is left out on purpose: nerfstudio's reader refuses any nonzero k4 (even OPENCV_FISHEYE's, which its fisheye
+    renderer does use); ``distortion_of`` supplies all six coefficients afterwards.
+    """
+    values = colmap_to_values(camera.model, camera.params)
+    fisheye = CAMERA_MODEL_PROJECTION[camera.model] == "fisheye"
+    frame = {"w": camera.width, "h": camera.height, "camera_model": "OPENCV_FISHEYE" if fisheye else "OPENCV"}
+    frame.update(fl_x=values["fx"], fl_y=values["fy"], cx=values["cx"], cy=values["cy"])
+    frame.update({name: values[name] for name in NERFSTUDIO_DISTORTION if name != "k4"})
+    return frame
+
+
+def distortion_of(camera) -> list[float]:
+    """nerfstudio's distortion_params [k1, k2, k3, k4, p1, p2] of a COLMAP camera (the same coefficients in COLMAP's
+    meaning: OpenCV's radial-tangential k1, k2, k3, p1, p2, or OPENCV_FISHEYE's k1..k4)."""
+    values = colmap_to_values(camera.model, camera.params)
+    return [values[name] for name in NERFSTUDIO_DISTORTION]
+
+
+@contextmanager
+def _explicit_camera_mapping():
+    """Let nerfstudio's COLMAP reader use ``nerfstudio_frame_intrinsics`` for the per-camera step (its own raises
+    NotImplementedError for FULL_OPENCV); restored on exit."""
+    original = colmap_dataparser.parse_colmap_camera_params
+    colmap_dataparser.parse_colmap_camera_params = nerfstudio_frame_intrinsics
+    try:
+        yield
+    finally:
+        colmap_dataparser.parse_colmap_camera_params = original
+
+
 class _ValidatingColmapDataParser(ColmapDataParser):
-    """nerfstudio's COLMAP parser plus file checks; remembers the full-size image sizes for the intrinsics fix."""
+    """nerfstudio's COLMAP parser plus file checks; remembers the full-size image sizes for the intrinsics fix and
+    each image's distortion (``distortion_of``)."""
 
     def __init__(self, config: ColmapDataParserConfig, image_folder: Path):
         super().__init__(config)
         self.image_folder = image_folder
         self.full_sizes: dict[str, tuple[int, int]] = {}
+        self.distortion: dict[str, list[float]] = {}
 
     def _get_all_images_and_cameras(self, recon_dir: Path):
         validate_colmap_cameras(recon_dir)
         images_file = recon_dir / ("images.bin" if (recon_dir / "images.bin").exists() else "images.txt")
         if not images_file.exists():
             raise FileNotFoundError(f"COLMAP model {recon_dir} has cameras but no images.bin or images.txt")
+        self._read_distortion(recon_dir, images_file)
         try:
-            out = super()._get_all_images_and_cameras(recon_dir)
+            with _explicit_camera_mapping():
+                out = super()._get_all_images_and_cameras(recon_dir)
         except AssertionError as error:
             if "No images" in str(error):
                 raise ValueError(f"COLMAP model {images_file} lists no images: the scene is empty") from error
@@ -219,6 +264,15 @@ class _ValidatingColmapDataParser(ColmapDataParser):
                 f"({len(missing)} of {len(out['frames'])} listed images missing from {self.image_folder})"
             )
         return out
+
+    def _read_distortion(self, recon_dir: Path, images_file: Path) -> None:
+        if images_file.suffix == ".bin":
+            cameras = colmap_utils.read_cameras_binary(recon_dir / "cameras.bin")
+            images = colmap_utils.read_images_binary(images_file)
+        else:
+            cameras = colmap_utils.read_cameras_text(recon_dir / "cameras.txt")
+            images = colmap_utils.read_images_text(images_file)
+        self.distortion = {image.name: distortion_of(cameras[image.camera_id]) for image in images.values()}
 
 
 def _replace_cameras(cameras: Cameras, **fields) -> Cameras:
@@ -281,16 +335,14 @@ def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> 
     )
 
 
-def check_supported_cameras(cameras: Cameras, source: Path) -> None:
-    """Perspective cameras with radial k1, k2 only (what S2CamP refines); names the source file otherwise."""
-    if cameras.camera_type.ne(CameraType.PERSPECTIVE.value).any():
-        kinds = sorted({CameraType(int(t)).name for t in cameras.camera_type.reshape(-1).tolist()})
-        raise ValueError(f"{source}: camera types {kinds} are not supported; only perspective (pinhole) cameras")
-    if cameras.distortion_params is not None and cameras.distortion_params[:, 2:].abs().max() > 0:
-        raise ValueError(
-            f"{source}: distortion k3, k4, p1 or p2 is non-zero; only radial k1, k2 are supported "
-            f"(SIMPLE_RADIAL, RADIAL or OPENCV with p1 = p2 = 0)"
-        )
+def check_supported_cameras(cameras: Cameras, source: Path) -> Intrinsics:
+    """Cameras the S2CamP camera optimizer can refine (its ``intrinsics_from_cameras`` mapping and validation:
+    perspective or fisheye, distortion one-to-one over the image), as ``Intrinsics``; names the source file
+    otherwise."""
+    try:
+        return intrinsics_from_cameras(cameras)
+    except ValueError as error:
+        raise ValueError(f"{source}: {error}") from error
 
 
 @dataclass
@@ -324,7 +376,7 @@ class S2CampDataParser(DataParser):
             outputs, extra = self._parse_colmap(data, source, split)
         else:
             outputs, extra = self._parse_transforms(source, split)
-        check_supported_cameras(outputs.cameras, source)
+        intrinsics = check_supported_cameras(outputs.cameras, source)
 
         reference = copy.deepcopy(outputs.cameras)
         cameras = outputs.cameras
@@ -338,6 +390,9 @@ class S2CampDataParser(DataParser):
             # One id per physical camera: images whose given intrinsics agree (COLMAP's camera_id in practice; the
             # global intrinsics of a transforms.json), grouped before any perturbation.
             camera_ids=group_identical_intrinsics(reference).tolist(),
+            # The COLMAP model whose distortion the camera optimizer's "all" preset refines (sizes its latent before
+            # DDP wraps the model and before the optimizers are built).
+            camera_model=camera_model_of(intrinsics),
             dataparser_scale=float(outputs.dataparser_scale),
             dataparser_transform=outputs.dataparser_transform.clone(),
             perturbed=perturbed,
@@ -387,6 +442,9 @@ class S2CampDataParser(DataParser):
         cameras = _fit_intrinsics_to_images(
             outputs.cameras, outputs.image_filenames, image_folder, parser.full_sizes, k
         )
+        full_names = [Path(p).relative_to(image_folder).as_posix() for p in outputs.image_filenames]
+        distortion = torch.tensor([parser.distortion[name] for name in full_names], dtype=torch.float32)
+        cameras = _replace_cameras(cameras, distortion_params=distortion)
         outputs = DataparserOutputs(
             image_filenames=outputs.image_filenames,
             cameras=cameras,

@@ -2,11 +2,14 @@
 
     s2camp-export-cameras --load-config outputs/scene/s2camp/DATE/config.yml --output-dir refined/sparse/0
 
-The refined cameras (pose and intrinsics, radial k1, k2) come from the camera optimizer of the trained pipeline
+The refined cameras (pose, intrinsics and distortion) come from the camera optimizer of the trained pipeline
 (``refined_cameras()`` or ``refine_cameras(train_cameras)`` of S2CamP's optimizer; nerfstudio's pose-only
 ``apply_to_camera`` otherwise). nerfstudio's normalization (dataparser transform and scale) is undone, the camera
 axes are flipped from OpenGL to OpenCV, and a COLMAP model is written with pycolmap: one camera per image
-(intrinsics are refined per image), RADIAL when fx = fy else OPENCV (p1 = p2 = 0), so k1 and k2 survive.
+(intrinsics are refined per image). The distortion is written in COLMAP's meaning (``core.colmap_models``): with
+``camera_model auto`` fisheye cameras become OPENCV_FISHEYE (k1..k4), perspective ones RADIAL when fx = fy and
+there is no tangential term, OPENCV (k1, k2, p1, p2) otherwise, FULL_OPENCV (k3 as well, k4 = k5 = k6 = 0) when
+some camera has k3. nerfstudio's perspective k4 (an r^8 term) has no COLMAP counterpart and is refused.
 The sparse points of the input model are carried over unchanged: undoing the normalization puts the cameras back
 in the input model's world frame. Their tracks are dropped, since the exported images carry no 2D keypoints.
 Skew is not representable in COLMAP and is dropped.
@@ -26,9 +29,13 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
+from s2camp_ns.camera_optimizer import projection_of
+from s2camp_ns.core.colmap_models import colmap_model_for, colmap_to_values, values_to_colmap
 from s2camp_ns.nerfstudio.dataparser import c2w_to_colmap_world
 
-CameraModel = Literal["auto", "RADIAL", "OPENCV"]
+CameraModel = Literal["auto", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"]
+CAMERA_MODELS: tuple[str, ...] = ("auto", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
+DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 def _as_numpy(name: str, value, n: int) -> np.ndarray:
@@ -53,11 +60,19 @@ def cameras_to_reconstruction(
     camera_model: CameraModel = "auto",
     points_xyz: np.ndarray | None = None,
     points_rgb: np.ndarray | None = None,
+    k3=0.0,
+    k4=0.0,
+    p1=0.0,
+    p2=0.0,
+    projection: str = "perspective",
 ) -> pycolmap.Reconstruction:
     """COLMAP reconstruction with one camera per image from OpenCV camera-to-world poses and intrinsics.
 
-    Intrinsics are scalars or length-N sequences in pixels. ``camera_model`` auto picks RADIAL (f, cx, cy, k1, k2)
-    when fx = fy for every camera and OPENCV (fx, fy, cx, cy, k1, k2, p1 = 0, p2 = 0) otherwise.
+    Intrinsics are scalars or length-N sequences in pixels; distortion coefficients mean what they mean in
+    ``core.camera`` for ``projection`` ("perspective" or "fisheye"). ``camera_model`` auto picks the simplest model
+    that holds every camera (``core.colmap_models.colmap_model_for``): OPENCV_FISHEYE for fisheye cameras, else
+    RADIAL (f, cx, cy, k1, k2) when fx = fy and p1 = p2 = 0 for every camera, OPENCV (+ fy, p1, p2), or FULL_OPENCV
+    (+ k3) when some camera has k3.
     """
     c2w = np.asarray(
         c2w_opencv.detach().cpu().double() if isinstance(c2w_opencv, Tensor) else c2w_opencv, dtype=np.float64
@@ -69,32 +84,26 @@ def cameras_to_reconstruction(
         raise ValueError(f"image_names must have {n} entries (one per camera), got {len(image_names)}")
     if len(set(image_names)) != n:
         raise ValueError("image_names must be unique")
-    values = {
-        name: _as_numpy(name, v, n)
-        for name, v in dict(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, k1=k1, k2=k2).items()
-    }
+    given = dict(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, k1=k1, k2=k2, k3=k3, k4=k4, p1=p1, p2=p2)
+    values = {name: _as_numpy(name, v, n) for name, v in given.items()}
     for name in ("fx", "fy", "width", "height"):
         if (values[name] <= 0).any():
             raise ValueError(f"{name} must lie in (0, inf), got {values[name][values[name] <= 0][0]:g}")
-    same_focal = np.abs(values["fx"] - values["fy"]) <= 1e-9 * np.abs(values["fx"])
+    if camera_model not in CAMERA_MODELS:
+        raise ValueError(f"camera_model must be one of {', '.join(map(repr, CAMERA_MODELS))}, got {camera_model!r}")
+    per_camera = [{name: float(array[i]) for name, array in values.items()} for i in range(n)]
     if camera_model == "auto":
-        camera_model = "RADIAL" if same_focal.all() else "OPENCV"
-    elif camera_model == "RADIAL" and not same_focal.all():
-        i = int(np.flatnonzero(~same_focal)[0])
-        raise ValueError(
-            f"camera_model RADIAL needs fx = fy, but camera {i} ({image_names[i]}) has fx = "
-            f"{values['fx'][i]:.6g}, fy = {values['fy'][i]:.6g}; use OPENCV or auto"
-        )
-    elif camera_model not in ("RADIAL", "OPENCV"):
-        raise ValueError(f"camera_model must be one of 'auto', 'RADIAL', 'OPENCV', got {camera_model!r}")
+        # The simplest model that holds every camera (the models nest: RADIAL < OPENCV < FULL_OPENCV).
+        order = ("RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
+        camera_model = max((colmap_model_for(v, projection) for v in per_camera), key=order.index)
 
     reconstruction = pycolmap.Reconstruction()
     for i in range(n):
-        v = {name: float(array[i]) for name, array in values.items()}
-        if camera_model == "RADIAL":
-            params = [v["fx"], v["cx"], v["cy"], v["k1"], v["k2"]]
-        else:
-            params = [v["fx"], v["fy"], v["cx"], v["cy"], v["k1"], v["k2"], 0.0, 0.0]
+        v = per_camera[i]
+        try:
+            params = values_to_colmap(camera_model, v, projection)
+        except ValueError as error:
+            raise ValueError(f"camera_model {camera_model}: camera {i} ({image_names[i]}): {error}") from error
         camera = pycolmap.Camera(
             model=camera_model, width=round(v["width"]), height=round(v["height"]), params=params, camera_id=i + 1
         )
@@ -121,8 +130,10 @@ def cameras_to_reconstruction(
 
 
 def reconstruction_to_arrays(reconstruction: pycolmap.Reconstruction) -> dict[str, np.ndarray | list[str]]:
-    """OpenCV c2w [N, 3, 4], names, and fx, fy, cx, cy, k1, k2, width, height of a reconstruction, by image id."""
-    out: dict[str, list] = {key: [] for key in ("names", "c2w", "fx", "fy", "cx", "cy", "k1", "k2", "width", "height")}
+    """OpenCV c2w [N, 3, 4], names, models, and fx, fy, cx, cy, k1, k2, k3, k4, p1, p2 (``core.camera`` meaning),
+    width, height of a reconstruction, by image id."""
+    keys = ("names", "models", "c2w", "fx", "fy", "cx", "cy", *DISTORTION, "width", "height")
+    out: dict[str, list] = {key: [] for key in keys}
     for image_id in sorted(reconstruction.images):
         image = reconstruction.images[image_id]
         camera = reconstruction.cameras[image.camera_id]
@@ -130,22 +141,20 @@ def reconstruction_to_arrays(reconstruction: pycolmap.Reconstruction) -> dict[st
         rotation = w2c[:, :3].T
         out["names"].append(image.name)
         out["c2w"].append(np.concatenate([rotation, (-rotation @ w2c[:, 3])[:, None]], axis=1))
-        p = np.asarray(camera.params, dtype=np.float64)
         model = camera.model.name
-        table = {
-            "SIMPLE_PINHOLE": (p[0], p[0], p[1], p[2], 0.0, 0.0),
-            "PINHOLE": (p[0], p[1], p[2], p[3], 0.0, 0.0),
-            "SIMPLE_RADIAL": (p[0], p[0], p[1], p[2], p[3], 0.0) if len(p) >= 4 else None,
-            "RADIAL": (p[0], p[0], p[1], p[2], p[3], p[4]) if len(p) >= 5 else None,
-            "OPENCV": (p[0], p[1], p[2], p[3], p[4], p[5]) if len(p) >= 6 else None,
-        }
-        if table.get(model) is None:
-            raise ValueError(f"camera {image.camera_id} uses the unsupported COLMAP model {model}")
-        for key, value in zip(("fx", "fy", "cx", "cy", "k1", "k2"), table[model], strict=True):
-            out[key].append(value)
+        try:
+            values = colmap_to_values(model, camera.params)
+        except ValueError as error:
+            raise ValueError(f"camera {image.camera_id}: {error}") from error
+        out["models"].append(model)
+        for key in ("fx", "fy", "cx", "cy", *DISTORTION):
+            out[key].append(values[key])
         out["width"].append(camera.width)
         out["height"].append(camera.height)
-    return {key: (value if key == "names" else np.asarray(value, dtype=np.float64)) for key, value in out.items()}
+    return {
+        key: (value if key in ("names", "models") else np.asarray(value, dtype=np.float64))
+        for key, value in out.items()
+    }
 
 
 def refined_training_cameras(pipeline) -> Cameras:
@@ -157,7 +166,7 @@ def refined_training_cameras(pipeline) -> Cameras:
     cameras = pipeline.datamanager.train_dataset.cameras
     if optimizer is None:
         return cameras
-    if hasattr(optimizer, "refine_cameras"):  # S2CamP's optimizer: pose, fx, fy, cx, cy, k1, k2 of all cameras
+    if hasattr(optimizer, "refine_cameras"):  # S2CamP's optimizer: pose, fx, fy, cx, cy, distortion of all cameras
         return optimizer.refine_cameras(cameras)
     # nerfstudio's optimizer only refines poses: apply it camera by camera (it reads cam_idx from the metadata).
     poses = []
@@ -211,7 +220,9 @@ def export_cameras(
         full = np.asarray(full_image_size, dtype=np.float64).reshape(n, 2)
         sx, sy = full[:, 0] / width, full[:, 1] / height
         width, height = full[:, 0], full[:, 1]
-    distortion = cameras.distortion_params
+    # nerfstudio's [k1, k2, k3, k4, p1, p2] are core.camera's coefficients for both projections (camera_optimizer's
+    # intrinsics_from_cameras); a perspective k4 (r^8) is refused by the COLMAP mapping.
+    distortion = {name: _column(cameras.distortion_params, n, i) for i, name in enumerate(DISTORTION)}
     return cameras_to_reconstruction(
         c2w,
         fx=_column(cameras.fx, n) * sx,
@@ -221,11 +232,11 @@ def export_cameras(
         width=width,
         height=height,
         image_names=image_names,
-        k1=_column(distortion, n, 0),
-        k2=_column(distortion, n, 1),
         camera_model=camera_model,
         points_xyz=points_xyz,
         points_rgb=points_rgb,
+        projection=projection_of(cameras),
+        **distortion,
     )
 
 
@@ -249,7 +260,8 @@ class ExportCamerasConfig:
     resolution: Literal["original", "training"] = "original"
     """Intrinsics for the input model's full-size images (original) or for the images trained on."""
     camera_model: CameraModel = "auto"
-    """COLMAP camera model: RADIAL when fx = fy (auto), else OPENCV."""
+    """COLMAP camera model; auto: OPENCV_FISHEYE for fisheye cameras, else the simplest of RADIAL (fx = fy, no
+    tangential terms), OPENCV and FULL_OPENCV (k3) that holds every camera."""
     include_points: bool = True
     """Copy the sparse points of the input COLMAP model (if the scene came from one)."""
     text: bool = False

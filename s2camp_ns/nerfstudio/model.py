@@ -77,9 +77,13 @@ class S2CampModel(NerfactoModel):
         self._train_cameras: Cameras | None = None
         # Physical cameras of the training images (the dataparser's camera_ids), known before DDP wraps the model
         # and before the optimizers are built: they size the shared-intrinsics latent.
-        camera_ids = (self.kwargs.get("metadata") or {}).get("camera_ids")
+        metadata = self.kwargs.get("metadata") or {}
+        camera_ids = metadata.get("camera_ids")
         if self.uses_s2camp_optimizer and camera_ids is not None and len(camera_ids) == self.num_train_data:
             self.camera_optimizer.set_camera_groups(camera_ids)
+        # Likewise the camera model, whose distortion coefficients set the layout's K.
+        if self.uses_s2camp_optimizer and metadata.get("camera_model") is not None:
+            self.camera_optimizer.set_camera_model(metadata["camera_model"])
         # --- S2CamP viewer panel (viewer_panel.py); inert unless nerfstudio's viewer installs it. The attribute name
         # is the panel's folder label in the viewer.
         if self.config.viewer_update_period >= 0 and self.uses_s2camp_optimizer:

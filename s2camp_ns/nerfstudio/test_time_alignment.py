@@ -114,12 +114,14 @@ def camera_rays(
     origin = c2w_cv[:, 3] + c2w_cv[:, :3] @ delta[:, 3]
     directions = directions_cam @ rotation.T
     count = pixels.shape[0]
+    # nerfstudio's directions_norm: |(a, b, 1)| = 1 / d_z for perspective cameras, 1 for fisheye ones (unit rays).
+    norm = torch.ones_like(directions_cam[:, 2:3]) if scaled.is_fisheye else 1.0 / directions_cam[:, 2:3]
     return RayBundle(
         origins=origin.expand(count, 3).to(device=device, dtype=torch.float32),
         directions=directions.to(device=device, dtype=torch.float32),
         pixel_area=(1.0 / (scaled.fx * scaled.fy)).detach().expand(count, 1).to(device=device, dtype=torch.float32),
         camera_indices=torch.zeros(count, 1, dtype=torch.long, device=device),
-        metadata={"directions_norm": (1.0 / directions_cam[:, 2:3]).to(device=device, dtype=torch.float32)},
+        metadata={"directions_norm": norm.to(device=device, dtype=torch.float32)},
     )
 
 

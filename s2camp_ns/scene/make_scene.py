@@ -9,8 +9,11 @@ Output (``output_dir``)::
     scene_info.json    ground-truth cameras and the generator config
 
 Rays are generated through the COLMAP camera model itself (``pycolmap.Camera.cam_from_img`` on the pixel
-sample positions), so the images are exactly consistent with the written intrinsics, radial distortion
-included. Every 3D point is a visible surface point; its track holds every image that sees it (in the
+sample positions), so the images are exactly consistent with the written intrinsics, distortion included. The camera
+is RADIAL (PINHOLE without distortion) by default, or any model of ``core.colmap_models`` (``camera_model``);
+fisheye scenes stay below 85 degrees off the axis, where pycolmap's unprojection is reliable.
+
+Every 3D point is a visible surface point; its track holds every image that sees it (in the
 image, in front of the camera, not occluded), with observations from ``img_from_cam``.
 """
 
@@ -27,11 +30,18 @@ from typing import Literal
 
 import numpy as np
 import pycolmap
+import torch
 import tyro
 from PIL import Image as PILImage
 
 from s2camp_ns import __version__
-from s2camp_ns.core.camera import Intrinsics, check_distortion_monotonic
+from s2camp_ns.core.camera import (
+    CAMERA_MODEL_PROJECTION,
+    Intrinsics,
+    check_distortion_monotonic,
+    pixel_to_ray_direction,
+)
+from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, values_to_colmap
 from s2camp_ns.core.validation import check_choice, check_range
 from s2camp_ns.scene import procedural
 
@@ -39,6 +49,12 @@ FOV_PRESETS = {"narrow": 52.0, "wide": 80.0}
 """Horizontal field of view in degrees. "narrow" matches mip-NeRF 360 room (fx 3172.5 px at width 3114)."""
 
 _OUTPUTS = ("images", "images_2", "sparse", "poses_bounds.npy", "scene_info.json")
+
+CameraModelName = Literal[
+    "auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"
+]
+FISHEYE_MAX_ANGLE = 85.0
+"""Largest angle (degrees) off the axis of a generated fisheye image: pycolmap's unprojection stops at 90."""
 
 
 @dataclass
@@ -63,6 +79,17 @@ class MakeSceneConfig:
     """Radial distortion k1 (COLMAP RADIAL, normalized image coordinates). k1 = k2 = 0 writes a PINHOLE camera."""
     k2: float = 0.005
     """Radial distortion k2."""
+    camera_model: CameraModelName = "auto"
+    """COLMAP camera model; auto = RADIAL, or PINHOLE when k1 = k2 = 0. Coefficients the model lacks must be 0;
+    OPENCV_FISHEYE takes the focal length from ``fov`` as an equidistant lens (theta = r / f)."""
+    k3: float = 0.0
+    """Radial k3 (FULL_OPENCV's r^6 term, OPENCV_FISHEYE's theta^7 term)."""
+    k4: float = 0.0
+    """OPENCV_FISHEYE's k4 (theta^9 term)."""
+    p1: float = 0.0
+    """Tangential p1 (OPENCV, FULL_OPENCV)."""
+    p2: float = 0.0
+    """Tangential p2 (OPENCV, FULL_OPENCV)."""
     ring_radius: float = 4.0
     """Distance of the cameras from the vertical axis through the scene centre."""
     ring_height: float = 1.3
@@ -93,7 +120,11 @@ def validate(config: MakeSceneConfig) -> tuple[float, float, float]:
             raise ValueError(f"{name} must be even (images_2 is an exact 2x2 downsample), got {value}")
     check_choice("fov", config.fov, tuple(FOV_PRESETS))
     check_choice("image_format", config.image_format, ("png", "jpg"))
-    if config.focal is None:
+    check_choice("camera_model", config.camera_model, ("auto", *SUPPORTED_COLMAP_MODELS))
+    fisheye = config.camera_model == "OPENCV_FISHEYE"
+    if config.focal is None and fisheye:
+        focal = 0.5 * config.width / (math.radians(FOV_PRESETS[config.fov]) / 2.0)
+    elif config.focal is None:
         focal = 0.5 * config.width / math.tan(math.radians(FOV_PRESETS[config.fov]) / 2.0)
     else:
         check_range("focal", config.focal, low=0.0, low_inclusive=False)
@@ -101,22 +132,31 @@ def validate(config: MakeSceneConfig) -> tuple[float, float, float]:
     cx, cy = (config.width / 2.0, config.height / 2.0) if config.principal_point is None else config.principal_point
     check_range("principal_point[0] (cx)", cx, low=0.0, high=config.width, low_inclusive=False, high_inclusive=False)
     check_range("principal_point[1] (cy)", cy, low=0.0, high=config.height, low_inclusive=False, high_inclusive=False)
-    check_range("k1", config.k1, low=-1.0, high=1.0)
-    check_range("k2", config.k2, low=-1.0, high=1.0)
+    for name in ("k1", "k2", "k3", "k4", "p1", "p2"):
+        check_range(name, getattr(config, name), low=-1.0, high=1.0)
     # The same monotonicity rule as the camera model: the distortion must not fold back inside the image.
-    check_distortion_monotonic(
-        Intrinsics.create(
-            fx=focal,
-            fy=focal,
-            cx=cx,
-            cy=cy,
-            width=config.width,
-            height=config.height,
-            k1=config.k1,
-            k2=config.k2,
-            validate=False,
-        )
+    intrinsics = Intrinsics.create(
+        fx=focal,
+        fy=focal,
+        cx=cx,
+        cy=cy,
+        width=config.width,
+        height=config.height,
+        k1=config.k1,
+        k2=config.k2,
+        k3=config.k3,
+        k4=config.k4,
+        p1=config.p1,
+        p2=config.p2,
+        model="fisheye" if fisheye else "perspective",
+        validate=False,
     )
+    check_distortion_monotonic(intrinsics)
+    if fisheye:
+        corners = np.array([[0.0, 0.0], [config.width, 0.0], [0.0, config.height], [config.width, config.height]])
+        z = pixel_to_ray_direction(torch.as_tensor(corners)[None], intrinsics)[0, :, 2]
+        widest = math.degrees(math.acos(float(z.min())))
+        check_range("fisheye corner angle (degrees; lower the fov or raise the focal)", widest, high=FISHEYE_MAX_ANGLE)
     check_range(
         "ring_radius", config.ring_radius, low=procedural.SCENE_RADIUS + 0.7, high=procedural.BACKGROUND_RADIUS / 4
     )
@@ -129,12 +169,15 @@ def validate(config: MakeSceneConfig) -> tuple[float, float, float]:
 
 
 def make_camera(config: MakeSceneConfig) -> pycolmap.Camera:
-    """The shared full-resolution COLMAP camera (RADIAL with distortion, else PINHOLE)."""
+    """The shared full-resolution COLMAP camera (``camera_model``; auto: RADIAL with distortion, else PINHOLE)."""
     focal, cx, cy = validate(config)
-    if config.k1 == 0.0 and config.k2 == 0.0:
-        model, params = "PINHOLE", [focal, focal, cx, cy]
-    else:
-        model, params = "RADIAL", [focal, cx, cy, config.k1, config.k2]
+    model = config.camera_model
+    if model == "auto":
+        model = "PINHOLE" if config.k1 == 0.0 and config.k2 == 0.0 else "RADIAL"
+    values = dict(
+        fx=focal, fy=focal, cx=cx, cy=cy, **{n: getattr(config, n) for n in ("k1", "k2", "k3", "k4", "p1", "p2")}
+    )
+    params = values_to_colmap(model, values, CAMERA_MODEL_PROJECTION[model])
     return pycolmap.Camera(model=model, width=config.width, height=config.height, params=params, camera_id=1)
 
 
@@ -341,8 +384,7 @@ def make_scene(config: MakeSceneConfig) -> Path:
             "fy": camera.focal_length_y,
             "cx": camera.principal_point_x,
             "cy": camera.principal_point_y,
-            "k1": config.k1,
-            "k2": config.k2,
+            **{name: getattr(config, name) for name in ("k1", "k2", "k3", "k4", "p1", "p2")},
         },
         "images_2": {"width": camera.width // 2, "height": camera.height // 2, "scale": 0.5},
         "pixel_convention": "COLMAP: the image covers [0, W] x [0, H]; pixel (i, j) is centred at (i + 0.5, j + 0.5)",
