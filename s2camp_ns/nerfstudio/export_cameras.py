@@ -5,8 +5,8 @@
 The refined cameras (pose, intrinsics and distortion) come from the camera optimizer of the trained pipeline
 (``refined_cameras()`` or ``refine_cameras(train_cameras)`` of S2CamP's optimizer; nerfstudio's pose-only
 ``apply_to_camera`` otherwise). nerfstudio's normalization (dataparser transform and scale) is undone, the camera
-axes are flipped from OpenGL to OpenCV, and a COLMAP model is written with pycolmap: one camera per image
-(intrinsics are refined per image). The distortion is written in COLMAP's meaning (``core.colmap_models``): with
+axes are flipped from OpenGL to OpenCV, and a COLMAP model is written with pycolmap: one COLMAP camera per physical
+camera when the intrinsics were refined per camera (the default), one per image otherwise. The distortion is written in COLMAP's meaning (``core.colmap_models``): with
 ``camera_model auto`` fisheye cameras become OPENCV_FISHEYE (k1..k4), perspective ones RADIAL when fx = fy and
 there is no tangential term, OPENCV (k1, k2, p1, p2) otherwise, FULL_OPENCV (k3 as well, k4 = k5 = k6 = 0) when
 some camera has k3. nerfstudio's perspective k4 (an r^8 term) has no COLMAP counterpart and is refused.
@@ -17,6 +17,8 @@ Skew is not representable in COLMAP and is dropped.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -65,8 +67,11 @@ def cameras_to_reconstruction(
     p1=0.0,
     p2=0.0,
     projection: str = "perspective",
+    camera_ids: Sequence[int] | None = None,
 ) -> pycolmap.Reconstruction:
-    """COLMAP reconstruction with one camera per image from OpenCV camera-to-world poses and intrinsics.
+    """COLMAP reconstruction from OpenCV camera-to-world poses and intrinsics: one COLMAP camera per physical
+    camera (images with the same ``camera_ids`` entry share one; their intrinsics must agree), or one per image
+    when ``camera_ids`` is None.
 
     Intrinsics are scalars or length-N sequences in pixels; distortion coefficients mean what they mean in
     ``core.camera`` for ``projection`` ("perspective" or "fisheye"). ``camera_model`` auto picks the simplest model
@@ -97,17 +102,35 @@ def cameras_to_reconstruction(
         order = ("RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
         camera_model = max((colmap_model_for(v, projection) for v in per_camera), key=order.index)
 
+    groups = list(range(n)) if camera_ids is None else [int(c) for c in camera_ids]
+    if len(groups) != n:
+        raise ValueError(f"camera_ids must have {n} entries (one per image), got {len(groups)}")
+    colmap_id: dict[int, int] = {}
     reconstruction = pycolmap.Reconstruction()
     for i in range(n):
         v = per_camera[i]
-        try:
-            params = values_to_colmap(camera_model, v, projection)
-        except ValueError as error:
-            raise ValueError(f"camera_model {camera_model}: camera {i} ({image_names[i]}): {error}") from error
-        camera = pycolmap.Camera(
-            model=camera_model, width=round(v["width"]), height=round(v["height"]), params=params, camera_id=i + 1
-        )
-        reconstruction.add_camera_with_trivial_rig(camera)
+        if groups[i] in colmap_id:
+            first = per_camera[next(j for j in range(n) if groups[j] == groups[i])]
+            differs = [name for name in values if not math.isclose(v[name], first[name], rel_tol=1e-6, abs_tol=1e-9)]
+            if differs:
+                raise ValueError(
+                    f"image {i} ({image_names[i]}) shares physical camera {groups[i]} but its {differs[0]} is "
+                    f"{v[differs[0]]:.8g}, not {first[differs[0]]:.8g}: shared intrinsics must agree"
+                )
+        else:
+            colmap_id[groups[i]] = len(colmap_id) + 1
+            try:
+                params = values_to_colmap(camera_model, v, projection)
+            except ValueError as error:
+                raise ValueError(f"camera_model {camera_model}: camera {i} ({image_names[i]}): {error}") from error
+            camera = pycolmap.Camera(
+                model=camera_model,
+                width=round(v["width"]),
+                height=round(v["height"]),
+                params=params,
+                camera_id=colmap_id[groups[i]],
+            )
+            reconstruction.add_camera_with_trivial_rig(camera)
         rotation = c2w[i, :, :3]
         if abs(np.linalg.det(rotation) - 1.0) > 1e-4:
             raise ValueError(
@@ -119,7 +142,7 @@ def cameras_to_reconstruction(
         rotation = u @ vt
         world_from_cam_t = c2w[i, :, 3]
         cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation.T), -rotation.T @ world_from_cam_t)
-        image = pycolmap.Image(name=image_names[i], camera_id=i + 1, image_id=i + 1)
+        image = pycolmap.Image(name=image_names[i], camera_id=colmap_id[groups[i]], image_id=i + 1)
         reconstruction.add_image_with_trivial_frame(image, cam_from_world)
     if points_xyz is not None:
         xyz = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
@@ -205,8 +228,10 @@ def export_cameras(
     points_xyz: np.ndarray | None = None,
     points_rgb: np.ndarray | None = None,
     camera_model: CameraModel = "auto",
+    camera_ids: Sequence[int] | None = None,
 ) -> pycolmap.Reconstruction:
-    """Undo nerfstudio's normalization of (refined) training cameras and build the COLMAP reconstruction.
+    """Undo nerfstudio's normalization of (refined) training cameras and build the COLMAP reconstruction (one COLMAP
+    camera per ``camera_ids`` entry, or per image).
 
     With ``full_image_size`` [N, 2] (width, height of the input model's cameras) the intrinsics are rescaled from
     the training resolution to it, so the model matches the full-size images of the input model.
@@ -236,6 +261,7 @@ def export_cameras(
         points_xyz=points_xyz,
         points_rgb=points_rgb,
         projection=projection_of(cameras),
+        camera_ids=camera_ids,
         **distortion,
     )
 
@@ -284,6 +310,8 @@ def main(config: ExportCamerasConfig) -> Path:
     model_path = metadata.get("colmap_model_path")
     if config.include_points and model_path is not None and Path(model_path).exists():
         xyz, rgb = read_points(Path(model_path))
+    optimizer = getattr(pipeline.model, "camera_optimizer", None)
+    shared = bool(getattr(optimizer, "shared", False))
     reconstruction = export_cameras(
         cameras,
         outputs.dataparser_transform,
@@ -293,6 +321,7 @@ def main(config: ExportCamerasConfig) -> Path:
         xyz,
         rgb,
         config.camera_model,
+        camera_ids=optimizer.camera_of_image.tolist() if shared else None,
     )
     config.output_dir.mkdir(parents=True, exist_ok=True)
     reconstruction.write_binary(str(config.output_dir))
@@ -300,7 +329,8 @@ def main(config: ExportCamerasConfig) -> Path:
         (config.output_dir / "text").mkdir(exist_ok=True)
         reconstruction.write_text(str(config.output_dir / "text"))
     print(
-        f"wrote {reconstruction.num_images()} cameras and {reconstruction.num_points3D()} points to {config.output_dir}"
+        f"wrote {reconstruction.num_images()} images of {reconstruction.num_cameras()} cameras and "
+        f"{reconstruction.num_points3D()} points to {config.output_dir}"
     )
     return config.output_dir
 
