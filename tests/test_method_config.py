@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import math
 from contextlib import redirect_stdout
 from importlib.metadata import entry_points
 
@@ -90,8 +91,8 @@ def test_cli_help_documents_camera_optimizer_flags():
 
 def test_entry_points_registered():
     names = {ep.name: ep.value for ep in entry_points(group="nerfstudio.method_configs")}
-    if "s2camp" not in names:
-        pytest.skip("package not installed (pip install -e .)")
+    # Missing entry points mean a broken install (`ns-train s2camp` would not exist): fail, do not skip.
+    assert "s2camp" in names, f"nerfstudio.method_configs holds {sorted(names)}: run `make venv` (pip install -e .)"
     assert names["s2camp"] == "s2camp_ns.method_config:s2camp_method"
     assert names["s2camp-camp"] == "s2camp_ns.method_config:s2camp_camp_method"
     assert names["s2camp-so3xr3"] == "s2camp_ns.method_config:s2camp_so3xr3_method"
@@ -180,11 +181,31 @@ def test_lpips_unavailable_is_omitted(tiny_model: S2CampModel):
 
 
 def test_camera_errors_logged_with_reference_cameras(tiny_model: S2CampModel):
-    pytest.importorskip("s2camp_ns.core.alignment")
-    tiny_model.kwargs["metadata"] = {"reference_cameras": tiny_cameras()}
+    """Reference cameras = the training cameras moved by a known similarity, focal lengths changed by known amounts:
+    the aligned pose errors vanish, the raw ones are the similarity's, the focal errors are the changes."""
+    cameras = tiny_cameras()
+    angle, scale, shift = 0.3, 1.7, torch.tensor([0.5, -0.2, 0.1])
+    rotation = torch.tensor(
+        [[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0.0, 0.0, 1.0]]
+    )
+    reference = tiny_cameras()
+    reference.camera_to_worlds = torch.cat(
+        [
+            rotation @ cameras.camera_to_worlds[:, :, :3],
+            (scale * rotation @ cameras.camera_to_worlds[:, :, 3:]) + shift[:, None],
+        ],
+        dim=-1,
+    )
+    reference.fx = cameras.fx + torch.tensor([[1.0], [-2.0], [0.5]])
+    tiny_model.kwargs["metadata"] = {"reference_cameras": reference}
     try:
         errors = tiny_model.update_camera_errors()
-        assert errors["camera_errors/rot_err_mean"] >= 0.0 and "camera_errors/focal_err_mean" in errors
+        assert errors["camera_errors/aligned"] == 1.0
+        assert errors["camera_errors/align_scale"] == pytest.approx(scale, rel=1e-5)
+        assert errors["camera_errors/rot_err_max"] < 1e-5 and errors["camera_errors/pos_err_max"] < 1e-5
+        assert errors["camera_errors/raw_rot_err_mean"] == pytest.approx(angle, rel=1e-5)
+        assert errors["camera_errors/focal_err_mean"] == pytest.approx(3.5 / 3, rel=1e-6)
+        assert errors["camera_errors/focal_err_max"] == pytest.approx(2.0, rel=1e-6)
         assert tiny_model._camera_errors == errors  # merged into the training metrics dict
     finally:
         tiny_model.kwargs["metadata"] = {}
