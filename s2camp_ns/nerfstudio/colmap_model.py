@@ -107,8 +107,8 @@ def _record_count(path: Path, kind: Kind) -> int:
         (count,) = struct.unpack("<Q", f.read(8))
     if count * MIN_RECORD_BYTES[kind] > size - 8:
         raise ColmapModelError(
-            f"{path} is corrupt or truncated: its header announces {count} {_RECORD[kind]} records, which take at least "
-            f"{count * MIN_RECORD_BYTES[kind]} bytes, but only {size - 8} bytes follow; {_expected(kind, path)}"
+            f"{path} is corrupt or truncated: its header announces {count} {_RECORD[kind]} records, which take at "
+            f"least {count * MIN_RECORD_BYTES[kind]} bytes, but only {size - 8} bytes follow; {_expected(kind, path)}"
         )
     return count
 
@@ -175,8 +175,8 @@ def read_model_file(path: Path, kind: Kind) -> dict:
         size, used = path.stat().st_size, _binary_size(kind, records)
         if len(records) != count or used != size:
             raise ColmapModelError(
-                f"{path} is corrupt: its header announces {count} {_RECORD[kind]} records, which take {used} bytes, but the "
-                f"file holds {size} bytes ({len(records)} distinct ids); {_expected(kind, path)}"
+                f"{path} is corrupt: its header announces {count} {_RECORD[kind]} records, which take {used} bytes, "
+                f"but the file holds {size} bytes ({len(records)} distinct ids); {_expected(kind, path)}"
             )
     _check_records(kind, path, records)
     return records
