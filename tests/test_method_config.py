@@ -16,7 +16,6 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from s2camp_ns import method_config
@@ -25,11 +24,13 @@ from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
 from s2camp_ns.nerfstudio.model import S2CampModel, S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
+from s2camp_ns.nerfstudio.trainer import S2CampTrainer, S2CampTrainerConfig
 
 
 def test_method_specifications():
     for spec, name in ((method_config.s2camp_method, "s2camp"), (method_config.s2camp_camp_method, "s2camp-camp")):
-        assert isinstance(spec, MethodSpecification) and isinstance(spec.config, TrainerConfig)
+        assert isinstance(spec, MethodSpecification) and isinstance(spec.config, S2CampTrainerConfig)
+        assert spec.config._target is S2CampTrainer  # atomic checkpoints
         assert spec.config.method_name == name and spec.description
         pipeline = spec.config.pipeline
         assert isinstance(pipeline, S2CampPipelineConfig)
@@ -102,6 +103,8 @@ def test_so3xr3_baseline_differs_only_in_the_camera_optimizer():
     s2camp = method_config.s2camp_method.config
     baseline = method_config.s2camp_so3xr3_method.config
     assert type(baseline.pipeline.model.camera_optimizer) is CameraOptimizerConfig
+    # atomic checkpoints for the baseline too
+    assert isinstance(baseline, S2CampTrainerConfig) and baseline._target is S2CampTrainer
     assert baseline.pipeline.model.camera_optimizer.mode == "SO3xR3"
     # nerfacto's own camera schedule for raw se(3) units
     assert baseline.optimizers["camera_opt"]["optimizer"].lr == 1e-3
