@@ -22,6 +22,10 @@ Training rays are regenerated from each ray's pixel coordinates (carried by ``Pi
 P is refreshed every ``refresh_every`` steps from the current refined intrinsics; a refresh re-expresses the
 latent so the camera does not move (phi_hat_new = P_new P_old^-1 phi_hat_old) and transforms Adam's moments
 (see ``refresh``).
+
+Checkpoints hold phi_hat, P, P^-1, the refresh schedule and the base intrinsics P was computed for. Resuming on the
+same cameras continues bit-identically; loading onto other base cameras (a warm start resumed with perturbed
+cameras) recomputes P and re-expresses the latent and Adam's moments instead of using a stale P.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from torch import Tensor, nn
 
 from s2camp_ns.core.camera import (
     PARAMETER_NAMES,
+    TENSOR_FIELDS,
     Intrinsics,
     ParameterLayout,
     opengl_to_opencv,
@@ -51,6 +56,7 @@ from s2camp_ns.core.preconditioner import (
     Preconditioner,
     SamplingConfig,
     compute_preconditioner,
+    reexpress_adam_state,
     reexpress_latent,
 )
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS, compute_shared_preconditioner, reexpress_shared_latents
@@ -267,6 +273,10 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.register_buffer("base_c2w_cv", torch.zeros(num_cameras, 3, 4, dtype=torch.float64), persistent=False)
         self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 13, dtype=torch.float64), persistent=False)
         self.projection = "perspective"
+        # The base intrinsics of the run that computed P, saved with P: a checkpoint loaded onto other base cameras
+        # is detected and P recomputed (``_reconcile_with_base_cameras``) instead of silently reused. P depends on
+        # the intrinsics only (the Jacobian is taken in the camera frame), so the base poses need no record.
+        self.register_buffer("precond_base_intrinsics", torch.zeros_like(self.base_intrinsics))
         # Undamped Gram Sigma of the last refresh (zero until one computes it; the viewer panel's condition numbers).
         self.register_buffer("gram", torch.zeros_like(eye), persistent=False)
         # Physical camera of each image (0..C-1); one camera per image until ``set_camera_groups`` says otherwise.
@@ -274,6 +284,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.groups_known = False
         self.has_cameras = False
         self._warned_no_pixels = False
+        # (P_old, P_new) of a P recomputed when a checkpoint was loaded: Adam's moments, loaded by nerfstudio after
+        # the pipeline, are mapped with it before the next step (``map_loaded_optimizer_state``).
+        self._pending_state_map: tuple[Preconditioner, Preconditioner] | None = None
 
     # ----------------------------------------------------------------------------------------------------- setup
     @property
@@ -301,7 +314,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
     def set_train_cameras(self, cameras: Cameras) -> None:
         """Store the dataparser's training cameras and compute the initial P (called by the pipeline).
 
-        A checkpoint loaded afterwards overwrites phi_hat, P and P^-1 with the saved ones.
+        A checkpoint loaded afterwards overwrites phi_hat, P and P^-1 with the saved ones; if its P was computed for
+        other base cameras, it is recomputed (see ``_reconcile_with_base_cameras``).
         """
         if cameras.shape[0] != self.num_cameras:
             raise ValueError(f"cameras must hold {self.num_cameras} training cameras, got {cameras.shape[0]}")
@@ -317,6 +331,98 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.has_cameras = True
         if int(self.last_refresh_step) < 0:
             self.refresh(step=0)
+        else:  # a checkpoint was loaded before the cameras were known
+            self._reconcile_with_base_cameras()
+
+    # ---------------------------------------------------------------------------------------------- checkpoints
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ) -> None:
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+        if prefix + "precond" not in state_dict:
+            return  # no saved P (e.g. a checkpoint stripped of the camera optimizer): the current one stands
+        fingerprint = prefix + "precond_base_intrinsics"
+        if fingerprint not in state_dict:  # written before P's cameras were recorded: treat them as unknown
+            missing_keys.remove(fingerprint)
+            self.precond_base_intrinsics.fill_(float("nan"))
+        if self.has_cameras:
+            self._reconcile_with_base_cameras()
+
+    @torch.no_grad()
+    def _reconcile_with_base_cameras(self) -> None:
+        """Make a loaded P valid for the current base cameras; never keep a P computed for other cameras.
+
+        Same base intrinsics (a resumed run): the saved P is the right one and is kept, so the run continues with
+        bit-identical camera parameters. Other base intrinsics (e.g. a warm start resumed with perturbed cameras):
+        the learned deltas phi = P_old^-1 phi_hat are kept, P is recomputed at the current refined intrinsics
+        (base + phi) and the latent re-expressed (``core.preconditioner.reexpress_latent``), as a refresh does;
+        Adam's moments follow at the next training step (``map_loaded_optimizer_state``). If P cannot be computed
+        for these cameras, loading fails with a ValueError saying so.
+        """
+        if torch.equal(self.precond_base_intrinsics, self.base_intrinsics):
+            return
+        if not (self.config.precondition and self.enabled):  # P = I does not depend on the cameras
+            self.precond_base_intrinsics.copy_(self.base_intrinsics)
+            return
+        known = bool(torch.isfinite(self.precond_base_intrinsics).all())
+        change = (
+            f"differ from those its P was computed for (largest change {self._largest_intrinsics_change()})"
+            if known
+            else "are not recorded in it (written by an older version)"
+        )
+        device = self.precond.device
+        try:
+            result = compute_preconditioner(
+                self.refined_intrinsics().detach(), self.layout, self.config.sampling, self.config.damping
+            )
+        except ValueError as error:
+            raise ValueError(
+                f"checkpoint cannot be used with these training cameras: its base intrinsics {change}, and P cannot "
+                f"be recomputed for them: {error}"
+            ) from error
+        old = Preconditioner(
+            matrix=self.precond.clone(), inverse=self.precond_inv.clone(), gram=self.gram.clone(), num_valid=None
+        )
+        new = Preconditioner(
+            matrix=result.matrix.to(device), inverse=result.inverse.to(device), gram=result.gram, num_valid=None
+        )
+        reexpress_latent(self.whitened_delta.data, old, new)
+        self.precond.copy_(new.matrix)
+        self.precond_inv.copy_(new.inverse)
+        self.gram.copy_(result.gram.to(device))
+        self.precond_base_intrinsics.copy_(self.base_intrinsics)
+        self.num_refreshes.add_(1)
+        self._pending_state_map = (old, new)
+        warnings.warn(
+            f"the loaded camera-optimizer state: the training cameras' intrinsics {change}; P recomputed at the "
+            "current refined intrinsics and the whitened deltas re-expressed (the learned camera deltas are kept); "
+            "Adam's moments are mapped before the next step",
+            stacklevel=2,
+        )
+
+    def _largest_intrinsics_change(self) -> str:
+        names = TENSOR_FIELDS  # the columns of base_intrinsics
+        difference = (self.base_intrinsics - self.precond_base_intrinsics).abs()
+        flat = int(difference.argmax())
+        camera, column = divmod(flat, difference.shape[1])
+        return (
+            f"{names[column]} of camera {camera}: {float(self.precond_base_intrinsics[camera, column]):g} -> "
+            f"{float(self.base_intrinsics[camera, column]):g}"
+        )
+
+    @torch.no_grad()
+    def map_loaded_optimizer_state(self, optimizer: torch.optim.Optimizer | None) -> None:
+        """Re-express Adam's loaded moments after P was recomputed on load (nerfstudio loads them after the
+        pipeline, so this runs before the first training step; ``core.preconditioner.reexpress_adam_state``)."""
+        if self._pending_state_map is None or not self.enabled:
+            return
+        old, new = self._pending_state_map
+        self._pending_state_map = None
+        state = optimizer.state.get(self.whitened_delta) if optimizer is not None else None
+        if state:
+            reexpress_adam_state(old, new, state)
 
     def _first_image_of_each_camera(self) -> Tensor:
         index = self.camera_of_image
@@ -594,6 +700,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
             self.precond.copy_(new.matrix)
             self.precond_inv.copy_(new.inverse)
             self.gram.copy_(result.gram.to(device))
+        self.precond_base_intrinsics.copy_(self.base_intrinsics)
         self.last_refresh_step.fill_(step)
         self.num_refreshes.add_(1)
 

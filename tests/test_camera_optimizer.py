@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -125,30 +126,91 @@ def test_precondition_false_uses_raw_deltas():
     )
 
 
-def test_refresh_keeps_cameras_and_transforms_adam_state():
+LR = 1e-4
+HISTORY_COLUMNS = (0, 6, 9, 3)
+
+
+def history_directions(precond: torch.Tensor, dense: bool) -> list[torch.Tensor]:
+    """Loss directions a_t in camera-delta space for the steps before a refresh or a checkpoint.
+
+    Not dense: a_t = P e_k, so that the gradient w.r.t. the latent, P^-1 a_t, has the single nonzero component k;
+    then Adam's second moment has an exact image in any other basis (the case in which the documented mapping of v
+    is exact). Dense: random directions, for which the mapping of v is an approximation.
+    """
+    if dense:
+        generator = torch.Generator().manual_seed(11)
+        return [torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=generator) for _ in HISTORY_COLUMNS]
+    return [precond[:, :, k].clone() for k in HISTORY_COLUMNS]
+
+
+def linear_step(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam, direction: torch.Tensor) -> torch.Tensor:
+    """One Adam step on the loss <direction, phi> (phi = camera deltas); returns how far it moved phi."""
+    before = optimizer.camera_deltas().detach().clone()
+    adam.zero_grad()
+    (optimizer.camera_deltas() * direction).sum().backward()
+    adam.step()
+    return optimizer.camera_deltas().detach() - before
+
+
+def adam_in_basis(precond: torch.Tensor, directions: list[torch.Tensor]) -> tuple[torch.Tensor, dict]:
+    """Reference: torch's Adam on x = P phi from the first step, fed the gradients (by autograd) of the same losses.
+
+    Returns how far its last step moved phi and its state. The losses are linear in phi, so the gradients do not
+    depend on where x is: this is the Adam that would have run had P been ``precond`` all along.
+    """
+    x = torch.zeros(NUM_CAMERAS, 12, dtype=torch.float64, requires_grad=True)
+    adam = torch.optim.Adam([x], lr=LR)
+    p_inv = torch.linalg.inv(precond)
+    for direction in directions:
+        before = x.detach().clone()
+        adam.zero_grad()
+        ((p_inv @ x[..., None])[..., 0] * direction).sum().backward()
+        adam.step()
+    return (p_inv @ (x.detach() - before)[..., None])[..., 0], adam.state[x]
+
+
+def relative(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).norm() / b.norm())
+
+
+def trained_optimizer(dense: bool) -> tuple[S2CampCameraOptimizer, torch.optim.Adam, list[torch.Tensor]]:
+    """An optimizer whose focal length moved enough that a refresh changes P, after four Adam steps."""
     optimizer = make_optimizer()
     set_latent(optimizer, scale=1e-2)
-    with torch.no_grad():  # move the focal length far enough that P changes noticeably
-        optimizer.whitened_delta[:, 6] += 5.0
-    adam = torch.optim.Adam([optimizer.whitened_delta], lr=1e-3)
-    for _ in range(3):
-        adam.zero_grad()
-        bundle = random_ray_bundle()
-        optimizer.apply_to_raybundle(bundle)
-        (bundle.directions.sum() + bundle.origins.sum()).backward()
-        adam.step()
-    before = refined_state(optimizer).detach()
-    p_old = optimizer.precond.clone()
-    m_old = adam.state[optimizer.whitened_delta]["exp_avg"].double().clone()
+    with torch.no_grad():
+        optimizer.whitened_delta[:, 6] += 0.01
+    adam = torch.optim.Adam([optimizer.whitened_delta], lr=LR)
+    history = history_directions(optimizer.precond, dense)
+    for direction in history:
+        linear_step(optimizer, adam, direction)
+    return optimizer, adam, history
+
+
+@pytest.mark.parametrize("dense", [False, True], ids=["single-component-gradients", "dense-gradients"])
+def test_refresh_keeps_cameras_and_the_next_adam_step(dense: bool):
+    """After a refresh the cameras have not moved, and the next Adam step moves them as an Adam that ran in the new
+    basis from the start would: exactly when the documented approximation for v is exact, within 2% otherwise
+    (measured: 1%); and within 20% of the step the run takes without a refresh (measured: 10%; resetting Adam's
+    state instead: 80%-200%). Adam is not invariant to a change of basis, so the last two cannot agree exactly."""
+    optimizer, adam, history = trained_optimizer(dense)
+    without, without_adam = copy.deepcopy((optimizer, adam))
+    before, p_old = refined_state(optimizer).detach(), optimizer.precond.clone()
     optimizer.refresh(step=10, optimizer=adam)
-    after = refined_state(optimizer).detach()
-    assert not torch.allclose(optimizer.precond, p_old)
     assert int(optimizer.last_refresh_step) == 10 and int(optimizer.num_refreshes) == 2
-    torch.testing.assert_close(after, before, atol=1e-6, rtol=1e-6)
-    # First moment: m_new = M^-T m_old = P_new^-1 P_old m_old (P symmetric).
-    expected_m = (optimizer.precond_inv @ p_old @ m_old[..., None])[..., 0]
-    m_new = adam.state[optimizer.whitened_delta]["exp_avg"].double()
-    torch.testing.assert_close(m_new, expected_m, rtol=1e-4, atol=1e-9)
+    assert relative(optimizer.precond, p_old) > 0.03  # P really changed (by about 7%)
+    torch.testing.assert_close(refined_state(optimizer).detach(), before, atol=1e-6, rtol=1e-6)
+    # Adam's moments are those of the reference Adam: m exactly, v exactly for single-component gradients.
+    _, expected_state = adam_in_basis(optimizer.precond, history)
+    state = adam.state[optimizer.whitened_delta]
+    assert int(state["step"]) == len(history)
+    assert relative(state["exp_avg"].double(), expected_state["exp_avg"]) < 1e-5
+    assert relative(state["exp_avg_sq"].double(), expected_state["exp_avg_sq"]) < (0.05 if dense else 1e-5)
+
+    direction = torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    moved = linear_step(optimizer, adam, direction)
+    expected, _ = adam_in_basis(optimizer.precond, [*history, direction])
+    assert relative(moved, expected) < (0.02 if dense else 2e-5)
+    assert relative(moved, linear_step(without, without_adam, direction)) < 0.2
 
 
 def test_refresh_with_invalid_intrinsics_keeps_preconditioner():
