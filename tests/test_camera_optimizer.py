@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import copy
+import io
 import math
+import warnings
 
 import pytest
 import torch
@@ -18,7 +20,7 @@ from s2camp_ns.camera_optimizer import (
     nerfstudio_distortion,
 )
 from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout
-from s2camp_ns.core.preconditioner import SamplingConfig
+from s2camp_ns.core.preconditioner import SamplingConfig, compute_preconditioner
 
 NUM_CAMERAS = 3
 WIDTH, HEIGHT = 64, 48
@@ -250,12 +252,132 @@ def test_checkpoint_round_trip():
     state = optimizer.state_dict()
     assert {"whitened_delta", "precond", "precond_inv", "last_refresh_step", "num_refreshes"} <= set(state)
     assert "base_c2w_cv" not in state  # base cameras come from the dataparser on every run
+    assert torch.equal(state["precond_base_intrinsics"], optimizer.base_intrinsics)  # what P was computed for
 
     restored = make_optimizer()
-    restored.load_state_dict(state)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # same cameras: the saved P is used as is, silently
+        restored.load_state_dict(state)
+    assert torch.equal(restored.precond, optimizer.precond) and torch.equal(restored.precond_inv, optimizer.precond_inv)
     torch.testing.assert_close(refined_state(restored), refined_state(optimizer), atol=0, rtol=0)
     assert int(restored.last_refresh_step) == 20 and int(restored.num_refreshes) == int(optimizer.num_refreshes)
     assert not restored.should_refresh(20)
+
+
+def train(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam, steps: range) -> None:
+    """nerfstudio's order per step: BEFORE callbacks, loss and Adam step, AFTER callbacks (the scheduled refresh)."""
+    for step in steps:
+        optimizer.map_loaded_optimizer_state(adam)
+        adam.zero_grad()
+        bundle = random_ray_bundle(seed=step)
+        optimizer.apply_to_raybundle(bundle)
+        (bundle.directions.square().sum() + bundle.origins.sum()).backward()
+        adam.step()
+        if optimizer.should_refresh(step):
+            optimizer.refresh(step, adam)
+
+
+def checkpoint(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam) -> dict:
+    """Both state dicts through torch.save / torch.load, as nerfstudio's checkpoints go."""
+    buffer = io.BytesIO()
+    torch.save({"pipeline": optimizer.state_dict(), "optimizer": adam.state_dict()}, buffer)
+    buffer.seek(0)
+    return torch.load(buffer)
+
+
+def resume(state: dict, cameras: Cameras) -> tuple[S2CampCameraOptimizer, torch.optim.Adam]:
+    """A new process: cameras from the dataparser first (P computed for them), then the checkpoint, then Adam's."""
+    optimizer = make_optimizer(cameras)
+    optimizer.load_state_dict(state["pipeline"])
+    adam = torch.optim.Adam([optimizer.whitened_delta], lr=LR)
+    adam.load_state_dict(state["optimizer"])
+    return optimizer, adam
+
+
+def test_interrupted_run_continues_bit_identically():
+    """Stopped at step 15 (after the refresh at 10, before the one at 20) and resumed in new objects: the camera
+    parameters, P and Adam's state after step 25 are bit-identical to those of the uninterrupted run."""
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    uninterrupted = make_optimizer(cameras)
+    adam = torch.optim.Adam([uninterrupted.whitened_delta], lr=LR)
+    train(uninterrupted, adam, range(1, 26))
+
+    first = make_optimizer(cameras)
+    first_adam = torch.optim.Adam([first.whitened_delta], lr=LR)
+    train(first, first_adam, range(1, 16))
+    resumed, resumed_adam = resume(checkpoint(first, first_adam), cameras)
+    train(resumed, resumed_adam, range(16, 26))
+
+    assert int(resumed.num_refreshes) == int(uninterrupted.num_refreshes) == 3  # steps 0, 10, 20
+    assert torch.equal(resumed.whitened_delta, uninterrupted.whitened_delta)
+    assert torch.equal(resumed.precond, uninterrupted.precond)
+    assert torch.equal(refined_state(resumed), refined_state(uninterrupted))
+    for key in ("exp_avg", "exp_avg_sq"):
+        assert torch.equal(
+            resumed_adam.state[resumed.whitened_delta][key], adam.state[uninterrupted.whitened_delta][key]
+        )
+    assert not torch.equal(uninterrupted.whitened_delta, first.whitened_delta)  # the last ten steps did move
+
+
+def other_base_cameras() -> Cameras:
+    """The training cameras of ``make_optimizer`` with focal lengths 5% larger and principal points moved."""
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    cameras.fx, cameras.fy, cameras.cx = cameras.fx * 1.05, cameras.fy * 1.05, cameras.cx + 1.5
+    return cameras
+
+
+def test_checkpoint_on_other_base_cameras_recomputes_p_and_maps_adam_state():
+    """A warm start resumed with perturbed cameras (what `make demo` does): the saved P was computed for the old
+    intrinsics. It is recomputed for the new ones, the learned deltas are kept, and Adam's moments become those of
+    an Adam that ran in the new basis from the start."""
+    saved, saved_adam, history = trained_optimizer(dense=False)
+    state = checkpoint(saved, saved_adam)
+    deltas = saved.camera_deltas().detach()
+
+    with pytest.warns(UserWarning, match=r"intrinsics differ from those its P was computed for \(largest change fx"):
+        resumed, adam = resume(state, other_base_cameras())
+    torch.testing.assert_close(resumed.camera_deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
+    expected = compute_preconditioner(
+        resumed.base_intrinsics_struct().with_delta(deltas),
+        resumed.layout,
+        resumed.config.sampling,
+        resumed.config.damping,
+    )
+    torch.testing.assert_close(resumed.precond, expected.matrix, rtol=1e-12, atol=0)
+    assert relative(resumed.precond, saved.precond) > 0.01  # the stale P would have been this far off
+    assert torch.equal(resumed.precond_base_intrinsics, resumed.base_intrinsics)
+
+    # nerfstudio loads Adam's state after the pipeline; the first training step maps it (once).
+    direction = torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    resumed.map_loaded_optimizer_state(adam)
+    _, expected_state = adam_in_basis(resumed.precond, history)
+    state = adam.state[resumed.whitened_delta]
+    assert relative(state["exp_avg"].double(), expected_state["exp_avg"]) < 1e-5
+    assert relative(state["exp_avg_sq"].double(), expected_state["exp_avg_sq"]) < 1e-5
+    resumed.map_loaded_optimizer_state(adam)  # nothing left to map
+    moved = linear_step(resumed, adam, direction)
+    assert relative(moved, adam_in_basis(resumed.precond, [*history, direction])[0]) < 2e-5
+
+
+def test_checkpoint_without_recorded_cameras_recomputes_p():
+    """Checkpoints written before the base intrinsics were saved: P is recomputed rather than trusted."""
+    saved, saved_adam, _ = trained_optimizer(dense=False)
+    state = checkpoint(saved, saved_adam)
+    del state["pipeline"]["precond_base_intrinsics"]
+    with pytest.warns(UserWarning, match="are not recorded in it"):
+        resumed, _ = resume(state, make_cameras(k1=-0.05, k2=0.01))
+    torch.testing.assert_close(resumed.camera_deltas(), saved.camera_deltas(), rtol=1e-6, atol=1e-9)
+    assert torch.equal(resumed.precond_base_intrinsics, resumed.base_intrinsics)
+
+
+def test_checkpoint_that_cannot_fit_the_cameras_is_refused():
+    """Learned deltas whose k1 folds the distortion inside the image of the new cameras: no P exists for them."""
+    saved = make_optimizer()
+    with torch.no_grad():
+        saved.whitened_delta.copy_((saved.precond @ torch.eye(12, dtype=torch.float64)[10] * -5.0).float())
+    optimizer = make_optimizer(other_base_cameras())
+    with pytest.raises(ValueError, match=r"checkpoint cannot be used with these training cameras: .*non-monotonic"):
+        optimizer.load_state_dict(saved.state_dict())
 
 
 def test_viewer_correction_matches_refined_pose():
