@@ -119,6 +119,8 @@ def test_training_finishes_and_writes_checkpoints(runs: Runs):
     assert (runs.warm_start_dir / "nerfstudio_models" / f"step-{WARM_START - 1:09d}.ckpt").is_file()
     # The perturbed run resumes from the warm start: its steps continue from there.
     assert runs.refine.stdout.count("Done loading Nerfstudio checkpoint") == 1, runs.refine.stdout[-3000:]
+    # The warm start's P was computed for the unperturbed intrinsics: it is recomputed, not reused (safe resume).
+    assert "intrinsics differ from those its P was computed for" in runs.refine.stdout + runs.refine.stderr
     checkpoints = sorted((runs.refine_dir / "nerfstudio_models").glob("step-*.ckpt"))
     assert [c.name for c in checkpoints] == [f"step-{WARM_START + ITERATIONS - 1:09d}.ckpt"]
     assert (runs.refine_dir / "config.yml").is_file()
@@ -236,6 +238,54 @@ def test_export_cameras_writes_a_colmap_model(runs: Runs, tmp_path: Path):
     assert errors["pos_err_max"] < 0.1 * ring_radius, errors
     assert errors["rot_err_max"] < 0.05, errors
     assert errors["focal_err_max"] < 0.1 * info["camera"]["fx"], errors
+    _assert_exported_poses_follow_the_checkpoint_twist(runs.refine_dir, reconstruction)
+
+
+def _twist_matrix(xi: np.ndarray) -> np.ndarray:
+    """4x4 matrix of the twist xi = (rho, omega) in se(3) (``core.camera.se3_exp``'s order)."""
+    rho, (wx, wy, wz) = xi[:3], xi[3:]
+    return np.array([[0.0, -wz, wy, rho[0]], [wz, 0.0, -wx, rho[1]], [-wy, wx, 0.0, rho[2]], [0.0, 0.0, 0.0, 0.0]])
+
+
+def _assert_exported_poses_follow_the_checkpoint_twist(run_dir: Path, reconstruction) -> None:
+    """Each exported pose is the perturbed start pose moved by the local twist of the final checkpoint,
+    c2w' = c2w expm(xi) with xi = (P^-1 phi_hat)[:6] (paper eq. 15; the camera optimizer's documented convention),
+    exponentiated here with scipy's matrix exponential. The twists are of the order of 0.01 after this run and the
+    tolerance 1e-5 (float32 cameras), so a twist applied with the wrong sign (c2w exp(-xi)) fails by 2 |xi|, which
+    the comparison with the true cameras above (tolerance 0.05 rad, 10x the perturbation) cannot see."""
+    import yaml
+    from scipy.linalg import expm
+
+    from s2camp_ns.nerfstudio.export_cameras import export_cameras, reconstruction_to_arrays
+
+    config = yaml.load((run_dir / "config.yml").read_text(), Loader=yaml.Loader)
+    dataparser = config.pipeline.datamanager.dataparser
+    dataparser.data = config.pipeline.datamanager.data
+    start = dataparser.setup().get_dataparser_outputs("train")  # the perturbed cameras the run started from
+    names = start.metadata["image_names"]
+    start_model = export_cameras(
+        start.cameras, start.dataparser_transform, start.dataparser_scale, names, start.metadata["full_image_size"]
+    )
+    start_arrays, refined_arrays = reconstruction_to_arrays(start_model), reconstruction_to_arrays(reconstruction)
+    (checkpoint,) = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
+    state = torch.load(checkpoint, map_location="cpu")["pipeline"]
+    latent = state["_model.camera_optimizer.whitened_delta"].double()
+    twists = (state["_model.camera_optimizer.precond_inv"] @ latent[..., None])[..., 0][:, :6].numpy()
+    assert np.abs(twists[:, 3:]).max() > 1e-3  # the rotations moved well beyond the tolerance below
+
+    def homogeneous(c2w: np.ndarray) -> np.ndarray:
+        return np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
+
+    scale = float(start.dataparser_scale)
+    for i, name in enumerate(names):
+        before = homogeneous(start_arrays["c2w"][start_arrays["names"].index(name)])
+        after = homogeneous(refined_arrays["c2w"][refined_arrays["names"].index(name)])
+        motion = np.linalg.inv(before) @ after  # in the camera frame; translation in the input model's units
+        expected = expm(_twist_matrix(twists[i]))
+        np.testing.assert_allclose(motion[:3, :3], expected[:3, :3], atol=1e-5, rtol=0, err_msg=f"rotation of {name}")
+        np.testing.assert_allclose(
+            motion[:3, 3] * scale, expected[:3, 3], atol=1e-5, rtol=0, err_msg=f"translation of {name}"
+        )
 
 
 @pytest.mark.timeout(720)

@@ -1,7 +1,9 @@
-"""Atomic checkpoints: a save that fails or is killed midway never replaces the last good checkpoint."""
+"""Atomic checkpoints: a save that fails or is killed midway never replaces the last good checkpoint; resuming
+restores the random state."""
 
 from __future__ import annotations
 
+import random
 import signal
 import subprocess
 import sys
@@ -9,9 +11,11 @@ import textwrap
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 from nerfstudio.configs.base_config import MachineConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig, Optimizers
 from nerfstudio.utils.eval_utils import eval_load_checkpoint
 
 from s2camp_ns.nerfstudio import trainer as trainer_module
@@ -38,8 +42,8 @@ def make_trainer(output_dir: Path) -> S2CampTrainer:
     trainer = config.setup()
     assert isinstance(trainer, S2CampTrainer)
     trainer.pipeline = TinyPipeline()
-    adam = torch.optim.Adam(trainer.pipeline.parameters(), lr=0.1)
-    trainer.optimizers = SimpleNamespace(optimizers={"fields": adam}, schedulers={})
+    optimizer_config = {"fields": {"optimizer": AdamOptimizerConfig(lr=0.1), "scheduler": None}}
+    trainer.optimizers = Optimizers(optimizer_config, {"fields": list(trainer.pipeline.parameters())})
     return trainer
 
 
@@ -74,7 +78,14 @@ def test_checkpoint_holds_the_state_and_replaces_older_ones(tmp_path: Path):
     trainer.save_checkpoint(20)
     assert_latest_checkpoint_is(trainer.checkpoint_dir, 20, snapshot(trainer))
     state = torch.load(trainer.checkpoint_dir / "step-000000020.ckpt", map_location="cpu")
-    assert state["step"] == 20 and set(state) == {"step", "pipeline", "optimizers", "schedulers", "scalers"}
+    assert state["step"] == 20 and set(state) == {
+        "step",
+        "pipeline",
+        "optimizers",
+        "schedulers",
+        "scalers",
+        "random_state",
+    }
     adam_state = state["optimizers"]["fields"]["state"]
     assert int(adam_state[0]["step"]) == 2  # Adam's moments after two steps, saved with the weights
     assert not list(partial_dir(trainer.checkpoint_dir).iterdir())
@@ -138,3 +149,36 @@ def test_killed_write_keeps_the_previous_checkpoint(tmp_path: Path):
     trainer = make_trainer(tmp_path)
     trainer.save_checkpoint(30)
     assert not list(partial_dir(checkpoint_dir).iterdir())
+
+
+def test_resume_restores_weights_adam_step_and_random_state(tmp_path: Path):
+    """--load-dir: the highest step-N.ckpt is loaded (other files ignored), training continues at N + 1 with the
+    weights, Adam's state and the random generators' state of the save, so its next draws are the ones the
+    uninterrupted run makes."""
+    torch.manual_seed(0)
+    np.random.seed(0)  # noqa: NPY002 (the global generator nerfstudio seeds)
+    random.seed(0)
+    trainer = make_trainer(tmp_path)
+    train_step(trainer)
+    trainer.save_checkpoint(10)
+    train_step(trainer)
+    trainer.save_checkpoint(20)
+    weights = snapshot(trainer)
+    adam_state = {k: v.clone() for k, v in trainer.optimizers.optimizers["fields"].state_dict()["state"][0].items()}
+    uninterrupted_draws = (torch.rand(4), np.random.rand(4), random.random())  # noqa: NPY002
+    (trainer.checkpoint_dir / "notes.txt").write_text("not a checkpoint")
+
+    torch.manual_seed(123)  # a new process seeds afresh (nerfstudio's train.py)
+    np.random.seed(123)  # noqa: NPY002
+    random.seed(123)
+    resumed = make_trainer(tmp_path / "other")
+    resumed.config.load_dir = trainer.checkpoint_dir
+    resumed._load_checkpoint()
+    assert resumed._start_step == 21
+    for name, value in weights.items():
+        assert torch.equal(resumed.pipeline.state_dict()[name], value), name
+    loaded_adam = resumed.optimizers.optimizers["fields"].state_dict()["state"][0]
+    assert all(torch.equal(loaded_adam[k], v) for k, v in adam_state.items())
+    draws = (torch.rand(4), np.random.rand(4), random.random())  # noqa: NPY002
+    assert torch.equal(draws[0], uninterrupted_draws[0])
+    assert np.array_equal(draws[1], uninterrupted_draws[1]) and draws[2] == uninterrupted_draws[2]
