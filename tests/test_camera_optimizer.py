@@ -19,8 +19,9 @@ from s2camp_ns.camera_optimizer import (
     intrinsics_from_cameras,
     nerfstudio_distortion,
 )
-from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout
-from s2camp_ns.core.preconditioner import SamplingConfig, compute_preconditioner
+from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout, project
+from s2camp_ns.core.jacobian import projection_jacobian
+from s2camp_ns.core.preconditioner import SamplingConfig, compute_preconditioner, sample_proxy_points
 
 NUM_CAMERAS = 3
 WIDTH, HEIGHT = 64, 48
@@ -213,6 +214,39 @@ def test_refresh_keeps_cameras_and_the_next_adam_step(dense: bool):
     expected, _ = adam_in_basis(optimizer.precond, [*history, direction])
     assert relative(moved, expected) < (0.02 if dense else 2e-5)
     assert relative(moved, linear_step(without, without_adam, direction)) < 0.2
+
+
+def test_preconditioner_whitens_the_camera_the_optimizer_renders():
+    """P is computed from the core's analytic Jacobian of the projections w.r.t. (twist, intrinsics) (paper eq. 4).
+    Differentiating, by autograd, the projections of fixed world points through the optimizer's own refined camera
+    w.r.t. its latent gives J P^-1: the optimizer applies the parameters P was computed for, with the same signs.
+    A twist applied as exp(-xi), or any other column out of step with the core, breaks this (and the whitening)."""
+    optimizer = make_optimizer()
+    base = optimizer.refined_intrinsics().detach()
+    points_cam = sample_proxy_points(base, SamplingConfig(num_points=8, sampler="camp-random"))
+    _, analytic, _ = projection_jacobian(points_cam, base)  # [n, l, 2, 12]
+    c2w = optimizer.base_c2w_cv
+    world = (c2w[:, None, :, :3] @ points_cam[..., None])[..., 0] + c2w[:, None, :, 3]
+
+    def pixels() -> torch.Tensor:
+        refined = optimizer.refined_c2w()
+        rotation, centre = refined[:, None, :, :3], refined[:, None, :, 3]
+        in_camera = (rotation.transpose(-1, -2) @ (world - centre)[..., None])[..., 0]
+        return project(in_camera, optimizer.refined_intrinsics())[0]
+
+    flat = pixels().reshape(-1)
+    rows = []
+    for i in range(flat.numel()):
+        (gradient,) = torch.autograd.grad(pixels().reshape(-1)[i], optimizer.whitened_delta)
+        rows.append(gradient.double())
+    latent_jacobian = torch.stack(rows).reshape(*flat.shape, NUM_CAMERAS, 12)
+    camera = torch.arange(flat.numel()) // (flat.numel() // NUM_CAMERAS)
+    autograd = latent_jacobian[torch.arange(flat.numel()), camera].reshape(analytic.shape[:-1] + (12,))
+    # d pixels / d phi_hat = J P^-1; compared as (d pixels / d phi_hat) P = J, away from P^-1's large entries
+    # (the latent is float32, so its gradients carry float32 rounding)
+    scale = float(analytic.abs().amax())
+    torch.testing.assert_close(autograd @ optimizer.precond[:, None], analytic, rtol=0, atol=1e-6 * scale)
+    assert analytic[..., :6].abs().amax() > 1.0  # the pose columns are not trivially zero
 
 
 def test_refresh_with_invalid_intrinsics_keeps_preconditioner():
