@@ -25,7 +25,8 @@ latent so the camera does not move (phi_hat_new = P_new P_old^-1 phi_hat_old) an
 
 Checkpoints hold phi_hat, P, P^-1, the refresh schedule and the base intrinsics P was computed for. Resuming on the
 same cameras continues bit-identically; loading onto other base cameras (a warm start resumed with perturbed
-cameras) recomputes P and re-expresses the latent and Adam's moments instead of using a stale P.
+cameras) recomputes P and re-expresses the latent and Adam's moments before the next step instead of using a
+stale P.
 """
 
 from __future__ import annotations
@@ -56,7 +57,6 @@ from s2camp_ns.core.preconditioner import (
     Preconditioner,
     SamplingConfig,
     compute_preconditioner,
-    reexpress_adam_state,
     reexpress_latent,
 )
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS, compute_shared_preconditioner, reexpress_shared_latents
@@ -274,7 +274,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 13, dtype=torch.float64), persistent=False)
         self.projection = "perspective"
         # The base intrinsics of the run that computed P, saved with P: a checkpoint loaded onto other base cameras
-        # is detected and P recomputed (``_reconcile_with_base_cameras``) instead of silently reused. P depends on
+        # is detected and P recomputed (``_check_base_cameras``) instead of silently reused. P depends on
         # the intrinsics only (the Jacobian is taken in the camera frame), so the base poses need no record.
         self.register_buffer("precond_base_intrinsics", torch.zeros_like(self.base_intrinsics))
         # Undamped Gram Sigma of the last refresh (zero until one computes it; the viewer panel's condition numbers).
@@ -284,9 +284,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.groups_known = False
         self.has_cameras = False
         self._warned_no_pixels = False
-        # (P_old, P_new) of a P recomputed when a checkpoint was loaded: Adam's moments, loaded by nerfstudio after
-        # the pipeline, are mapped with it before the next step (``map_loaded_optimizer_state``).
-        self._pending_state_map: tuple[Preconditioner, Preconditioner] | None = None
+        # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
+        # step (``recompute_stale_preconditioner``), once Adam's moments are loaded too.
+        self._stale_preconditioner: str | None = None
 
     # ----------------------------------------------------------------------------------------------------- setup
     @property
@@ -315,7 +315,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         """Store the dataparser's training cameras and compute the initial P (called by the pipeline).
 
         A checkpoint loaded afterwards overwrites phi_hat, P and P^-1 with the saved ones; if its P was computed for
-        other base cameras, it is recomputed (see ``_reconcile_with_base_cameras``).
+        other base cameras, it is recomputed before the next training step (see ``_check_base_cameras``).
         """
         if cameras.shape[0] != self.num_cameras:
             raise ValueError(f"cameras must hold {self.num_cameras} training cameras, got {cameras.shape[0]}")
@@ -332,7 +332,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         if int(self.last_refresh_step) < 0:
             self.refresh(step=0)
         else:  # a checkpoint was loaded before the cameras were known
-            self._reconcile_with_base_cameras()
+            self._check_base_cameras()
 
     # ---------------------------------------------------------------------------------------------- checkpoints
     def _load_from_state_dict(
@@ -348,57 +348,34 @@ class S2CampCameraOptimizer(CameraOptimizer):
             missing_keys.remove(fingerprint)
             self.precond_base_intrinsics.fill_(float("nan"))
         if self.has_cameras:
-            self._reconcile_with_base_cameras()
+            self._check_base_cameras()
 
-    @torch.no_grad()
-    def _reconcile_with_base_cameras(self) -> None:
-        """Make a loaded P valid for the current base cameras; never keep a P computed for other cameras.
+    def _check_base_cameras(self) -> None:
+        """Flag a loaded P that was computed for other base intrinsics; it is never used for a training step.
 
         Same base intrinsics (a resumed run): the saved P is the right one and is kept, so the run continues with
         bit-identical camera parameters. Other base intrinsics (e.g. a warm start resumed with perturbed cameras):
-        the learned deltas phi = P_old^-1 phi_hat are kept, P is recomputed at the current refined intrinsics
-        (base + phi) and the latent re-expressed (``core.preconditioner.reexpress_latent``), as a refresh does;
-        Adam's moments follow at the next training step (``map_loaded_optimizer_state``). If P cannot be computed
-        for these cameras, loading fails with a ValueError saying so.
+        the cameras themselves are right (phi = P_old^-1 phi_hat is what was learned), but P does not whiten their
+        Jacobian. Before the next training step, ``recompute_stale_preconditioner`` recomputes P at the current
+        refined intrinsics and re-expresses the latents and Adam's moments, as a refresh does (nerfstudio loads
+        Adam's state after the pipeline, so this cannot happen at load time). P depends on the intrinsics only.
         """
+        self._stale_preconditioner = None
         if torch.equal(self.precond_base_intrinsics, self.base_intrinsics):
             return
         if not (self.config.precondition and self.enabled):  # P = I does not depend on the cameras
             self.precond_base_intrinsics.copy_(self.base_intrinsics)
             return
-        known = bool(torch.isfinite(self.precond_base_intrinsics).all())
-        change = (
-            f"differ from those its P was computed for (largest change {self._largest_intrinsics_change()})"
-            if known
-            else "are not recorded in it (written by an older version)"
-        )
-        device = self.precond.device
-        try:
-            result = compute_preconditioner(
-                self.refined_intrinsics().detach(), self.layout, self.config.sampling, self.config.damping
+        if bool(torch.isfinite(self.precond_base_intrinsics).all()):
+            self._stale_preconditioner = (
+                f"the training cameras' intrinsics differ from those its P was computed for (largest change "
+                f"{self._largest_intrinsics_change()})"
             )
-        except ValueError as error:
-            raise ValueError(
-                f"checkpoint cannot be used with these training cameras: its base intrinsics {change}, and P cannot "
-                f"be recomputed for them: {error}"
-            ) from error
-        old = Preconditioner(
-            matrix=self.precond.clone(), inverse=self.precond_inv.clone(), gram=self.gram.clone(), num_valid=None
-        )
-        new = Preconditioner(
-            matrix=result.matrix.to(device), inverse=result.inverse.to(device), gram=result.gram, num_valid=None
-        )
-        reexpress_latent(self.whitened_delta.data, old, new)
-        self.precond.copy_(new.matrix)
-        self.precond_inv.copy_(new.inverse)
-        self.gram.copy_(result.gram.to(device))
-        self.precond_base_intrinsics.copy_(self.base_intrinsics)
-        self.num_refreshes.add_(1)
-        self._pending_state_map = (old, new)
+        else:
+            self._stale_preconditioner = "the intrinsics its P was computed for are not recorded (an older checkpoint)"
         warnings.warn(
-            f"the loaded camera-optimizer state: the training cameras' intrinsics {change}; P recomputed at the "
-            "current refined intrinsics and the whitened deltas re-expressed (the learned camera deltas are kept); "
-            "Adam's moments are mapped before the next step",
+            f"loaded camera-optimizer state: {self._stale_preconditioner}; P is recomputed for these cameras before "
+            "the next training step, the latent and Adam's moments re-expressed (the learned camera deltas are kept)",
             stacklevel=2,
         )
 
@@ -412,17 +389,28 @@ class S2CampCameraOptimizer(CameraOptimizer):
             f"{float(self.base_intrinsics[camera, column]):g}"
         )
 
+    @property
+    def preconditioner_is_stale(self) -> bool:
+        """True between loading a checkpoint whose P was computed for other cameras and the next training step."""
+        return self._stale_preconditioner is not None
+
     @torch.no_grad()
-    def map_loaded_optimizer_state(self, optimizer: torch.optim.Optimizer | None) -> None:
-        """Re-express Adam's loaded moments after P was recomputed on load (nerfstudio loads them after the
-        pipeline, so this runs before the first training step; ``core.preconditioner.reexpress_adam_state``)."""
-        if self._pending_state_map is None or not self.enabled:
+    def recompute_stale_preconditioner(self, step: int, optimizer: torch.optim.Optimizer | None) -> None:
+        """Before a training step (the model's callback): if the loaded P was computed for other cameras, recompute
+        it at the current refined intrinsics and re-express the latents and Adam's (loaded) moments, exactly as a
+        refresh does. Raises ValueError, naming why, if no P exists for these cameras: a stale P is never used."""
+        if self._stale_preconditioner is None:
             return
-        old, new = self._pending_state_map
-        self._pending_state_map = None
-        state = optimizer.state.get(self.whitened_delta) if optimizer is not None else None
-        if state:
-            reexpress_adam_state(old, new, state)
+        reason, self._stale_preconditioner = self._stale_preconditioner, None
+        try:
+            self._recompute_preconditioner(optimizer)
+        except ValueError as error:
+            raise ValueError(
+                f"checkpoint cannot be used with these training cameras: {reason}, and P cannot be recomputed for "
+                f"them: {error}"
+            ) from error
+        self.last_refresh_step.fill_(step)
+        self.num_refreshes.add_(1)
 
     def _first_image_of_each_camera(self) -> Tensor:
         index = self.camera_of_image
@@ -679,17 +667,25 @@ class S2CampCameraOptimizer(CameraOptimizer):
         says why, so a refresh never stops training.
         """
         self._require_cameras()
+        try:
+            self._recompute_preconditioner(optimizer)
+        except ValueError as error:
+            warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
+            return
+        self._stale_preconditioner = None
+        self.last_refresh_step.fill_(step)
+        self.num_refreshes.add_(1)
+
+    @torch.no_grad()
+    def _recompute_preconditioner(self, optimizer: torch.optim.Optimizer | None) -> None:
+        """P at the current refined intrinsics, the latents and Adam's moments re-expressed so that no camera moves;
+        ValueError (nothing changed) if the refined intrinsics admit no P."""
         if self.config.precondition and self.enabled and self.shared:
-            if not self._refresh_shared(step, optimizer):
-                return
+            self._recompute_shared(optimizer)
         elif self.config.precondition and self.enabled:
             device = self.precond.device
             intrinsics = self.refined_intrinsics().detach()
-            try:
-                result = compute_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
-            except ValueError as error:
-                warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
-                return
+            result = compute_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
             old = Preconditioner(matrix=self.precond, inverse=self.precond_inv, gram=self.gram, num_valid=None)
             new = Preconditioner(
                 matrix=result.matrix.to(device), inverse=result.inverse.to(device), gram=result.gram, num_valid=None
@@ -701,21 +697,14 @@ class S2CampCameraOptimizer(CameraOptimizer):
             self.precond_inv.copy_(new.inverse)
             self.gram.copy_(result.gram.to(device))
         self.precond_base_intrinsics.copy_(self.base_intrinsics)
-        self.last_refresh_step.fill_(step)
-        self.num_refreshes.add_(1)
 
-    @torch.no_grad()
-    def _refresh_shared(self, step: int, optimizer: torch.optim.Optimizer | None) -> bool:
-        """The shared-intrinsics refresh: T per physical camera from its refined intrinsics, latents re-expressed
-        without moving any camera (``core.shared_intrinsics``). False if the refresh had to be skipped."""
+    def _recompute_shared(self, optimizer: torch.optim.Optimizer | None) -> None:
+        """The shared-intrinsics recomputation: T per physical camera from its refined intrinsics, latents
+        re-expressed without moving any camera (``core.shared_intrinsics``); ValueError if no T exists."""
         device = self.precond.device
         first = self._first_image_of_each_camera()
         intrinsics = self.refined_intrinsics().detach()[first]
-        try:
-            result = compute_shared_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
-        except ValueError as error:
-            warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
-            return False
+        result = compute_shared_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
         matrix, inverse = result.matrix.to(device), result.inverse.to(device)
         states = [None, None]
         if optimizer is not None:
@@ -727,7 +716,6 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.precond.copy_(matrix[self.camera_of_image])
         self.precond_inv.copy_(inverse[self.camera_of_image])
         self.gram.copy_(result.gram.to(device)[self.camera_of_image])
-        return True
 
     def should_refresh(self, step: int) -> bool:
         every = self.config.refresh_every

@@ -22,6 +22,7 @@ from s2camp_ns.camera_optimizer import (
 from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout, project
 from s2camp_ns.core.jacobian import projection_jacobian
 from s2camp_ns.core.preconditioner import SamplingConfig, compute_preconditioner, sample_proxy_points
+from s2camp_ns.core.shared_intrinsics import compute_shared_preconditioner
 
 NUM_CAMERAS = 3
 WIDTH, HEIGHT = 64, 48
@@ -298,10 +299,16 @@ def test_checkpoint_round_trip():
     assert not restored.should_refresh(20)
 
 
+def latents(optimizer: S2CampCameraOptimizer) -> list[torch.nn.Parameter]:
+    """The optimizer's trainable latents: per image, or per image (pose) and per physical camera (intrinsics)."""
+    return [optimizer.whitened_delta, *([optimizer.whitened_intrinsics] if optimizer.shared else [])]
+
+
 def train(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam, steps: range) -> None:
-    """nerfstudio's order per step: BEFORE callbacks, loss and Adam step, AFTER callbacks (the scheduled refresh)."""
+    """nerfstudio's order per step: BEFORE callbacks (the model's stale-P check), loss and Adam step, AFTER callbacks
+    (the scheduled refresh)."""
     for step in steps:
-        optimizer.map_loaded_optimizer_state(adam)
+        optimizer.recompute_stale_preconditioner(step, adam)
         adam.zero_grad()
         bundle = random_ray_bundle(seed=step)
         optimizer.apply_to_raybundle(bundle)
@@ -319,37 +326,39 @@ def checkpoint(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam) -> dict
     return torch.load(buffer)
 
 
-def resume(state: dict, cameras: Cameras) -> tuple[S2CampCameraOptimizer, torch.optim.Adam]:
+def resume(state: dict, cameras: Cameras, **overrides) -> tuple[S2CampCameraOptimizer, torch.optim.Adam]:
     """A new process: cameras from the dataparser first (P computed for them), then the checkpoint, then Adam's."""
-    optimizer = make_optimizer(cameras)
+    optimizer = make_optimizer(cameras, **overrides)
     optimizer.load_state_dict(state["pipeline"])
-    adam = torch.optim.Adam([optimizer.whitened_delta], lr=LR)
+    adam = torch.optim.Adam(latents(optimizer), lr=LR)
     adam.load_state_dict(state["optimizer"])
     return optimizer, adam
 
 
-def test_interrupted_run_continues_bit_identically():
+@pytest.mark.parametrize("intrinsics", ["per-image", "per-camera"])
+def test_interrupted_run_continues_bit_identically(intrinsics: str):
     """Stopped at step 15 (after the refresh at 10, before the one at 20) and resumed in new objects: the camera
     parameters, P and Adam's state after step 25 are bit-identical to those of the uninterrupted run."""
     cameras = make_cameras(k1=-0.05, k2=0.01)
-    uninterrupted = make_optimizer(cameras)
-    adam = torch.optim.Adam([uninterrupted.whitened_delta], lr=LR)
+    uninterrupted = make_optimizer(cameras, intrinsics=intrinsics)
+    adam = torch.optim.Adam(latents(uninterrupted), lr=LR)
     train(uninterrupted, adam, range(1, 26))
 
-    first = make_optimizer(cameras)
-    first_adam = torch.optim.Adam([first.whitened_delta], lr=LR)
+    first = make_optimizer(cameras, intrinsics=intrinsics)
+    first_adam = torch.optim.Adam(latents(first), lr=LR)
     train(first, first_adam, range(1, 16))
-    resumed, resumed_adam = resume(checkpoint(first, first_adam), cameras)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # same cameras: nothing to recompute, nothing to say
+        resumed, resumed_adam = resume(checkpoint(first, first_adam), cameras, intrinsics=intrinsics)
     train(resumed, resumed_adam, range(16, 26))
 
     assert int(resumed.num_refreshes) == int(uninterrupted.num_refreshes) == 3  # steps 0, 10, 20
-    assert torch.equal(resumed.whitened_delta, uninterrupted.whitened_delta)
+    for mine, reference in zip(latents(resumed), latents(uninterrupted), strict=True):
+        assert torch.equal(mine, reference)
+        for key in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(resumed_adam.state[mine][key], adam.state[reference][key])
     assert torch.equal(resumed.precond, uninterrupted.precond)
     assert torch.equal(refined_state(resumed), refined_state(uninterrupted))
-    for key in ("exp_avg", "exp_avg_sq"):
-        assert torch.equal(
-            resumed_adam.state[resumed.whitened_delta][key], adam.state[uninterrupted.whitened_delta][key]
-        )
     assert not torch.equal(uninterrupted.whitened_delta, first.whitened_delta)  # the last ten steps did move
 
 
@@ -362,14 +371,17 @@ def other_base_cameras() -> Cameras:
 
 def test_checkpoint_on_other_base_cameras_recomputes_p_and_maps_adam_state():
     """A warm start resumed with perturbed cameras (what `make demo` does): the saved P was computed for the old
-    intrinsics. It is recomputed for the new ones, the learned deltas are kept, and Adam's moments become those of
-    an Adam that ran in the new basis from the start."""
+    intrinsics. Loading says so; before the first step P is recomputed for the new ones, the learned deltas are
+    kept, and Adam's moments become those of an Adam that ran in the new basis from the start."""
     saved, saved_adam, history = trained_optimizer(dense=False)
     state = checkpoint(saved, saved_adam)
     deltas = saved.camera_deltas().detach()
 
     with pytest.warns(UserWarning, match=r"intrinsics differ from those its P was computed for \(largest change fx"):
         resumed, adam = resume(state, other_base_cameras())
+    assert resumed.preconditioner_is_stale
+    resumed.recompute_stale_preconditioner(step=30, optimizer=adam)  # the model's callback before the first step
+    assert not resumed.preconditioner_is_stale and int(resumed.last_refresh_step) == 30
     torch.testing.assert_close(resumed.camera_deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
     expected = compute_preconditioner(
         resumed.base_intrinsics_struct().with_delta(deltas),
@@ -377,20 +389,37 @@ def test_checkpoint_on_other_base_cameras_recomputes_p_and_maps_adam_state():
         resumed.config.sampling,
         resumed.config.damping,
     )
-    torch.testing.assert_close(resumed.precond, expected.matrix, rtol=1e-12, atol=0)
+    torch.testing.assert_close(resumed.precond, expected.matrix, rtol=1e-9, atol=0)
     assert relative(resumed.precond, saved.precond) > 0.01  # the stale P would have been this far off
     assert torch.equal(resumed.precond_base_intrinsics, resumed.base_intrinsics)
-
-    # nerfstudio loads Adam's state after the pipeline; the first training step maps it (once).
-    direction = torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
-    resumed.map_loaded_optimizer_state(adam)
     _, expected_state = adam_in_basis(resumed.precond, history)
-    state = adam.state[resumed.whitened_delta]
-    assert relative(state["exp_avg"].double(), expected_state["exp_avg"]) < 1e-5
-    assert relative(state["exp_avg_sq"].double(), expected_state["exp_avg_sq"]) < 1e-5
-    resumed.map_loaded_optimizer_state(adam)  # nothing left to map
+    adam_state = adam.state[resumed.whitened_delta]
+    assert relative(adam_state["exp_avg"].double(), expected_state["exp_avg"]) < 1e-5
+    assert relative(adam_state["exp_avg_sq"].double(), expected_state["exp_avg_sq"]) < 1e-5
+    precond = resumed.precond.clone()
+    resumed.recompute_stale_preconditioner(step=31, optimizer=adam)  # nothing left to do
+    assert torch.equal(resumed.precond, precond)
+    direction = torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
     moved = linear_step(resumed, adam, direction)
     assert relative(moved, adam_in_basis(resumed.precond, [*history, direction])[0]) < 2e-5
+
+
+def test_shared_intrinsics_checkpoint_on_other_base_cameras_recomputes_p():
+    """The same with intrinsics shared per physical camera (the default): the block-triangular P is recomputed
+    for the new cameras, without moving them."""
+    saved = make_optimizer(intrinsics="per-camera")
+    adam = torch.optim.Adam(latents(saved), lr=LR)
+    train(saved, adam, range(1, 6))
+    deltas = saved.camera_deltas().detach()
+    with pytest.warns(UserWarning, match="differ from those its P was computed for"):
+        resumed, resumed_adam = resume(checkpoint(saved, adam), other_base_cameras(), intrinsics="per-camera")
+    resumed.recompute_stale_preconditioner(step=6, optimizer=resumed_adam)
+    torch.testing.assert_close(resumed.camera_deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
+    refined = resumed.base_intrinsics_struct().with_delta(deltas)  # 3 distinct cameras: one per image here
+    config = resumed.config
+    expected = compute_shared_preconditioner(refined, resumed.layout, config.sampling, config.damping).matrix
+    torch.testing.assert_close(resumed.precond, expected, rtol=1e-9, atol=1e-12)
+    assert relative(saved.precond, expected) > 0.01  # the stale P would have been this far off
 
 
 def test_checkpoint_without_recorded_cameras_recomputes_p():
@@ -398,20 +427,25 @@ def test_checkpoint_without_recorded_cameras_recomputes_p():
     saved, saved_adam, _ = trained_optimizer(dense=False)
     state = checkpoint(saved, saved_adam)
     del state["pipeline"]["precond_base_intrinsics"]
-    with pytest.warns(UserWarning, match="are not recorded in it"):
-        resumed, _ = resume(state, make_cameras(k1=-0.05, k2=0.01))
+    with pytest.warns(UserWarning, match="the intrinsics its P was computed for are not recorded"):
+        resumed, adam = resume(state, make_cameras(k1=-0.05, k2=0.01))
+    resumed.recompute_stale_preconditioner(step=7, optimizer=adam)
     torch.testing.assert_close(resumed.camera_deltas(), saved.camera_deltas(), rtol=1e-6, atol=1e-9)
     assert torch.equal(resumed.precond_base_intrinsics, resumed.base_intrinsics)
+    assert int(resumed.last_refresh_step) == 7
 
 
 def test_checkpoint_that_cannot_fit_the_cameras_is_refused():
-    """Learned deltas whose k1 folds the distortion inside the image of the new cameras: no P exists for them."""
+    """Learned deltas whose k1 folds the distortion inside the image of the new cameras: no P exists for them,
+    and training refuses to start with the stale one."""
     saved = make_optimizer()
     with torch.no_grad():
         saved.whitened_delta.copy_((saved.precond @ torch.eye(12, dtype=torch.float64)[10] * -5.0).float())
     optimizer = make_optimizer(other_base_cameras())
-    with pytest.raises(ValueError, match=r"checkpoint cannot be used with these training cameras: .*non-monotonic"):
+    with pytest.warns(UserWarning, match="differ from those its P was computed for"):
         optimizer.load_state_dict(saved.state_dict())
+    with pytest.raises(ValueError, match=r"checkpoint cannot be used with these training cameras: .*non-monotonic"):
+        optimizer.recompute_stale_preconditioner(step=1, optimizer=None)
 
 
 def test_viewer_correction_matches_refined_pose():

@@ -249,7 +249,8 @@ def _twist_matrix(xi: np.ndarray) -> np.ndarray:
 
 def _assert_exported_poses_follow_the_checkpoint_twist(run_dir: Path, reconstruction) -> None:
     """Each exported pose is the perturbed start pose moved by the local twist of the final checkpoint,
-    c2w' = c2w expm(xi) with xi = (P^-1 phi_hat)[:6] (paper eq. 15; the camera optimizer's documented convention),
+    c2w' = c2w expm(xi) with xi = (P^-1 phi_hat)[:6] (paper eq. 15; the camera optimizer's documented convention;
+    with shared intrinsics phi_hat = [z_i; w_c] and P the block-triangular factor),
     exponentiated here with scipy's matrix exponential. The twists are of the order of 0.01 after this run and the
     tolerance 1e-5 (float32 cameras), so a twist applied with the wrong sign (c2w exp(-xi)) fails by 2 |xi|, which
     the comparison with the true cameras above (tolerance 0.05 rad, 10x the perturbation) cannot see."""
@@ -270,6 +271,10 @@ def _assert_exported_poses_follow_the_checkpoint_twist(run_dir: Path, reconstruc
     (checkpoint,) = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
     state = torch.load(checkpoint, map_location="cpu")["pipeline"]
     latent = state["_model.camera_optimizer.whitened_delta"].double()
+    if "_model.camera_optimizer.whitened_intrinsics" in state:  # intrinsics shared per physical camera: [z_i; w_c]
+        shared = state["_model.camera_optimizer.whitened_intrinsics"].double()
+        assert shared.shape[0] == 1  # the generated scene has one COLMAP camera
+        latent = torch.cat([latent, shared.expand(latent.shape[0], -1)], dim=-1)
     twists = (state["_model.camera_optimizer.precond_inv"] @ latent[..., None])[..., 0][:, :6].numpy()
     assert np.abs(twists[:, 3:]).max() > 1e-3  # the rotations moved well beyond the tolerance below
 

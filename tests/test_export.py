@@ -176,8 +176,9 @@ def test_exported_cameras_reproduce_the_training_rays_of_nerfstudio_pose_optimiz
 def test_exported_cameras_reproduce_the_training_rays_of_s2camp(scene: Path):
     """s2camp: pose, focal lengths, principal point and k1, k2 exported are those the training rays came from."""
     out = S2CampDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
+    # per image, so that every camera gets its own intrinsics deltas here
     config = S2CampCameraOptimizerConfig(
-        sampling=SamplingConfig(num_points=32, sampler="camp-random"), precondition=False
+        sampling=SamplingConfig(num_points=32, sampler="camp-random"), precondition=False, intrinsics="per-image"
     )
     optimizer = config.setup(num_cameras=out.cameras.shape[0], device="cpu")
     optimizer.set_train_cameras(out.cameras)
