@@ -152,7 +152,14 @@ def test_metrics_are_logged_to_tensorboard(runs: Runs):
         for name in ("rot_err_mean", "rot_err_max", "pos_err_mean", "pos_err_max", "focal_err_mean", "focal_err_max"):
             tag = f"Train Metrics Dict/camera_errors/{name}"
             assert tag in scalars, f"{tag} not logged in {run_dir}; logged: {sorted(scalars)}"
-            assert all(np.isfinite(value) and value >= 0 for _, value in scalars[tag])
+            assert all(np.isfinite(value) for _, value in scalars[tag])
+        for error in ("rot_err", "pos_err", "focal_err"):  # each step's mean over the cameras is at most their max
+            means, maxima = (
+                scalars[f"Train Metrics Dict/camera_errors/{error}_mean"],
+                scalars[f"Train Metrics Dict/camera_errors/{error}_max"],
+            )
+            assert [step for step, _ in means] == [step for step, _ in maxima]
+            assert all(mean <= maximum * (1 + 1e-6) for (_, mean), (_, maximum) in zip(means, maxima, strict=True))
     # The warm start learns the scene: its photometric loss falls.
     loss = [value for _, value in _scalars(runs.warm_start_dir)["Train Loss Dict/rgb_loss"]]
     assert np.mean(loss[-3:]) < 0.7 * np.mean(loss[:3]), loss
