@@ -147,13 +147,18 @@ def history_directions(precond: torch.Tensor, dense: bool) -> list[torch.Tensor]
     return [precond[:, :, k].clone() for k in HISTORY_COLUMNS]
 
 
+def refined_deltas(optimizer: S2CampCameraOptimizer) -> torch.Tensor:
+    """phi: the camera deltas of the refined parameters (the layout's columns; the others stay zero)."""
+    return optimizer.camera_deltas()[:, list(optimizer.layout.indices)]
+
+
 def linear_step(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam, direction: torch.Tensor) -> torch.Tensor:
     """One Adam step on the loss <direction, phi> (phi = camera deltas); returns how far it moved phi."""
-    before = optimizer.camera_deltas().detach().clone()
+    before = refined_deltas(optimizer).detach().clone()
     adam.zero_grad()
-    (optimizer.camera_deltas() * direction).sum().backward()
+    (refined_deltas(optimizer) * direction).sum().backward()
     adam.step()
-    return optimizer.camera_deltas().detach() - before
+    return refined_deltas(optimizer).detach() - before
 
 
 def adam_in_basis(precond: torch.Tensor, directions: list[torch.Tensor]) -> tuple[torch.Tensor, dict]:
@@ -225,7 +230,7 @@ def test_preconditioner_whitens_the_camera_the_optimizer_renders():
     optimizer = make_optimizer()
     base = optimizer.refined_intrinsics().detach()
     points_cam = sample_proxy_points(base, SamplingConfig(num_points=8, sampler="camp-random"))
-    _, analytic, _ = projection_jacobian(points_cam, base)  # [n, l, 2, 12]
+    _, analytic, _ = projection_jacobian(points_cam, base, optimizer.layout)  # [n, l, 2, 12]
     c2w = optimizer.base_c2w_cv
     world = (c2w[:, None, :, :3] @ points_cam[..., None])[..., 0] + c2w[:, None, :, 3]
 
