@@ -55,7 +55,7 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
     report = tmp_path / REPORTS[name]
     assert report.exists() and "Regenerate with" in report.read_text()
     if name == "recovery":
-        expected = {"none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once"}
+        expected = {"none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once", "s2camp-per-camera"}
         for tier in (1, 2):
             assert {row["variant"] for row in rows if row["tier"] == tier} == expected, f"tier {tier}"
         for row in rows:
