@@ -22,6 +22,11 @@ Training rays are regenerated from each ray's pixel coordinates (carried by ``Pi
 P is refreshed every ``refresh_every`` steps from the current refined intrinsics; a refresh re-expresses the
 latent so the camera does not move (phi_hat_new = P_new P_old^-1 phi_hat_old) and transforms Adam's moments
 (see ``refresh``).
+
+Checkpoints hold phi_hat, P, P^-1, the refresh schedule and the base intrinsics P was computed for. Resuming on the
+same cameras continues bit-identically; loading onto other base cameras (a warm start resumed with perturbed
+cameras) recomputes P and re-expresses the latent and Adam's moments before the next step instead of using a
+stale P.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from torch import Tensor, nn
 
 from s2camp_ns.core.camera import (
     PARAMETER_NAMES,
+    TENSOR_FIELDS,
     Intrinsics,
     ParameterLayout,
     opengl_to_opencv,
@@ -267,6 +273,10 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.register_buffer("base_c2w_cv", torch.zeros(num_cameras, 3, 4, dtype=torch.float64), persistent=False)
         self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 13, dtype=torch.float64), persistent=False)
         self.projection = "perspective"
+        # The base intrinsics of the run that computed P, saved with P: a checkpoint loaded onto other base cameras
+        # is detected and P recomputed (``_check_base_cameras``) instead of silently reused. P depends on
+        # the intrinsics only (the Jacobian is taken in the camera frame), so the base poses need no record.
+        self.register_buffer("precond_base_intrinsics", torch.zeros_like(self.base_intrinsics))
         # Undamped Gram Sigma of the last refresh (zero until one computes it; the viewer panel's condition numbers).
         self.register_buffer("gram", torch.zeros_like(eye), persistent=False)
         # Physical camera of each image (0..C-1); one camera per image until ``set_camera_groups`` says otherwise.
@@ -274,6 +284,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.groups_known = False
         self.has_cameras = False
         self._warned_no_pixels = False
+        # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
+        # step (``recompute_stale_preconditioner``), once Adam's moments are loaded too.
+        self._stale_preconditioner: str | None = None
 
     # ----------------------------------------------------------------------------------------------------- setup
     @property
@@ -301,7 +314,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
     def set_train_cameras(self, cameras: Cameras) -> None:
         """Store the dataparser's training cameras and compute the initial P (called by the pipeline).
 
-        A checkpoint loaded afterwards overwrites phi_hat, P and P^-1 with the saved ones.
+        A checkpoint loaded afterwards overwrites phi_hat, P and P^-1 with the saved ones; if its P was computed for
+        other base cameras, it is recomputed before the next training step (see ``_check_base_cameras``).
         """
         if cameras.shape[0] != self.num_cameras:
             raise ValueError(f"cameras must hold {self.num_cameras} training cameras, got {cameras.shape[0]}")
@@ -317,6 +331,86 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.has_cameras = True
         if int(self.last_refresh_step) < 0:
             self.refresh(step=0)
+        else:  # a checkpoint was loaded before the cameras were known
+            self._check_base_cameras()
+
+    # ---------------------------------------------------------------------------------------------- checkpoints
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ) -> None:
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+        if prefix + "precond" not in state_dict:
+            return  # no saved P (e.g. a checkpoint stripped of the camera optimizer): the current one stands
+        fingerprint = prefix + "precond_base_intrinsics"
+        if fingerprint not in state_dict:  # written before P's cameras were recorded: treat them as unknown
+            missing_keys.remove(fingerprint)
+            self.precond_base_intrinsics.fill_(float("nan"))
+        if self.has_cameras:
+            self._check_base_cameras()
+
+    def _check_base_cameras(self) -> None:
+        """Flag a loaded P that was computed for other base intrinsics; it is never used for a training step.
+
+        Same base intrinsics (a resumed run): the saved P is the right one and is kept, so the run continues with
+        bit-identical camera parameters. Other base intrinsics (e.g. a warm start resumed with perturbed cameras):
+        the cameras themselves are right (phi = P_old^-1 phi_hat is what was learned), but P does not whiten their
+        Jacobian. Before the next training step, ``recompute_stale_preconditioner`` recomputes P at the current
+        refined intrinsics and re-expresses the latents and Adam's moments, as a refresh does (nerfstudio loads
+        Adam's state after the pipeline, so this cannot happen at load time). P depends on the intrinsics only.
+        """
+        self._stale_preconditioner = None
+        if torch.equal(self.precond_base_intrinsics, self.base_intrinsics):
+            return
+        if not (self.config.precondition and self.enabled):  # P = I does not depend on the cameras
+            self.precond_base_intrinsics.copy_(self.base_intrinsics)
+            return
+        if bool(torch.isfinite(self.precond_base_intrinsics).all()):
+            self._stale_preconditioner = (
+                f"the training cameras' intrinsics differ from those its P was computed for (largest change "
+                f"{self._largest_intrinsics_change()})"
+            )
+        else:
+            self._stale_preconditioner = "the intrinsics its P was computed for are not recorded (an older checkpoint)"
+        warnings.warn(
+            f"loaded camera-optimizer state: {self._stale_preconditioner}; P is recomputed for these cameras before "
+            "the next training step, the latent and Adam's moments re-expressed (the learned camera deltas are kept)",
+            stacklevel=2,
+        )
+
+    def _largest_intrinsics_change(self) -> str:
+        names = TENSOR_FIELDS  # the columns of base_intrinsics
+        difference = (self.base_intrinsics - self.precond_base_intrinsics).abs()
+        flat = int(difference.argmax())
+        camera, column = divmod(flat, difference.shape[1])
+        return (
+            f"{names[column]} of camera {camera}: {float(self.precond_base_intrinsics[camera, column]):g} -> "
+            f"{float(self.base_intrinsics[camera, column]):g}"
+        )
+
+    @property
+    def preconditioner_is_stale(self) -> bool:
+        """True between loading a checkpoint whose P was computed for other cameras and the next training step."""
+        return self._stale_preconditioner is not None
+
+    @torch.no_grad()
+    def recompute_stale_preconditioner(self, step: int, optimizer: torch.optim.Optimizer | None) -> None:
+        """Before a training step (the model's callback): if the loaded P was computed for other cameras, recompute
+        it at the current refined intrinsics and re-express the latents and Adam's (loaded) moments, exactly as a
+        refresh does. Raises ValueError, naming why, if no P exists for these cameras: a stale P is never used."""
+        if self._stale_preconditioner is None:
+            return
+        reason, self._stale_preconditioner = self._stale_preconditioner, None
+        try:
+            self._recompute_preconditioner(optimizer)
+        except ValueError as error:
+            raise ValueError(
+                f"checkpoint cannot be used with these training cameras: {reason}, and P cannot be recomputed for "
+                f"them: {error}"
+            ) from error
+        self.last_refresh_step.fill_(step)
+        self.num_refreshes.add_(1)
 
     def _first_image_of_each_camera(self) -> Tensor:
         index = self.camera_of_image
@@ -573,17 +667,25 @@ class S2CampCameraOptimizer(CameraOptimizer):
         says why, so a refresh never stops training.
         """
         self._require_cameras()
+        try:
+            self._recompute_preconditioner(optimizer)
+        except ValueError as error:
+            warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
+            return
+        self._stale_preconditioner = None
+        self.last_refresh_step.fill_(step)
+        self.num_refreshes.add_(1)
+
+    @torch.no_grad()
+    def _recompute_preconditioner(self, optimizer: torch.optim.Optimizer | None) -> None:
+        """P at the current refined intrinsics, the latents and Adam's moments re-expressed so that no camera moves;
+        ValueError (nothing changed) if the refined intrinsics admit no P."""
         if self.config.precondition and self.enabled and self.shared:
-            if not self._refresh_shared(step, optimizer):
-                return
+            self._recompute_shared(optimizer)
         elif self.config.precondition and self.enabled:
             device = self.precond.device
             intrinsics = self.refined_intrinsics().detach()
-            try:
-                result = compute_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
-            except ValueError as error:
-                warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
-                return
+            result = compute_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
             old = Preconditioner(matrix=self.precond, inverse=self.precond_inv, gram=self.gram, num_valid=None)
             new = Preconditioner(
                 matrix=result.matrix.to(device), inverse=result.inverse.to(device), gram=result.gram, num_valid=None
@@ -594,21 +696,15 @@ class S2CampCameraOptimizer(CameraOptimizer):
             self.precond.copy_(new.matrix)
             self.precond_inv.copy_(new.inverse)
             self.gram.copy_(result.gram.to(device))
-        self.last_refresh_step.fill_(step)
-        self.num_refreshes.add_(1)
+        self.precond_base_intrinsics.copy_(self.base_intrinsics)
 
-    @torch.no_grad()
-    def _refresh_shared(self, step: int, optimizer: torch.optim.Optimizer | None) -> bool:
-        """The shared-intrinsics refresh: T per physical camera from its refined intrinsics, latents re-expressed
-        without moving any camera (``core.shared_intrinsics``). False if the refresh had to be skipped."""
+    def _recompute_shared(self, optimizer: torch.optim.Optimizer | None) -> None:
+        """The shared-intrinsics recomputation: T per physical camera from its refined intrinsics, latents
+        re-expressed without moving any camera (``core.shared_intrinsics``); ValueError if no T exists."""
         device = self.precond.device
         first = self._first_image_of_each_camera()
         intrinsics = self.refined_intrinsics().detach()[first]
-        try:
-            result = compute_shared_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
-        except ValueError as error:
-            warnings.warn(f"preconditioner refresh at step {step} skipped, P kept: {error}", stacklevel=2)
-            return False
+        result = compute_shared_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
         matrix, inverse = result.matrix.to(device), result.inverse.to(device)
         states = [None, None]
         if optimizer is not None:
@@ -620,7 +716,6 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.precond.copy_(matrix[self.camera_of_image])
         self.precond_inv.copy_(inverse[self.camera_of_image])
         self.gram.copy_(result.gram.to(device)[self.camera_of_image])
-        return True
 
     def should_refresh(self, step: int) -> bool:
         every = self.config.refresh_every

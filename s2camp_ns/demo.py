@@ -6,7 +6,9 @@ the mip-NeRF 360 layout:
 1. warm start: nerfacto (CPU-sized) is fitted to the accurate cameras, with the camera learning rate at zero;
 2. refinement: the run resumes from that checkpoint with the training cameras perturbed (CamP's protocol: position,
    look-at, per-camera focal length and a shared dolly zoom, radial distortion zeroed), and S2CamP refines pose and
-   intrinsics jointly with the NeRF.
+   intrinsics jointly with the NeRF. The warm start's P was computed for the accurate intrinsics: on loading, the
+   camera optimizer sees that the base cameras changed, says so, and recomputes P for the perturbed ones before the
+   first step (``S2CampCameraOptimizer.recompute_stale_preconditioner``); no stale P is used.
 
 Then the camera errors of the perturbed start and of the refined cameras against the unperturbed ones, after a
 similarity alignment, are read from the final checkpoint (nerfstudio's ``eval_setup``) and printed.

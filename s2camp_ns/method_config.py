@@ -11,44 +11,31 @@ they differ only in the camera optimizer:
   the three are compared with everything else equal.
 
 Without CUDA the machine defaults to the CPU (``--machine.device-type cpu``), with one message at start-up.
+All three train with ``S2CampTrainer``: nerfstudio's Trainer with atomic checkpoints (``nerfstudio/trainer.py``).
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
-from nerfstudio.data.dataparsers.base_dataparser import DataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING, DampingConfig
 from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
+from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 from s2camp_ns.nerfstudio.model import S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
 from s2camp_ns.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig
+from s2camp_ns.nerfstudio.trainer import S2CampTrainerConfig
 
 DEFAULT_DEVICE_TYPE = "cuda" if torch.cuda.is_available() else "cpu"
 """nerfstudio's Trainer takes the device from the config and asserts CUDA; fall back to the CPU here instead."""
 
 
-def default_dataparser() -> DataParserConfig:
-    """S2CamP's dataparser (mip-NeRF 360 / COLMAP layout, optional perturbation); nerfstudio's COLMAP parser
-    reading ``sparse/0`` if that module is not installed."""
-    try:
-        from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-    except ImportError:
-        from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
-
-        return ColmapDataParserConfig(colmap_path=Path("sparse/0"))
-    return S2CampDataParserConfig()
-
-
-def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfig) -> TrainerConfig:
+def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfig) -> S2CampTrainerConfig:
     """Nerfacto's trainer settings with the S2CamP pipeline; only ``camera_optimizer`` differs between methods."""
     if isinstance(camera_optimizer, S2CampCameraOptimizerConfig):
         # Whitened units: a unit step moves the proxy projections by about max(W, H) pixels RMS, so CamP's
@@ -65,7 +52,7 @@ def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfi
             "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
             "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
         }
-    return TrainerConfig(
+    return S2CampTrainerConfig(
         method_name=method_name,
         steps_per_eval_batch=500,
         steps_per_save=2000,
@@ -74,7 +61,7 @@ def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfi
         machine=MachineConfig(device_type=DEFAULT_DEVICE_TYPE),
         pipeline=S2CampPipelineConfig(
             datamanager=S2CampDataManagerConfig(
-                dataparser=default_dataparser(),
+                dataparser=S2CampDataParserConfig(),
                 train_num_rays_per_batch=4096,
                 eval_num_rays_per_batch=4096,
             ),

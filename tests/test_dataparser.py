@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -288,3 +290,89 @@ def test_transforms_json_detected(generated_scene: Path, tmp_path: Path):
     (data / "transforms.json").write_text(json.dumps({**meta, "frames": []}))
     with pytest.raises(ValueError, match="lists no frames"):
         parse(data)
+
+
+# ------------------------------------------------------------------------------------ corrupt or truncated models
+def _random_bytes(size: int, seed: int = 0) -> bytes:
+    return np.random.default_rng(seed).integers(0, 256, size=size, dtype=np.uint8).tobytes()
+
+
+def _damage(path: Path, how: str) -> None:
+    data = path.read_bytes()
+    if how == "random":  # overwritten with random bytes of the same size
+        path.write_bytes(_random_bytes(len(data)))
+    elif how == "truncated to 50 bytes":
+        path.write_bytes(data[:50])
+    elif how == "cut inside the last record":
+        path.write_bytes(data[:-10])
+    elif how == "trailing bytes":
+        path.write_bytes(data + b"\0" * 7)
+    elif how == "empty":
+        path.write_bytes(b"")
+    else:
+        raise AssertionError(how)
+
+
+@pytest.mark.parametrize(
+    ("name", "how", "reason"),
+    [
+        # the two inputs of the issue: KeyError: -1168947745 and struct.error before
+        ("cameras.bin", "random", r"its header announces \d+ camera records"),
+        ("images.bin", "truncated to 50 bytes", r"its header announces 10 image records, .* only 42 bytes follow"),
+        ("images.bin", "cut inside the last record", r"the file ends inside a record \(unpack requires"),
+        ("images.bin", "random", r"its header announces \d+ image records"),
+        ("points3D.bin", "random", r"its header announces \d+ point records"),
+        ("points3D.bin", "cut inside the last record", r"the file ends inside a record"),
+        ("points3D.bin", "trailing bytes", r"records, which take \d+ bytes, but the file holds \d+ bytes"),
+        ("cameras.bin", "trailing bytes", r"announces 1 camera records, which take 72 bytes, but the file holds 79"),
+        ("cameras.bin", "empty", r"it holds 0 bytes, fewer than the 8-byte record count"),
+    ],
+)
+def test_corrupt_binary_model_file_is_named(scene: Path, name: str, how: str, reason: str):
+    path = scene / "sparse" / "0" / name
+    _damage(path, how)
+    kind = name.split(".")[0]
+    count = {"cameras": "camera", "images": "image", "points3D": "point"}[kind]
+    with pytest.raises(ValueError, match=rf"(?s)^{re.escape(str(path))} is (corrupt|truncated).*{reason}") as info:
+        parse(scene)
+    assert f"expected a COLMAP {name} (a uint64 {count} count" in str(info.value)
+
+
+def test_unknown_camera_model_id_is_named(scene: Path):
+    """A header that fits the file but a model id no COLMAP model has (nerfstudio's reader: KeyError: <id>)."""
+    path = scene / "sparse" / "0" / "cameras.bin"
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<i", data, 12, -1168947745)  # the model id of the only camera (after count and camera id)
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))} is corrupt .*unknown camera model id -1168947745"):
+        parse(scene)
+
+
+def test_image_with_an_unknown_camera_is_named(scene: Path):
+    path = scene / "sparse" / "0" / "images.bin"
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<i", data, 8 + 4 + 8 * 7, 99)  # camera_id of the first image (after count, id, qvec, tvec)
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: image \d+ .* refers to camera 99, which cameras"):
+        parse(scene)
+
+
+@pytest.mark.parametrize(
+    ("name", "damage", "reason"),
+    [
+        ("cameras.txt", "1 RADIAL 50 thirty-eight 45.0 25.0 19.0 0.0 0.0\n", r"ValueError: invalid literal for int"),
+        ("cameras.txt", "1 RADIAL 50 38 45.0 25.0\n", r"camera 1 \(RADIAL\) has 2 parameters, expected 5"),
+        ("images.txt", "1 1.0 0.0 0.0\n\n", r"IndexError|ValueError"),
+        ("points3D.txt", "1 0.5 0.2 nan 10 20 30 0.1 1 0\n", r"points3D record 1 holds NaN"),
+    ],
+)
+def test_corrupt_text_model_file_is_named(scene: Path, name: str, damage: str, reason: str):
+    folder = scene / "sparse" / "0"
+    input_model(scene).write_text(str(folder))
+    for binary in folder.glob("*.bin"):
+        binary.unlink()
+    (folder / name).write_text("# damaged\n" + damage)
+    with pytest.raises(ValueError, match=rf"(?s)^{re.escape(str(folder / name))}.*{reason}") as info:
+        parse(scene)
+    if "corrupt or truncated" in str(info.value):
+        assert f"expected a COLMAP {name} (" in str(info.value)

@@ -6,7 +6,6 @@ import dataclasses
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -104,14 +103,23 @@ def test_poses_bounds_and_scene_info(tiny_scene: Path, tiny_scene_config: MakeSc
         np.testing.assert_allclose(entry["cam_from_world"], _cam_from_world(rec.images[entry["image_id"]]), atol=1e-12)
 
 
-def test_pinhole_when_undistorted_and_fast(tmp_path: Path) -> None:
+def test_pinhole_when_undistorted(tmp_path: Path) -> None:
     cfg = MakeSceneConfig(output_dir=tmp_path / "s", num_cameras=12, width=64, height=48, k1=0.0, k2=0.0, fov="wide")
-    start = time.perf_counter()
     make_scene(cfg)
-    assert time.perf_counter() - start < 10.0  # about a second on 2 CPU cores
-    camera = pycolmap.Reconstruction(tmp_path / "s" / "sparse" / "0").cameras[1]
+    rec = pycolmap.Reconstruction(tmp_path / "s" / "sparse" / "0")
+    camera = rec.cameras[1]
     assert camera.model.name == "PINHOLE"
     assert np.degrees(2 * np.arctan(32 / camera.params[0])) == pytest.approx(80.0)
+    # The tracks were generated without distortion: a plain pinhole projection, written out here, reproduces them.
+    fx, fy, cx, cy = camera.params
+    worst = 0.0
+    for point in rec.points3D.values():
+        for element in point.track.elements:
+            image = rec.images[element.image_id]
+            x, y, z = _cam_from_world(image) @ np.append(point.xyz, 1.0)
+            observed = image.points2D[element.point2D_idx].xy
+            worst = max(worst, float(np.hypot(fx * x / z + cx - observed[0], fy * y / z + cy - observed[1])))
+    assert rec.num_points3D() > 0 and worst < 0.5
     # regenerating into a scene directory replaces it; a foreign non-empty directory is refused
     make_scene(dataclasses.replace(cfg, num_cameras=3))
     assert len(list((tmp_path / "s" / "images").iterdir())) == 3

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import math
 from contextlib import redirect_stdout
 from importlib.metadata import entry_points
 
@@ -15,7 +16,6 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from s2camp_ns import method_config
@@ -24,11 +24,13 @@ from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
 from s2camp_ns.nerfstudio.model import S2CampModel, S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
+from s2camp_ns.nerfstudio.trainer import S2CampTrainer, S2CampTrainerConfig
 
 
 def test_method_specifications():
     for spec, name in ((method_config.s2camp_method, "s2camp"), (method_config.s2camp_camp_method, "s2camp-camp")):
-        assert isinstance(spec, MethodSpecification) and isinstance(spec.config, TrainerConfig)
+        assert isinstance(spec, MethodSpecification) and isinstance(spec.config, S2CampTrainerConfig)
+        assert spec.config._target is S2CampTrainer  # atomic checkpoints
         assert spec.config.method_name == name and spec.description
         pipeline = spec.config.pipeline
         assert isinstance(pipeline, S2CampPipelineConfig)
@@ -90,8 +92,8 @@ def test_cli_help_documents_camera_optimizer_flags():
 
 def test_entry_points_registered():
     names = {ep.name: ep.value for ep in entry_points(group="nerfstudio.method_configs")}
-    if "s2camp" not in names:
-        pytest.skip("package not installed (pip install -e .)")
+    # Missing entry points mean a broken install (`ns-train s2camp` would not exist): fail, do not skip.
+    assert "s2camp" in names, f"nerfstudio.method_configs holds {sorted(names)}: run `make venv` (pip install -e .)"
     assert names["s2camp"] == "s2camp_ns.method_config:s2camp_method"
     assert names["s2camp-camp"] == "s2camp_ns.method_config:s2camp_camp_method"
     assert names["s2camp-so3xr3"] == "s2camp_ns.method_config:s2camp_so3xr3_method"
@@ -101,6 +103,8 @@ def test_so3xr3_baseline_differs_only_in_the_camera_optimizer():
     s2camp = method_config.s2camp_method.config
     baseline = method_config.s2camp_so3xr3_method.config
     assert type(baseline.pipeline.model.camera_optimizer) is CameraOptimizerConfig
+    # atomic checkpoints for the baseline too
+    assert isinstance(baseline, S2CampTrainerConfig) and baseline._target is S2CampTrainer
     assert baseline.pipeline.model.camera_optimizer.mode == "SO3xR3"
     # nerfacto's own camera schedule for raw se(3) units
     assert baseline.optimizers["camera_opt"]["optimizer"].lr == 1e-3
@@ -180,11 +184,31 @@ def test_lpips_unavailable_is_omitted(tiny_model: S2CampModel):
 
 
 def test_camera_errors_logged_with_reference_cameras(tiny_model: S2CampModel):
-    pytest.importorskip("s2camp_ns.core.alignment")
-    tiny_model.kwargs["metadata"] = {"reference_cameras": tiny_cameras()}
+    """Reference cameras = the training cameras moved by a known similarity, focal lengths changed by known amounts:
+    the aligned pose errors vanish, the raw ones are the similarity's, the focal errors are the changes."""
+    cameras = tiny_cameras()
+    angle, scale, shift = 0.3, 1.7, torch.tensor([0.5, -0.2, 0.1])
+    rotation = torch.tensor(
+        [[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0.0, 0.0, 1.0]]
+    )
+    reference = tiny_cameras()
+    reference.camera_to_worlds = torch.cat(
+        [
+            rotation @ cameras.camera_to_worlds[:, :, :3],
+            (scale * rotation @ cameras.camera_to_worlds[:, :, 3:]) + shift[:, None],
+        ],
+        dim=-1,
+    )
+    reference.fx = cameras.fx + torch.tensor([[1.0], [-2.0], [0.5]])
+    tiny_model.kwargs["metadata"] = {"reference_cameras": reference}
     try:
         errors = tiny_model.update_camera_errors()
-        assert errors["camera_errors/rot_err_mean"] >= 0.0 and "camera_errors/focal_err_mean" in errors
+        assert errors["camera_errors/aligned"] == 1.0
+        assert errors["camera_errors/align_scale"] == pytest.approx(scale, rel=1e-5)
+        assert errors["camera_errors/rot_err_max"] < 1e-5 and errors["camera_errors/pos_err_max"] < 1e-5
+        assert errors["camera_errors/raw_rot_err_mean"] == pytest.approx(angle, rel=1e-5)
+        assert errors["camera_errors/focal_err_mean"] == pytest.approx(3.5 / 3, rel=1e-6)
+        assert errors["camera_errors/focal_err_max"] == pytest.approx(2.0, rel=1e-6)
         assert tiny_model._camera_errors == errors  # merged into the training metrics dict
     finally:
         tiny_model.kwargs["metadata"] = {}

@@ -146,23 +146,43 @@ def test_bad_damping_names_the_parameter() -> None:
         compute_preconditioner(ROOM, damping=DampingConfig(damping_rel=-1.0))
 
 
-def test_reexpress_latent_keeps_the_camera_and_maps_adam_moments() -> None:
+def _adam_on_linear_losses(precond: torch.Tensor, directions: list[torch.Tensor]) -> tuple[torch.Tensor, dict]:
+    """torch's Adam on the latent x = P phi, fed the gradients (by autograd) of the losses <a_t, phi>."""
+    x = torch.zeros(1, 12, dtype=torch.float64, requires_grad=True)
+    adam = torch.optim.Adam([x], lr=1e-3)
+    p_inv = torch.linalg.inv(precond)
+    for direction in directions:
+        adam.zero_grad()
+        ((p_inv @ x[..., None])[..., 0] * direction).sum().backward()
+        adam.step()
+    return x.detach(), adam.state[x]
+
+
+@pytest.mark.parametrize("dense", [False, True], ids=["single-component-gradients", "dense-gradients"])
+def test_reexpress_latent_keeps_the_camera_and_maps_adam_moments(dense: bool) -> None:
+    """Re-expressed in P_new, the latent gives the same camera and Adam's state is that of an Adam that ran in the
+    P_new basis from the start: m exactly; v exactly when every past gradient had one nonzero component (the
+    documented assumption), within 1% for these dense gradients (measured: 0.1%; v left unmapped: 5%)."""
     from s2camp_ns.core.preconditioner import reexpress_latent
 
     old = compute_preconditioner(ROOM)
     changed = Intrinsics.create(fx=820.0, fy=820.0, cx=380.0, cy=262.0, width=778, height=518, k1=-0.02)
     new = compute_preconditioner(changed)
     generator = torch.Generator().manual_seed(3)
-    latent = torch.randn(1, 12, generator=generator, dtype=torch.float64)
-    first_moment = torch.randn(1, 12, generator=generator, dtype=torch.float64)
-    state = {"exp_avg": first_moment.clone(), "exp_avg_sq": first_moment.square()}
+    if dense:
+        directions = [torch.randn(1, 12, dtype=torch.float64, generator=generator) for _ in range(4)]
+    else:  # a = P_old e_k: the gradient w.r.t. the old latent is e_k
+        directions = [old.matrix[:, :, k] for k in (0, 6, 9, 3)]
+    latent, state = _adam_on_linear_losses(old.matrix, directions)
+    state = {key: value.clone() for key, value in state.items()}
     phi_before = (old.inverse @ latent[..., None])[..., 0]
-    # A gradient g_old w.r.t. the old latent is g_new = P_new^-T P_old^T g_old w.r.t. the new one.
-    expected_moment = (new.inverse.transpose(1, 2) @ old.matrix.transpose(1, 2) @ first_moment[..., None])[..., 0]
     reexpress_latent(latent, old, new, state)
     torch.testing.assert_close((new.inverse @ latent[..., None])[..., 0], phi_before, rtol=1e-10, atol=1e-12)
-    torch.testing.assert_close(state["exp_avg"], expected_moment)
-    assert (state["exp_avg_sq"] >= 0).all()
+    _, expected = _adam_on_linear_losses(new.matrix, directions)
+    assert int(state["step"]) == int(expected["step"]) == 4
+    torch.testing.assert_close(state["exp_avg"], expected["exp_avg"], rtol=1e-9, atol=1e-15)
+    v_error = float((state["exp_avg_sq"] - expected["exp_avg_sq"]).norm() / expected["exp_avg_sq"].norm())
+    assert v_error < (0.01 if dense else 1e-9)
 
 
 FISHEYE = Intrinsics.create(

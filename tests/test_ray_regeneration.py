@@ -98,7 +98,29 @@ def test_zero_delta_rays_equal_nerfstudio_rays(model: str):
     torch.testing.assert_close(
         bundle.metadata["directions_norm"], stock.metadata["directions_norm"], atol=1e-5, rtol=1e-5
     )
-    torch.testing.assert_close(bundle.pixel_area, stock.pixel_area)
+
+
+def test_pixel_area_follows_the_refined_focal_length():
+    """Cone footprints: with the focal length refined from (fx, fy) to (fx + d, fy + d), every ray's pixel_area is
+    nerfstudio's for the base camera times fx fy / ((fx + d)(fy + d)), and at the principal point it is the one
+    nerfstudio computes for a camera with the refined focal lengths."""
+    cameras = make_cameras(0.0, 0.0)
+    d = 6.0  # pixels, raw focal delta (P = I)
+    optimizer = make_optimizer(cameras, precondition=False)
+    with torch.no_grad():
+        optimizer.whitened_delta[:, 6] = d
+    stock = PixelRayGenerator(cameras)(all_ray_indices())
+    bundle = PixelRayGenerator(cameras)(all_ray_indices())
+    optimizer.apply_to_raybundle(bundle)
+    per_camera = torch.tensor([70.0 * 71.0 / (76.0 * 77.0), 75.0 * 74.0 / (81.0 * 80.0)])
+    expected = stock.pixel_area * per_camera[all_ray_indices()[:, 0]][:, None]
+    torch.testing.assert_close(bundle.pixel_area, expected, rtol=1e-6, atol=0)
+    refocused = make_cameras(0.0, 0.0)
+    refocused.fx, refocused.fy = refocused.fx + d, refocused.fy + d
+    centre = torch.tensor([[0, 30, 40]])  # camera 0's principal point (40, 30) is this pixel's corner
+    at_centre = PixelRayGenerator(cameras)(centre)
+    optimizer.apply_to_raybundle(at_centre)
+    torch.testing.assert_close(at_centre.pixel_area, PixelRayGenerator(refocused)(centre).pixel_area, rtol=1e-3, atol=0)
 
 
 @pytest.mark.parametrize(

@@ -229,17 +229,25 @@ def reexpress_latent(
     """Switch whitened parameters from P_old to P_new in place without moving the cameras (paper eq. 15).
 
     phi = P^-1 phi_hat must not change, so phi_hat_new = M phi_hat_old with M = P_new P_old^-1. Adam's state
-    follows the same change of variables instead of being reset (a reset restarts the bias correction and gives
-    every camera a full-size step right after each refresh): gradients transform as g_new = M^-T g_old, so the
-    first moment maps exactly, m_new = M^-T m_old; the second moment (elementwise E[g^2]) has no exact linear image
-    and is mapped assuming uncorrelated gradient components, v_new = (M^-T)^2 v_old with the elementwise square.
-    P changes slowly between refreshes, M stays close to the identity and the approximation is mild.
+    follows the same change of variables (``reexpress_adam_state``) instead of being reset.
     """
     change = new.matrix @ old.inverse
-    gradient_map = new.inverse.transpose(-1, -2) @ old.matrix.transpose(-1, -2)
     latent.copy_((change.to(latent.device) @ latent.to(torch.float64)[..., None])[..., 0].to(latent.dtype))
-    if not adam_state:
-        return
+    if adam_state:
+        reexpress_adam_state(old, new, adam_state)
+
+
+def reexpress_adam_state(old: Preconditioner, new: Preconditioner, adam_state: dict) -> None:
+    """Map Adam's moments of a latent whitened with P_old to the latent whitened with P_new, in place (eq. 15).
+
+    A reset would restart the bias correction and give every camera a full-size step. Gradients transform as
+    g_new = M^-T g_old (M = P_new P_old^-1), so the first moment, a weighted sum of gradients, maps exactly:
+    m_new = M^-T m_old. The second moment (elementwise E[g^2]) has no exact linear image; it is mapped assuming
+    uncorrelated gradient components, v_new = (M^-T)^2 v_old with the elementwise square, which is exact when M is
+    diagonal or when each past gradient had a single nonzero component. P changes slowly between refreshes, so M
+    stays close to the identity and the approximation is mild. The step count is kept.
+    """
+    gradient_map = new.inverse.transpose(-1, -2) @ old.matrix.transpose(-1, -2)
     if "exp_avg" in adam_state:
         m = adam_state["exp_avg"]
         m.copy_((gradient_map.to(m.device) @ m.to(torch.float64)[..., None])[..., 0].to(m.dtype))

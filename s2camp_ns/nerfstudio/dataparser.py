@@ -11,8 +11,8 @@ on the terminal and exit). Intrinsics are rescaled to the actual size of those i
 ``images_4`` round the sizes (3114 -> 779) where nerfstudio floors them (778), which would shift the principal
 point by half a pixel.
 
-Before training, the scene is validated (images listed by the model but missing on disk, unsupported camera
-models, empty scenes) with errors that name the file and what was expected.
+Before training, the scene is validated (corrupt or truncated model files, images listed by the model but missing
+on disk, unsupported camera models, empty scenes) with errors that name the file and what was expected.
 
 Camera models: COLMAP SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV (k4 = k5 = k6 = 0) and
 OPENCV_FISHEYE; transforms.json with camera_model OPENCV or OPENCV_FISHEYE (what ``ns-process-data`` writes).
@@ -41,7 +41,6 @@ from nerfstudio.data.dataparsers import colmap_dataparser
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
-from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
 
 from s2camp_ns.camera_optimizer import camera_model_of, group_identical_intrinsics, intrinsics_from_cameras
@@ -49,6 +48,7 @@ from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics, opengl_to
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, colmap_to_values
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.core.validation import check_range
+from s2camp_ns.nerfstudio.colmap_model import ColmapModelError, model_file, read_model_file
 
 NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 """nerfstudio's distortion_params order."""
@@ -163,13 +163,13 @@ def _list_images(folder: Path) -> list[Path]:
 
 
 def validate_colmap_cameras(recon_dir: Path) -> dict[int, str]:
-    """Check every COLMAP camera uses a supported model; return camera id -> model name."""
-    if (recon_dir / "cameras.bin").exists():
-        path = recon_dir / "cameras.bin"
-        cameras = colmap_utils.read_cameras_binary(path)
-    else:
-        path = recon_dir / "cameras.txt"
-        cameras = colmap_utils.read_cameras_text(path)
+    """Check every COLMAP camera uses a supported model; return camera id -> model name.
+
+    Reads the file nerfstudio's parser reads (``cameras.txt`` first, as it does); a corrupt or truncated file raises
+    ``ColmapModelError`` naming it (see ``colmap_model``).
+    """
+    path = model_file(recon_dir, "cameras")
+    cameras = read_model_file(path, "cameras")
     if not cameras:
         raise ValueError(f"COLMAP model {path} holds no cameras: the scene is empty")
     models = {}
@@ -233,11 +233,22 @@ class _ValidatingColmapDataParser(ColmapDataParser):
         self.distortion: dict[str, list[float]] = {}
 
     def _get_all_images_and_cameras(self, recon_dir: Path):
-        validate_colmap_cameras(recon_dir)
-        images_file = recon_dir / ("images.bin" if (recon_dir / "images.bin").exists() else "images.txt")
+        camera_models = validate_colmap_cameras(recon_dir)
+        images_file = model_file(recon_dir, "images")
         if not images_file.exists():
-            raise FileNotFoundError(f"COLMAP model {recon_dir} has cameras but no images.bin or images.txt")
-        self._read_distortion(recon_dir, images_file)
+            raise FileNotFoundError(
+                f"COLMAP model {recon_dir} has {model_file(recon_dir, 'cameras').name} but no {images_file.name}"
+            )
+        # Read strictly first, so that a corrupt file is named before nerfstudio's reader trips over it.
+        cameras = read_model_file(model_file(recon_dir, "cameras"), "cameras")
+        images = read_model_file(images_file, "images")
+        for image_id, image in images.items():
+            if image.camera_id not in camera_models:
+                raise ColmapModelError(
+                    f"{images_file}: image {image_id} ('{image.name}') refers to camera {image.camera_id}, which "
+                    f"{model_file(recon_dir, 'cameras').name} does not hold (cameras: {sorted(camera_models)})"
+                )
+        self.distortion = {image.name: distortion_of(cameras[image.camera_id]) for image in images.values()}
         try:
             with _explicit_camera_mapping():
                 out = super()._get_all_images_and_cameras(recon_dir)
@@ -265,14 +276,10 @@ class _ValidatingColmapDataParser(ColmapDataParser):
             )
         return out
 
-    def _read_distortion(self, recon_dir: Path, images_file: Path) -> None:
-        if images_file.suffix == ".bin":
-            cameras = colmap_utils.read_cameras_binary(recon_dir / "cameras.bin")
-            images = colmap_utils.read_images_binary(images_file)
-        else:
-            cameras = colmap_utils.read_cameras_text(recon_dir / "cameras.txt")
-            images = colmap_utils.read_images_text(images_file)
-        self.distortion = {image.name: distortion_of(cameras[image.camera_id]) for image in images.values()}
+    def _load_3D_points(self, colmap_path: Path, transform_matrix: torch.Tensor, scale_factor: float):
+        # Read strictly first: a corrupt file is named before nerfstudio's reader trips over it.
+        read_model_file(model_file(colmap_path, "points3D"), "points3D")
+        return super()._load_3D_points(colmap_path, transform_matrix, scale_factor)
 
 
 def _replace_cameras(cameras: Cameras, **fields) -> Cameras:

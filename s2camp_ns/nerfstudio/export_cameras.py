@@ -3,10 +3,11 @@
     s2camp-export-cameras --load-config outputs/scene/s2camp/DATE/config.yml --output-dir refined/sparse/0
 
 The refined cameras (pose, intrinsics and distortion) come from the camera optimizer of the trained pipeline
-(``refined_cameras()`` or ``refine_cameras(train_cameras)`` of S2CamP's optimizer; nerfstudio's pose-only
+(``refine_cameras(train_cameras)`` of S2CamP's optimizer; nerfstudio's pose-only
 ``apply_to_camera`` otherwise). nerfstudio's normalization (dataparser transform and scale) is undone, the camera
 axes are flipped from OpenGL to OpenCV, and a COLMAP model is written with pycolmap: one COLMAP camera per physical
-camera when the intrinsics were refined per camera (the default), one per image otherwise. The distortion is written in COLMAP's meaning (``core.colmap_models``): with
+camera when the intrinsics were refined per camera (the default), one per image otherwise. The distortion is
+written in COLMAP's meaning (``core.colmap_models``): with
 ``camera_model auto`` fisheye cameras become OPENCV_FISHEYE (k1..k4), perspective ones RADIAL when fx = fy and
 there is no tangential term, OPENCV (k1, k2, p1, p2) otherwise, FULL_OPENCV (k3 as well, k4 = k5 = k6 = 0) when
 some camera has k3. nerfstudio's perspective k4 (an r^8 term) has no COLMAP counterpart and is refused.
@@ -184,8 +185,6 @@ def refined_training_cameras(pipeline) -> Cameras:
     """Refined cameras of every training image, in nerfstudio's normalized OpenGL frame."""
     model = pipeline.model
     optimizer = getattr(model, "camera_optimizer", None)
-    if optimizer is not None and hasattr(optimizer, "refined_cameras"):
-        return optimizer.refined_cameras()
     cameras = pipeline.datamanager.train_dataset.cameras
     if optimizer is None:
         return cameras

@@ -141,7 +141,18 @@ class S2CampModel(NerfactoModel):
                 torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
                 camera_optimizer.refresh(step, torch_optimizer)
 
+        def recompute_stale_preconditioner(step: int) -> None:
+            # A checkpoint loaded onto other base cameras carries a P computed for those; nerfstudio loads Adam's
+            # moments after the pipeline, so P is recomputed here, before the first step (a no-op otherwise).
+            torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
+            camera_optimizer.recompute_stale_preconditioner(step, torch_optimizer)
+
         if isinstance(camera_optimizer, S2CampCameraOptimizer) and camera_optimizer.enabled:
+            callbacks.append(
+                TrainingCallback(
+                    where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], func=recompute_stale_preconditioner
+                )
+            )
             callbacks.append(
                 TrainingCallback(
                     where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=refresh_preconditioner

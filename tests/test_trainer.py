@@ -1,0 +1,184 @@
+"""Atomic checkpoints: a save that fails or is killed midway never replaces the last good checkpoint; resuming
+restores the random state."""
+
+from __future__ import annotations
+
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from nerfstudio.configs.base_config import MachineConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig, Optimizers
+from nerfstudio.utils.eval_utils import eval_load_checkpoint
+
+from s2camp_ns.nerfstudio import trainer as trainer_module
+from s2camp_ns.nerfstudio.trainer import S2CampTrainer, S2CampTrainerConfig, partial_dir
+
+
+class TinyPipeline(torch.nn.Module):
+    """What the trainer and nerfstudio's checkpoint loader use of a pipeline: its state dict and load_pipeline."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.layer = torch.nn.Linear(3, 2)
+        self.loaded_step: int | None = None
+
+    def load_pipeline(self, state: dict, step: int) -> None:
+        self.load_state_dict(state)
+        self.loaded_step = step
+
+
+def make_trainer(output_dir: Path) -> S2CampTrainer:
+    config = S2CampTrainerConfig(
+        method_name="s2camp", output_dir=output_dir, timestamp="run", machine=MachineConfig(device_type="cpu")
+    )
+    trainer = config.setup()
+    assert isinstance(trainer, S2CampTrainer)
+    trainer.pipeline = TinyPipeline()
+    optimizer_config = {"fields": {"optimizer": AdamOptimizerConfig(lr=0.1), "scheduler": None}}
+    trainer.optimizers = Optimizers(optimizer_config, {"fields": list(trainer.pipeline.parameters())})
+    return trainer
+
+
+def train_step(trainer: S2CampTrainer) -> None:
+    adam = trainer.optimizers.optimizers["fields"]
+    adam.zero_grad()
+    trainer.pipeline.layer(torch.ones(1, 3)).sum().backward()
+    adam.step()
+
+
+def snapshot(trainer: S2CampTrainer) -> dict[str, torch.Tensor]:
+    return {name: value.clone() for name, value in trainer.pipeline.state_dict().items()}
+
+
+def assert_latest_checkpoint_is(checkpoint_dir: Path, step: int, weights: dict[str, torch.Tensor]) -> None:
+    """Only ``step-{step}.ckpt`` exists, nerfstudio's own loader picks and loads it, and it holds ``weights``."""
+    assert sorted(p.name for p in checkpoint_dir.iterdir()) == [f"step-{step:09d}.ckpt"]
+    assert not list(partial_dir(checkpoint_dir).glob("*.ckpt"))
+    pipeline = TinyPipeline()
+    config = SimpleNamespace(load_dir=checkpoint_dir, load_step=None)
+    path, loaded_step = eval_load_checkpoint(config, pipeline)
+    assert loaded_step == step and pipeline.loaded_step == step
+    for name, value in weights.items():
+        assert torch.equal(pipeline.state_dict()[name], value), name
+
+
+def test_checkpoint_holds_the_state_and_replaces_older_ones(tmp_path: Path):
+    trainer = make_trainer(tmp_path)
+    train_step(trainer)
+    trainer.save_checkpoint(10)
+    train_step(trainer)
+    trainer.save_checkpoint(20)
+    assert_latest_checkpoint_is(trainer.checkpoint_dir, 20, snapshot(trainer))
+    state = torch.load(trainer.checkpoint_dir / "step-000000020.ckpt", map_location="cpu")
+    assert state["step"] == 20 and set(state) == {
+        "step",
+        "pipeline",
+        "optimizers",
+        "schedulers",
+        "scalers",
+        "random_state",
+    }
+    adam_state = state["optimizers"]["fields"]["state"]
+    assert int(adam_state[0]["step"]) == 2  # Adam's moments after two steps, saved with the weights
+    assert not list(partial_dir(trainer.checkpoint_dir).iterdir())
+
+
+def test_failed_write_keeps_the_previous_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    trainer = make_trainer(tmp_path)
+    train_step(trainer)
+    trainer.save_checkpoint(10)
+    good = snapshot(trainer)
+    train_step(trainer)
+    real_save = torch.save
+
+    def fail_midway(state, file, *args, **kwargs):
+        real_save(state, file, *args, **kwargs)
+        file.truncate(file.tell() // 2)  # half of the checkpoint reached the disk
+        raise OSError(28, "No space left on device (simulated)")
+
+    monkeypatch.setattr(trainer_module.torch, "save", fail_midway)
+    with pytest.raises(OSError, match="No space left"):
+        trainer.save_checkpoint(20)
+    assert_latest_checkpoint_is(trainer.checkpoint_dir, 10, good)
+    assert not list(partial_dir(trainer.checkpoint_dir).iterdir())  # the partial file is removed
+
+
+def test_killed_write_keeps_the_previous_checkpoint(tmp_path: Path):
+    """SIGKILL in the middle of writing step 20: step 10 stays the newest checkpoint and still loads."""
+    script = textwrap.dedent(
+        f"""
+        import os, signal, sys
+        from pathlib import Path
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        import torch
+        from test_trainer import make_trainer, snapshot, train_step
+        from s2camp_ns.nerfstudio import trainer as trainer_module
+
+        trainer = make_trainer(Path({str(tmp_path)!r}))
+        train_step(trainer)
+        trainer.save_checkpoint(10)
+        torch.save(snapshot(trainer), Path({str(tmp_path)!r}) / "good.pt")
+        train_step(trainer)
+        real_save = torch.save
+
+        def killed_midway(state, file, *args, **kwargs):
+            real_save(state, file, *args, **kwargs)
+            file.truncate(file.tell() // 2)
+            file.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+
+        trainer_module.torch.save = killed_midway
+        trainer.save_checkpoint(20)
+        """
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == -signal.SIGKILL, result.stderr[-3000:]
+    checkpoint_dir = make_trainer(tmp_path).checkpoint_dir
+    leftovers = list(partial_dir(checkpoint_dir).iterdir())
+    assert len(leftovers) == 1 and leftovers[0].stat().st_size > 0  # the killed write, outside nerfstudio_models/
+    assert_latest_checkpoint_is(checkpoint_dir, 10, torch.load(tmp_path / "good.pt"))
+    # The next save clears what the killed one left behind.
+    trainer = make_trainer(tmp_path)
+    trainer.save_checkpoint(30)
+    assert not list(partial_dir(checkpoint_dir).iterdir())
+
+
+def test_resume_restores_weights_adam_step_and_random_state(tmp_path: Path):
+    """--load-dir: the highest step-N.ckpt is loaded (other files ignored), training continues at N + 1 with the
+    weights, Adam's state and the random generators' state of the save, so its next draws are the ones the
+    uninterrupted run makes."""
+    torch.manual_seed(0)
+    np.random.seed(0)  # noqa: NPY002 (the global generator nerfstudio seeds)
+    random.seed(0)
+    trainer = make_trainer(tmp_path)
+    train_step(trainer)
+    trainer.save_checkpoint(10)
+    train_step(trainer)
+    trainer.save_checkpoint(20)
+    weights = snapshot(trainer)
+    adam_state = {k: v.clone() for k, v in trainer.optimizers.optimizers["fields"].state_dict()["state"][0].items()}
+    uninterrupted_draws = (torch.rand(4), np.random.rand(4), random.random())  # noqa: NPY002
+    (trainer.checkpoint_dir / "notes.txt").write_text("not a checkpoint")
+
+    torch.manual_seed(123)  # a new process seeds afresh (nerfstudio's train.py)
+    np.random.seed(123)  # noqa: NPY002
+    random.seed(123)
+    resumed = make_trainer(tmp_path / "other")
+    resumed.config.load_dir = trainer.checkpoint_dir
+    resumed._load_checkpoint()
+    assert resumed._start_step == 21
+    for name, value in weights.items():
+        assert torch.equal(resumed.pipeline.state_dict()[name], value), name
+    loaded_adam = resumed.optimizers.optimizers["fields"].state_dict()["state"][0]
+    assert all(torch.equal(loaded_adam[k], v) for k, v in adam_state.items())
+    draws = (torch.rand(4), np.random.rand(4), random.random())  # noqa: NPY002
+    assert torch.equal(draws[0], uninterrupted_draws[0])
+    assert np.array_equal(draws[1], uninterrupted_draws[1]) and draws[2] == uninterrupted_draws[2]
