@@ -176,9 +176,10 @@ def run_sfm_tier(config: SfmRecoveryConfig, root: Path, quick: bool) -> tuple[li
     for name in scenes:
         result = sfm_scene(name, root, config, quick)
         sfm_rows.append(sfm_row(name, result))
-        if result.failure is None:
-            good.append(name)
-            runs += train_sfm_scene(name, root / "scenes" / name, result.scene, variants, photometric, root)
+        if result.failure is not None:  # a failed scene is no data point: only its SfM quality row
+            continue
+        good.append(name)
+        runs += train_sfm_scene(name, root / "scenes" / name, result.scene, variants, photometric, root)
     log(f"  evaluating {len(runs)} runs ({photometric.eval_workers} processes)")
     results = list(zip(runs, evaluate_runs(runs, photometric), strict=True))
     rows, histories = [], {}
@@ -188,6 +189,7 @@ def run_sfm_tier(config: SfmRecoveryConfig, root: Path, quick: bool) -> tuple[li
         start = {"tier": 3, "scene": name, "variant": "start", "seeds": 1}
         start |= {key: first[f"start_{key}"] for key in ("rot_err", "pos_err", "focal_err")}
         start |= {key: math.nan for key in ("psnr", "ssim", "lpips", "psnr_unaligned", "sec_per_iter")}
+        start |= {key: value for key, value in sfm_rows[scenes.index(name)].items() if key != "scene"}
         for row in [start, *scene_rows]:
             row["intrinsics"] = INTRINSICS[row["variant"]]
             rows.append(row)
