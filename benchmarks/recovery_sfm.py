@@ -184,14 +184,21 @@ def run_sfm_tier(config: SfmRecoveryConfig, root: Path, quick: bool) -> tuple[li
     results = list(zip(runs, evaluate_runs(runs, photometric), strict=True))
     rows, histories = [], {}
     for name in good:
-        scene_rows, scene_histories = summarize_scene(name, results, tier=3)
-        first = scene_rows[0]
-        start = {"tier": 3, "scene": name, "variant": "start", "seeds": 1}
-        start |= {key: first[f"start_{key}"] for key in ("rot_err", "pos_err", "focal_err")}
-        start |= {key: math.nan for key in ("psnr", "ssim", "lpips", "psnr_unaligned", "sec_per_iter")}
-        start |= {key: value for key, value in sfm_rows[scenes.index(name)].items() if key != "scene"}
-        for row in [start, *scene_rows]:
-            row["intrinsics"] = INTRINSICS[row["variant"]]
-            rows.append(row)
+        scene_rows, scene_histories = summarize_sfm_scene(name, results, sfm_rows[scenes.index(name)])
+        rows.extend(scene_rows)
         histories.update(scene_histories)
     return rows, histories, sfm_rows
+
+
+def summarize_sfm_scene(name: str, results: list[tuple[TrainedRun, dict]], quality: dict) -> tuple[list[dict], dict]:
+    """The scene's start row (SfM's own errors and quality), then one row per variant as in tier 2."""
+    scene_rows, histories = summarize_scene(name, results, tier=3)
+    first = scene_rows[0]
+    start = {"tier": 3, "scene": name, "variant": "start", "seeds": 1}
+    start |= {key: first[f"start_{key}"] for key in ("rot_err", "pos_err", "focal_err")}
+    start |= {key: math.nan for key in ("psnr", "ssim", "lpips", "psnr_unaligned", "sec_per_iter")}
+    start |= {key: value for key, value in quality.items() if key != "scene"}
+    rows = [start, *scene_rows]
+    for row in rows:
+        row["intrinsics"] = INTRINSICS[row["variant"]]
+    return rows, histories
