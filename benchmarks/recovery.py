@@ -272,7 +272,7 @@ def _tier3_section(rows: list[dict], quality: list[dict], config: RecoveryConfig
         "psnr", "ssim", "psnr_unaligned", "sec_per_iter",
     ]  # fmt: skip
     headers = [
-        "scene", "variant", "intrinsics refined", "rot err (rad)", "pos err", "focal err (px)",
+        "scene", "variant", "intrinsics", "rot err (rad)", "pos err", "focal err (px)",
         "iters to half rot", "iters to half pos", "iters to half focal",
         "PSNR", "SSIM", "PSNR before alignment", "s / iter",
     ]  # fmt: skip
@@ -297,8 +297,9 @@ def _tier3_section(rows: list[dict], quality: list[dict], config: RecoveryConfig
         "cameras (`--reference-model`: the scene's own model, similarity-aligned), after a similarity alignment, "
         "in normalized scene units and pixels at the training resolution; 'start' is SfM's own error. Held-out "
         "views (every 8th) from the true cameras, PSNR / SSIM after test-time alignment as in tier 2. "
-        "'intrinsics refined': none (start, none, so3xr3 keep SfM's shared camera), per-image (camp, "
-        "s2camp-per-image) or per-camera (s2camp-per-camera, one set per physical camera)." + per_camera
+        "'intrinsics': per-camera for the start (SfM's one shared camera) and s2camp-per-camera (one set per "
+        "physical camera), per-image for the others (tier 2's convention; none and so3xr3 do not refine the "
+        "intrinsics)." + per_camera
     )
     sections = [
         "## Tier 3: refinement from an SfM start",

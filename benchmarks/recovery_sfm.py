@@ -15,8 +15,9 @@ Per generated scene:
 
 Variants: none (camera optimizer off), so3xr3 (nerfstudio's stock pose optimizer), camp (``s2camp-camp``),
 s2camp-per-image and s2camp-per-camera (``s2camp`` with intrinsics per image, or shared by the images of one
-physical camera). Rows carry ``intrinsics``: what the row's method refines of the intrinsics: 'none' (start, none,
-so3xr3: SfM's shared camera is kept), 'per-image' (camp, s2camp-per-image) or 'per-camera' (s2camp-per-camera).
+physical camera). Rows carry ``intrinsics`` ('per-camera' / 'per-image', as in tier 2): 'per-camera' for the start
+(SfM's one shared camera) and s2camp-per-camera; 'per-image' for every other variant, tier 2's convention, which
+includes none and so3xr3 (they keep SfM's intrinsics unrefined).
 """
 
 from __future__ import annotations
@@ -58,9 +59,9 @@ METHODS = {
     "s2camp-per-camera": "s2camp",
 }
 INTRINSICS = {
-    "start": "none",
-    "none": "none",
-    "so3xr3": "none",
+    "start": "per-camera",
+    "none": "per-image",
+    "so3xr3": "per-image",
     "camp": "per-image",
     "s2camp-per-image": "per-image",
     "s2camp-per-camera": "per-camera",

@@ -69,7 +69,7 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
         if intrinsics_option_available():
             expected.add("s2camp-per-camera")
         assert set(tier3) == expected
-        intrinsics = {"start": "none", "none": "none", "so3xr3": "none", "camp": "per-image"}
+        intrinsics = {"start": "per-camera", "none": "per-image", "so3xr3": "per-image", "camp": "per-image"}
         intrinsics |= {"s2camp-per-image": "per-image", "s2camp-per-camera": "per-camera"}
         for variant, row in tier3.items():
             assert row["intrinsics"] == intrinsics[variant], row
