@@ -2,7 +2,8 @@
 
 Tier 1 (geometric, seconds): see ``recovery_geometric``. Tier 2 (photometric, ``ns-train`` of every variant,
 minutes): see ``recovery_photometric``. Each variant starts from the same perturbed cameras (CamP protocol, fixed
-seed) of the same generated scenes; CamP's random baseline is averaged over seeds.
+seed) of the same generated scenes; CamP's random baseline is averaged over seeds. Tier 3 (a real SfM start, the
+renderer's cameras as the truth): see ``recovery_sfm``.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
 from .recovery_geometric import SHARED_VARIANTS, VARIANTS, GeometricConfig, iterations_to, load_scene, run_variant
 from .recovery_photometric import PhotometricConfig, run_photometric
+from .recovery_sfm import SfmRecoveryConfig, run_sfm_tier
 
 SCENES = {
     "narrow": MakeSceneConfig(num_cameras=24, width=160, height=120, fov="narrow", seed=0),
@@ -35,13 +37,16 @@ class RecoveryConfig:
     scenes: tuple[str, ...] = ("narrow", "wide")
     """Generated scenes (s2camp-make-scene presets)."""
     variants: tuple[str, ...] = VARIANTS
-    tiers: tuple[int, ...] = (1, 2)
-    """1: geometric (minutes); 2: photometric ns-train runs (most of the hour; the report states the wall time)."""
+    tiers: tuple[int, ...] = (1, 2, 3)
+    """1: geometric (minutes); 2: photometric ns-train runs (most of the hour); 3: ns-train from an SfM start (the
+    report states the wall time)."""
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
+    sfm: SfmRecoveryConfig = field(default_factory=SfmRecoveryConfig)
+    """Tier 3: its scenes, variants, SfM camera model and checks, training as tier 2."""
     quick: bool = False
-    """Small run for CI: tier 1 with 100 iterations, tier 2 with a few iterations on a tiny scene, one CamP seed;
-    asserts only that every variant runs."""
+    """Small run for CI: tier 1 with 100 iterations, tiers 2 and 3 with a few iterations on a small scene, one CamP
+    seed; asserts only that every variant runs."""
     scene_dir: Path | None = None
     """Where the scenes are generated (a temporary folder by default)."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
@@ -103,8 +108,8 @@ def run_geometric(config: RecoveryConfig, scene_root: Path) -> tuple[list[dict],
 def run(config: RecoveryConfig) -> list[dict]:
     config = config.effective()
     for tier in config.tiers:
-        if tier not in (1, 2):
-            raise ValueError(f"tiers must contain only 1 and 2, got {tier!r}")
+        if tier not in (1, 2, 3):
+            raise ValueError(f"tiers must contain only 1, 2 and 3, got {tier!r}")
     return in_work_folder(config.scene_dir, "s2camp-recovery-", lambda root: _run(config, root))
 
 
@@ -132,6 +137,14 @@ def _run(config: RecoveryConfig, root: Path) -> list[dict]:
         rows.extend(tier2_rows)
         run.photometric_histories = tier2_histories  # type: ignore[attr-defined]
         run.minutes[2] = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
+    run.sfm_histories, run.sfm_quality = {}, []  # type: ignore[attr-defined]
+    if 3 in config.tiers:
+        began = time.perf_counter()
+        tier3_rows, run.sfm_histories, run.sfm_quality = run_sfm_tier(  # type: ignore[attr-defined]
+            config.sfm, root / "tier3", config.quick
+        )
+        rows.extend(tier3_rows)
+        run.minutes[3] = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
     return rows
 
 
@@ -170,12 +183,17 @@ def report(rows: list[dict], config: RecoveryConfig) -> Path:
     if tier2:
         plot(getattr(run, "photometric_histories", {}), config.output_dir / "recovery-tier2.png")
         sections += _tier2_section(tier2, config)
+    if 3 in config.tiers:
+        tier3 = [row for row in rows if row["tier"] == 3]
+        if any(row["variant"] != "start" for row in tier3):
+            plot(getattr(run, "sfm_histories", {}), config.output_dir / "recovery-tier3.png")
+        sections += _tier3_section(tier3, getattr(run, "sfm_quality", []), config)
     minutes = getattr(run, "minutes", {})
     if minutes:
         spent = ", ".join(f"tier {tier} {value:.1f}" for tier, value in sorted(minutes.items()))
         sections.append(f"Wall time of this run: {sum(minutes.values()):.1f} minutes ({spent}).")
     command = "s2camp-bench recovery" + (" --quick" if config.quick else "")
-    if tuple(config.tiers) != (1, 2):
+    if tuple(config.tiers) != (1, 2, 3):
         command += " --tiers " + " ".join(str(tier) for tier in config.tiers)
     return write_report(config.output_dir, "recovery", "Camera recovery from perturbed cameras", command, sections)
 
@@ -226,6 +244,74 @@ def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
         markdown_table(rows, columns, headers),
         "![tier 2](recovery-tier2.png)",
     ]
+
+
+def _tier3_section(rows: list[dict], quality: list[dict], config: RecoveryConfig) -> list[str]:
+    from .recovery_sfm import QUICK_SFM_SCENE, SFM_SCENES, TRAINING_DOWNSCALE, intrinsics_option_available
+
+    s = config.sfm
+    p = s.photometric.quick() if config.quick else s.photometric
+    scenes = []
+    for name in s.scenes[:1] if config.quick else s.scenes:
+        scene = replace(SFM_SCENES[name], **QUICK_SFM_SCENE) if config.quick else SFM_SCENES[name]
+        scenes.append(
+            f"{name} {scene.fov} fov, {scene.num_cameras} cameras {scene.width}x{scene.height}, "
+            f"{scene.supersample}x{scene.supersample} rays per pixel"
+        )
+    quality_columns = [
+        "scene", "registered", "points", "sfm_rot_err_mean", "sfm_rot_err_max", "sfm_centre_err_mean",
+        "sfm_centre_err_max", "sfm_focal", "true_focal", "status",
+    ]  # fmt: skip
+    quality_headers = [
+        "scene", "registered", "3D points", "rot err mean (rad)", "rot err max (rad)", "centre err mean",
+        "centre err max", "SfM focal (px)", "true focal (px)", "status",
+    ]  # fmt: skip
+    columns = [
+        "scene", "variant", "intrinsics", "rot_err", "pos_err", "focal_err",
+        "iters_to_half_rot_err", "iters_to_half_pos_err", "iters_to_half_focal_err",
+        "psnr", "ssim", "psnr_unaligned", "sec_per_iter",
+    ]  # fmt: skip
+    headers = [
+        "scene", "variant", "intrinsics", "rot err (rad)", "pos err", "focal err (px)",
+        "iters to half rot", "iters to half pos", "iters to half focal",
+        "PSNR", "SSIM", "PSNR before alignment", "s / iter",
+    ]  # fmt: skip
+    per_camera = (
+        ""
+        if intrinsics_option_available()
+        else " s2camp-per-camera is missing: this checkout's camera optimizer has no `intrinsics` option yet."
+    )
+    setup = (
+        f"Tier 3: SfM start, the renderer's cameras as the truth. Generated scenes ({'; '.join(scenes)}); pycolmap "
+        f"SIFT extraction, exhaustive matching and incremental mapping (one thread, seed 0) with one shared "
+        f"{s.camera_model} camera on the full-resolution images. A scene counts only if every image is registered "
+        f"in one model whose camera centres are within {s.check.max_centre_error:g} x the ring radius of the truth "
+        f"and rotations within {s.check.max_rotation_error:g} rad after a similarity alignment; otherwise it is "
+        "reported as failed and skipped. SfM quality (truth world units, ring radius 4; focal at full resolution):"
+    )
+    training = (
+        f"Training as tier 2 on the 1/{TRAINING_DOWNSCALE} resolution images: a shared warm start of {p.warm_start} "
+        f"iterations on the SfM cameras (camera learning rate zero), then {p.iterations} iterations per variant "
+        f"from the SfM cameras (no perturbation), camera lr {p.camera_lr:g} -> {p.camera_lr_final:g}, P refreshed "
+        f"every {p.refresh_every} iterations for s2camp, CamP seeds {list(p.camp_seeds)}. Errors against the true "
+        "cameras (`--reference-model`: the scene's own model, similarity-aligned), after a similarity alignment, "
+        "in normalized scene units and pixels at the training resolution; 'start' is SfM's own error. Held-out "
+        "views (every 8th) from the true cameras, PSNR / SSIM after test-time alignment as in tier 2. "
+        "'intrinsics': per-camera for the start (SfM's one shared camera) and s2camp-per-camera (one set per "
+        "physical camera), per-image for the others (tier 2's convention; none and so3xr3 do not refine the "
+        "intrinsics)." + per_camera
+    )
+    sections = [
+        "## Tier 3: refinement from an SfM start",
+        setup,
+        markdown_table(quality, quality_columns, quality_headers),
+        training,
+    ]
+    if rows:
+        sections += [markdown_table(rows, columns, headers)]
+    if any(row["variant"] != "start" for row in rows):
+        sections.append("![tier 3](recovery-tier3.png)")
+    return sections
 
 
 def _scene_sizes(config: RecoveryConfig) -> str:

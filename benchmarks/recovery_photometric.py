@@ -158,14 +158,18 @@ def _checkpoints(run: Path) -> list[Path]:
     return sorted((run / "nerfstudio_models").glob("step-*.ckpt"))
 
 
-def warm_start(scene: Path, work: Path, scene_name: str, config: PhotometricConfig) -> Path:
-    """Train on the accurate cameras; return a checkpoint folder without camera-optimizer state."""
+def warm_start(
+    scene: Path, work: Path, scene_name: str, config: PhotometricConfig, dataparser_arguments: tuple[str, ...] = ()
+) -> Path:
+    """Train on the input cameras (camera learning rate frozen); return a checkpoint folder without camera-optimizer
+    state. ``dataparser_arguments`` start with the dataparser subcommand."""
     command = [
         *_arguments(
             "s2camp", scene, work, scene_name, "warm-start", config.warm_start, config.warm_start,
             config.rays_per_batch,
         ),
         *camera_schedule_arguments(FROZEN_LR, FROZEN_LR),
+        *dataparser_arguments,
     ]  # fmt: skip
     run = work / scene_name / "s2camp" / "warm-start"
     _run_ns_train(command, work / f"{scene_name}-warm-start.log", f"{scene_name} warm start")
@@ -187,19 +191,37 @@ def warm_start(scene: Path, work: Path, scene_name: str, config: PhotometricConf
 def train_variant(
     scene: Path, work: Path, scene_name: str, warm: Path | None, variant: str, seed: int, config: PhotometricConfig
 ) -> Path:
-    method = METHODS[variant]
     timestamp = variant if variant != "camp" else f"camp-seed{seed}"
+    return train_from_warm_start(
+        scene, work, scene_name, warm, METHODS[variant], timestamp,
+        _variant_arguments(variant, seed, config), perturbation_arguments(config), config,
+    )  # fmt: skip
+
+
+def train_from_warm_start(
+    scene: Path,
+    work: Path,
+    scene_name: str,
+    warm: Path | None,
+    method: str,
+    timestamp: str,
+    method_arguments: list[str],
+    dataparser_arguments: list[str],
+    config: PhotometricConfig,
+) -> Path:
+    """One ``ns-train <method>`` run of ``config.iterations`` from the warm start (every variant's camera schedule);
+    ``dataparser_arguments`` start with the dataparser subcommand. Returns the run folder."""
     command = [
         *_arguments(
             method, scene, work, scene_name, timestamp, config.iterations, config.checkpoint_every,
             config.rays_per_batch,
         ),
         *camera_schedule_arguments(config.camera_lr, config.camera_lr_final, config.iterations),
-        *_variant_arguments(variant, seed, config),
+        *method_arguments,
     ]  # fmt: skip
     if warm is not None:
         command += ["--load-dir", str(warm), "--load-scheduler", "False"]
-    command += perturbation_arguments(config)
+    command += dataparser_arguments
     _run_ns_train(command, work / f"{scene_name}-{timestamp}.log", f"{scene_name} {timestamp}")
     return work / scene_name / method / timestamp
 
@@ -338,7 +360,7 @@ def evaluate_runs(runs: list[TrainedRun], config: PhotometricConfig) -> list[dic
         return list(pool.map(evaluate_run, paths, repeat(config.warm_start), repeat(config)))
 
 
-def summarize_scene(scene_name: str, results: list[tuple[TrainedRun, dict]]) -> tuple[list[dict], dict]:
+def summarize_scene(scene_name: str, results: list[tuple[TrainedRun, dict]], tier: int = 2) -> tuple[list[dict], dict]:
     """One row per variant (CamP: mean over its seeds) and the mean error curve, for one scene."""
     rows, histories = [], {}
     variants = list(dict.fromkeys(run.variant for run, _ in results if run.scene == scene_name))
@@ -352,7 +374,7 @@ def summarize_scene(scene_name: str, results: list[tuple[TrainedRun, dict]]) -> 
             for entries in zip(*[r["history"] for r in chosen], strict=True)
         ]
         histories[(scene_name, variant)] = history
-        row = {"tier": 2, "scene": scene_name, "variant": variant, "seeds": len(chosen)}
+        row = {"tier": tier, "scene": scene_name, "variant": variant, "seeds": len(chosen)}
         row["intrinsics"] = "per-camera" if variant in PER_CAMERA else "per-image"
         for key in ("rot_err", "pos_err", "focal_err"):
             row[f"start_{key}"] = start[key]
@@ -363,7 +385,7 @@ def summarize_scene(scene_name: str, results: list[tuple[TrainedRun, dict]]) -> 
         row["eval_views"] = chosen[0]["eval_views"]
         rows.append(row)
         log(
-            f"recovery tier 2 {scene_name:6s} {variant:12s} rot {row['rot_err']:.2e} pos {row['pos_err']:.2e} "
+            f"recovery tier {tier} {scene_name:6s} {variant:12s} rot {row['rot_err']:.2e} pos {row['pos_err']:.2e} "
             f"focal {row['focal_err']:.3f} psnr {row['psnr']:.2f} ssim {row['ssim']:.3f} "
             f"s/iter {row['sec_per_iter']:.3f}"
         )

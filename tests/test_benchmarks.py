@@ -63,6 +63,24 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
                 assert 0.0 < row["psnr"] < 100.0 and 0.0 < row["ssim"] <= 1.0, row
                 assert row["sec_per_iter"] > 0.0, row
         assert (tmp_path / "recovery-tier2.png").exists()
+        from s2camp_ns.benchmarks.recovery_sfm import intrinsics_option_available
+
+        tier3 = {row["variant"]: row for row in rows if row["tier"] == 3}
+        expected = {"start", "none", "so3xr3", "camp", "s2camp-per-image"}
+        if intrinsics_option_available():
+            expected.add("s2camp-per-camera")
+        assert set(tier3) == expected
+        intrinsics = {"start": "per-camera", "none": "per-image", "so3xr3": "per-image", "camp": "per-image"}
+        intrinsics |= {"s2camp-per-image": "per-image", "s2camp-per-camera": "per-camera"}
+        for variant, row in tier3.items():
+            assert row["intrinsics"] == intrinsics[variant], row
+            if variant != "start":
+                assert 0.0 < row["psnr"] < 100.0 and 0.0 < row["ssim"] <= 1.0, row
+                assert row["start_rot_err"] == tier3["start"]["rot_err"], row
+        # SfM's start is imperfect (the refinement has something to do) but close to the truth.
+        assert 1e-4 < tier3["start"]["rot_err"] < 0.1 and 1e-4 < tier3["start"]["pos_err"] < 0.2, tier3["start"]
+        assert (tmp_path / "recovery-tier3.png").exists()
+        assert "## Tier 3" in report.read_text()
     if name == "train-time":
         summary = {row["method"]: row for row in rows if row["kind"] == "summary"}
         assert set(summary) == {"s2camp-so3xr3", "s2camp", "s2camp-camp"}

@@ -376,3 +376,56 @@ def test_corrupt_text_model_file_is_named(scene: Path, name: str, damage: str, r
         parse(scene)
     if "corrupt or truncated" in str(info.value):
         assert f"expected a COLMAP {name} (" in str(info.value)
+
+
+def _write_model(reconstruction: pycolmap.Reconstruction, folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    reconstruction.write_binary(str(folder))
+    return folder
+
+
+def test_reference_model_of_the_input_gives_the_input_cameras(generated_scene: Path):
+    for split in ("train", "test"):
+        plain = parse(generated_scene, split)
+        with_reference = parse(generated_scene, split, reference_model=generated_scene / "sparse" / "0")
+        reference = with_reference.metadata["reference_cameras"]
+        torch.testing.assert_close(reference.camera_to_worlds, plain.cameras.camera_to_worlds, atol=1e-5, rtol=0)
+        torch.testing.assert_close(reference.fx, plain.cameras.fx)
+        torch.testing.assert_close(reference.cx, plain.cameras.cx)
+        torch.testing.assert_close(reference.distortion_params, plain.cameras.distortion_params)
+        # The training cameras themselves stay the input's.
+        torch.testing.assert_close(with_reference.cameras.camera_to_worlds, plain.cameras.camera_to_worlds)
+
+
+def test_reference_model_is_aligned_into_the_input_frame_and_scaled_to_the_images(scene: Path, tmp_path: Path):
+    """The input is the truth moved by a similarity, with a wrong focal length: the reference poses are the input's
+    (the similarity is undone), the reference focal is the truth's at the training resolution."""
+    truth = input_model(scene)
+    true_focal = float(truth.cameras[1].params[0])
+    moved = input_model(scene)
+    rotation = pycolmap.Rotation3d(np.array([0.1, -0.3, 0.2, 0.9]) / np.linalg.norm([0.1, -0.3, 0.2, 0.9]))
+    moved.transform(pycolmap.Sim3d(2.5, rotation, np.array([3.0, -1.0, 0.5])))
+    camera = moved.cameras[1]
+    params = camera.params.copy()
+    params[0] *= 1.1
+    camera.params = params
+    shutil.rmtree(scene / "sparse" / "0")
+    _write_model(moved, scene / "sparse" / "0")
+    truth_folder = _write_model(truth, tmp_path / "truth")
+    for split in ("train", "test"):
+        outputs = parse(scene, split, downscale_factor=2, reference_model=truth_folder)
+        reference = outputs.metadata["reference_cameras"]
+        torch.testing.assert_close(reference.camera_to_worlds, outputs.cameras.camera_to_worlds, atol=1e-5, rtol=0)
+        assert torch.allclose(reference.fx, torch.full_like(reference.fx, true_focal * 25 / WIDTH), atol=1e-4)
+        assert torch.allclose(outputs.cameras.fx, torch.full_like(reference.fx, 1.1 * true_focal * 25 / WIDTH))
+
+
+def test_reference_model_missing_image_is_named(scene: Path, tmp_path: Path):
+    truth = input_model(scene)
+    image = next(image for image in truth.images.values() if image.name == "frame_00003.png")
+    image.name = "renamed.png"
+    folder = _write_model(truth, tmp_path / "truth")
+    with pytest.raises(ValueError, match=r"frame_00003\.png.*images\.bin.*1 of 10 images missing"):
+        parse(scene, reference_model=folder)
+    with pytest.raises(FileNotFoundError, match="reference_model"):
+        parse(scene, reference_model=tmp_path / "nowhere")

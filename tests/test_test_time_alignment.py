@@ -167,3 +167,48 @@ def test_zero_steps_evaluates_the_mapped_camera_as_is():
 def test_bad_alignment_settings_name_the_parameter(name: str, value: float):
     with pytest.raises(ValueError, match=name):
         AlignmentConfig(**{name: value}).validate()
+
+
+def _cameras(centres: torch.Tensor, focal: float) -> Cameras:
+    c2w = torch.eye(3).expand(len(centres), 3, 3)
+    return Cameras(
+        camera_to_worlds=torch.cat([c2w, centres.float()[:, :, None]], dim=-1),
+        fx=focal, fy=focal, cx=WIDTH / 2, cy=HEIGHT / 2, width=WIDTH, height=HEIGHT,
+        camera_type=CameraType.PERSPECTIVE,
+    )  # fmt: skip
+
+
+class _EvalDataset:
+    def __init__(self, cameras: Cameras, metadata: dict) -> None:
+        self.cameras, self.metadata = cameras, metadata
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __getitem__(self, index: int) -> dict:
+        return {"image": torch.zeros(HEIGHT, WIDTH, 3)}
+
+
+@pytest.mark.parametrize("with_reference", [True, False])
+def test_held_out_cameras_are_the_evaluation_reference_when_given(monkeypatch, with_reference: bool):
+    """With the dataparser's evaluation-split reference (e.g. the true cameras of --reference-model) the held-out
+    views start from it, not from the evaluation cameras as given (there: SfM's)."""
+    from types import SimpleNamespace
+
+    import s2camp_ns.nerfstudio.test_time_alignment as module
+
+    train = _cameras(torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), FOCAL)
+    refined = (train.camera_to_worlds.double(), train.fx.reshape(-1).double())  # identity frame map
+    model = SimpleNamespace(
+        refined_train_cameras=lambda: refined, reference_cameras=lambda: train, _train_cameras=train
+    )
+    given = _cameras(torch.tensor([[0.5, 0.5, 0.5], [0.2, 0.3, 0.4]]), FOCAL)
+    reference = _cameras(torch.tensor([[0.6, 0.4, 0.5], [0.1, 0.3, 0.5]]), FOCAL + 2.0)
+    metadata = {"reference_cameras": reference} if with_reference else {}
+    pipeline = SimpleNamespace(model=model, datamanager=SimpleNamespace(eval_dataset=_EvalDataset(given, metadata)))
+    monkeypatch.setattr(module, "align_and_evaluate_views", lambda model, views, config: views)
+    views = module.evaluate_held_out_views(pipeline, AlignmentConfig())
+    expected = reference if with_reference else given
+    for index, view in enumerate(views):
+        torch.testing.assert_close(view.c2w_gl.float(), expected.camera_to_worlds[index], atol=1e-6, rtol=0)
+        assert float(view.intrinsics.fx) == pytest.approx(float(expected.fx[index]))

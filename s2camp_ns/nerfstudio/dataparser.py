@@ -24,6 +24,8 @@ The CamP perturbation (off by default; ``ns-train s2camp --data D s2camp-data --
 to the training cameras after nerfstudio's orientation and scale normalization, so its sigmas are in normalized
 scene units (the cameras fit in [-1, 1]^3), as CamP applies them in its own normalized scene. The unperturbed
 cameras of the split are kept in ``metadata["reference_cameras"]``; evaluation cameras are never perturbed.
+With ``--reference-model`` (a COLMAP model of the true cameras, e.g. a rendered scene's when the input is an SfM
+reconstruction of it), the reference cameras are the true ones instead, similarity-aligned into the input's frame.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from nerfstudio.data.dataparsers import colmap_dataparser
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
+from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat
 from PIL import Image
 
 from s2camp_ns.camera_optimizer import camera_model_of, group_identical_intrinsics, intrinsics_from_cameras
@@ -98,6 +101,10 @@ class S2CampDataParserConfig(DataParserConfig):
     """Load the COLMAP sparse points into metadata (needed by point-initialized models; cheap)."""
     perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
     """CamP perturbation of the training cameras (evaluation protocol, off by default)."""
+    reference_model: Path | None = None
+    """COLMAP model of the true cameras (images matched by name, COLMAP scenes only): the reference cameras of the
+    camera errors, the viewer's reference frusta and the held-out views come from it instead of the input cameras,
+    similarity-aligned into the input's frame (``reference_from_model``)."""
 
 
 def _find_colmap_model(data: Path, colmap_path: Path | None) -> tuple[Path | None, list[str]]:
@@ -386,6 +393,8 @@ class S2CampDataParser(DataParser):
         intrinsics = check_supported_cameras(outputs.cameras, source)
 
         reference = copy.deepcopy(outputs.cameras)
+        if self.config.reference_model is not None:
+            reference = self._reference_from_model(data_format, source, outputs, extra)
         cameras = outputs.cameras
         perturbed = split == "train" and self.config.perturbation.enabled
         if perturbed:
@@ -415,6 +424,21 @@ class S2CampDataParser(DataParser):
             dataparser_transform=outputs.dataparser_transform,
             dataparser_scale=outputs.dataparser_scale,
             metadata=metadata,
+        )
+
+    def _reference_from_model(self, data_format: str, source: Path, outputs: DataparserOutputs, extra: dict) -> Cameras:
+        if data_format != "colmap":
+            raise ValueError(
+                f"reference_model {self.config.reference_model} needs a COLMAP scene (images matched by name), but "
+                f"--data {self.config.data} is a {data_format} scene ({source})"
+            )
+        return reference_from_model(
+            self.config.reference_model,
+            source,
+            extra["image_names"],
+            outputs.cameras,
+            outputs.dataparser_transform,
+            float(outputs.dataparser_scale),
         )
 
     def _common_kwargs(self) -> dict:
@@ -514,13 +538,130 @@ def c2w_to_colmap_world(
     return opengl_to_opencv(original[:, :3, :4])
 
 
+def colmap_world_to_c2w(
+    c2w_world: torch.Tensor, dataparser_transform: torch.Tensor, dataparser_scale: float
+) -> torch.Tensor:
+    """nerfstudio's normalization of original-world OpenCV c2w [N, 3, 4] (float64): the inverse of
+    ``c2w_to_colmap_world`` (camera axes flipped to OpenGL, ``T @ c2w``, centres times the scale)."""
+    c2w = opengl_to_opencv(c2w_world.detach().double().cpu())
+    transform = torch.eye(4, dtype=torch.float64)
+    transform[:3, :4] = dataparser_transform.detach().double().cpu()
+    bottom = torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(c2w.shape[0], 1, 4)
+    normalized = (transform @ torch.cat([c2w, bottom], dim=1))[:, :3, :4]
+    normalized[:, :, 3] = normalized[:, :, 3] * float(dataparser_scale)
+    return normalized
+
+
+def _read_colmap_model(folder: Path) -> tuple[dict, dict, Path]:
+    """COLMAP cameras and images of ``folder`` (binary or text, read strictly: a corrupt file is named), and the
+    images file read."""
+    if not any((folder / f"cameras{suffix}").exists() for suffix in (".bin", ".txt")):
+        raise FileNotFoundError(
+            f"no COLMAP model in {folder}: expected cameras.bin + images.bin or cameras.txt + images.txt"
+        )
+    images_file = model_file(folder, "images")
+    return (
+        read_model_file(model_file(folder, "cameras"), "cameras"),
+        read_model_file(images_file, "images"),
+        images_file,
+    )
+
+
+def _world_poses(images: dict, names: list[str]) -> torch.Tensor:
+    """Original-world OpenCV camera-to-world [N, 3, 4] (float64) of the named COLMAP images."""
+    by_name = {image.name: image for image in images.values()}
+    poses = []
+    for name in names:
+        image = by_name[name]
+        rotation = torch.tensor(qvec2rotmat(image.qvec), dtype=torch.float64)  # world -> camera
+        translation = torch.tensor(image.tvec, dtype=torch.float64)
+        poses.append(torch.cat([rotation.T, (-rotation.T @ translation)[:, None]], dim=1))
+    return torch.stack(poses)
+
+
+def _colmap_intrinsics(camera) -> tuple[float, float, float, float, float, float]:
+    """(fx, fy, cx, cy, k1, k2) of a COLMAP camera of a supported model."""
+    p = [float(v) for v in camera.params]
+    if camera.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        radial = p[3:5] + [0.0] * (5 - len(p))
+        return p[0], p[0], p[1], p[2], radial[0], radial[1]
+    if camera.model in ("PINHOLE", "OPENCV"):
+        radial = p[4:6] + [0.0] * (6 - len(p))
+        return p[0], p[1], p[2], p[3], radial[0], radial[1]
+    raise ValueError(
+        f"reference camera {camera.id} uses the COLMAP camera model {camera.model}; supported: "
+        f"{', '.join(SUPPORTED_COLMAP_MODELS)}"
+    )
+
+
+def reference_from_model(
+    reference_model: Path,
+    input_model: Path,
+    names: list[str],
+    cameras: Cameras,
+    dataparser_transform: torch.Tensor,
+    dataparser_scale: float,
+) -> Cameras:
+    """The split's cameras (``names``, in order) taken from the COLMAP model ``reference_model``, in the input's
+    normalized frame.
+
+    The reference world is mapped onto the input model's world by the similarity that best maps the reference camera
+    centres onto the input's, over every image of the input model (Umeyama, ``s2camp_ns.core.alignment``): the same
+    map for every split. nerfstudio's normalization of the input (``dataparser_transform``, ``dataparser_scale``)
+    follows. Intrinsics are scaled from the reference camera's size to each camera's (training) image size.
+    """
+    from s2camp_ns.core.alignment import umeyama
+
+    reference_model = Path(reference_model)
+    if not reference_model.is_dir():
+        raise FileNotFoundError(f"reference_model {reference_model} is not a folder (expected a COLMAP model)")
+    reference_cameras, reference_images, reference_file = _read_colmap_model(reference_model)
+    _, input_images, input_file = _read_colmap_model(input_model)
+    available = {image.name for image in reference_images.values()}
+    all_names = sorted(image.name for image in input_images.values())
+    missing = [name for name in (*all_names, *names) if name not in available]
+    if missing:
+        raise ValueError(
+            f"reference_model: image '{missing[0]}' of {input_file} is not in {reference_file} "
+            f"({len(set(missing))} of {len(all_names)} images missing; images are matched by name)"
+        )
+    similarity = umeyama(
+        _world_poses(reference_images, all_names)[:, :, 3], _world_poses(input_images, all_names)[:, :, 3]
+    )
+    world = similarity.apply_to_poses(_world_poses(reference_images, names))
+    c2w = colmap_world_to_c2w(world, dataparser_transform, dataparser_scale)
+
+    by_name = {image.name: image for image in reference_images.values()}
+    values = torch.zeros(len(names), 6, dtype=torch.float64)
+    for i, name in enumerate(names):
+        camera = reference_cameras[by_name[name].camera_id]
+        fx, fy, cx, cy, k1, k2 = _colmap_intrinsics(camera)
+        sx = float(cameras.width[i]) / camera.width
+        sy = float(cameras.height[i]) / camera.height
+        values[i] = torch.tensor([fx * sx, fy * sy, cx * sx, cy * sy, k1, k2], dtype=torch.float64)
+    distortion = torch.zeros(len(names), 6, dtype=cameras.fx.dtype)
+    distortion[:, :2] = values[:, 4:6].to(distortion.dtype)
+    dtype = cameras.fx.dtype
+    return _replace_cameras(
+        cameras,
+        camera_to_worlds=c2w.to(cameras.camera_to_worlds.dtype),
+        fx=values[:, 0:1].to(dtype),
+        fy=values[:, 1:2].to(dtype),
+        cx=values[:, 2:3].to(dtype),
+        cy=values[:, 3:4].to(dtype),
+        distortion_params=distortion,
+    )
+
+
 __all__ = [
     "S2CampDataParser",
     "S2CampDataParserConfig",
     "SUPPORTED_COLMAP_MODELS",
     "c2w_to_colmap_world",
+    "colmap_world_to_c2w",
     "detect_format",
     "perturb_nerfstudio_cameras",
+    "reference_from_model",
     "resolve_downscale",
     "validate_colmap_cameras",
 ]

@@ -274,6 +274,8 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
 
     The reference training cameras (``metadata["reference_cameras"]``, present when the dataparser perturbed the
     training cameras) define the frame of the evaluation cameras; without them the training cameras as given do.
+    The evaluation cameras are the evaluation split's reference cameras where the dataparser provides them (the
+    true cameras of ``--reference-model``), else the evaluation cameras.
     """
     from s2camp_ns.camera_optimizer import intrinsics_from_cameras
 
@@ -286,7 +288,11 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
     similarity = frame_similarity(reference_c2w, refined_c2w)
     focal_ratio = float(torch.median(refined_fx / reference_fx))
     dataset = pipeline.datamanager.eval_dataset
-    cameras = dataset.cameras
+    # Held-out cameras in the same frame as the reference training cameras: the dataparser's reference for the
+    # evaluation split (the true cameras with ``reference_model``), else the evaluation cameras as given.
+    cameras = (getattr(dataset, "metadata", None) or {}).get("reference_cameras")
+    if cameras is None or cameras.shape[0] != len(dataset):
+        cameras = dataset.cameras
     views = [
         HeldOutView(
             image=dataset[index]["image"],

@@ -161,7 +161,6 @@ class S2CampTrainer(Trainer):
                 if old != path:
                     old.unlink()
 
-
     def _load_checkpoint(self) -> None:
         """Load pipeline, optimizers, schedulers (unless ``--load-scheduler False``), grad scaler and random state."""
         config = self.config

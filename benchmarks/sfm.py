@@ -1,0 +1,221 @@
+"""Structure from motion on a generated scene (pycolmap SIFT, exhaustive matching, incremental mapping).
+
+``run_sfm`` writes a scene folder that ``ns-train`` reads like the generated one: the same ``images/`` and
+``images_2/`` (symbolic links) and ``sparse/0`` = the SfM model, whose image names are the truth's. One shared camera
+(``CameraMode.SINGLE``) of the chosen COLMAP model. COLMAP's log lines go to ``sfm.log`` in the output folder.
+
+``check_sfm`` compares the SfM model with the truth (the generated scene's ``sparse/0``) after a similarity alignment
+of the camera centres (Umeyama, ``s2camp_ns.core.alignment``): a reconstruction that misses images, splits into
+several models, or whose centres or rotations are far from the truth is a failed scene, not a data point.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from s2camp_ns.core.alignment import rotation_angle, umeyama
+from s2camp_ns.core.validation import check_choice
+
+SFM_CAMERA_MODELS = ("SIMPLE_RADIAL", "OPENCV")
+"""Shared camera models of the SfM start (both map onto S2CamP's intrinsics; OPENCV's p1, p2 are zeroed)."""
+
+
+SFM_THREADS = 1
+"""One thread and a fixed seed: COLMAP's multi-threaded mapper registers images in a run-dependent order (one run of
+a 24-image scene registered 23 images, the next 24)."""
+SFM_SEED = 0
+MIN_POSE_INLIERS = 15
+"""Absolute-pose inliers needed to register an image (COLMAP's default 30 is meant for megapixel images; the
+generated images have a few hundred SIFT features)."""
+
+
+def _mapping_options():
+    import pycolmap
+
+    options = pycolmap.IncrementalPipelineOptions(num_threads=SFM_THREADS, random_seed=SFM_SEED)
+    options.mapper.abs_pose_min_num_inliers = MIN_POSE_INLIERS
+    return options
+
+
+@dataclass(frozen=True)
+class SfmCheck:
+    """Limits a reconstruction must meet to count as a successful scene."""
+
+    max_centre_error: float = 0.1
+    """Largest camera-centre error after similarity alignment, as a fraction of the ring radius. Loose enough for an
+    inaccurate but consistent reconstruction (the wide scene's SIMPLE_RADIAL model cannot represent its lens' k2:
+    8% at worst, 3.5% on average), tight enough to reject a broken one (a mirrored or folded ring is off by ~100%)."""
+    max_rotation_error: float = 0.1
+    """Largest rotation error after alignment (rad, about 6 degrees; the wide scene: 0.085 at worst)."""
+
+
+@dataclass
+class SfmResult:
+    """One SfM run on one scene, compared with the truth."""
+
+    scene: Path
+    """The SfM scene folder (images/, images_2/, sparse/0)."""
+    registered: int
+    images: int
+    models: int
+    points: int
+    rot_err_max: float
+    """Largest rotation error after alignment (rad)."""
+    centre_err_max: float
+    """Largest centre error after alignment, in the truth's world units."""
+    rot_err_mean: float
+    centre_err_mean: float
+    focal: float
+    """SfM's shared focal length (full-resolution px)."""
+    true_focal: float
+    failure: str | None
+    """Why the reconstruction is not usable (None: it is)."""
+
+
+@contextlib.contextmanager
+def _output_to(path: Path):
+    """Send this process's stdout and stderr file descriptors (COLMAP's glog writes there from C++) to ``path``."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with open(path, "a", encoding="utf8") as log_file:
+        os.dup2(log_file.fileno(), 1)
+        os.dup2(log_file.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for descriptor in saved:
+                os.close(descriptor)
+
+
+def run_sfm(scene: Path, output: Path, camera_model: str = "SIMPLE_RADIAL", check: SfmCheck = SfmCheck()) -> SfmResult:
+    """SfM on ``scene/images`` into ``output`` (module docstring); compared with ``scene/sparse/0``."""
+    import pycolmap
+
+    check_choice("camera_model", camera_model, SFM_CAMERA_MODELS)
+    if output.exists():
+        shutil.rmtree(output)
+    work = output / "colmap"
+    work.mkdir(parents=True)
+    for folder in ("images", "images_2"):
+        (output / folder).symlink_to((scene / folder).resolve(), target_is_directory=True)
+    database = work / "database.db"
+    images = scene / "images"
+    with _output_to(output / "sfm.log"):
+        pycolmap.extract_features(
+            database,
+            images,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=pycolmap.ImageReaderOptions(camera_model=camera_model),
+            extraction_options=pycolmap.FeatureExtractionOptions(num_threads=SFM_THREADS),
+            device=pycolmap.Device.cpu,
+        )
+        pycolmap.match_exhaustive(
+            database,
+            matching_options=pycolmap.FeatureMatchingOptions(num_threads=SFM_THREADS),
+            device=pycolmap.Device.cpu,
+        )
+        models = pycolmap.incremental_mapping(database, images, work / "sparse", options=_mapping_options())
+    truth = pycolmap.Reconstruction(scene / "sparse" / "0")
+    if not models:
+        return _failed(output, truth, "incremental mapping produced no model")
+    best = max(models.values(), key=lambda model: model.num_reg_images())
+    if camera_model == "OPENCV":
+        for camera in best.cameras.values():  # S2CamP refines radial k1, k2 only; p1, p2 were free in the mapper
+            params = camera.params.copy()
+            params[6:8] = 0.0
+            camera.params = params
+    sparse = output / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    best.write_binary(sparse)
+    for extra in ("rigs.bin", "frames.bin"):  # the mip-NeRF 360 layout has three files
+        (sparse / extra).unlink(missing_ok=True)
+    return compare_with_truth(output, best, truth, len(models), check)
+
+
+def _centres_and_rotations(reconstruction, names: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
+    by_name = {image.name: image for image in reconstruction.images.values()}
+    centres, rotations = [], []
+    for name in names:
+        pose = by_name[name].cam_from_world()
+        matrix = np.asarray(pose.matrix())
+        rotations.append(matrix[:, :3].T)  # camera-to-world rotation
+        centres.append(-matrix[:, :3].T @ matrix[:, 3])
+    return torch.tensor(np.stack(centres)), torch.tensor(np.stack(rotations))
+
+
+def _focal(reconstruction) -> float:
+    camera = next(iter(reconstruction.cameras.values()))
+    return float(camera.focal_length_x)
+
+
+def compare_with_truth(output: Path, sfm, truth, models: int, check: SfmCheck) -> SfmResult:
+    """Registration and similarity-aligned centre / rotation errors of ``sfm`` against ``truth``."""
+    names = sorted(image.name for image in truth.images.values())
+    registered = sorted(image.name for image in sfm.images.values() if image.has_pose)
+    failure = None
+    if registered != names:
+        missing = sorted(set(names) - set(registered))
+        failure = f"{len(registered)} of {len(names)} images registered (missing e.g. {missing[:3]})"
+    elif len(sfm.cameras) != 1:
+        failure = f"{len(sfm.cameras)} cameras instead of one shared camera"
+    if failure is not None:
+        return _failed(output, truth, failure, registered=len(registered), models=models, points=sfm.num_points3D())
+    sfm_centres, sfm_rotations = _centres_and_rotations(sfm, names)
+    true_centres, true_rotations = _centres_and_rotations(truth, names)
+    similarity = umeyama(sfm_centres, true_centres)
+    aligned_centres = similarity.apply_to_points(sfm_centres)
+    centre_errors = (aligned_centres - true_centres).norm(dim=1)
+    rotation_errors = rotation_angle(similarity.rotation @ sfm_rotations, true_rotations)
+    radius = float((true_centres[:, :2] - true_centres[:, :2].mean(dim=0)).norm(dim=1).mean())
+    if float(centre_errors.max()) > check.max_centre_error * radius:
+        failure = (
+            f"camera centre error {float(centre_errors.max()):.3g} after alignment exceeds "
+            f"{check.max_centre_error:g} x ring radius {radius:.3g}"
+        )
+    elif float(rotation_errors.max()) > check.max_rotation_error:
+        failure = f"rotation error {float(rotation_errors.max()):.3g} rad exceeds {check.max_rotation_error:g} rad"
+    return SfmResult(
+        scene=output,
+        registered=len(registered),
+        images=len(names),
+        models=models,
+        points=sfm.num_points3D(),
+        rot_err_max=float(rotation_errors.max()),
+        centre_err_max=float(centre_errors.max()),
+        rot_err_mean=float(rotation_errors.mean()),
+        centre_err_mean=float(centre_errors.mean()),
+        focal=_focal(sfm),
+        true_focal=_focal(truth),
+        failure=failure,
+    )
+
+
+def _failed(output: Path, truth, failure: str, registered: int = 0, models: int = 0, points: int = 0) -> SfmResult:
+    nan = float("nan")
+    return SfmResult(
+        scene=output,
+        registered=registered,
+        images=truth.num_images(),
+        models=models,
+        points=points,
+        rot_err_max=nan,
+        centre_err_max=nan,
+        rot_err_mean=nan,
+        centre_err_mean=nan,
+        focal=nan,
+        true_focal=_focal(truth),
+        failure=failure,
+    )
