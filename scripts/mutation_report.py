@@ -6,7 +6,7 @@ Prints a markdown table per module (mutants, killed, survived, equivalent, no te
 non-equivalent mutants), the equivalent survivors with their reasons, and the diff of every survivor that is
 neither killed nor listed as equivalent. ``--strict`` exits with status 1 while such survivors exist.
 
-Run from the repository root after ``mutmut run`` (``make mutation`` does both).
+Run from the repository root after ``mutmut run`` (``make mutation`` does both); needs Python >= 3.11 (tomllib).
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from __future__ import annotations
 import argparse
 import re
 import sys
-import tomllib
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
+import tomllib
 from mutmut.configuration import config
 from mutmut.mutation.data import SourceFileMutationData
 from mutmut.mutation.diff_apply import get_diff_for_mutant
