@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from s2camp_ns.core.camera import (
+    PARAMETER_NAMES,
     Intrinsics,
     ParameterLayout,
     apply_pose_delta,
@@ -374,9 +375,10 @@ def test_presets_are_the_named_layouts() -> None:
 def test_expand_takes_any_batch_shape_and_checks_the_columns() -> None:
     layout = ParameterLayout.from_preset("pose+focal")  # columns 0-6
     single = layout.expand(torch.arange(1.0, 8.0))
-    assert single.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    assert single.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0] + [0.0] * (len(PARAMETER_NAMES) - 7)
     batched = layout.expand(torch.ones(2, 3, 7))
-    assert batched.shape == (2, 3, 12) and batched[..., :7].eq(1).all() and batched[..., 7:].eq(0).all()
+    assert batched.shape == (2, 3, len(PARAMETER_NAMES))
+    assert batched[..., :7].eq(1).all() and batched[..., 7:].eq(0).all()
     with pytest.raises(ValueError, match=r"^delta must have 7 columns for this layout, got 5$"):
         layout.expand(torch.zeros(3, 5))
     with pytest.raises(ValueError, match=r"^delta must have 7 columns for this layout, got 5$"):
