@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 import re
 import warnings
@@ -428,8 +429,12 @@ def test_each_unrepresentable_distortion_parameter_is_named(camera_type, column:
 def test_unsupported_camera_types_are_rejected():
     cameras = make_cameras()
     cameras.camera_type = torch.full_like(cameras.camera_type, CameraType.EQUIRECTANGULAR.value)
-    message = "camera type EQUIRECTANGULAR is not supported by S2CamP's camera refinement; supported are PERSPECTIVE"
-    with pytest.raises(ValueError, match=f"^{re.escape(message)}"):
+    message = (
+        "camera type EQUIRECTANGULAR is not supported by S2CamP's camera refinement; supported are PERSPECTIVE (COLMAP "
+        "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV with k4 = k5 = k6 = 0) and FISHEYE "
+        "(COLMAP OPENCV_FISHEYE)"
+    )
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         make_optimizer(cameras)
 
 
@@ -569,13 +574,24 @@ def test_rays_without_pixel_coordinates_get_the_refined_pose_only():
     rays_cv = _pinhole_directions_cv(pixels, cameras.fx[index, 0], cameras.fy[index, 0], cameras.cx[index, 0],
                                      cameras.cy[index, 0])  # fmt: skip
     rays_cv = rays_cv / rays_cv.norm(dim=-1, keepdim=True)
-    bundle.origins = base_cv[:, :, 3].float()
+    # Origins off the camera centre (e.g. a near-plane start): (0.1, -0.2, 0.3) in each camera's frame.
+    offset_cv = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    bundle.origins = (base_cv[:, :, 3] + base_cv[:, :, :3] @ offset_cv).float()
     bundle.directions = (base_cv[:, :, :3] @ rays_cv[:, :, None])[..., 0].float()
-    with pytest.warns(UserWarning, match=f"ray bundle carries no '{PIXEL_KEY}' metadata"):
+    message = (
+        f"ray bundle carries no '{PIXEL_KEY}' metadata (use S2CampDataManagerConfig): intrinsics refinement "
+        "has no effect on these rays, only the pose is refined"
+    )
+    with pytest.warns(UserWarning, match=f"^{re.escape(message)}$") as record:
         optimizer.apply_to_raybundle(bundle)
+    # The warning points at apply_to_raybundle's call (stacklevel 2), not at the helper or at the test.
+    lines, first = inspect.getsourcelines(S2CampCameraOptimizer.apply_to_raybundle)
+    assert record[0].filename == inspect.getsourcefile(S2CampCameraOptimizer)
+    assert first <= record[0].lineno < first + len(lines)
     refined_cv = refined_c2w_cv_by_hand(cameras.camera_to_worlds, XI.double())[index]
     # The pose moves the rays; the focal and principal-point deltas cannot act without pixel coordinates.
-    torch.testing.assert_close(bundle.origins.double(), refined_cv[:, :, 3], atol=1e-6, rtol=0)
+    torch.testing.assert_close(bundle.origins.double(), refined_cv[:, :, 3] + refined_cv[:, :, :3] @ offset_cv,
+                               atol=1e-6, rtol=0)  # fmt: skip
     expected = (refined_cv[:, :, :3] @ rays_cv[:, :, None])[..., 0]
     torch.testing.assert_close(bundle.directions.double(), expected, atol=1e-6, rtol=0)
     again = random_ray_bundle(num_rays=4, seed=4)
@@ -627,6 +643,8 @@ def test_train_camera_raybundle_closed_form():
     )
     torch.testing.assert_close(bundle.pixel_area, torch.full((HEIGHT // 2, WIDTH // 2, 1), 4.0 / (fx * fy)))
     assert bundle.camera_indices.shape == (HEIGHT // 2, WIDTH // 2, 1) and bool((bundle.camera_indices == 1).all())
+    thirds = optimizer.train_camera_raybundle(1, downscale=3)  # pixel area scales with downscale^2 = 9
+    torch.testing.assert_close(thirds.pixel_area, torch.full((HEIGHT // 3, WIDTH // 3, 1), 9.0 / (fx * fy)))
 
 
 def test_loss_dict_penalises_the_raw_pose_deltas():
@@ -689,3 +707,22 @@ def test_metrics_dict_reports_the_raw_deltas():
 def test_invalid_refresh_schedule_names_the_range():
     with pytest.raises(ValueError, match=r"^refresh_every must lie in \[0, inf\), got -1"):
         make_optimizer(refresh_every=-1)
+
+
+def test_cameras_differing_only_in_distortion_size_or_type_are_different_physical_cameras():
+    from s2camp_ns.camera_optimizer import group_identical_intrinsics
+
+    cameras = make_cameras()  # three different focal lengths
+    cameras = Cameras(
+        camera_to_worlds=cameras.camera_to_worlds[[0, 0, 0, 0, 0]],
+        fx=torch.full((5, 1), 60.0),
+        fy=torch.full((5, 1), 61.0),
+        cx=torch.full((5, 1), 32.0),
+        cy=torch.full((5, 1), 24.0),
+        width=torch.tensor([[64], [64], [80], [64], [64]]),
+        height=torch.full((5, 1), 48),
+        distortion_params=torch.tensor([[0.0] * 6, [-0.05] + [0.0] * 5, [0.0] * 6, [0.0] * 6, [0.0] * 6]),
+        camera_type=torch.tensor([[1], [1], [1], [2], [1]]),
+    )
+    ids = group_identical_intrinsics(cameras).tolist()
+    assert ids[0] == ids[4] and len({ids[0], ids[1], ids[2], ids[3]}) == 4
