@@ -351,3 +351,36 @@ def test_proxy_points_follow_the_radial_map(radial: str) -> None:
 def test_sampling_config_validates_itself(config: SamplingConfig, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         config.validate()
+
+
+@pytest.mark.parametrize("radial", ["volume", "ray"])
+def test_fisheye_proxy_points_lie_on_the_pixel_and_radius_of_their_lattice_point(radial: str) -> None:
+    """Fisheye proxies: lattice point (u1, u2, u3) -> pixel (u3 W, u2 H) at contracted radius Q_r(u1) (eqs. 10, 12)."""
+    t_near, t_far = 0.4, 1.8
+    unit = unit_cube_points("frolov", 200).double()
+    points = sample_proxy_points(FISHEYE, SamplingConfig(num_points=200, t_near=t_near, t_far=t_far, radial=radial))
+    r = points.norm(dim=-1)
+    contracted = torch.where(r <= 1.0, r, 2.0 - 1.0 / r)  # paper eq. 10 by hand
+    u1 = unit[:, 0].expand(2, -1)
+    if radial == "ray":
+        expected = t_near + u1 * (t_far - t_near)
+    else:
+        expected = (t_near**3 + u1 * (t_far**3 - t_near**3)) ** (1.0 / 3.0)
+    torch.testing.assert_close(contracted, expected, atol=1e-12, rtol=0)
+    pixels, _ = project(points, FISHEYE)
+    expected_pixels = torch.stack([unit[:, 2] * 640.0, unit[:, 1] * 480.0], dim=-1).expand(2, -1, -1)
+    torch.testing.assert_close(pixels, expected_pixels, atol=1e-6, rtol=0)
+
+
+def test_fisheye_proxy_points_follow_the_seed_and_are_computed_in_float64() -> None:
+    seven = sample_proxy_points(FISHEYE, SamplingConfig(sampler="random", num_points=64, seed=7))
+    default = sample_proxy_points(FISHEYE, SamplingConfig(sampler="random", num_points=64))
+    assert not torch.equal(seven, default)
+    torch.testing.assert_close(
+        sample_proxy_points(FISHEYE, SamplingConfig(sampler="random", num_points=64, seed=7)), seven
+    )
+    fisheye32 = FISHEYE.to(dtype=torch.float32)
+    points32 = sample_proxy_points(fisheye32, SamplingConfig(num_points=64))
+    assert points32.dtype == torch.float64
+    reference = sample_proxy_points(fisheye32.to(dtype=torch.float64), SamplingConfig(num_points=64))
+    torch.testing.assert_close(points32, reference, atol=1e-12, rtol=0)
