@@ -6,6 +6,7 @@ import math
 import re
 from decimal import Decimal, getcontext
 
+import mpmath
 import numpy as np
 import pycolmap
 import pytest
@@ -17,6 +18,7 @@ from s2camp_ns.core.camera import (
     ParameterLayout,
     apply_pose_delta,
     check_distortion_monotonic,
+    fisheye_terms,
     in_image,
     opengl_to_opencv,
     pixel_to_ray_direction,
@@ -432,3 +434,32 @@ def test_opengl_to_opencv_flips_the_camera_y_and_z_axes() -> None:
     assert torch.equal(batched, torch.stack([expected, 2.0 * expected]))
     with pytest.raises(ValueError, match=re.escape("c2w must have shape [..., 3, 4] or [..., 4, 4], got (3, 3)")):
         opengl_to_opencv(torch.eye(3))
+
+
+def test_fisheye_terms_match_a_50_digit_reference_on_both_branches() -> None:
+    """h = theta / rho, theta^2 and q = (z / R - h) / rho^2 near the axis (Taylor branch, rho / z < 1e-4) and off it."""
+    mpmath.mp.dps = 50
+    cases = [  # (rho / z, z): Taylor branch just inside its limit, at z != 1; general branch, also at small z
+        (0.99e-4, 2.0),
+        (0.5e-4, 0.5),
+        (0.999e-4, 0.03),
+        (1e-2, 1.0),
+        (0.5, 0.01),
+        (0.7, 1.3),
+        (3.0, -0.4),  # behind the camera (theta > 90 degrees)
+    ]
+    points, expected = [], []
+    for t, z in cases:
+        rho = t * abs(z)
+        x, y = 0.6 * rho, 0.8 * rho
+        points.append([x, y, z])
+        mx, my, mz = mpmath.mpf(x), mpmath.mpf(y), mpmath.mpf(z)
+        mrho2 = mx * mx + my * my
+        theta = mpmath.atan2(mpmath.sqrt(mrho2), mz)
+        h = theta / mpmath.sqrt(mrho2)
+        expected.append([float(h), float(theta * theta), float((mz / (mrho2 + mz * mz) - h) / mrho2)])
+    terms = fisheye_terms(torch.tensor([points], dtype=torch.float64))
+    got = torch.stack([terms.h[0], terms.theta2[0], terms.q[0]], dim=-1)
+    torch.testing.assert_close(got, torch.tensor(expected, dtype=torch.float64), rtol=1e-11, atol=0)
+    centre = fisheye_terms(torch.zeros(1, 1, 3, dtype=torch.float64))
+    assert all(bool(torch.isfinite(v).all()) for v in (centre.h, centre.theta2, centre.q, centre.norm2))
