@@ -18,6 +18,7 @@ from s2camp_ns.core.camera import (
     ParameterLayout,
     apply_pose_delta,
     check_distortion_monotonic,
+    fisheye_fold_angle,
     fisheye_terms,
     in_image,
     opengl_to_opencv,
@@ -463,3 +464,64 @@ def test_fisheye_terms_match_a_50_digit_reference_on_both_branches() -> None:
     torch.testing.assert_close(got, torch.tensor(expected, dtype=torch.float64), rtol=1e-11, atol=0)
     centre = fisheye_terms(torch.zeros(1, 1, 3, dtype=torch.float64))
     assert all(bool(torch.isfinite(v).all()) for v in (centre.h, centre.theta2, centre.q, centre.norm2))
+
+
+def test_fisheye_fold_angle_brackets_the_root_of_the_slope() -> None:
+    """The returned fold is the last scan sample (pi / 4096 apart) below the first root of theta_d'(theta)."""
+    # One coefficient per camera, so theta_fold solves 1 + (2j + 1) k_j theta^(2j) = 0 in closed form; the last
+    # camera does not fold (theta_fold = pi).
+    ks = [(-0.5, 0, 0, 0), (-0.3, 0, 0, 0), (0, -0.05, 0, 0), (0, 0, -0.01, 0), (0, 0, 0, -0.002), (0, 0, 0, 0)]
+    roots = [(-1.0 / (3 * k[0])) ** 0.5 if k[0] else None for k in ks]
+    roots[2], roots[3], roots[4] = (1.0 / 0.25) ** 0.25, (1.0 / 0.07) ** (1 / 6), (1.0 / 0.018) ** 0.125
+    intrinsics = Intrinsics.create(
+        fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100, model="fisheye", validate=False,
+        k1=[k[0] for k in ks], k2=[k[1] for k in ks], k3=[k[2] for k in ks], k4=[k[3] for k in ks],
+    )  # fmt: skip
+    theta_fold, theta_d_fold = fisheye_fold_angle(intrinsics)
+    step = math.pi / 4096
+    for i, root in enumerate(roots):
+        if root is None:
+            assert theta_fold[i].item() == math.pi
+        else:
+            assert root - step < theta_fold[i].item() <= root, i
+        t2 = theta_fold[i].item() ** 2
+        k1, k2, k3, k4 = ks[i]
+        expected = theta_fold[i].item() * (1 + k1 * t2 + k2 * t2**2 + k3 * t2**3 + k4 * t2**4)
+        assert math.isclose(theta_d_fold[i].item(), expected, rel_tol=1e-12), i
+    theta32, theta_d32 = fisheye_fold_angle(intrinsics.to(dtype=torch.float32))
+    assert theta32.dtype == torch.float32 and theta_d32.dtype == torch.float32
+
+
+def test_folding_fisheye_is_rejected_with_its_coefficients() -> None:
+    # Camera 1's theta_d stops increasing at theta = sqrt(1/0.9) = 1.054 rad (theta_d = 0.70); its corners
+    # reach theta_d = sqrt(2) * 50 / 30 = 2.36, far beyond.
+    with pytest.raises(ValueError) as error:
+        Intrinsics.create(
+            fx=[30.0, 30.0], fy=[30.0, 30.0], cx=50.0, cy=50.0, width=100, height=100, model="fisheye",
+            k1=[0.0, -0.3], k2=0.0, k3=0.0, k4=0.0,
+        )  # fmt: skip
+    message = str(error.value)
+    assert message.startswith("k1, k2, k3, k4 = (-0.3, 0, 0, 0) of fisheye camera 1 make theta_d(theta) stop ")
+    assert message.endswith("; allowed are coefficients with theta_d increasing up to the image corners")
+
+
+def test_tangent_bounds_refuse_a_fisheye_by_name() -> None:
+    fisheye = Intrinsics.create(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100, model="fisheye")
+    message = (
+        "tangent_bounds needs a perspective camera, got model 'fisheye': a fisheye's field of view has no tangent "
+        "box; sample its image instead (preconditioner.sample_proxy_points does)"
+    )
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        tangent_bounds(fisheye)
+
+
+def test_tangent_bounds_of_a_pincushion_camera_are_its_undistorted_corners() -> None:
+    """Pincushion distortion bends the border outwards: the box corners are the undistorted image corners."""
+    k1, k2 = 0.05, 0.01
+    intrinsics = Intrinsics.create(fx=150.0, fy=140.0, cx=100.0, cy=50.0, width=200, height=100, k1=k1, k2=k2)
+    a_d, b_d = 100.0 / 150.0, 50.0 / 140.0  # the corner (200, 100) in distorted tangents; the others by symmetry
+    r_d = math.hypot(a_d, b_d)
+    r = _undistort_1d(r_d, k1, k2)
+    a, b = a_d * r / r_d, b_d * r / r_d
+    expected = torch.tensor([[-a * (1 - 2e-5), a * (1 - 2e-5), -b * (1 - 2e-5), b * (1 - 2e-5)]], dtype=torch.float64)
+    torch.testing.assert_close(tangent_bounds(intrinsics), expected, atol=1e-12, rtol=0)
