@@ -726,3 +726,15 @@ def test_cameras_differing_only_in_distortion_size_or_type_are_different_physica
     )
     ids = group_identical_intrinsics(cameras).tolist()
     assert ids[0] == ids[4] and len({ids[0], ids[1], ids[2], ids[3]}) == 4
+
+
+def test_nerfstudio_distortion_order_and_fisheye_tangential_terms():
+    from s2camp_ns.camera_optimizer import nerfstudio_distortion
+    from s2camp_ns.core.camera import Intrinsics
+
+    common = dict(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100, k1=0.01, k2=0.002, k3=0.0003)
+    perspective = Intrinsics.create(**common, p1=0.001, p2=-0.002)
+    assert nerfstudio_distortion(perspective).tolist() == [[0.01, 0.002, 0.0003, 0.0, 0.001, -0.002]]
+    # nerfstudio's fisheye ignores p1, p2: they go out as zeros even if an Intrinsics carries them.
+    fisheye = Intrinsics.create(**common, k4=0.00004, p1=0.001, model="fisheye")
+    assert nerfstudio_distortion(fisheye).tolist() == [[0.01, 0.002, 0.0003, 0.00004, 0.0, 0.0]]
