@@ -2,8 +2,9 @@
 
 Reads mutmut's results under ``mutants/`` and the list of equivalent mutants in ``docs/mutation-equivalents.toml``
 (matched by module, function and the mutated source text, so the list survives mutmut renumbering its mutants).
-Prints a markdown table per module (mutants, killed, survived, equivalent, no tests, timeout, kill rate over the
-non-equivalent mutants), the equivalent survivors with their reasons, and the diff of every survivor that is
+Prints a markdown table per module (mutants, killed, survived, equivalent, no tests, timeout, mutants not run yet
+by an interrupted run, kill rate over the non-equivalent mutants that ran), the equivalent survivors with their
+reasons, and the diff of every survivor that is
 neither killed nor listed as equivalent. ``--strict`` exits with status 1 while such survivors exist.
 
 Run from the repository root after ``mutmut run`` (``make mutation`` does both); needs Python >= 3.11 (tomllib).
@@ -16,12 +17,14 @@ import re
 import sys
 from collections import Counter
 from dataclasses import dataclass
+from difflib import unified_diff
 from pathlib import Path
 
+import libcst as cst
 import tomllib
 from mutmut.configuration import config
 from mutmut.mutation.data import SourceFileMutationData
-from mutmut.mutation.diff_apply import get_diff_for_mutant
+from mutmut.mutation.diff_apply import read_mutant_function, read_mutants_module, read_original_function
 from mutmut.stats import status_by_exit_code
 
 EQUIVALENTS = Path("docs/mutation-equivalents.toml")
@@ -51,8 +54,23 @@ def _function_name(mutant_name: str) -> str:
     return mangled.removeprefix("x_")
 
 
+_MODULES: dict[Path, object] = {}
+
+
+def _diff(name: str, path: Path) -> str:
+    """Unified diff of one mutant against the original function (mutmut's ``show``, parsing each file once)."""
+    if path not in _MODULES:
+        _MODULES[path] = read_mutants_module(path)
+    module = _MODULES[path]
+    original, mutant = (
+        cst.Module([function]).code.strip()
+        for function in (read_original_function(module, name), read_mutant_function(module, name))
+    )
+    return "\n".join(unified_diff(original.split("\n"), mutant.split("\n"), str(path), str(path), lineterm=""))
+
+
 def _survivor(module: str, name: str, status: str, path: Path) -> Survivor:
-    diff = get_diff_for_mutant(name, path=path)
+    diff = _diff(name, path)
     body = [line for line in diff.splitlines()[2:] if not line.startswith("@@")]
     removed = _normalise([line[1:] for line in body if line.startswith("-")])
     added = _normalise([line[1:] for line in body if line.startswith("+")])
@@ -101,14 +119,17 @@ def main() -> int:
         rows.append((str(path), counts))
     rows.append(("**all**", totals))
 
-    print("| module | mutants | killed | survived | equivalent | no tests | timeout | kill rate (non-equivalent) |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    print(
+        "| module | mutants | killed | survived | equivalent | no tests | timeout | not run yet "
+        "| kill rate (non-equivalent) |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for module, c in rows:
-        considered = c["mutants"] - c["equivalent"]
+        considered = c["mutants"] - c["equivalent"] - c["not run"]
         rate = f"{100.0 * c['killed'] / considered:.1f}%" if considered else "-"
         print(
             f"| {module} | {c['mutants']} | {c['killed']} | {c['survived']} | {c['equivalent']} | {c['no_tests']} "
-            f"| {c['timeout']} | {rate} |"
+            f"| {c['timeout']} | {c['not run']} | {rate} |"
         )
     print(f"\n## Equivalent survivors ({len(equivalent_rows)})\n")
     print("| module | function | mutation | why it cannot change behaviour |")
