@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import copy
+import inspect
 import io
 import math
+import re
 import warnings
 
 import pytest
@@ -598,3 +600,397 @@ def test_invalid_config_raises():
     # These optimizers use CamP's sampler, whose t_far is a ray distance: invalid only at or below t_near.
     with pytest.raises(ValueError, match="t_far"):
         make_optimizer(sampling={"t_near": 0.4, "t_far": 0.3})
+
+        make_optimizer(sampling={"t_far": 2.5})
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Tests added from the mutation-testing run (docs/mutation-testing.md). Expected poses come from the matrix
+# exponential of the 4x4 twist and expected rays from the pinhole formulas, not from the optimizer's own code.
+
+
+def raw_optimizer(cameras: Cameras | None = None, **overrides) -> S2CampCameraOptimizer:
+    """Optimizer with P = I, so the latent is the raw delta phi (precondition=False)."""
+    return make_optimizer(cameras if cameras is not None else make_cameras(), precondition=False, **overrides)
+
+
+def set_raw_delta(optimizer: S2CampCameraOptimizer, delta: torch.Tensor) -> None:
+    with torch.no_grad():
+        optimizer.whitened_delta.copy_(delta.expand_as(optimizer.whitened_delta))
+
+
+def refined_c2w_cv_by_hand(c2w_gl: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
+    """c2w_cv' = c2w_cv exp(xi^) with c2w_cv = c2w_gl diag(1, -1, -1) and exp of the 4x4 twist matrix."""
+    c2w_cv = c2w_gl.double().clone()
+    c2w_cv[..., 1:3] = -c2w_cv[..., 1:3]
+    rho, omega = xi[:3].double(), xi[3:6].double()
+    twist = torch.zeros(4, 4, dtype=torch.float64)
+    twist[0, 1], twist[0, 2], twist[1, 2] = -omega[2], omega[1], -omega[0]
+    twist[1, 0], twist[2, 0], twist[2, 1] = omega[2], -omega[1], omega[0]
+    twist[:3, 3] = rho
+    transform = torch.linalg.matrix_exp(twist)
+    rotation = c2w_cv[..., :3] @ transform[:3, :3]
+    return torch.cat([rotation, (c2w_cv[..., :3] @ transform[:3, 3:]) + c2w_cv[..., 3:]], dim=-1)
+
+
+def gl_from_cv(c2w_cv: torch.Tensor) -> torch.Tensor:
+    c2w_gl = c2w_cv.clone()
+    c2w_gl[..., 1:3] = -c2w_gl[..., 1:3]
+    return c2w_gl
+
+
+XI = torch.tensor([0.03, -0.02, 0.05, 0.02, -0.01, 0.03])
+
+
+def test_intrinsics_from_cameras_reads_the_nerfstudio_fields():
+    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
+
+    intrinsics = intrinsics_from_cameras(make_cameras(k1=-0.05, k2=0.01))
+    assert intrinsics.fx.tolist() == [60.0, 62.0, 58.0] and intrinsics.fy.tolist() == [61.0, 62.0, 59.0]
+    assert intrinsics.cx.tolist() == [32.0, 31.0, 33.5] and intrinsics.cy.tolist() == [24.0, 24.5, 23.0]
+    assert intrinsics.width.tolist() == [64.0] * 3 and intrinsics.height.tolist() == [48.0] * 3
+    torch.testing.assert_close(intrinsics.k1, torch.full((3,), -0.05, dtype=torch.float32).double())
+    torch.testing.assert_close(intrinsics.k2, torch.full((3,), 0.01, dtype=torch.float32).double())
+    assert intrinsics.dtype == torch.float64
+    assert intrinsics_from_cameras(make_cameras(), dtype=torch.float32).dtype == torch.float32
+    cameras = make_cameras()
+    cameras.distortion_params = None
+    undistorted = intrinsics_from_cameras(cameras)
+    assert undistorted.k1.tolist() == [0.0] * 3 and undistorted.k2.tolist() == [0.0] * 3
+
+
+@pytest.mark.parametrize(
+    ("camera_type", "column", "name", "reason"),
+    [
+        (
+            CameraType.PERSPECTIVE,
+            3,
+            "k4",
+            "a polynomial r^8 term in nerfstudio; COLMAP FULL_OPENCV's k4 divides instead",
+        ),
+        (CameraType.FISHEYE, 4, "p1", "OPENCV_FISHEYE has no tangential terms"),
+        (CameraType.FISHEYE, 5, "p2", "OPENCV_FISHEYE has no tangential terms"),
+    ],
+)
+def test_each_unrepresentable_distortion_parameter_is_named(camera_type, column: int, name: str, reason: str):
+    cameras = make_cameras()
+    cameras.camera_type = torch.full_like(cameras.camera_type, camera_type.value)
+    cameras.distortion_params[2, column] = 0.5
+    projection = "perspective" if camera_type == CameraType.PERSPECTIVE else "fisheye"
+    message = f"distortion parameter {name} = 0.5 of {projection} camera 2 is not supported ({reason}"
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}"):
+        make_optimizer(cameras)
+
+
+def test_unsupported_camera_types_are_rejected():
+    cameras = make_cameras()
+    cameras.camera_type = torch.full_like(cameras.camera_type, CameraType.EQUIRECTANGULAR.value)
+    message = (
+        "camera type EQUIRECTANGULAR is not supported by S2CamP's camera refinement; supported are PERSPECTIVE (COLMAP "
+        "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV with k4 = k5 = k6 = 0) and FISHEYE "
+        "(COLMAP OPENCV_FISHEYE)"
+    )
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        make_optimizer(cameras)
+
+
+def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
+    optimizer = make_optimizer()
+    assert set(optimizer.state_dict()) == {
+        "whitened_delta",
+        "precond",
+        "precond_inv",
+        "last_refresh_step",
+        "num_refreshes",
+    }
+    # Buffers move with the module (.to(device)), the base cameras and the Gram included.
+    assert {name for name, _ in optimizer.named_buffers()} == {
+        "precond",
+        "precond_inv",
+        "last_refresh_step",
+        "num_refreshes",
+        "base_c2w_cv",
+        "base_intrinsics",
+        "gram",
+        "camera_of_image",
+    }
+
+
+def test_use_before_set_train_cameras_raises():
+    config = S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=64, sampler="camp-random"))
+    optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
+    message = "S2CampCameraOptimizer.set_train_cameras must be called before use (the pipeline does)"
+    with pytest.raises(RuntimeError, match=f"^{re.escape(message)}$"):
+        optimizer.refined_intrinsics()
+    metrics: dict = {}
+    optimizer.get_metrics_dict(metrics)
+    assert metrics == {}
+
+
+def test_set_train_cameras_checks_the_count_and_computes_p_once():
+    optimizer = make_optimizer()
+    with pytest.raises(ValueError, match=r"^cameras must hold 3 training cameras, got 2$"):
+        optimizer.set_train_cameras(make_cameras()[:2])
+    set_latent(optimizer, scale=1.0)  # refined intrinsics now differ from the base ones
+    p_before = optimizer.precond.clone()
+    optimizer.set_train_cameras(make_cameras(k1=-0.05, k2=0.01))  # again, e.g. after a checkpoint load
+    assert torch.equal(optimizer.precond, p_before) and int(optimizer.num_refreshes) == 1
+
+
+def test_should_refresh_every_step_and_not_at_step_zero_after_a_restore():
+    every_step = make_optimizer(refresh_every=1)
+    assert [s for s in range(4) if every_step.should_refresh(s)] == [1, 2, 3]
+    restored = make_optimizer(refresh_every=5)
+    restored.refresh(step=20)
+    assert [s for s in (0, 5, 20, 25) if restored.should_refresh(s)] == [5, 25]
+
+
+def test_non_trainable_cameras_keep_their_base_camera():
+    config = S2CampCameraOptimizerConfig(
+        precondition=False, intrinsics="per-image", sampling=SamplingConfig(num_points=64, sampler="camp-random")
+    )
+    optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu", non_trainable_camera_indices=torch.tensor([1]))
+    optimizer.set_train_cameras(make_cameras())
+    delta = torch.arange(1.0, 13.0) * 1e-3
+    set_raw_delta(optimizer, delta)
+    expected = torch.stack([delta, torch.zeros(12), delta]).double()
+    torch.testing.assert_close(optimizer.camera_deltas()[:, :12], expected, atol=1e-12, rtol=0)
+    assert optimizer.camera_deltas()[:, 12:].abs().sum() == 0  # no p1, p2, k3, k4 for RADIAL cameras
+
+
+def test_mode_off_keeps_every_camera():
+    optimizer = make_optimizer(mode="off")
+    assert torch.equal(optimizer.camera_deltas(), torch.zeros(NUM_CAMERAS, len(PARAMETER_NAMES), dtype=torch.float64))
+    camera = make_cameras()[1:2]
+    camera.metadata = {"cam_idx": 1}
+    assert torch.equal(optimizer.apply_to_camera(camera), camera.camera_to_worlds)
+
+
+def test_refined_pose_is_the_matrix_exponential_of_the_twist():
+    cameras = make_cameras()
+    optimizer = raw_optimizer(cameras)
+    set_raw_delta(optimizer, torch.cat([XI, torch.zeros(6)]))
+    expected_cv = refined_c2w_cv_by_hand(cameras.camera_to_worlds, XI.double())
+    torch.testing.assert_close(optimizer.refined_c2w().detach(), expected_cv, atol=1e-6, rtol=0)
+    expected_gl = gl_from_cv(expected_cv)
+    torch.testing.assert_close(optimizer.refined_c2w(opengl=True).detach(), expected_gl, atol=1e-6, rtol=0)
+    corrections = optimizer.get_correction_matrices()
+    assert corrections.shape == (NUM_CAMERAS, 3, 4) and corrections.dtype == torch.float32
+    c2w = cameras.camera_to_worlds.double()
+    composed = torch.cat(
+        [
+            c2w[:, :, :3] @ corrections[:, :, :3].double(),
+            c2w[:, :, 3:] + c2w[:, :, :3] @ corrections[:, :, 3:].double(),
+        ],
+        dim=-1,
+    )
+    torch.testing.assert_close(composed, expected_gl, atol=1e-6, rtol=0)
+    camera = make_cameras()[2:3]
+    camera.camera_to_worlds = camera.camera_to_worlds.double()
+    camera.metadata = {"cam_idx": 2}
+    refined = optimizer.apply_to_camera(camera)
+    assert refined.dtype == torch.float64
+    torch.testing.assert_close(refined, expected_gl[2:3], atol=1e-6, rtol=0)
+
+
+def test_viewer_cameras_without_a_training_index_are_unchanged():
+    optimizer = raw_optimizer()
+    set_raw_delta(optimizer, torch.cat([XI, torch.zeros(6)]))
+    for metadata in (None, {"other": 1}):
+        camera = make_cameras()[0:1]
+        camera.metadata = metadata
+        assert torch.equal(optimizer.apply_to_camera(camera), camera.camera_to_worlds)
+
+
+def test_explicit_deltas_are_used():
+    cameras = make_cameras()
+    optimizer = raw_optimizer(cameras)
+    set_raw_delta(optimizer, torch.full((12,), 1e-3))
+    deltas = torch.zeros(NUM_CAMERAS, 12, dtype=torch.float64)
+    deltas[:, 6], deltas[:, 0] = 5.0, 0.25  # focal +5 pixels, 0.25 along the camera's x axis
+    assert optimizer.refined_intrinsics(deltas).fx.tolist() == [65.0, 67.0, 63.0]
+    expected = refined_c2w_cv_by_hand(cameras.camera_to_worlds, torch.tensor([0.25, 0, 0, 0, 0, 0]).double())
+    torch.testing.assert_close(optimizer.refined_c2w(deltas), expected, atol=1e-6, rtol=0)
+
+
+def _pinhole_directions_cv(pixels: torch.Tensor, fx, fy, cx, cy) -> torch.Tensor:
+    a = (pixels[:, 0].double() - cx) / fx
+    b = (pixels[:, 1].double() - cy) / fy
+    return torch.stack([a, b, torch.ones_like(a)], dim=-1)
+
+
+def test_rays_without_pixel_coordinates_get_the_refined_pose_only():
+    cameras = make_cameras()
+    optimizer = raw_optimizer(cameras)
+    set_raw_delta(optimizer, torch.cat([XI, torch.tensor([3.0, 1.0, -1.0, 0.0, 0.0, 0.0])]))
+    bundle = random_ray_bundle(num_rays=64, seed=3)
+    index = bundle.camera_indices[:, 0]
+    base_cv = refined_c2w_cv_by_hand(cameras.camera_to_worlds, torch.zeros(6, dtype=torch.float64))[index]
+    pixels = bundle.metadata.pop(PIXEL_KEY)
+    rays_cv = _pinhole_directions_cv(pixels, cameras.fx[index, 0], cameras.fy[index, 0], cameras.cx[index, 0],
+                                     cameras.cy[index, 0])  # fmt: skip
+    rays_cv = rays_cv / rays_cv.norm(dim=-1, keepdim=True)
+    # Origins off the camera centre (e.g. a near-plane start): (0.1, -0.2, 0.3) in each camera's frame.
+    offset_cv = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    bundle.origins = (base_cv[:, :, 3] + base_cv[:, :, :3] @ offset_cv).float()
+    bundle.directions = (base_cv[:, :, :3] @ rays_cv[:, :, None])[..., 0].float()
+    message = (
+        f"ray bundle carries no '{PIXEL_KEY}' metadata (use S2CampDataManagerConfig): intrinsics refinement "
+        "has no effect on these rays, only the pose is refined"
+    )
+    with pytest.warns(UserWarning, match=f"^{re.escape(message)}$") as record:
+        optimizer.apply_to_raybundle(bundle)
+    # The warning points at apply_to_raybundle's call (stacklevel 2), not at the helper or at the test.
+    lines, first = inspect.getsourcelines(S2CampCameraOptimizer.apply_to_raybundle)
+    assert record[0].filename == inspect.getsourcefile(S2CampCameraOptimizer)
+    assert first <= record[0].lineno < first + len(lines)
+    refined_cv = refined_c2w_cv_by_hand(cameras.camera_to_worlds, XI.double())[index]
+    # The pose moves the rays; the focal and principal-point deltas cannot act without pixel coordinates.
+    torch.testing.assert_close(bundle.origins.double(), refined_cv[:, :, 3] + refined_cv[:, :, :3] @ offset_cv,
+                               atol=1e-6, rtol=0)  # fmt: skip
+    expected = (refined_cv[:, :, :3] @ rays_cv[:, :, None])[..., 0]
+    torch.testing.assert_close(bundle.directions.double(), expected, atol=1e-6, rtol=0)
+    again = random_ray_bundle(num_rays=4, seed=4)
+    again.metadata = None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # warned once already
+        optimizer.apply_to_raybundle(again)
+
+
+def test_pixel_area_and_directions_norm_follow_the_refined_intrinsics():
+    cameras = make_cameras()
+    optimizer = raw_optimizer(cameras)
+    set_raw_delta(optimizer, torch.cat([torch.zeros(6), torch.tensor([3.0, 1.0, -2.0, 0.0, 0.0, 0.0])]))
+    bundle = random_ray_bundle(num_rays=128, seed=5)
+    bundle.origins, bundle.directions = bundle.origins.double(), bundle.directions.double()
+    bundle.pixel_area = torch.full((128, 1), 2.0)
+    index = bundle.camera_indices[:, 0]
+    pixels = bundle.metadata[PIXEL_KEY]
+    fx, fy = cameras.fx[index, 0].double(), cameras.fy[index, 0].double()
+    optimizer.apply_to_raybundle(bundle)
+    assert bundle.origins.dtype == torch.float64 and bundle.directions.dtype == torch.float64
+    torch.testing.assert_close(bundle.pixel_area[:, 0].double(), 2.0 * fx * fy / ((fx + 3.0) * (fy + 3.0)))
+    rays = _pinhole_directions_cv(pixels, fx + 3.0, fy + 3.0, cameras.cx[index, 0] + 1.0, cameras.cy[index, 0] - 2.0)
+    torch.testing.assert_close(bundle.metadata["directions_norm"][:, 0].double(), rays.norm(dim=-1), atol=1e-6, rtol=0)
+    without_norm = random_ray_bundle(num_rays=8, seed=6)
+    del without_norm.metadata["directions_norm"]
+    optimizer.apply_to_raybundle(without_norm)
+    assert "directions_norm" not in without_norm.metadata
+
+
+def test_train_camera_raybundle_closed_form():
+    cameras = make_cameras()
+    optimizer = raw_optimizer(cameras)
+    set_raw_delta(optimizer, torch.cat([XI, torch.tensor([3.0, 1.0, -2.0, 0.0, 0.0, 0.0])]))
+    bundle = optimizer.train_camera_raybundle(1, downscale=2)
+    assert bundle.origins.shape == (HEIGHT // 2, WIDTH // 2, 3)
+    fx, fy, cx, cy = 62.0 + 3.0, 62.0 + 3.0, 31.0 + 1.0, 24.5 - 2.0
+    ys, xs = torch.meshgrid(torch.arange(HEIGHT // 2), torch.arange(WIDTH // 2), indexing="ij")
+    pixels = 2.0 * torch.stack([xs + 0.5, ys + 0.5], dim=-1).reshape(-1, 2)  # centres of the full-size pixels
+    rays_cv = _pinhole_directions_cv(pixels, fx, fy, cx, cy)
+    refined = refined_c2w_cv_by_hand(cameras.camera_to_worlds[1], XI.double())
+    expected = (refined[:, :3] @ (rays_cv / rays_cv.norm(dim=-1, keepdim=True)).T).T
+    torch.testing.assert_close(bundle.directions.reshape(-1, 3).double(), expected, atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        bundle.origins.reshape(-1, 3).double(), refined[:, 3].expand(len(pixels), 3), atol=1e-5, rtol=0
+    )
+    torch.testing.assert_close(
+        bundle.metadata["directions_norm"].reshape(-1).double(), rays_cv.norm(dim=-1), atol=1e-5, rtol=0
+    )
+    torch.testing.assert_close(bundle.pixel_area, torch.full((HEIGHT // 2, WIDTH // 2, 1), 4.0 / (fx * fy)))
+    assert bundle.camera_indices.shape == (HEIGHT // 2, WIDTH // 2, 1) and bool((bundle.camera_indices == 1).all())
+    thirds = optimizer.train_camera_raybundle(1, downscale=3)  # pixel area scales with downscale^2 = 9
+    torch.testing.assert_close(thirds.pixel_area, torch.full((HEIGHT // 3, WIDTH // 3, 1), 9.0 / (fx * fy)))
+
+
+def test_loss_dict_penalises_the_raw_pose_deltas():
+    delta = torch.tensor(
+        [[0.3, 0.4, 0.0, 0.0, 0.06, 0.08] + [1.0] * 6, [0.0] * 12, [0.0, 0.0, 1.2, 0.5, 0.0, 1.2] + [0.0] * 6]
+    )
+    optimizer = raw_optimizer(trans_l2_penalty=2.0, rot_l2_penalty=3.0)
+    set_raw_delta(optimizer, delta)
+    losses: dict = {}
+    optimizer.get_loss_dict(losses)
+    # Mean translation norm (0.5 + 0 + 1.2) / 3 times 2, mean rotation norm (0.1 + 0 + 1.3) / 3 times 3.
+    assert losses["camera_opt_regularizer"].dtype == torch.float32
+    assert math.isclose(losses["camera_opt_regularizer"].item(), 1.7 / 3 * 2.0 + 1.4 / 3 * 3.0, rel_tol=1e-6)
+    for overrides in ({}, {"mode": "off", "trans_l2_penalty": 2.0}):
+        quiet: dict = {}
+        raw_optimizer(**overrides).get_loss_dict(quiet)
+        assert quiet == {}
+    only_rotation: dict = {}
+    rotation_optimizer = raw_optimizer(rot_l2_penalty=3.0)
+    set_raw_delta(rotation_optimizer, delta)
+    rotation_optimizer.get_loss_dict(only_rotation)
+    assert math.isclose(only_rotation["camera_opt_regularizer"].item(), 1.4, rel_tol=1e-6)
+
+
+def test_metrics_dict_reports_the_raw_deltas():
+    delta = torch.tensor([[0.3, 0.4, 0.0, 0.0, 0.06, 0.08] + [1.0, -2.0, 3.0, -4.0, 0.5, -0.25],
+                          [0.0] * 12,
+                          [0.0, 0.0, 1.2, 0.5, 0.0, 1.2] + [2.0, 0.0, 0.0, 0.0, 0.0, 0.0]])  # fmt: skip
+    optimizer = raw_optimizer()
+    set_raw_delta(optimizer, delta)
+    metrics: dict = {}
+    optimizer.get_metrics_dict(metrics)
+    degrees = 180.0 / math.pi
+    expected = {
+        "camera_opt_translation_max": 1.2,
+        "camera_opt_translation_mean": 1.7 / 3,
+        "camera_opt_rotation_mean": 1.4 / 3 * degrees,
+        "camera_opt_rotation_max": 1.3 * degrees,
+        "camera_opt_focal_abs_mean": 1.0,
+        "camera_opt_cx_abs_mean": 2.0 / 3,
+        "camera_opt_cy_abs_mean": 1.0,
+        "camera_opt_skew_abs_mean": 4.0 / 3,
+        "camera_opt_k1_abs_mean": 0.5 / 3,
+        "camera_opt_k2_abs_mean": 0.25 / 3,
+    }
+    assert set(metrics) == set(expected)
+    for name, value in expected.items():
+        assert metrics[name].dtype == torch.float32
+        assert math.isclose(float(metrics[name]), value, rel_tol=1e-6), name
+    focal_only: dict = {}
+    focal_optimizer = raw_optimizer(parameters="pose+focal")
+    set_raw_delta(focal_optimizer, delta[:, :7])
+    focal_optimizer.get_metrics_dict(focal_only)
+    assert {name for name in focal_only if name.endswith("_abs_mean")} == {"camera_opt_focal_abs_mean"}
+    off: dict = {}
+    raw_optimizer(mode="off").get_metrics_dict(off)
+    assert off == {}
+
+
+def test_invalid_refresh_schedule_names_the_range():
+    with pytest.raises(ValueError, match=r"^refresh_every must lie in \[0, inf\), got -1"):
+        make_optimizer(refresh_every=-1)
+
+
+def test_cameras_differing_only_in_distortion_size_or_type_are_different_physical_cameras():
+    from s2camp_ns.camera_optimizer import group_identical_intrinsics
+
+    cameras = make_cameras()  # three different focal lengths
+    cameras = Cameras(
+        camera_to_worlds=cameras.camera_to_worlds[[0, 0, 0, 0, 0]],
+        fx=torch.full((5, 1), 60.0),
+        fy=torch.full((5, 1), 61.0),
+        cx=torch.full((5, 1), 32.0),
+        cy=torch.full((5, 1), 24.0),
+        width=torch.tensor([[64], [64], [80], [64], [64]]),
+        height=torch.full((5, 1), 48),
+        distortion_params=torch.tensor([[0.0] * 6, [-0.05] + [0.0] * 5, [0.0] * 6, [0.0] * 6, [0.0] * 6]),
+        camera_type=torch.tensor([[1], [1], [1], [2], [1]]),
+    )
+    ids = group_identical_intrinsics(cameras).tolist()
+    assert ids[0] == ids[4] and len({ids[0], ids[1], ids[2], ids[3]}) == 4
+
+
+def test_nerfstudio_distortion_order_and_fisheye_tangential_terms():
+    from s2camp_ns.camera_optimizer import nerfstudio_distortion
+    from s2camp_ns.core.camera import Intrinsics
+
+    common = dict(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100, k1=0.01, k2=0.002, k3=0.0003)
+    perspective = Intrinsics.create(**common, p1=0.001, p2=-0.002)
+    assert nerfstudio_distortion(perspective).tolist() == [[0.01, 0.002, 0.0003, 0.0, 0.001, -0.002]]
+    # nerfstudio's fisheye ignores p1, p2: they go out as zeros even if an Intrinsics carries them.
+    fisheye = Intrinsics.create(**common, k4=0.00004, p1=0.001, model="fisheye")
+    assert nerfstudio_distortion(fisheye).tolist() == [[0.01, 0.002, 0.0003, 0.00004, 0.0, 0.0]]

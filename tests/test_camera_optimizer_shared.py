@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 
 import pytest
 import torch
@@ -152,3 +153,28 @@ def test_gradient_reaches_both_latents_and_checkpoints_round_trip() -> None:
     restored = make_optimizer()
     restored.load_state_dict(state)
     assert torch.equal(restored.camera_deltas(), optimizer.camera_deltas())
+
+
+# Tests added from the mutation-testing run (docs/mutation-testing.md).
+
+
+def test_camera_groups_are_checked_and_regrouping_keeps_the_latent() -> None:
+    optimizer = make_optimizer()
+    with pytest.raises(ValueError, match=r"^camera_ids must hold 4 entries \(one per image\), got 3$"):
+        optimizer.set_camera_groups([7, 3, 7])
+    with torch.no_grad():
+        optimizer.whitened_intrinsics.fill_(0.25)
+    latent = optimizer.whitened_intrinsics
+    optimizer.set_camera_groups([5, 9, 5, 9])  # the same grouping under other ids: the parameter stays
+    assert optimizer.whitened_intrinsics is latent and bool((latent == 0.25).all())
+    optimizer.set_camera_groups([0, 1, 2, 2])  # three cameras: a new [3, 6] latent, zero
+    assert tuple(optimizer.whitened_intrinsics.shape) == (3, 6) and bool((optimizer.whitened_intrinsics == 0).all())
+
+
+def test_images_of_one_camera_must_share_the_image_size() -> None:
+    message = (
+        "training image 2 is 80x48 but image 0 of the same physical camera 0 is 64x48: shared intrinsics need one "
+        "image size per camera (or --pipeline.model.camera-optimizer.intrinsics per-image)"
+    )
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        make_optimizer(cameras=make_cameras(width=[64, 64, 80, 64]))

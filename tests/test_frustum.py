@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -151,3 +152,114 @@ def test_frustum_errors_name_the_parameter() -> None:
         sample_frustum(u, ROOM, 0.0, 1.5, "cone")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="radial"):
         sample_frustum(u, ROOM, 0.0, 1.5, "pyramid", "log")  # type: ignore[arg-type]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Tests added from the mutation-testing run (docs/mutation-testing.md).
+
+
+def test_contraction_closed_form_on_any_batch_shape() -> None:
+    # |(3, 4, 0)| = 5 contracts to radius 2 - 1/5 = 1.8: (1.08, 1.44, 0); |(0, 0.6, 0.8)| = 1 stays.
+    far = torch.tensor([3.0, 4.0, 0.0], dtype=torch.float64)
+    near = torch.tensor([0.0, 0.6, 0.8], dtype=torch.float64)
+    far_contracted = torch.tensor([1.08, 1.44, 0.0], dtype=torch.float64)
+    torch.testing.assert_close(contract(far), far_contracted, atol=1e-15, rtol=0)
+    batch = torch.stack([torch.stack([far, near]), torch.stack([near, 2.0 * far])])  # [2, 2, 3]
+    # |(6, 8, 0)| = 10 contracts to 1.9: (1.14, 1.52, 0).
+    expected = torch.stack(
+        [torch.stack([far_contracted, near]), torch.stack([near, torch.tensor([1.14, 1.52, 0.0], dtype=torch.float64)])]
+    )
+    torch.testing.assert_close(contract(batch), expected, atol=1e-15, rtol=0)
+    torch.testing.assert_close(uncontract(expected), batch, atol=1e-14, rtol=0)
+    torch.testing.assert_close(uncontract(expected[0]), batch[0], atol=1e-14, rtol=0)
+
+
+def test_contraction_errors_name_the_parameter() -> None:
+    with pytest.raises(ValueError, match=r"^radius must lie in \[0, inf\), got -0.5"):
+        contract_radius(torch.tensor([0.5, -0.5], dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"^t must lie in \[0, 2\), got -0.5"):
+        uncontract_radius(torch.tensor([-0.5], dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"^contracted radius \|points\| must lie in \[0, 2\), got 2"):
+        uncontract(torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64))  # radius exactly 2: infinitely far
+    for function in (contract, uncontract):
+        with pytest.raises(ValueError, match="^points must be finite"):
+            function(torch.tensor([[0.0, math.inf, 1.0]], dtype=torch.float64))
+
+
+def test_default_maps_invert_each_other() -> None:
+    """frustum_to_unit and sample_frustum default to the same maps (pyramid, volume)."""
+    u = uniform_cube(200, seed=3)
+    samples = sample_frustum(u, BOUNDS, 0.2, 1.8)
+    torch.testing.assert_close(frustum_to_unit(samples.contracted, BOUNDS, 0.2, 1.8), u.expand(3, -1, -1))
+
+
+def test_float32_inputs_are_computed_in_float64() -> None:
+    u32 = uniform_cube(100, seed=6).float()
+    samples = sample_frustum(u32, ROOM.float(), 0.2, 1.8)
+    reference = sample_frustum(u32.double(), ROOM.float().double(), 0.2, 1.8)
+    assert samples.contracted.dtype == torch.float64 and samples.camera.dtype == torch.float64
+    torch.testing.assert_close(samples.contracted, reference.contracted, atol=1e-15, rtol=0)
+    back = frustum_to_unit(samples.contracted.float(), ROOM, 0.2, 1.8)
+    torch.testing.assert_close(
+        back, frustum_to_unit(samples.contracted.float().double(), ROOM, 0.2, 1.8), atol=1e-15, rtol=0
+    )
+
+
+def test_portrait_and_small_frusta_are_valid() -> None:
+    # A portrait box (b range wider than the a range, b_min < a_min) and a far radius below 1.
+    portrait = torch.tensor([[-0.3, 0.3, -0.5, 0.5]], dtype=torch.float64)
+    corners = torch.tensor([[1.0, i, j] for i in (0.0, 1.0) for j in (0.0, 1.0)], dtype=torch.float64)
+    p = sample_frustum(corners, portrait, 0.1, 0.5).contracted[0]
+    torch.testing.assert_close(p.norm(dim=-1), torch.full((4,), 0.5, dtype=torch.float64))
+    torch.testing.assert_close(p[:, 0] / p[:, 2], torch.tensor([-0.3, 0.3, -0.3, 0.3], dtype=torch.float64))
+    torch.testing.assert_close(p[:, 1] / p[:, 2], torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=torch.float64))
+
+
+def test_nearly_hemispherical_frusta_give_finite_samples_inside_the_box() -> None:
+    """Tangent bounds up to 1e8 (fields of view just below 180 degrees): rounding must not produce NaN."""
+    box = torch.tensor([[-1e6, 1e6, -1e8, 1e8], [-1e8, 1e8, -1e6, 1e6]], dtype=torch.float64)
+    u = uniform_cube(2000, seed=8)
+    u[:4, 1:] = torch.tensor([[i, j] for i in (0.0, 1.0) for j in (0.0, 1.0)], dtype=torch.float64)
+    p = sample_frustum(u, box, 0.1, 1.9, "pyramid").contracted
+    assert bool(torch.isfinite(p).all()) and bool((p[..., 2] >= 0).all())
+
+
+def test_unit_points_are_checked() -> None:
+    with pytest.raises(ValueError, match=re.escape("unit_points must have shape [L, 3] or [N, L, 3], got (10, 4)")):
+        sample_frustum(torch.zeros(10, 4, dtype=torch.float64), ROOM, 0.0, 1.5)
+    with pytest.raises(
+        ValueError, match=re.escape("unit_points must have shape [L, 3] or [N, L, 3], got (1, 1, 5, 3)")
+    ):
+        sample_frustum(torch.zeros(1, 1, 5, 3, dtype=torch.float64), ROOM, 0.0, 1.5)
+    with pytest.raises(ValueError, match=re.escape("unit_points must have shape [L, 3] or [N, L, 3], got list")):
+        sample_frustum([[0.5, 0.5, 0.5]], ROOM, 0.0, 1.5)  # type: ignore[arg-type]
+    message = "unit_points must have N = 3 cameras to match tangent_bounds, got 2"
+    with pytest.raises(ValueError, match=re.escape(message)):
+        sample_frustum(torch.zeros(2, 5, 3, dtype=torch.float64), BOUNDS, 0.0, 1.5)
+    with pytest.raises(ValueError, match=r"^unit_points must lie in \[0, 1\]"):
+        sample_frustum(uniform_cube(10) - 1.0, ROOM, 0.0, 1.5)
+
+
+def test_frustum_errors_state_parameter_and_range() -> None:
+    u = uniform_cube(10)
+    with pytest.raises(ValueError, match=r"^t_far must lie in \(0, 2\), got 0.0"):
+        sample_frustum(u, ROOM, 0.0, 0.0)
+    with pytest.raises(ValueError, match=r"^t_far must lie in \(0, 2\), got 2.0"):
+        sample_frustum(u, ROOM, 0.0, 2.0)
+    with pytest.raises(ValueError, match=r"^t_near must lie in \[0, 1.5\), got 1.5"):
+        sample_frustum(u, ROOM, 1.5, 1.5)
+    with pytest.raises(ValueError, match="^transform must be one of"):
+        sample_frustum(u, ROOM, 0.0, 1.5, "cone")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="^radial must be one of"):
+        frustum_to_unit(u[None], ROOM, 0.0, 1.5, "pyramid", "log")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="^tangent_bounds must be finite"):
+        sample_frustum(u, torch.tensor([[-math.inf, 0.5, -0.3, 0.3]], dtype=torch.float64), 0.0, 1.5)
+    with pytest.raises(ValueError, match=r"^tangent_bounds a_max - a_min must lie in \(0, inf\), got 0"):
+        sample_frustum(u, torch.tensor([[0.5, 0.5, -0.3, 0.3]], dtype=torch.float64), 0.0, 1.5)
+    with pytest.raises(ValueError, match=r"^tangent_bounds b_max - b_min must lie in \(0, inf\), got 0"):
+        sample_frustum(u, torch.tensor([[-0.5, 0.5, 0.3, 0.3]], dtype=torch.float64), 0.0, 1.5)
+    prefix = "tangent_bounds must have shape [N, 4] (a_min, a_max, b_min, b_max), got "
+    with pytest.raises(ValueError, match=re.escape(prefix + "(4,)")):
+        sample_frustum(u, torch.zeros(4, dtype=torch.float64), 0.0, 1.5)
+    with pytest.raises(ValueError, match=re.escape(prefix + "list")):
+        sample_frustum(u, [[-0.5, 0.5, -0.3, 0.3]], 0.0, 1.5)  # type: ignore[arg-type]

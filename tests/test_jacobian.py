@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from torch.func import jacrev
@@ -213,3 +214,37 @@ def test_empty_camera_gives_zero_gram_not_nan() -> None:
 def test_relative_gram_error() -> None:
     reference = torch.eye(3, dtype=torch.float64)[None] * 2.0
     assert torch.isclose(relative_gram_error(reference * 1.1, reference), torch.tensor([0.1]).double()).all()
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Tests added from the mutation-testing run (docs/mutation-testing.md).
+
+
+def test_gram_is_exactly_symmetric() -> None:
+    """Sigma feeds eigh, which reads one triangle: it must be symmetric bit for bit, not only up to rounding."""
+    jacobian = torch.randn(3, 64, 2, 7, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    sigma, _ = gram_matrix(jacobian, torch.ones(3, 64, dtype=torch.bool), torch.ones(3, dtype=torch.float64))
+    assert torch.equal(sigma, sigma.transpose(-1, -2))
+
+
+def test_gram_of_a_single_valid_point() -> None:
+    # Point 0 has J = [[1, 2, 0], [0, 3, 4]] pixels; image scale 10 -> J / 10; point 1 is masked out.
+    jacobian = torch.tensor(
+        [[[[1.0, 2.0, 0.0], [0.0, 3.0, 4.0]], [[50.0, 60.0, 70.0], [80.0, 90.0, 99.0]]]], dtype=torch.float64
+    )
+    sigma, count = gram_matrix(jacobian, torch.tensor([[True, False]]), torch.tensor([10.0], dtype=torch.float64))
+    # J^T J = [[1, 2, 0], [2, 13, 12], [0, 12, 16]], divided by 10^2 and by the one valid point.
+    expected = torch.tensor([[[1.0, 2.0, 0.0], [2.0, 13.0, 12.0], [0.0, 12.0, 16.0]]], dtype=torch.float64) / 100.0
+    torch.testing.assert_close(sigma, expected, atol=1e-15, rtol=0)
+    assert count.tolist() == [1]
+
+
+def test_relative_gram_error_of_float32_inputs_is_computed_in_float64() -> None:
+    generator = torch.Generator().manual_seed(1)
+    reference = torch.randn(2, 12, 12, generator=generator).float()
+    sigma = (reference + 1e-3 * torch.randn(2, 12, 12, generator=generator)).float()
+    ref64, sigma64 = reference.double().numpy(), sigma.double().numpy()
+    expected = np.linalg.norm(sigma64 - ref64, axis=(1, 2)) / np.linalg.norm(ref64, axis=(1, 2))
+    got = relative_gram_error(sigma, reference)
+    assert got.dtype == torch.float64
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-13)

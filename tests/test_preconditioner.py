@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 import torch
 
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, in_image, project, project_with_delta
+from s2camp_ns.core.lattice import unit_cube_points
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
     SamplingConfig,
@@ -237,3 +241,166 @@ def test_tangential_preconditioner_observes_p1_p2() -> None:
     assert (torch.diagonal(result.gram, dim1=-2, dim2=-1)[0, 12:] > 0).all()
     _, inverse = symmetric_sqrt_and_inverse(result.gram)
     assert whitening_error(inverse, result.gram).item() < 1e-6
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Tests added from the mutation-testing run (docs/mutation-testing.md).
+
+
+def _rotation(k: int, seed: int) -> torch.Tensor:
+    q, _ = torch.linalg.qr(torch.randn(k, k, generator=torch.Generator().manual_seed(seed), dtype=torch.float64))
+    return q
+
+
+def test_condition_number_closed_form() -> None:
+    assert condition_number(torch.diag(torch.tensor([1.0, 2.0, 4.0], dtype=torch.float64))[None]).tolist() == [4.0]
+    q = _rotation(3, seed=0)
+    sigma32 = (q @ torch.diag(torch.tensor([1.0, 10.0, 1e4], dtype=torch.float64)) @ q.T).float()[None]
+    eigenvalues = np.linalg.eigvalsh(sigma32[0].double().numpy())  # of the float32 matrix, in float64
+    np.testing.assert_allclose(condition_number(sigma32).numpy(), [eigenvalues[-1] / eigenvalues[0]], rtol=1e-10)
+
+
+def test_symmetric_sqrt_uses_only_the_symmetric_part_and_returns_exactly_symmetric_matrices() -> None:
+    sigma = _spd(2, 12, seed=4)
+    antisymmetric = torch.randn(2, 12, 12, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    antisymmetric = 1e-3 * (antisymmetric - antisymmetric.transpose(1, 2))
+    root, inverse = symmetric_sqrt_and_inverse(sigma)
+    root_perturbed, inverse_perturbed = symmetric_sqrt_and_inverse(sigma + antisymmetric)
+    torch.testing.assert_close(root_perturbed, root, atol=1e-13, rtol=0)
+    torch.testing.assert_close(inverse_perturbed, inverse, atol=1e-12, rtol=0)
+    assert torch.equal(root, root.transpose(1, 2)) and torch.equal(inverse, inverse.transpose(1, 2))
+
+
+def test_symmetric_sqrt_of_float32_input_is_computed_in_float64() -> None:
+    sigma32 = _spd(1, 12, seed=6).float()
+    root, inverse = symmetric_sqrt_and_inverse(sigma32)
+    assert root.dtype == torch.float64 and inverse.dtype == torch.float64
+    reference = sigma32[0].double()
+    torch.testing.assert_close(root[0] @ root[0], reference, atol=1e-13, rtol=0)
+    torch.testing.assert_close(
+        inverse[0] @ reference @ inverse[0], torch.eye(12, dtype=torch.float64), atol=1e-12, rtol=0
+    )
+
+
+def test_symmetric_sqrt_errors_name_the_offending_quantity() -> None:
+    sigma = torch.diag(torch.tensor([1.0, 0.0, 2.0], dtype=torch.float64))[None]
+    with pytest.raises(ValueError, match=r"^diagonal of sigma must lie in \(0, inf\), got 0"):
+        symmetric_sqrt_and_inverse(sigma, diagonal_only=True)
+    with pytest.raises(ValueError, match=r"^eigenvalues of sigma must lie in \(0, inf\), got 0"):
+        symmetric_sqrt_and_inverse(sigma)
+    with pytest.raises(ValueError, match="^sigma must be finite"):
+        symmetric_sqrt_and_inverse(torch.full((1, 2, 2), math.nan, dtype=torch.float64))
+
+
+def test_whitening_error_accepts_every_whitening_and_reports_per_camera() -> None:
+    """Every P = Q Sigma^(1/2) with Q orthogonal whitens (eqs. 18-19), not only the symmetric one."""
+    sigma = _spd(1, 6, seed=7)
+    root, inverse = symmetric_sqrt_and_inverse(sigma)
+    q = _rotation(6, seed=8)
+    rotated_inverse = torch.linalg.inv(q @ root[0])[None]  # P^-1 = Sigma^(-1/2) Q^T, not symmetric
+    assert whitening_error(rotated_inverse, sigma).item() < 1e-12
+    # Two cameras: P^-1 = S^-1 (exact) and 2 S^-1 (whitened spectrum 4): errors 0 and 3.
+    errors = whitening_error(torch.cat([inverse, 2.0 * inverse]), torch.cat([sigma, sigma]))
+    torch.testing.assert_close(errors, torch.tensor([0.0, 3.0], dtype=torch.float64), atol=1e-12, rtol=0)
+    errors32 = whitening_error(inverse.float(), sigma.float())
+    expected = np.abs(np.linalg.eigvalsh(inverse[0].float().double().numpy().T @ sigma[0].float().double().numpy()
+                                         @ inverse[0].float().double().numpy()) - 1.0).max()  # fmt: skip
+    np.testing.assert_allclose(errors32.numpy(), [expected], rtol=1e-9, atol=1e-15)
+
+
+def test_diagonal_only_preconditioner_is_the_damped_diagonal_root() -> None:
+    result = compute_preconditioner(ROOM, damping=DampingConfig(diagonal_only=True))
+    diagonal = torch.diagonal(result.gram[0])
+    damped = diagonal + torch.clamp(0.1 * diagonal, min=1e-8)  # default damping_rel 0.1, damping_abs 1e-8
+    torch.testing.assert_close(result.matrix[0], torch.diag(torch.sqrt(damped)), atol=0, rtol=1e-12)
+    torch.testing.assert_close(result.inverse[0], torch.diag(1.0 / torch.sqrt(damped)), atol=0, rtol=1e-12)
+
+
+def test_preconditioner_counts_the_valid_proxy_points() -> None:
+    points = sample_proxy_points(ROOM, SamplingConfig(num_points=300))
+    result = compute_preconditioner(ROOM, sampling=SamplingConfig(num_points=300))
+    assert result.num_valid.tolist() == [points.shape[1]]  # the pyramid transform keeps every point in the image
+
+
+def test_float32_inputs_give_the_float64_gram() -> None:
+    room32 = Intrinsics.create(fx=793.13, fy=793.49, cx=389.25, cy=259.375, width=778, height=518, dtype=torch.float32)
+    room64 = room32.to(dtype=torch.float64)  # the same (float32-rounded) values
+    points = sample_proxy_points(room64, SamplingConfig(num_points=100))
+    torch.testing.assert_close(sample_proxy_points(room32, SamplingConfig(num_points=100)), points, atol=1e-13, rtol=0)
+    sigma64, _ = gram_from_points(points, room64)
+    for intrinsics, pts in ((room32, points), (room64, points.float())):
+        sigma, _ = gram_from_points(pts, intrinsics)
+        assert sigma.dtype == torch.float64
+        reference = sigma64 if pts.dtype == torch.float64 else gram_from_points(pts.double(), room64)[0]
+        torch.testing.assert_close(sigma, reference, atol=1e-15, rtol=1e-12)
+
+
+@pytest.mark.parametrize("sampler", ["random", "sobol"])
+def test_seeded_samplers_follow_the_seed(sampler: str) -> None:
+    seven = sample_proxy_points(ROOM, SamplingConfig(sampler=sampler, num_points=64, seed=7))
+    default = sample_proxy_points(ROOM, SamplingConfig(sampler=sampler, num_points=64))
+    torch.testing.assert_close(sample_proxy_points(ROOM, SamplingConfig(sampler=sampler, num_points=64, seed=7)), seven)
+    assert not torch.equal(seven, default)
+
+
+@pytest.mark.parametrize("radial", ["volume", "ray"])
+def test_proxy_points_follow_the_radial_map(radial: str) -> None:
+    """Contracted radius of each proxy point = Q_r(u1) of its lattice point (paper eq. 12, or CamP's uniform one)."""
+    t_near, t_far = 0.4, 1.8
+    unit = unit_cube_points("frolov", 200)
+    points = sample_proxy_points(ROOM, SamplingConfig(num_points=200, t_near=t_near, t_far=t_far, radial=radial))
+    r = points[0].norm(dim=-1)
+    contracted = torch.where(r <= 1.0, r, 2.0 - 1.0 / r)  # paper eq. 10 by hand
+    u1 = unit[:, 0].double()
+    if radial == "ray":
+        expected = t_near + u1 * (t_far - t_near)
+    else:
+        expected = (t_near**3 + u1 * (t_far**3 - t_near**3)) ** (1.0 / 3.0)
+    torch.testing.assert_close(contracted, expected, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        (SamplingConfig(t_near=-0.1), r"^t_near must lie in \[0, inf\)"),
+        (SamplingConfig(t_near=1.0, t_far=1.0), r"^t_far must lie in \(1, 2\)"),
+        (SamplingConfig(t_far=2.0), r"^t_far must lie in \(0.4, 2\)"),
+        (SamplingConfig(transform="cone"), "^transform must be one of"),  # type: ignore[arg-type]
+    ],
+)
+def test_sampling_config_validates_itself(config: SamplingConfig, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        config.validate()
+
+
+@pytest.mark.parametrize("radial", ["volume", "ray"])
+def test_fisheye_proxy_points_lie_on_the_pixel_and_radius_of_their_lattice_point(radial: str) -> None:
+    """Fisheye proxies: lattice point (u1, u2, u3) -> pixel (u3 W, u2 H) at contracted radius Q_r(u1) (eqs. 10, 12)."""
+    t_near, t_far = 0.4, 1.8
+    unit = unit_cube_points("frolov", 200).double()
+    points = sample_proxy_points(FISHEYE, SamplingConfig(num_points=200, t_near=t_near, t_far=t_far, radial=radial))
+    r = points.norm(dim=-1)
+    contracted = torch.where(r <= 1.0, r, 2.0 - 1.0 / r)  # paper eq. 10 by hand
+    u1 = unit[:, 0].expand(2, -1)
+    if radial == "ray":
+        expected = t_near + u1 * (t_far - t_near)
+    else:
+        expected = (t_near**3 + u1 * (t_far**3 - t_near**3)) ** (1.0 / 3.0)
+    torch.testing.assert_close(contracted, expected, atol=1e-12, rtol=0)
+    pixels, _ = project(points, FISHEYE)
+    expected_pixels = torch.stack([unit[:, 2] * 640.0, unit[:, 1] * 480.0], dim=-1).expand(2, -1, -1)
+    torch.testing.assert_close(pixels, expected_pixels, atol=1e-6, rtol=0)
+
+
+def test_fisheye_proxy_points_follow_the_seed_and_are_computed_in_float64() -> None:
+    seven = sample_proxy_points(FISHEYE, SamplingConfig(sampler="random", num_points=64, seed=7))
+    default = sample_proxy_points(FISHEYE, SamplingConfig(sampler="random", num_points=64))
+    assert not torch.equal(seven, default)
+    torch.testing.assert_close(
+        sample_proxy_points(FISHEYE, SamplingConfig(sampler="random", num_points=64, seed=7)), seven
+    )
+    fisheye32 = FISHEYE.to(dtype=torch.float32)
+    points32 = sample_proxy_points(fisheye32, SamplingConfig(num_points=64))
+    assert points32.dtype == torch.float64
+    reference = sample_proxy_points(fisheye32.to(dtype=torch.float64), SamplingConfig(num_points=64))
+    torch.testing.assert_close(points32, reference, atol=1e-12, rtol=0)
