@@ -702,6 +702,7 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "precond_inv",
         "last_refresh_step",
         "num_refreshes",
+        "precond_base_intrinsics",  # what P was computed for: a resume onto other cameras recomputes it
     }
     # Buffers move with the module (.to(device)), the base cameras and the Gram included.
     assert {name for name, _ in optimizer.named_buffers()} == {
@@ -713,6 +714,7 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "base_intrinsics",
         "gram",
         "camera_of_image",
+        "precond_base_intrinsics",
     }
 
 
