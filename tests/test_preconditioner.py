@@ -237,3 +237,66 @@ def test_tangential_preconditioner_observes_p1_p2() -> None:
     assert (torch.diagonal(result.gram, dim1=-2, dim2=-1)[0, 12:] > 0).all()
     _, inverse = symmetric_sqrt_and_inverse(result.gram)
     assert whitening_error(inverse, result.gram).item() < 1e-6
+
+
+def _varied_cameras(n: int) -> Intrinsics:
+    """Distinct, distorted cameras (no two share intrinsics)."""
+    scale = torch.linspace(0.9, 1.1, n, dtype=torch.float64)
+    return Intrinsics.create(
+        fx=500.0 * scale, fy=498.0 * scale, cx=320.0 + scale, cy=240.0 - scale, width=640, height=480,
+        k1=-0.01 * scale, k2=0.001,
+    )  # fmt: skip
+
+
+def _assert_same_bits(a, b) -> None:
+    for name in ("matrix", "inverse", "gram", "num_valid"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+@pytest.mark.parametrize(
+    "sampling",
+    [
+        SamplingConfig(num_points=500),
+        SamplingConfig(num_points=333, transform="spherical"),
+        SamplingConfig(num_points=200, sampler="sobol", transform="pixel", radial="ray"),
+        SamplingConfig(num_points=300, sampler="camp-random"),
+    ],
+    ids=["frolov", "frolov-spherical", "sobol-pixel-ray", "camp-random"],
+)
+@pytest.mark.parametrize("chunk_size", [1, 3, 7, 16])
+def test_chunked_preconditioner_is_bit_identical_to_unchunked(sampling: SamplingConfig, chunk_size: int) -> None:
+    """Chunking bounds memory for 100k cameras; it must not change a single bit of P (every rank relies on it)."""
+    cameras = _varied_cameras(37)
+    whole = compute_preconditioner(cameras, sampling=sampling, chunk_size=None)
+    chunked = compute_preconditioner(cameras, sampling=sampling, chunk_size=chunk_size)
+    _assert_same_bits(whole, chunked)
+
+
+def test_cameras_sharing_intrinsics_share_p_bit_for_bit() -> None:
+    cameras = _varied_cameras(12)
+    index = torch.tensor([3, 3, 7, 3, 10, 7, 11, 0])
+    repeated = cameras[index]
+    separate = compute_preconditioner(repeated, chunk_size=None, share_intrinsics=False)
+    shared = compute_preconditioner(repeated)
+    _assert_same_bits(separate, shared)
+    assert torch.equal(shared.matrix, compute_preconditioner(cameras).matrix[index])
+    assert torch.equal(shared.matrix[0], shared.matrix[1])
+
+
+def test_p_does_not_depend_on_how_the_intrinsics_tensors_are_laid_out() -> None:
+    """Broadcast (stride 0) and contiguous fields of the same cameras give the same bits."""
+    broadcast = Intrinsics.create(fx=793.13, fy=793.49, cx=389.25, cy=259.375, width=778, height=518)
+    broadcast = Intrinsics(*(value.expand(5) for value in (getattr(broadcast, f) for f in _FIELDS)))
+    contiguous = Intrinsics(*(getattr(broadcast, f).clone() for f in _FIELDS))
+    _assert_same_bits(
+        compute_preconditioner(broadcast, share_intrinsics=False),
+        compute_preconditioner(contiguous, share_intrinsics=False),
+    )
+
+
+def test_chunk_size_is_validated() -> None:
+    with pytest.raises(ValueError, match="chunk_size"):
+        compute_preconditioner(ROOM, chunk_size=0)
+
+
+_FIELDS = ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "width", "height")
