@@ -171,7 +171,7 @@ def _step_optimizer(cameras: int):
     """The s2camp camera optimizer over ``cameras`` room cameras, P left at the identity (its cost is in part 1)."""
     from nerfstudio.cameras.cameras import Cameras, CameraType
 
-    from s2camp_ns.nerfstudio.camera_optimizer import S2CampCameraOptimizer, S2CampCameraOptimizerConfig
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizer, S2CampCameraOptimizerConfig
 
     preset = FRUSTA["room"]
     generator = torch.Generator().manual_seed(0)
@@ -199,7 +199,7 @@ def _one_step(optimizer, indices: torch.Tensor, pixels: torch.Tensor) -> None:
     """Forward and backward of the camera part of one training step for the rays ``indices`` / ``pixels``."""
     from nerfstudio.cameras.rays import RayBundle
 
-    from s2camp_ns.nerfstudio.camera_optimizer import PIXEL_KEY
+    from s2camp_ns.camera_optimizer import PIXEL_KEY
 
     rays = indices.shape[0]
     bundle = RayBundle(

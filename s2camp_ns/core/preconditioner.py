@@ -238,20 +238,31 @@ def compute_preconditioner(
                 num_valid=shared.num_valid[index],
             )
     generator = torch.Generator().manual_seed(int(sampling.seed)) if sampling.sampler == "camp-random" else None
-    step = chunk_size or max(intrinsics.num_cameras, 1)
-    parts = []
-    for start in range(0, max(intrinsics.num_cameras, 1), step):
+    n = intrinsics.num_cameras
+    step = chunk_size or max(n, 1)
+    result: Preconditioner | None = None
+    for start in range(0, max(n, 1), step):
         part = intrinsics[start : start + step]
         points = sample_proxy_points(part, sampling, generator)
         sigma, count = gram_from_points(points, part, layout)
         del points
         matrix, inverse = symmetric_sqrt_and_inverse(damped_gram(sigma, damping), damping.diagonal_only)
-        parts.append((matrix, inverse, sigma, count))
-    if len(parts) == 1:
-        matrix, inverse, sigma, count = parts[0]
-    else:
-        matrix, inverse, sigma, count = (torch.cat(column) for column in zip(*parts, strict=True))
-    return Preconditioner(matrix=matrix, inverse=inverse, gram=sigma, num_valid=count)
+        if step >= n:
+            return Preconditioner(matrix=matrix, inverse=inverse, gram=sigma, num_valid=count)
+        if result is None:  # the outputs are filled in place: no second copy of them at the end
+            result = Preconditioner(
+                matrix=matrix.new_empty((n, *matrix.shape[1:])),
+                inverse=inverse.new_empty((n, *inverse.shape[1:])),
+                gram=sigma.new_empty((n, *sigma.shape[1:])),
+                num_valid=count.new_empty((n, *count.shape[1:])),
+            )
+        stop = start + part.num_cameras
+        result.matrix[start:stop] = matrix
+        result.inverse[start:stop] = inverse
+        result.gram[start:stop] = sigma
+        result.num_valid[start:stop] = count
+    assert result is not None
+    return result
 
 
 def unique_intrinsics(intrinsics: Intrinsics) -> tuple[Intrinsics, Tensor]:
