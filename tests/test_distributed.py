@@ -23,6 +23,7 @@ import torch
 
 from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.core.preconditioner import Preconditioner, SamplingConfig, compute_preconditioner
+from s2camp_ns.nerfstudio.train_commands import training_environment
 
 RUNNER = Path(__file__).with_name("ddp_run.py")
 TINY_MODEL = [
@@ -90,13 +91,14 @@ def test_every_process_computes_the_same_p_bits_without_communicating() -> None:
 
 
 # --------------------------------------------------------------------------------- real training, 2 processes
-def _train(scene: Path, output: Path, dump: Path, processes: int, rays: int, request_at: int) -> subprocess.Popen:
+def _train(scene: Path, dump: Path, processes: int, rays: int, request_at: int) -> subprocess.Popen:
+    """Start tests/ddp_run.py; its output goes to <dump>.log, its nerfstudio outputs under <dump>-outputs."""
     command = [
         sys.executable, str(RUNNER), "--dump-dir", str(dump), "--request-refresh-at", str(request_at),
         "--snapshot-steps", *map(str, SNAPSHOTS), "--",
         "s2camp",
         "--data", str(scene),
-        "--output-dir", str(output),
+        "--output-dir", str(dump.parent / f"{dump.name}-outputs"),
         "--experiment-name", "ddp",
         "--max-num-iterations", str(STEPS),
         "--steps-per-save", str(STEPS),
@@ -116,18 +118,19 @@ def _train(scene: Path, output: Path, dump: Path, processes: int, rays: int, req
         *TINY_MODEL,
         "s2camp-data", "--perturbation.enabled", "True",
     ]  # fmt: skip
-    environment = {"OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE", "PATH": "/usr/bin:/bin"}
-    log = (dump.parent / f"{dump.name}.log").open("w")
-    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True, env=environment)
+    # One thread per process: three processes share the machine's cores.
+    environment = {**training_environment(), "OMP_NUM_THREADS": "1"}
+    with (dump.parent / f"{dump.name}.log").open("w") as log:
+        return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True, env=environment)
 
 
 @pytest.fixture(scope="module")
 def runs(tiny_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[dict]]:
     """Two gloo processes with RAYS_PER_RANK rays each, and one process with twice as many, side by side."""
     root = tmp_path_factory.mktemp("ddp")
-    two = _train(tiny_scene, root / "outputs", root / "two", 2, RAYS_PER_RANK, REQUEST_AT)
+    two = _train(tiny_scene, root / "two", 2, RAYS_PER_RANK, REQUEST_AT)
     # One process applies a request at the next step: ask it right before the step the two processes agree on.
-    one = _train(tiny_scene, root / "outputs", root / "one", 1, 2 * RAYS_PER_RANK, AGREED_REQUEST_STEP)
+    one = _train(tiny_scene, root / "one", 1, 2 * RAYS_PER_RANK, AGREED_REQUEST_STEP)
     states = {}
     for name, process, ranks in (("two", two, 2), ("one", one, 1)):
         returncode = process.wait(timeout=900)
