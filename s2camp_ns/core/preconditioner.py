@@ -225,7 +225,7 @@ def compute_preconditioner(
     damping.validate()
     if chunk_size is not None:
         check_positive_int("chunk_size", chunk_size)
-    intrinsics = contiguous_intrinsics(intrinsics.detach().to(dtype=torch.float64))
+    intrinsics = intrinsics.detach().to(dtype=torch.float64)
     intrinsics.validate()
     if share_intrinsics and sampling.sampler != "camp-random":
         unique, index = unique_intrinsics(intrinsics)
@@ -271,18 +271,7 @@ def unique_intrinsics(intrinsics: Intrinsics) -> tuple[Intrinsics, Tensor]:
     stacked = torch.stack([getattr(intrinsics, name) for name in names], dim=-1)
     unique, index = torch.unique(stacked, dim=0, return_inverse=True)
     columns = dict(zip(names, unique.unbind(dim=-1), strict=True))
-    return contiguous_intrinsics(Intrinsics(**columns, model=intrinsics.model)), index
-
-
-def contiguous_intrinsics(intrinsics: Intrinsics) -> Intrinsics:
-    """Every field as its own contiguous tensor.
-
-    Elementwise kernels may round differently on broadcast (stride 0) or strided inputs than on contiguous ones
-    (vectorised and scalar loops), so the same camera could otherwise get a P differing in the last bits depending
-    on how its intrinsics tensor was built.
-    """
-    names = [f.name for f in fields(intrinsics) if f.name != "model"]
-    return Intrinsics(**{name: getattr(intrinsics, name).contiguous() for name in names}, model=intrinsics.model)
+    return Intrinsics(**columns, model=intrinsics.model), index
 
 
 def whitening_error(inverse: Float[Tensor, "n k k"], sigma: Float[Tensor, "n k k"]) -> Float[Tensor, " n"]:
