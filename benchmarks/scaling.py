@@ -8,7 +8,8 @@ Three measurements, each on this machine's processes (docs/SCALING.md turns them
    one set of intrinsics (computed once), and one unchunked cell of the same size as the baseline of the memory
    ratio.
 2. The camera optimizer's work in one training step on one rank: P^-1 phi_hat and the refined pose and
-   intrinsics of every camera, the regenerated rays of the rank's batch, and the backward pass to phi_hat.
+   intrinsics of the cameras the rays come from, the regenerated rays of the rank's batch, and the backward pass
+   to the latents (the default shared intrinsics: all cameras here are one physical camera).
 3. What DDP communicates for the cameras per step: an all-reduce of the dense phi_hat gradient (N x K float32)
    and of the 8-byte refresh-request flag, timed with gloo between processes of this machine.
 """
@@ -237,7 +238,7 @@ def step_rows(config: ScalingConfig) -> list[dict]:
                 "ms": 1e3 * statistics.median(times),
                 "ms_min": 1e3 * min(times),
                 "ms_max": 1e3 * max(times),
-                "gradient_bytes": cameras * optimizer.layout.num_params * 4,
+                "gradient_bytes": 4 * sum(p.numel() for p in optimizer.parameters()),
             }
             rows.append(row)
             spread = f"[{row['ms_min']:.2f}, {row['ms_max']:.2f}]"
@@ -291,7 +292,8 @@ def allreduce_rows(config: ScalingConfig) -> list[dict]:
         for process in processes:
             process.join()
         for numel, times in results.items():
-            payload = "refresh flag (int64)" if numel == 1 else f"phi_hat gradient, {numel // NUM_PARAMS} cameras"
+            cameras = numel // NUM_PARAMS
+            payload = "refresh flag (int64)" if numel == 1 else f"latent gradient, {cameras} cameras x K = 12"
             rows.append(
                 {
                     "kind": "allreduce",
@@ -350,8 +352,9 @@ def report(rows: list[dict], config: ScalingConfig) -> Path:
             "## Camera optimizer work per training step, per rank",
             markdown_table(step_cells, ["cameras", "rays", "ms", "ms_min", "ms_max", "gradient_bytes"]),
             "Forward and backward of the camera part of one step (P^-1 phi_hat, refined pose and intrinsics of "
-            "every camera, rays regenerated through their pixels), median of the repeats after a warm-up. The "
-            "same on every rank whatever the number of ranks: each rank refines all N cameras from its own rays.",
+            "the cameras the rays come from, rays regenerated through their pixels), median of the repeats after a "
+            "warm-up; what still grows with N is the dense gradient of the N x K latent. The same on every rank "
+            "whatever the number of ranks.",
             "## What DDP communicates for the cameras per step (gloo, processes on this machine)",
             markdown_table(allreduce_cells, ["ranks", "payload", "bytes", "ms", "ms_min", "ms_max"]),
             "The phi_hat gradient travels inside DDP's gradient buckets with the field's parameters; it is timed "

@@ -69,11 +69,16 @@ def train_and_dump(
         )
     snapshots: dict[int, dict[str, torch.Tensor]] = {}
 
-    def snapshot(step: int) -> None:
-        snapshots[step] = {
-            "whitened_delta": camera_optimizer.whitened_delta.detach().cpu().clone(),
-            "camera_deltas": camera_optimizer.camera_deltas().detach().cpu().clone(),
+    def latents() -> dict[str, torch.Tensor]:
+        """The trained camera parameters: phi_hat (pose, or all K per image) and, with shared intrinsics, theirs."""
+        return {
+            name: value.detach().cpu().clone()
+            for name, value in camera_optimizer.named_parameters()
+            if name in ("whitened_delta", "whitened_intrinsics")
         }
+
+    def snapshot(step: int) -> None:
+        snapshots[step] = {**latents(), "camera_deltas": camera_optimizer.camera_deltas().detach().cpu().clone()}
 
     if snapshot_steps:  # after the step's other callbacks, the refresh of P included
         trainer.callbacks.append(
@@ -96,7 +101,8 @@ def train_and_dump(
     state = {
         "saved_files": saved,
         "snapshots": snapshots,
-        "whitened_delta": camera_optimizer.whitened_delta.detach().cpu().clone(),
+        "latents": latents(),
+        "camera_state": {name: value.cpu().clone() for name, value in camera_optimizer.state_dict().items()},
         "precond": camera_optimizer.precond.cpu().clone(),
         "precond_inv": camera_optimizer.precond_inv.cpu().clone(),
         "camera_deltas": camera_optimizer.camera_deltas().detach().cpu().clone(),
