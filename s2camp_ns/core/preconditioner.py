@@ -213,11 +213,13 @@ def compute_preconditioner(
 ) -> Preconditioner:
     """P and P^-1 for each camera from proxy points in its frustum (paper eqs. 4, 5 and 20).
 
-    Memory is bounded by ``chunk_size`` cameras at a time (None: all at once); every camera's P depends only on
-    its own intrinsics, so the result is bit-identical for any chunk size (tests/test_preconditioner.py). With
-    ``share_intrinsics``, cameras with bitwise-equal intrinsics share one computation (they have the same P
-    exactly, as the proxy points are the same for every camera); CamP's per-camera random points are never shared.
-    Deterministic: the same intrinsics give the same bits on every process, with no communication.
+    Memory is bounded by ``chunk_size`` cameras at a time (None: all at once). With the point sets shared by all
+    cameras (the lattice, Sobol, Halton, random unit points) every camera's P depends only on its own intrinsics and
+    the result is bit-identical for any chunk size (tests/test_preconditioner.py); with ``share_intrinsics``,
+    cameras with bitwise-equal intrinsics share one computation. CamP's per-camera random points ("camp-random")
+    are never shared, and their last bits depend on the chunk size (their per-point ``pow`` and undistortion round
+    differently in vectorised and scalar loops, and which points take which loop depends on the batch layout).
+    Deterministic: the same intrinsics and chunk size give the same bits on every process, with no communication.
     """
     sampling = sampling or SamplingConfig()
     damping = damping or DampingConfig()
