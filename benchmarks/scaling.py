@@ -346,9 +346,11 @@ def report(rows: list[dict], config: ScalingConfig) -> Path:
             ),  # fmt: skip
             "Each cell in a fresh subprocess: seconds is the median of the repeats (min and max beside it), peak_mb "
             "the growth of the resident set over the process after its warm-up. `distinct`: every camera has its "
-            "own intrinsics (any refreshed P of a refined run); `shared`: all cameras share one set of intrinsics "
-            "(the initial P of a capture with one camera model: computed once); `unchunked`: one batch, the "
-            "baseline of the ratios (same run, same size).",
+            "own intrinsics (a refresh with intrinsics refined per image, `intrinsics per-image`; the default "
+            "refines them per physical camera and computes P once per physical camera); `shared`: all cameras "
+            "share one set of intrinsics (computed once); `unchunked`: one batch, the baseline of the ratios "
+            "(same run, same size). On a shared machine the spread between min and max is the load of other "
+            "jobs, not the method.",
             "## Camera optimizer work per training step, per rank",
             markdown_table(step_cells, ["cameras", "rays", "ms", "ms_min", "ms_max", "gradient_bytes"]),
             "Forward and backward of the camera part of one step (P^-1 phi_hat, refined pose and intrinsics of "
@@ -357,8 +359,10 @@ def report(rows: list[dict], config: ScalingConfig) -> Path:
             "whatever the number of ranks.",
             "## What DDP communicates for the cameras per step (gloo, processes on this machine)",
             markdown_table(allreduce_cells, ["ranks", "payload", "bytes", "ms", "ms_min", "ms_max"]),
-            "The phi_hat gradient travels inside DDP's gradient buckets with the field's parameters; it is timed "
-            "here on its own. The flag is the one extra collective per step (refreshes requested from the viewer).",
+            "The latents' gradient travels inside DDP's gradient buckets with the field's parameters; it is timed "
+            "here on its own (K = 12 per camera: intrinsics per image; the default shares them per physical "
+            "camera, half the bytes). The flag is the one collective S2CamP adds, every refresh-request-every "
+            "steps (refreshes requested from the viewer).",
         ],
     )
 

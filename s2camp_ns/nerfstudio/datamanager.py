@@ -47,7 +47,7 @@ class S2CampDataManagerConfig(VanillaDataManagerConfig):
     _target: type = field(default_factory=lambda: S2CampDataManager)
     global_batch_sampling: bool = False
     """Every rank draws the whole step's batch (train-num-rays-per-batch x ranks) from a generator seeded with
-    ``global_batch_seed`` and the step, and keeps its own slice: the ranks' rays are disjoint, and together they are
+    ``global_batch_seed`` and the step, and keeps its own slice: the ranks take different parts of one draw, together
     the rays of a one-process run with the total batch, whatever the number of ranks (with nerfacto's
     ``stratified-samples False`` the runs then agree up to rounding, tests/test_distributed.py). Costs ranks x batch
     random draws per rank and step, and needs every training image cached (train-num-images-to-sample-from -1).
