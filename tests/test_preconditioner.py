@@ -272,6 +272,24 @@ def test_chunked_preconditioner_is_bit_identical_to_unchunked(sampling: Sampling
     _assert_same_bits(whole, chunked)
 
 
+@pytest.mark.parametrize("model", ["fisheye", "opencv"])
+def test_chunked_preconditioner_is_bit_identical_for_fisheye_and_tangential_cameras(model: str) -> None:
+    scale = torch.linspace(0.9, 1.1, 23, dtype=torch.float64)
+    if model == "fisheye":
+        cameras = Intrinsics.create(
+            fx=170.0 * scale, fy=171.0 * scale, cx=320.0, cy=240.0, width=640, height=480,
+            k1=0.03 * scale, k2=-0.002, k3=0.0005, k4=0.00005, model="fisheye",
+        )  # fmt: skip
+    else:
+        cameras = Intrinsics.create(
+            fx=410.0 * scale, fy=405.0 * scale, cx=330.0, cy=210.0, width=640, height=420,
+            k1=-0.03 * scale, k2=0.004, p1=0.001, p2=-0.002,
+        )  # fmt: skip
+    whole = compute_preconditioner(cameras, chunk_size=None)
+    for chunk_size in (1, 3, 7):
+        _assert_same_bits(whole, compute_preconditioner(cameras, chunk_size=chunk_size))
+
+
 def test_cameras_sharing_intrinsics_share_p_bit_for_bit() -> None:
     cameras = _varied_cameras(12)
     index = torch.tensor([3, 3, 7, 3, 10, 7, 11, 0])
