@@ -125,13 +125,13 @@ def _train(scene: Path, dump: Path, processes: int, rays: int, request_at: int) 
 
 
 @pytest.fixture(scope="module")
-def runs(tiny_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[dict]]:
+def runs(tiny_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     """Two gloo processes with RAYS_PER_RANK rays each, and one process with twice as many, side by side."""
     root = tmp_path_factory.mktemp("ddp")
     two = _train(tiny_scene, root / "two", 2, RAYS_PER_RANK, REQUEST_AT)
     # One process applies a request at the next step: ask it right before the step the two processes agree on.
     one = _train(tiny_scene, root / "one", 1, 2 * RAYS_PER_RANK, AGREED_REQUEST_STEP)
-    states = {}
+    states: dict = {"root": root}
     for name, process, ranks in (("two", two, 2), ("one", one, 1)):
         returncode = process.wait(timeout=900)
         log = (root / f"{name}.log").read_text()
@@ -173,8 +173,11 @@ def test_ranks_draw_different_rays_and_only_rank_0_logs_and_saves(runs) -> None:
     # Global batch sampling: the two ranks' rays are the two halves of the one-process run's first batch.
     assert torch.equal(torch.cat([first0, first1]), runs["one"][0]["first_pixels"])
     assert rank0["camera_errors"] and not rank1["camera_errors"]
-    assert [Path(path).name for path in rank0["saved_files"]] == [f"step-{STEPS - 1:09d}.ckpt"]
-    assert rank1["saved_files"] == []
+    # One torch.save during training, on rank 0 (the final checkpoint; S2CampTrainer writes it to a temporary file
+    # and renames it), none on rank 1.
+    assert len(rank0["saved_files"]) == 1 and rank1["saved_files"] == []
+    checkpoints = sorted((runs["root"] / "two-outputs").glob("**/nerfstudio_models/*.ckpt"))
+    assert [path.name for path in checkpoints] == [f"step-{STEPS - 1:09d}.ckpt"]
 
 
 @pytest.mark.slow
