@@ -14,6 +14,7 @@ from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
 from .lattice_search import LatticeSearchConfig
 from .recovery import RecoveryConfig
+from .scaling import ScalingConfig
 from .shared_intrinsics import SharedIntrinsicsConfig
 from .speed import SpeedConfig
 from .train_time import TrainTimeConfig
@@ -23,6 +24,7 @@ MODULES = {
     GramErrorConfig: "gram_error",
     SpeedConfig: "speed",
     RecoveryConfig: "recovery",
+    ScalingConfig: "scaling",
     TrainTimeConfig: "train_time",
     SharedIntrinsicsConfig: "shared_intrinsics",
 }
@@ -44,6 +46,7 @@ Command = Union[
     Annotated[GramErrorConfig, tyro.conf.subcommand("gram-error")],
     Annotated[SpeedConfig, tyro.conf.subcommand("speed")],
     Annotated[RecoveryConfig, tyro.conf.subcommand("recovery")],
+    Annotated[ScalingConfig, tyro.conf.subcommand("scaling")],
     Annotated[TrainTimeConfig, tyro.conf.subcommand("train-time")],
     Annotated[SharedIntrinsicsConfig, tyro.conf.subcommand("shared-intrinsics")],
     Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],

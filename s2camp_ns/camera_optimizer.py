@@ -463,33 +463,47 @@ class S2CampCameraOptimizer(CameraOptimizer):
         return Intrinsics.from_tensors(self.base_intrinsics, model=self.projection)
 
     # ------------------------------------------------------------------------------------------- refined cameras
-    def camera_deltas(self) -> Float[Tensor, "n 16"]:
-        """Camera-parameter deltas phi = P^-1 phi_hat of every camera (paper eq. 15), all 16 columns, float64."""
+    def camera_deltas(self, cameras: Int[Tensor, " m"] | None = None) -> Float[Tensor, "m 16"]:
+        """Camera-parameter deltas phi = P^-1 phi_hat (paper eq. 15), all 16 columns, float64: of every camera, or
+        of the training cameras ``cameras`` only (a training step needs those its rays come from)."""
+        count = self.num_cameras if cameras is None else cameras.shape[0]
         if not self.enabled:
-            return self.precond.new_zeros(self.num_cameras, len(PARAMETER_NAMES))
-        latent = self.whitened_delta.to(torch.float64)
+            return self.precond.new_zeros(count, len(PARAMETER_NAMES))
+        precond_inv, latent, camera_of_image = self.precond_inv, self.whitened_delta, self.camera_of_image
+        if cameras is not None:
+            cameras = cameras.to(self.precond.device)
+            precond_inv, latent, camera_of_image = precond_inv[cameras], latent[cameras], camera_of_image[cameras]
+        latent = latent.to(torch.float64)
         if self.shared:  # [z_i; w_c]: the pose latent of the image and the intrinsics latent of its camera
-            latent = torch.cat([latent, self.whitened_intrinsics.to(torch.float64)[self.camera_of_image]], dim=-1)
-        phi = (self.precond_inv @ latent[..., None])[..., 0]
+            latent = torch.cat([latent, self.whitened_intrinsics.to(torch.float64)[camera_of_image]], dim=-1)
+        phi = (precond_inv @ latent[..., None])[..., 0]
         if self.non_trainable_camera_indices is not None:
             keep = torch.ones(self.num_cameras, 1, dtype=phi.dtype, device=phi.device)
             keep[self.non_trainable_camera_indices.to(phi.device)] = 0.0
-            phi = phi * keep
+            phi = phi * (keep if cameras is None else keep[cameras])
         return self.layout.expand(phi)
 
-    def refined_intrinsics(self, deltas: Tensor | None = None) -> Intrinsics:
-        """Intrinsics Phi' = Phi + dPhi of every camera (paper sec. 4), float64, differentiable."""
+    def refined_intrinsics(self, deltas: Tensor | None = None, cameras: Int[Tensor, " m"] | None = None) -> Intrinsics:
+        """Intrinsics Phi' = Phi + dPhi (paper sec. 4), float64, differentiable: of every camera, or of ``cameras``
+        (``deltas`` then holds theirs)."""
         self._require_cameras()
-        deltas = self.camera_deltas() if deltas is None else deltas
-        return self.base_intrinsics_struct().with_delta(deltas)
+        deltas = self.camera_deltas(cameras) if deltas is None else deltas
+        if cameras is None:
+            return self.base_intrinsics_struct().with_delta(deltas)
+        base = self.base_intrinsics[cameras.to(self.precond.device)]
+        return Intrinsics.from_tensors(base, model=self.projection).with_delta(deltas)
 
-    def refined_c2w(self, deltas: Tensor | None = None, opengl: bool = False) -> Float[Tensor, "n 3 4"]:
-        """Refined c2w' = c2w exp(xi) of every camera, float64; OpenCV frame unless ``opengl``."""
+    def refined_c2w(
+        self, deltas: Tensor | None = None, opengl: bool = False, cameras: Int[Tensor, " m"] | None = None
+    ) -> Float[Tensor, "m 3 4"]:
+        """Refined c2w' = c2w exp(xi), float64, OpenCV frame unless ``opengl``: of every camera, or of ``cameras``
+        (``deltas`` then holds theirs)."""
         self._require_cameras()
-        deltas = self.camera_deltas() if deltas is None else deltas
+        deltas = self.camera_deltas(cameras) if deltas is None else deltas
+        base = self.base_c2w_cv if cameras is None else self.base_c2w_cv[cameras.to(self.precond.device)]
         delta = se3_exp(deltas[:, :6])
-        rotation = self.base_c2w_cv[:, :, :3] @ delta[:, :, :3]
-        translation = self.base_c2w_cv[:, :, 3:] + self.base_c2w_cv[:, :, :3] @ delta[:, :, 3:]
+        rotation = base[:, :, :3] @ delta[:, :, :3]
+        translation = base[:, :, 3:] + base[:, :, :3] @ delta[:, :, 3:]
         c2w = torch.cat([rotation, translation], dim=-1)
         return opengl_to_opencv(c2w) if opengl else c2w
 
@@ -513,18 +527,19 @@ class S2CampCameraOptimizer(CameraOptimizer):
     ) -> tuple[Float[Tensor, "num_rays 3"], Float[Tensor, "num_rays 3"], Float[Tensor, "num_rays 1"]]:
         """World origins, unit directions and directions_norm of rays through pixels of refined cameras.
 
-        The per-camera algebra runs in float64 (N is small); the per-ray part in ``dtype``. Autocast is disabled:
+        The per-camera algebra runs in float64 for the cameras the rays come from only (at most one per ray, so a
+        step costs O(rays), not O(cameras): docs/SCALING.md); the per-ray part in ``dtype``. Autocast is disabled:
         undistortion and the pose product are not safe in half precision.
         """
         self._require_cameras()
         with torch.autocast(device_type=pixels.device.type, enabled=False):
-            deltas = self.camera_deltas()
-            intrinsics = self.refined_intrinsics(deltas).to(dtype=dtype)
-            c2w = self.refined_c2w(deltas).to(dtype=dtype)
-            camera_indices = camera_indices.to(self.precond.device)
-            per_ray = intrinsics[camera_indices]
+            cameras, ray_camera = torch.unique(camera_indices.to(self.precond.device), return_inverse=True)
+            deltas = self.camera_deltas(cameras)
+            intrinsics = self.refined_intrinsics(deltas, cameras).to(dtype=dtype)
+            c2w = self.refined_c2w(deltas, cameras=cameras).to(dtype=dtype)
+            per_ray = intrinsics[ray_camera]
             directions_cam = pixel_to_ray_direction(pixels.to(dtype)[:, None, :], per_ray)[:, 0]
-            c2w_rays = c2w[camera_indices]
+            c2w_rays = c2w[ray_camera]
             directions = (c2w_rays[:, :, :3] @ directions_cam[:, :, None])[..., 0]
             origins = c2w_rays[:, :, 3]
             # nerfstudio's directions_norm is |(a, b, 1)| of the unnormalized camera direction = 1 / d_z; its fisheye
@@ -550,12 +565,14 @@ class S2CampCameraOptimizer(CameraOptimizer):
         )
         shape = raybundle.origins.shape
         with torch.no_grad():
-            refined = self.refined_intrinsics()
-            focal_ratio = self.base_intrinsics[:, 0] * self.base_intrinsics[:, 1] / (refined.fx * refined.fy)
+            cameras, ray_camera = torch.unique(camera_indices.to(self.precond.device), return_inverse=True)
+            refined = self.refined_intrinsics(cameras=cameras)
+            base = self.base_intrinsics[cameras]
+            focal_ratio = base[:, 0] * base[:, 1] / (refined.fx * refined.fy)
         raybundle.origins = origins.reshape(shape)
         raybundle.directions = directions.reshape(shape)
         # Cone footprints shrink with the focal length; nerfacto ignores them, other fields may not.
-        raybundle.pixel_area = raybundle.pixel_area * focal_ratio[camera_indices].to(raybundle.pixel_area).reshape(
+        raybundle.pixel_area = raybundle.pixel_area * focal_ratio[ray_camera].to(raybundle.pixel_area).reshape(
             raybundle.pixel_area.shape
         )
         if "directions_norm" in raybundle.metadata:

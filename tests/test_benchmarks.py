@@ -14,6 +14,7 @@ REQUIRED_KEYS = {
     "dispersion": {"frustum", "transform", "sampler", "L", "dispersion", "covering_bound"},
     "gram-error": {"frustum", "sampler", "L", "rel_error", "seeds"},
     "speed": {"method", "cameras", "L", "seconds", "peak_mb"},
+    "scaling": {"kind"},
     "recovery": {"tier", "scene", "variant", "rot_err", "pos_err", "focal_err", "sec_per_iter"},
     "train-time": {"kind", "method", "sec_per_iter"},
 }
@@ -21,6 +22,7 @@ REPORTS = {
     "dispersion": "dispersion.md",
     "gram-error": "gram-error.md",
     "speed": "speed.md",
+    "scaling": "scaling.md",
     "recovery": "recovery.md",
     "train-time": "train-time.md",
 }
@@ -100,3 +102,9 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
     if name == "speed":
         methods = {row["method"] for row in rows if row.get("kind") == "comparison"}
         assert methods == {"s2camp", "camp-baseline"}
+    if name == "scaling":
+        kinds = {row["kind"] for row in rows}
+        assert kinds == {"P", "step", "allreduce"}
+        assert {row["intrinsics"] for row in rows if row["kind"] == "P"} == {"distinct", "unchunked", "shared"}
+        flag = [row for row in rows if row["kind"] == "allreduce" and row["bytes"] == 8]
+        assert len(flag) == 1

@@ -404,3 +404,70 @@ def test_fisheye_proxy_points_follow_the_seed_and_are_computed_in_float64() -> N
     assert points32.dtype == torch.float64
     reference = sample_proxy_points(fisheye32.to(dtype=torch.float64), SamplingConfig(num_points=64))
     torch.testing.assert_close(points32, reference, atol=1e-12, rtol=0)
+
+
+def _varied_cameras(n: int) -> Intrinsics:
+    """Distinct, distorted cameras (no two share intrinsics)."""
+    scale = torch.linspace(0.9, 1.1, n, dtype=torch.float64)
+    return Intrinsics.create(
+        fx=500.0 * scale, fy=498.0 * scale, cx=320.0 + scale, cy=240.0 - scale, width=640, height=480,
+        k1=-0.01 * scale, k2=0.001,
+    )  # fmt: skip
+
+
+def _assert_same_bits(a, b) -> None:
+    for name in ("matrix", "inverse", "gram", "num_valid"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+@pytest.mark.parametrize(
+    "sampling",
+    [
+        SamplingConfig(num_points=500),
+        SamplingConfig(num_points=333, transform="spherical"),
+        SamplingConfig(num_points=200, sampler="sobol", transform="pixel", radial="ray"),
+        SamplingConfig(num_points=300, sampler="halton"),
+    ],
+    ids=["frolov", "frolov-spherical", "sobol-pixel-ray", "halton"],
+)
+@pytest.mark.parametrize("chunk_size", [1, 3, 7, 16])
+def test_chunked_preconditioner_is_bit_identical_to_unchunked(sampling: SamplingConfig, chunk_size: int) -> None:
+    """Chunking bounds memory for 100k cameras; it must not change a single bit of P (every rank relies on it)."""
+    cameras = _varied_cameras(37)
+    whole = compute_preconditioner(cameras, sampling=sampling, chunk_size=None)
+    chunked = compute_preconditioner(cameras, sampling=sampling, chunk_size=chunk_size)
+    _assert_same_bits(whole, chunked)
+
+
+@pytest.mark.parametrize("model", ["fisheye", "opencv"])
+def test_chunked_preconditioner_is_bit_identical_for_fisheye_and_tangential_cameras(model: str) -> None:
+    scale = torch.linspace(0.9, 1.1, 23, dtype=torch.float64)
+    if model == "fisheye":
+        cameras = Intrinsics.create(
+            fx=170.0 * scale, fy=171.0 * scale, cx=320.0, cy=240.0, width=640, height=480,
+            k1=0.03 * scale, k2=-0.002, k3=0.0005, k4=0.00005, model="fisheye",
+        )  # fmt: skip
+    else:
+        cameras = Intrinsics.create(
+            fx=410.0 * scale, fy=405.0 * scale, cx=330.0, cy=210.0, width=640, height=420,
+            k1=-0.03 * scale, k2=0.004, p1=0.001, p2=-0.002,
+        )  # fmt: skip
+    whole = compute_preconditioner(cameras, chunk_size=None)
+    for chunk_size in (1, 3, 7):
+        _assert_same_bits(whole, compute_preconditioner(cameras, chunk_size=chunk_size))
+
+
+def test_cameras_sharing_intrinsics_share_p_bit_for_bit() -> None:
+    cameras = _varied_cameras(12)
+    index = torch.tensor([3, 3, 7, 3, 10, 7, 11, 0])
+    repeated = cameras[index]
+    separate = compute_preconditioner(repeated, chunk_size=None, share_intrinsics=False)
+    shared = compute_preconditioner(repeated)
+    _assert_same_bits(separate, shared)
+    assert torch.equal(shared.matrix, compute_preconditioner(cameras).matrix[index])
+    assert torch.equal(shared.matrix[0], shared.matrix[1])
+
+
+def test_chunk_size_is_validated() -> None:
+    with pytest.raises(ValueError, match="chunk_size"):
+        compute_preconditioner(ROOM, chunk_size=0)

@@ -176,3 +176,43 @@ def test_train_camera_raybundle_matches_training_rays():
     per_camera = bundle.directions.reshape(NUM_CAMERAS, HEIGHT, WIDTH, 3)[1]
     torch.testing.assert_close(image.directions, per_camera)
     assert math.isclose(float(image.directions.norm(dim=-1).mean()), 1.0, rel_tol=1e-5)
+
+
+@pytest.mark.parametrize("intrinsics", ["per-image", "per-camera"])
+def test_a_batch_refines_only_its_own_cameras_with_the_same_rays_and_gradients(intrinsics: str):
+    """A step computes the cameras its rays come from, not all N (O(rays) per step, docs/SCALING.md): same rays, same
+    gradients, and exact zeros for the cameras no ray came from."""
+    cameras = make_cameras(-0.05, 0.01)
+    optimizer = make_optimizer(cameras, intrinsics=intrinsics)
+    latents = [p for p in (optimizer.whitened_delta, getattr(optimizer, "whitened_intrinsics", None)) if p is not None]
+    assert len(latents) == (2 if intrinsics == "per-camera" else 1)
+    with torch.no_grad():
+        for latent in latents:
+            latent.copy_(torch.linspace(-2e-3, 3e-3, latent.numel()).reshape(latent.shape))
+    camera_indices = torch.tensor([1, 1, 1, 1])  # camera 0 is not in this batch
+    pixels = torch.tensor([[3.5, 4.5], [40.0, 30.0], [79.5, 0.5], [10.25, 55.75]])
+
+    origins, directions, norms = optimizer.regenerate_rays(camera_indices, pixels, dtype=torch.float64)
+    (origins.sum() + directions.sum() + norms.sum()).backward()
+    batch_gradients = [latent.grad.clone() for latent in latents]
+    for latent in latents:
+        latent.grad = None
+
+    # Reference: every camera refined, then indexed per ray.
+    from s2camp_ns.core.camera import pixel_to_ray_direction
+
+    deltas = optimizer.camera_deltas()
+    intrinsics = optimizer.refined_intrinsics(deltas)[camera_indices]
+    c2w = optimizer.refined_c2w(deltas)[camera_indices]
+    directions_cam = pixel_to_ray_direction(pixels.to(torch.float64)[:, None, :], intrinsics)[:, 0]
+    expected_directions = (c2w[:, :, :3] @ directions_cam[:, :, None])[..., 0]
+    expected_origins = c2w[:, :, 3]
+    (expected_origins.sum() + expected_directions.sum() + (1.0 / directions_cam[:, 2:3]).sum()).backward()
+
+    torch.testing.assert_close(origins, expected_origins, rtol=0, atol=1e-12)
+    torch.testing.assert_close(directions, expected_directions, rtol=0, atol=1e-12)
+    for batch_gradient, latent in zip(batch_gradients, latents, strict=True):
+        torch.testing.assert_close(batch_gradient, latent.grad, rtol=1e-10, atol=0)
+        # Camera 0 (its own physical camera: other intrinsics) is in no ray of the batch.
+        assert torch.equal(batch_gradient[0], torch.zeros_like(batch_gradient[0]))
+        assert bool((batch_gradient[1] != 0).any())

@@ -216,20 +216,26 @@ def _as_batched_unit(unit_points: Tensor, num_cameras: int, device: torch.device
             f"unit_points must have N = {num_cameras} cameras to match tangent_bounds, got {unit_points.shape[0]}"
         )
     check_range("unit_points", unit_points, low=0.0, high=1.0)
-    u = unit_points.detach().to(device=device, dtype=torch.float64)
-    return u.expand(num_cameras, -1, -1) if u.ndim == 2 else u
+    return unit_points.detach().to(device=device, dtype=torch.float64)
 
 
 def map_unit_to_frustum(
-    unit_points: Float[Tensor, "n l 3"],
+    unit_points: Float[Tensor, "l 3"] | Float[Tensor, "n l 3"],
     bounds: Float[Tensor, "n 4"],
     t_near: float,
     t_far: float,
     transform: str,
     radial: str = "volume",
 ) -> Float[Tensor, "n l 3"]:
-    """Contracted frustum points ``Q(u)`` (paper eqs. 8-9, 12), no validation (internal fast path)."""
+    """Contracted frustum points ``Q(u)`` (paper eqs. 8-9, 12), no validation (internal fast path).
+
+    With points shared by all cameras ([L, 3]) the radius does not depend on the camera and is computed once;
+    this also keeps each camera's points bit-identical whatever the batch it is computed in (vectorised and
+    scalar loops of ``pow`` round differently, and which elements take which loop depends on the batch's layout).
+    """
     radius = radius_from_unit(unit_points[..., 0], t_near, t_far, radial)
+    if unit_points.ndim == 2:
+        unit_points = unit_points.expand(bounds.shape[0], -1, -1)
     directions = directions_from_unit(unit_points[..., 1], unit_points[..., 2], bounds, transform)
     return radius.unsqueeze(-1) * directions
 

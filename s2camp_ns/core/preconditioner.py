@@ -12,7 +12,7 @@ keeps P finite and invertible for parameters that the proxy points cannot observ
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal
 
 import torch
@@ -31,6 +31,9 @@ SamplerName = Literal["frolov", "sobol", "halton", "random", "camp-random"]
 TransformName = Literal["pyramid", "spherical", "pixel"]
 SAMPLERS: tuple[str, ...] = ("frolov", "sobol", "halton", "random", "camp-random")
 TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical", "pixel")
+DEFAULT_CHUNK_SIZE = 1024
+"""Cameras per chunk of ``compute_preconditioner``: about 0.5 GB of float64 intermediates at L = 500, all 12
+parameters (docs/benchmarks/scaling.md), whatever the number of cameras."""
 
 
 @dataclass(frozen=True)
@@ -150,25 +153,37 @@ def sample_fisheye_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> F
     like the "pixel" transform (``transform`` is not used).
     """
     intrinsics = intrinsics.detach().to(dtype=torch.float64)
-    unit = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed).to(torch.float64)
-    unit = unit.to(intrinsics.device).expand(intrinsics.num_cameras, -1, -1)
+    shared = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed).to(torch.float64)
+    shared = shared.to(intrinsics.device)
+    unit = shared.expand(intrinsics.num_cameras, -1, -1)
     size = torch.stack([intrinsics.width, intrinsics.height], dim=-1)[:, None, :]
     pixels = torch.stack([unit[..., 2], unit[..., 1]], dim=-1) * size
     with torch.no_grad():
         directions = pixel_to_ray_direction(pixels, intrinsics)
-    radius = radius_from_unit(unit[..., 0], sampling.t_near, sampling.t_far, sampling.radial)
-    return uncontract_radius(radius)[..., None] * directions
+    # The radius does not depend on the camera: computed once, so a camera's points do not depend on its batch.
+    radius = radius_from_unit(shared[:, 0], sampling.t_near, sampling.t_far, sampling.radial)
+    return uncontract_radius(radius)[:, None] * directions
 
 
-def sample_proxy_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> Float[Tensor, "n l 3"]:
+def sample_proxy_points(
+    intrinsics: Intrinsics, sampling: SamplingConfig, generator: torch.Generator | None = None
+) -> Float[Tensor, "n l 3"]:
     """Euclidean camera-frame proxy points filling each camera's contracted view frustum (paper eqs. 6-14).
 
     Fisheye cameras are sampled in their image (``sample_fisheye_points``); "camp-random" samples pixels of any model.
+    ``generator`` only matters for CamP's per-camera random points: passing the same one to consecutive chunks of
+    cameras continues the random stream, so the chunks get the points of one unchunked call.
     """
     sampling.validate()
     if sampling.sampler == "camp-random":  # random pixels, unprojected: any camera model
         return camp_frustum_points(
-            intrinsics, sampling.num_points, sampling.t_near, sampling.t_far, sampling.ladder_p, seed=sampling.seed
+            intrinsics,
+            sampling.num_points,
+            sampling.t_near,
+            sampling.t_far,
+            sampling.ladder_p,
+            generator=generator,
+            seed=sampling.seed,
         )
     if intrinsics.is_fisheye:
         return sample_fisheye_points(intrinsics, sampling)
@@ -193,17 +208,72 @@ def compute_preconditioner(
     layout: ParameterLayout | None = None,
     sampling: SamplingConfig | None = None,
     damping: DampingConfig | None = None,
+    chunk_size: int | None = DEFAULT_CHUNK_SIZE,
+    share_intrinsics: bool = True,
 ) -> Preconditioner:
-    """P and P^-1 for each camera from proxy points in its frustum (paper eqs. 4, 5 and 20)."""
+    """P and P^-1 for each camera from proxy points in its frustum (paper eqs. 4, 5 and 20).
+
+    Memory is bounded by ``chunk_size`` cameras at a time (None: all at once). With the point sets shared by all
+    cameras (the lattice, Sobol, Halton, random unit points) every camera's P depends only on its own intrinsics and
+    the result is bit-identical for any chunk size (tests/test_preconditioner.py); with ``share_intrinsics``,
+    cameras with bitwise-equal intrinsics share one computation. CamP's per-camera random points ("camp-random")
+    are never shared, and their last bits depend on the chunk size (their per-point ``pow`` and undistortion round
+    differently in vectorised and scalar loops, and which points take which loop depends on the batch layout).
+    Deterministic: the same intrinsics and chunk size give the same bits on every process, with no communication.
+    """
     sampling = sampling or SamplingConfig()
     damping = damping or DampingConfig()
+    sampling.validate()
     damping.validate()
+    if chunk_size is not None:
+        check_positive_int("chunk_size", chunk_size)
     intrinsics = intrinsics.detach().to(dtype=torch.float64)
     intrinsics.validate()
-    points = sample_proxy_points(intrinsics, sampling)
-    sigma, count = gram_from_points(points, intrinsics, layout)
-    matrix, inverse = symmetric_sqrt_and_inverse(damped_gram(sigma, damping), damping.diagonal_only)
-    return Preconditioner(matrix=matrix, inverse=inverse, gram=sigma, num_valid=count)
+    if share_intrinsics and sampling.sampler != "camp-random":
+        unique, index = unique_intrinsics(intrinsics)
+        if unique.num_cameras < intrinsics.num_cameras:
+            shared = compute_preconditioner(unique, layout, sampling, damping, chunk_size, share_intrinsics=False)
+            return Preconditioner(
+                matrix=shared.matrix[index],
+                inverse=shared.inverse[index],
+                gram=shared.gram[index],
+                num_valid=shared.num_valid[index],
+            )
+    generator = torch.Generator().manual_seed(int(sampling.seed)) if sampling.sampler == "camp-random" else None
+    n = intrinsics.num_cameras
+    step = chunk_size or max(n, 1)
+    result: Preconditioner | None = None
+    for start in range(0, max(n, 1), step):
+        part = intrinsics[start : start + step]
+        points = sample_proxy_points(part, sampling, generator)
+        sigma, count = gram_from_points(points, part, layout)
+        del points
+        matrix, inverse = symmetric_sqrt_and_inverse(damped_gram(sigma, damping), damping.diagonal_only)
+        if step >= n:
+            return Preconditioner(matrix=matrix, inverse=inverse, gram=sigma, num_valid=count)
+        if result is None:  # the outputs are filled in place: no second copy of them at the end
+            result = Preconditioner(
+                matrix=matrix.new_empty((n, *matrix.shape[1:])),
+                inverse=inverse.new_empty((n, *inverse.shape[1:])),
+                gram=sigma.new_empty((n, *sigma.shape[1:])),
+                num_valid=count.new_empty((n, *count.shape[1:])),
+            )
+        stop = start + part.num_cameras
+        result.matrix[start:stop] = matrix
+        result.inverse[start:stop] = inverse
+        result.gram[start:stop] = sigma
+        result.num_valid[start:stop] = count
+    assert result is not None
+    return result
+
+
+def unique_intrinsics(intrinsics: Intrinsics) -> tuple[Intrinsics, Tensor]:
+    """The distinct cameras (bitwise-equal intrinsics) and, per camera, the index of its distinct one."""
+    names = [f.name for f in fields(intrinsics) if f.name != "model"]
+    stacked = torch.stack([getattr(intrinsics, name) for name in names], dim=-1)
+    unique, index = torch.unique(stacked, dim=0, return_inverse=True)
+    columns = dict(zip(names, unique.unbind(dim=-1), strict=True))
+    return Intrinsics(**columns, model=intrinsics.model), index
 
 
 def whitening_error(inverse: Float[Tensor, "n k k"], sigma: Float[Tensor, "n k k"]) -> Float[Tensor, " n"]:

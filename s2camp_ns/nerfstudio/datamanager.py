@@ -5,11 +5,15 @@ stock camera optimizer can then only move origins and directions rigidly. ``Pixe
 continuous pixel centre (u, v) = (x + 0.5, y + 0.5) (OpenCV/COLMAP convention) in
 ``ray_bundle.metadata[PIXEL_KEY]``; ``S2CampCameraOptimizer.apply_to_raybundle`` rebuilds each ray from it with
 the refined intrinsics, distortion and pose.
+
+With several processes each rank draws its own rays: nerfstudio seeds every process with ``machine.seed`` plus its
+rank. ``global_batch_sampling`` instead makes a step's rays independent of the number of ranks (docs/SCALING.md).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from jaxtyping import Int
@@ -17,6 +21,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.model_components.ray_generators import RayGenerator
+from nerfstudio.utils import comms
 from torch import Tensor
 
 from s2camp_ns.camera_optimizer import PIXEL_KEY
@@ -40,6 +45,15 @@ class S2CampDataManagerConfig(VanillaDataManagerConfig):
     """nerfstudio's VanillaDataManager whose training rays carry pixel coordinates for intrinsics refinement."""
 
     _target: type = field(default_factory=lambda: S2CampDataManager)
+    global_batch_sampling: bool = False
+    """Every rank draws the whole step's batch (train-num-rays-per-batch x ranks) from a generator seeded with
+    ``global_batch_seed`` and the step, and keeps its own slice: the ranks take different parts of one draw, together
+    the rays of a one-process run with the total batch, whatever the number of ranks (with nerfacto's
+    ``stratified-samples False`` the runs then agree up to rounding, tests/test_distributed.py). Costs ranks x batch
+    random draws per rank and step, and needs every training image cached (train-num-images-to-sample-from -1).
+    Off: each rank draws its own batch from its own seed (machine.seed + rank), nerfstudio's behaviour."""
+    global_batch_seed: int = 0
+    """Seed of the global batch sampling (combined with the step)."""
 
 
 class S2CampDataManager(VanillaDataManager[InputDataset]):
@@ -48,6 +62,56 @@ class S2CampDataManager(VanillaDataManager[InputDataset]):
     config: S2CampDataManagerConfig
 
     def setup_train(self):
+        if self.config.global_batch_sampling and self.config.train_num_images_to_sample_from != -1:
+            raise ValueError(
+                "train_num_images_to_sample_from must be -1 (every image cached) with global_batch_sampling, got "
+                f"{self.config.train_num_images_to_sample_from}: ranks caching different images draw different rays"
+            )
         super().setup_train()
         assert self.train_dataset is not None
         self.train_ray_generator = PixelRayGenerator(self.train_dataset.cameras.to(self.device))
+        self._ordered_source: Any = None
+        self._ordered_batch: dict | None = None
+
+    def next_train(self, step: int) -> tuple[RayBundle, dict]:
+        if not self.config.global_batch_sampling:
+            return super().next_train(step)
+        self.train_count += 1
+        image_batch = self._in_image_order(next(self.iter_train_image_dataloader))
+        sampler = self.train_pixel_sampler
+        assert sampler is not None
+        ranks, rank = comms.get_world_size(), comms.get_rank()
+        per_rank = sampler.num_rays_per_batch
+        device = torch.device(self.device)
+        sampler.set_num_rays_per_batch(per_rank * ranks)
+        try:
+            with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+                torch.manual_seed(hash((self.config.global_batch_seed, step)) & 0x7FFF_FFFF_FFFF_FFFF)
+                batch = sampler.sample(image_batch)
+        finally:
+            sampler.set_num_rays_per_batch(per_rank)
+        total = per_rank * ranks
+        part = slice(rank * per_rank, (rank + 1) * per_rank)
+        batch = {
+            key: value[part] if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == total else value
+            for key, value in batch.items()
+        }
+        return self.train_ray_generator(batch["indices"]), batch
+
+    def _in_image_order(self, image_batch: dict) -> dict:
+        """The cached images sorted by image index: nerfstudio caches them in an order drawn per rank."""
+        if image_batch is self._ordered_source and self._ordered_batch is not None:
+            return self._ordered_batch
+        image_idx = image_batch["image_idx"]
+        order = torch.argsort(image_idx.cpu())
+        count = image_idx.shape[0]
+        ordered = {}
+        for key, value in image_batch.items():
+            if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == count:
+                ordered[key] = value[order.to(value.device)]
+            elif isinstance(value, list) and len(value) == count:
+                ordered[key] = [value[int(i)] for i in order]
+            else:
+                ordered[key] = value
+        self._ordered_source, self._ordered_batch = image_batch, ordered
+        return ordered

@@ -1,6 +1,11 @@
 """Nerfacto with the S2CamP camera optimizer, offline-safe LPIPS and camera-error logging.
 
 Everything but the camera handling is nerfstudio's nerfacto (proposal sampling, field, losses, renderers).
+
+With several processes (DDP, docs/SCALING.md) every rank refreshes P at the same steps: scheduled refreshes fall on
+the same step numbers everywhere, and a refresh requested from the viewer (which runs on rank 0 only) is agreed on
+by an 8-byte all-reduce every ``refresh_request_every`` steps, so all ranks re-express their latent at one step.
+Camera errors are computed on rank 0 only (nerfstudio's writer drops the other ranks' scalars anyway).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
+from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
@@ -24,6 +30,8 @@ from s2camp_ns.camera_optimizer import (
     S2CampCameraOptimizerConfig,
 )
 from s2camp_ns.core.camera import opengl_to_opencv
+from s2camp_ns.core.validation import check_positive_int
+from s2camp_ns.nerfstudio.distributed import any_rank, world_size
 from s2camp_ns.nerfstudio.viewer_panel import CameraFrusta, FrustumSet, RefinementStatus, S2CampViewerPanel
 
 _LPIPS_WARNED = False
@@ -54,6 +62,14 @@ class S2CampModelConfig(NerfactoModelConfig):
     viewer_update_period: float = 1.0
     """Seconds between updates of the viewer's S2CamP panel and training-camera frusta (0 = every step; negative =
     no panel). Costs nothing when training without the viewer."""
+    stratified_samples: bool = True
+    """Jitter the samples along each training ray (nerfacto's stratified sampling). False places them at the bin
+    centres: no random numbers in the forward pass, so runs with the same rays agree up to rounding (with
+    the data manager's global-batch-sampling, N processes against one, tests/test_distributed.py)."""
+    refresh_request_every: int = 10
+    """With several processes, the steps at which a refresh of P requested from the viewer is agreed on (an 8-byte
+    all-reduce at every multiple of this) and applied by all ranks together. One process applies a request at the
+    next step and communicates nothing."""
 
 
 class S2CampModel(NerfactoModel):
@@ -63,6 +79,7 @@ class S2CampModel(NerfactoModel):
     camera_optimizer: CameraOptimizer
 
     def populate_modules(self):
+        check_positive_int("refresh_request_every", self.config.refresh_request_every)
         try:
             super().populate_modules()
         except (OSError, RuntimeError) as error:
@@ -72,6 +89,9 @@ class S2CampModel(NerfactoModel):
             _warn_lpips_unavailable(error)
             self.lpips = None
             self.step = 0
+        if not self.config.stratified_samples:
+            self.proposal_sampler.initial_sampler.train_stratified = False
+            self.proposal_sampler.pdf_sampler.train_stratified = False
         self._camera_errors: dict[str, float] = {}
         self._refresh_requested = False
         self._train_cameras: Cameras | None = None
@@ -136,8 +156,8 @@ class S2CampModel(NerfactoModel):
 
         def refresh_preconditioner(step: int) -> None:
             # Scheduled refreshes and those requested (the viewer's button) happen here, in the training thread.
-            requested, self._refresh_requested = self._refresh_requested, False
-            if requested or camera_optimizer.should_refresh(step):
+            # Both are decided identically on every rank: the schedule by the step number, a request by agreement.
+            if self.agreed_refresh_request(step) or camera_optimizer.should_refresh(step):
                 torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
                 camera_optimizer.refresh(step, torch_optimizer)
 
@@ -158,7 +178,7 @@ class S2CampModel(NerfactoModel):
                     where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=refresh_preconditioner
                 )
             )
-        if self.config.camera_error_every > 0 and self.reference_cameras() is not None:
+        if self.config.camera_error_every > 0 and self.reference_cameras() is not None and comms.is_main_process():
             callbacks.append(
                 TrainingCallback(
                     where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
@@ -219,6 +239,18 @@ class S2CampModel(NerfactoModel):
 
     def request_refresh(self) -> None:
         self._refresh_requested = True
+
+    def agreed_refresh_request(self, step: int) -> bool:
+        """Whether every rank applies a requested refresh of P after training step ``step`` (same answer on all).
+
+        One process: a pending request, at once. Several: at multiples of ``refresh_request_every`` only, all ranks
+        take part in one all-reduce (MAX) of their pending flags, so a request made on rank 0 alone is applied by
+        every rank at the same step and no rank's P and latent get out of step with the others'.
+        """
+        if world_size() > 1 and step % self.config.refresh_request_every != 0:
+            return False
+        requested, self._refresh_requested = self._refresh_requested, False
+        return any_rank(requested, self.device)
 
     # ---------------------------------------------------------------------------------------------- camera errors
     def reference_cameras(self) -> Cameras | None:

@@ -14,7 +14,8 @@ The panel shows, updated at most every ``update_period`` seconds of training:
   (P^-T Sigma P^-1), mean and worst over the cameras (Sigma is not saved in checkpoints: after a resume it is that of
   the initial cameras until the next refresh);
 - the steps since the last refresh of P, and a button that asks the model to refresh P (the model applies it in the
-  training thread at its next step; the button's own callback only passes the request on).
+  training thread at its next step, or with several processes at the next step all ranks agree on; the button's own
+  callback only passes the request on).
 
 Frusta (viser units are nerfstudio's times ``VISER_NERFSTUDIO_SCALE_RATIO``): the refined training cameras (amber),
 and, when the reference cameras differ from the initial ones (CamP perturbation), the initial (red) and the
@@ -104,7 +105,8 @@ class CameraRefinementSource(Protocol):
         ...
 
     def request_refresh(self) -> None:
-        """Refresh P at the next training step (thread-safe: called from the viewer's websocket thread)."""
+        """Refresh P at the next training step, on every rank (thread-safe: called from the viewer's websocket
+        thread, which exists on rank 0 only)."""
         ...
 
 

@@ -1,0 +1,155 @@
+"""Multi-process training: the one collective S2CamP adds, and a CPU (gloo) launcher for tests.
+
+On CUDA, ``ns-train s2camp --machine.num-devices N`` uses nerfstudio's own launcher unchanged (one process per GPU,
+NCCL). nerfstudio 1.1.5 cannot run several processes on the CPU: its ``_distributed_worker`` asserts CUDA, and
+``VanillaPipeline`` passes ``device_ids=[local_rank]`` to DDP and to ``dist.barrier``, which a CPU module and the
+gloo backend reject. The smallest path around it, used by the tests:
+
+- ``S2CampPipeline`` wraps the model in DDP itself (``device_ids`` only on CUDA, see pipeline.py);
+- this module's ``launch_cpu`` replaces the launcher: it spawns the processes like nerfstudio's ``launch``, starts a
+  gloo process group instead of asserting CUDA, and runs nerfstudio's own ``train_loop`` (seed + global rank, the
+  real ``Trainer``). From the command line::
+
+      python -m s2camp_ns.nerfstudio.distributed s2camp --data scene --machine.num-devices 2
+
+  takes every ``ns-train`` option (the device type is forced to the CPU).
+"""
+
+from __future__ import annotations
+
+import traceback
+from collections.abc import Callable
+from datetime import timedelta
+from typing import Any
+
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.utils import comms, profiler
+from nerfstudio.utils.rich_utils import CONSOLE
+
+DEFAULT_TIMEOUT = timedelta(minutes=30)
+
+
+def world_size() -> int:
+    """Number of training processes (1 without a process group)."""
+    return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
+
+
+def any_rank(flag: bool, device: torch.device | str) -> bool:
+    """True on every rank if ``flag`` is True on any rank: one all-reduce (MAX) of an 8-byte integer.
+
+    Without a process group (single process) it returns ``flag`` and communicates nothing. ``device`` must be the
+    rank's own device under NCCL (CUDA tensors only); gloo takes CPU tensors.
+    """
+    if world_size() == 1:
+        return flag
+    value = torch.tensor([int(flag)], dtype=torch.int64, device=device)
+    dist.all_reduce(value, op=dist.ReduceOp.MAX)
+    return bool(value.item())
+
+
+def _cpu_worker(
+    local_rank: int,
+    main_func: Callable,
+    world_size: int,
+    num_devices_per_machine: int,
+    machine_rank: int,
+    dist_url: str,
+    config: TrainerConfig,
+    timeout: timedelta,
+) -> Any:
+    """nerfstudio's ``_distributed_worker`` for the CPU: a gloo process group, no CUDA assertion."""
+    global_rank = machine_rank * num_devices_per_machine + local_rank
+    dist.init_process_group(
+        backend="gloo", init_method=dist_url, world_size=world_size, rank=global_rank, timeout=timeout
+    )
+    assert comms.LOCAL_PROCESS_GROUP is None
+    for machine in range(world_size // num_devices_per_machine):
+        ranks = list(range(machine * num_devices_per_machine, (machine + 1) * num_devices_per_machine))
+        group = dist.new_group(ranks)
+        if machine == machine_rank:
+            comms.LOCAL_PROCESS_GROUP = group
+    try:
+        output = main_func(local_rank, world_size, config, global_rank)
+        comms.synchronize()
+    finally:
+        dist.destroy_process_group()
+    return output
+
+
+def launch_cpu(
+    main_func: Callable,
+    num_devices_per_machine: int,
+    num_machines: int = 1,
+    machine_rank: int = 0,
+    dist_url: str = "auto",
+    config: TrainerConfig | None = None,
+    timeout: timedelta = DEFAULT_TIMEOUT,
+) -> None:
+    """Run ``main_func(local_rank, world_size, config, global_rank)`` in one gloo process per "device" on the CPU.
+
+    Same arguments and behaviour as nerfstudio's ``scripts.train.launch``; one process runs in this process.
+    """
+    if config is None:
+        raise ValueError("config must be a TrainerConfig, got None")
+    if config.machine.device_type != "cpu":
+        raise ValueError(
+            f"machine.device_type must be 'cpu' for launch_cpu, got {config.machine.device_type!r} "
+            "(on CUDA use ns-train, nerfstudio's own launcher)"
+        )
+    world_size = num_machines * num_devices_per_machine
+    if world_size < 1:
+        raise ValueError(f"num_machines * num_devices_per_machine must be >= 1, got {world_size}")
+    try:
+        if world_size == 1:
+            main_func(local_rank=0, world_size=1, config=config)
+            return
+        if dist_url == "auto":
+            if num_machines != 1:
+                raise ValueError(f"dist_url 'auto' works on one machine only, got num_machines = {num_machines}")
+            from nerfstudio.scripts.train import _find_free_port
+
+            dist_url = f"tcp://127.0.0.1:{_find_free_port()}"
+        mp.spawn(
+            _cpu_worker,
+            nprocs=num_devices_per_machine,
+            join=True,
+            args=(main_func, world_size, num_devices_per_machine, machine_rank, dist_url, config, timeout),
+        )
+    except KeyboardInterrupt:
+        CONSOLE.print(traceback.format_exc())
+    finally:
+        profiler.flush_profiler(config.logging)
+
+
+def main(config: TrainerConfig) -> None:
+    """``ns-train`` on the CPU with ``--machine.num-devices`` gloo processes (nerfstudio's ``train_loop`` in each)."""
+    from nerfstudio.scripts.train import train_loop
+
+    config.machine.device_type = "cpu"
+    if config.data:
+        config.pipeline.datamanager.data = config.data
+    config.set_timestamp()
+    config.print_to_terminal()
+    config.save_config()
+    launch_cpu(
+        train_loop,
+        num_devices_per_machine=config.machine.num_devices,
+        num_machines=config.machine.num_machines,
+        machine_rank=config.machine.machine_rank,
+        dist_url=config.machine.dist_url,
+        config=config,
+    )
+
+
+def entrypoint() -> None:
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    main(tyro.cli(AnnotatedBaseConfigUnion, description=__doc__))
+
+
+if __name__ == "__main__":
+    entrypoint()
