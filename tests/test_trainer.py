@@ -182,3 +182,22 @@ def test_resume_restores_weights_adam_step_and_random_state(tmp_path: Path):
     draws = (torch.rand(4), np.random.rand(4), random.random())  # noqa: NPY002
     assert torch.equal(draws[0], uninterrupted_draws[0])
     assert np.array_equal(draws[1], uninterrupted_draws[1]) and draws[2] == uninterrupted_draws[2]
+
+
+def test_several_processes_keep_their_own_random_streams_on_resume(tmp_path: Path):
+    """A checkpoint holds rank 0's random state only: with several processes each rank keeps its own seeding
+    (nerfstudio's seed + rank), so the ranks still draw different rays after a resume."""
+    torch.manual_seed(0)
+    trainer = make_trainer(tmp_path)
+    train_step(trainer)
+    trainer.save_checkpoint(5)
+    rank0_draws = torch.rand(4)
+
+    torch.manual_seed(1001)  # rank 1 of a new two-process run: seed + rank
+    resumed = make_trainer(tmp_path / "rank1")
+    resumed.world_size = 2
+    resumed.config.load_dir = trainer.checkpoint_dir
+    expected = torch.random.get_rng_state()
+    resumed._load_checkpoint()
+    assert torch.equal(torch.random.get_rng_state(), expected)
+    assert not torch.equal(torch.rand(4), rank0_draws)

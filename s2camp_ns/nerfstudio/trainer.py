@@ -184,7 +184,10 @@ class S2CampTrainer(Trainer):
         if "schedulers" in state and config.load_scheduler:
             self.optimizers.load_schedulers(state["schedulers"])
         self.grad_scaler.load_state_dict(state["scalers"])
-        if "random_state" in state:
+        # One process: continue the saved random streams (bit-identical resume). Several processes: the checkpoint
+        # holds rank 0's streams only; restoring them on every rank would make all ranks draw the same rays, so each
+        # keeps nerfstudio's own per-rank seeding (seed + rank) and the resumed run redraws its rays.
+        if "random_state" in state and self.world_size == 1:
             set_random_state(state["random_state"])
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
 
