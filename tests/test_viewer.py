@@ -525,6 +525,12 @@ def steps_since_refresh(values: dict[str, str]) -> int:
     return int(match.group(1)) if match else -1
 
 
+def last_refresh_step(values: dict[str, str]) -> int:
+    """Training step of the last refresh of P that the panel shows (-1 if it shows none)."""
+    since = steps_since_refresh(values)
+    return panel_step(values) - since if since >= 0 and panel_step(values) >= 0 else -1
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(1200)  # includes installing chromium on a fresh machine; the test itself takes 1-2 minutes
 def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_path: Path):
@@ -566,10 +572,14 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
             )
             assert steps_since_refresh(later) > steps_since_refresh(first) >= 0
 
-            # "Refresh P now": the refresh happens at the next training step and the counter restarts.
-            before = steps_since_refresh(later)
+            # "Refresh P now": the refresh happens at a training step after the click. Compared as the step of the
+            # last refresh, not as the "steps ago" count: on a fast machine more steps pass between two polls of the
+            # panel than passed between the initial refresh and the click (seen in CI: refresh at step 10, never
+            # "fewer steps ago" than the 8 read before the click).
+            clicked_after = panel_step(later)
+            assert last_refresh_step(later) < clicked_after
             assert click_button(devtools, "Refresh P now")
-            wait_for(devtools, lambda v: 0 <= steps_since_refresh(v) < before, 150, "P to be refreshed")
+            wait_for(devtools, lambda v: last_refresh_step(v) >= clicked_after, 150, "P to be refreshed")
 
             # For the screenshot, pause training (no more low-resolution step renders) and give the view a moment to
             # show a full render; neither is part of what is tested.
