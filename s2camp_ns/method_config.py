@@ -28,7 +28,7 @@ from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 from s2camp_ns.nerfstudio.model import S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
-from s2camp_ns.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig
+from s2camp_ns.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig, RunLengthScheduleConfig
 from s2camp_ns.nerfstudio.trainer import S2CampTrainerConfig
 
 DEFAULT_DEVICE_TYPE = "cuda" if torch.cuda.is_available() else "cpu"
@@ -38,13 +38,13 @@ DEFAULT_DEVICE_TYPE = "cuda" if torch.cuda.is_available() else "cpu"
 def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfig) -> S2CampTrainerConfig:
     """Nerfacto's trainer settings with the S2CamP pipeline; only ``camera_optimizer`` differs between methods."""
     if isinstance(camera_optimizer, S2CampCameraOptimizerConfig):
-        # Whitened units: a unit step moves the proxy projections by about max(W, H) pixels RMS, so CamP's
-        # camera schedule applies as is (1e-4 -> 1e-5 over 25k steps after a 2.5k-step warm-up).
+        # Whitened units: a unit step of the latent moves the proxy projections by max(W, H) pixels RMS (Gram matrix
+        # normalized by the image size, docs/EQUATIONS.md eq. 5), so the rates are fractions of the image size and
+        # hold at any resolution. CamP's camera schedule (1e-4 -> 1e-5, warm-up 2.5k and decay to 25k of 30k
+        # steps), stated as fractions of the run so that any --max-num-iterations gets it compressed.
         camera_schedule = {
             "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
-            "scheduler": FloatExponentialDecaySchedulerConfig(
-                lr_pre_warmup=1e-8, warmup_steps=2500, lr_final=1e-5, max_steps=25000
-            ),
+            "scheduler": RunLengthScheduleConfig(lr_pre_warmup=1e-8, lr_final=1e-5),
         }
     else:
         # nerfacto's own camera schedule for its stock optimizer (raw se(3) units).

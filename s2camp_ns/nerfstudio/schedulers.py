@@ -1,16 +1,31 @@
-"""nerfstudio's exponential-decay scheduler with plain-float learning rates, so checkpoints load under torch >= 2.6.
+"""Learning-rate schedules: nerfstudio's exponential decay with plain-float rates, and the camera schedule that
+follows the run's length.
 
 nerfstudio 1.1.5 computes the learning-rate multiplier with numpy, so the optimizer and scheduler state hold
 numpy.float64 values; torch.load's default weights_only=True (torch >= 2.6) then refuses the checkpoint, which
-breaks resuming (--load-dir) and ns-eval / ns-viewer / ns-render. The schedule itself is unchanged.
+breaks resuming (--load-dir) and ns-eval / ns-viewer / ns-render. ``FloatExponentialDecayScheduler`` is nerfstudio's
+schedule with the multipliers cast to float.
+
+``RunLengthScheduleConfig`` states the warm-up and the decay as fractions of the run instead of step counts: CamP's
+camera schedule (warm-up over the first 2.5k of 30k steps, decay to a tenth by 25k) then applies to any
+``--max-num-iterations``, so a 600-step run warms up for 50 steps and decays by step 500, as a compressed long run,
+instead of never leaving the warm-up (a fixed 2.5k-step warm-up would keep the cameras still for the whole run).
+``S2CampTrainer`` fills in the run length (``run_steps``) before the optimizers are built.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from nerfstudio.engine.schedulers import ExponentialDecayScheduler, ExponentialDecaySchedulerConfig
+from nerfstudio.engine.schedulers import (
+    ExponentialDecayScheduler,
+    ExponentialDecaySchedulerConfig,
+    Scheduler,
+    SchedulerConfig,
+)
 from torch.optim import Optimizer, lr_scheduler
+
+from s2camp_ns.core.validation import check_positive_int, check_range
 
 
 @dataclass
@@ -32,3 +47,71 @@ class FloatExponentialDecayScheduler(ExponentialDecayScheduler):
             group["lr"] = float(group["lr"])
         scheduler._last_lr = [float(lr) for lr in scheduler.get_last_lr()]
         return scheduler
+
+
+@dataclass
+class RunLengthScheduleConfig(SchedulerConfig):
+    """Cosine warm-up from ``lr_pre_warmup`` to the optimizer's lr over the first ``warmup_fraction`` of the run, then
+    exponential decay to ``lr_final`` at ``decay_end_fraction`` of it, constant after (module docstring).
+
+    ``warmup_steps`` / ``max_steps`` (nerfstudio's names and meaning) replace the fractions by absolute step counts.
+    """
+
+    _target: type = field(default_factory=lambda: RunLengthSchedule)
+    lr_pre_warmup: float = 1e-8
+    """Learning rate at step 0 (the warm-up starts here)."""
+    lr_final: float = 1e-5
+    """Learning rate at the end of the decay."""
+    warmup_fraction: float = 2500 / 30000
+    """Fraction of the run spent warming up (CamP: 2.5k of nerfacto's 30k steps)."""
+    decay_end_fraction: float = 25000 / 30000
+    """Fraction of the run at which the decay reaches ``lr_final`` (CamP: 25k of 30k steps)."""
+    warmup_steps: int | None = None
+    """Warm-up steps; None: ``warmup_fraction`` of the run."""
+    max_steps: int | None = None
+    """Step at which the decay ends; None: ``decay_end_fraction`` of the run."""
+    run_steps: int | None = None
+    """Steps of the run; None (the default): ``--max-num-iterations``, filled in by ``S2CampTrainer``."""
+
+    def step_counts(self) -> tuple[int, int]:
+        """(warm-up steps, step at which the decay ends); ValueError naming the parameter if one is out of range."""
+        check_range("warmup_fraction", self.warmup_fraction, low=0.0, high=1.0, high_inclusive=False)
+        check_range("decay_end_fraction", self.decay_end_fraction, low=0.0, high=1.0, low_inclusive=False)
+        check_range("lr_pre_warmup", self.lr_pre_warmup, low=0.0, low_inclusive=False)
+        check_range("lr_final", self.lr_final, low=0.0, low_inclusive=False)
+        if self.warmup_steps is None or self.max_steps is None:
+            if self.run_steps is None:
+                raise ValueError(
+                    "run_steps is None: the run length was not filled in (S2CampTrainer does it from "
+                    "--max-num-iterations); set run_steps, or warmup_steps and max_steps, to positive integers"
+                )
+            check_positive_int("run_steps", self.run_steps)
+        if self.warmup_steps is None:
+            assert self.run_steps is not None
+            warmup = round(self.warmup_fraction * self.run_steps)
+        else:
+            check_range("warmup_steps", self.warmup_steps, low=0)
+            warmup = self.warmup_steps
+        if self.max_steps is None:
+            assert self.run_steps is not None
+            end = max(round(self.decay_end_fraction * self.run_steps), warmup + 1)
+        else:
+            check_range("max_steps", self.max_steps, low=warmup, low_inclusive=False)
+            end = self.max_steps
+        return warmup, end
+
+
+class RunLengthSchedule(Scheduler):
+    """The schedule of ``RunLengthScheduleConfig``: ``FloatExponentialDecayScheduler`` with step counts from the run."""
+
+    config: RunLengthScheduleConfig
+
+    def get_scheduler(self, optimizer: Optimizer, lr_init: float) -> lr_scheduler.LRScheduler:
+        warmup_steps, max_steps = self.config.step_counts()
+        steps = FloatExponentialDecaySchedulerConfig(
+            lr_pre_warmup=self.config.lr_pre_warmup,
+            lr_final=self.config.lr_final,
+            warmup_steps=warmup_steps,
+            max_steps=max_steps,
+        )
+        return FloatExponentialDecayScheduler(steps).get_scheduler(optimizer, lr_init)

@@ -23,15 +23,18 @@ from __future__ import annotations
 
 import os
 import random
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
+
+from s2camp_ns.nerfstudio.schedulers import RunLengthScheduleConfig
 
 PARTIAL_SUFFIX = ".partial"
 """Suffix of the temporary-checkpoint folder (beside the checkpoint folder) and of the files written in it."""
@@ -133,10 +136,28 @@ class S2CampTrainerConfig(TrainerConfig):
     _target: type = field(default_factory=lambda: S2CampTrainer)
 
 
+def with_run_length(optimizers: dict[str, dict[str, Any]], run_steps: int) -> dict[str, dict[str, Any]]:
+    """A copy of nerfstudio's optimizer settings in which every ``RunLengthScheduleConfig`` without a run length gets
+    ``run_steps``; the others are returned as they are."""
+    resolved = {}
+    for name, settings in optimizers.items():
+        scheduler = settings.get("scheduler")
+        if isinstance(scheduler, RunLengthScheduleConfig) and scheduler.run_steps is None:
+            settings = {**settings, "scheduler": replace(scheduler, run_steps=run_steps)}
+        resolved[name] = settings
+    return resolved
+
+
 class S2CampTrainer(Trainer):
-    """nerfstudio's Trainer; checkpoints are written atomically and hold the random state (module docstring)."""
+    """nerfstudio's Trainer; checkpoints are written atomically and hold the random state, and run-length schedules
+    learn the run's length (module docstring)."""
 
     config: S2CampTrainerConfig
+
+    def setup_optimizers(self) -> Optimizers:
+        """nerfstudio's optimizers, with ``--max-num-iterations`` as the length of every run-length schedule."""
+        optimizers = with_run_length(self.config.optimizers, self.config.max_num_iterations)
+        return Optimizers(optimizers, self.pipeline.get_param_groups())
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
@@ -192,4 +213,11 @@ class S2CampTrainer(Trainer):
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
 
 
-__all__ = ["S2CampTrainer", "S2CampTrainerConfig", "atomic_torch_save", "latest_checkpoint", "partial_dir"]
+__all__ = [
+    "S2CampTrainer",
+    "S2CampTrainerConfig",
+    "atomic_torch_save",
+    "latest_checkpoint",
+    "partial_dir",
+    "with_run_length",
+]

@@ -1,0 +1,108 @@
+"""The camera learning-rate schedule that follows the run's length (s2camp_ns/nerfstudio/schedulers.py)."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from s2camp_ns.method_config import s2camp_method, s2camp_so3xr3_method
+from s2camp_ns.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig, RunLengthScheduleConfig
+from s2camp_ns.nerfstudio.trainer import S2CampTrainer, with_run_length
+
+
+def learning_rates(scheduler_config, steps: int, lr: float = 1e-4) -> list[float]:
+    """Learning rate used at each step 0..steps-1."""
+    parameter = torch.nn.Parameter(torch.zeros(1))
+    optimizer = torch.optim.Adam([parameter], lr=lr)
+    scheduler = scheduler_config.setup().get_scheduler(optimizer, lr)
+    rates = []
+    for _ in range(steps):
+        rates.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    return rates
+
+
+def test_a_600_step_run_gets_the_schedule_compressed():
+    rates = learning_rates(RunLengthScheduleConfig(lr_pre_warmup=1e-8, lr_final=1e-5, run_steps=600), 601)
+    # 2500/30000 of 600 steps = 50 warm-up steps, decay to the end at 25000/30000 of 600 = 500.
+    assert rates[0] == pytest.approx(1e-8, rel=1e-9)
+    assert rates[25] == pytest.approx(1e-8 + (1e-4 - 1e-8) * math.sin(math.pi / 4), rel=1e-9)  # cosine ramp half way
+    assert rates[50] == pytest.approx(1e-4, rel=1e-12)
+    assert rates[275] == pytest.approx(math.sqrt(1e-4 * 1e-5), rel=1e-9)  # half way through the decay, log-linear
+    assert rates[500] == pytest.approx(1e-5, rel=1e-12)
+    assert rates[600] == pytest.approx(1e-5, rel=1e-12)
+    assert all(isinstance(rate, float) for rate in rates)  # plain floats: checkpoints load with weights_only
+
+
+def test_the_default_30k_run_keeps_camps_step_counts():
+    compressed = learning_rates(RunLengthScheduleConfig(run_steps=30000), 30000)
+    fixed = learning_rates(
+        FloatExponentialDecaySchedulerConfig(lr_pre_warmup=1e-8, warmup_steps=2500, lr_final=1e-5, max_steps=25000),
+        30000,
+    )
+    assert compressed == fixed
+
+
+def test_absolute_step_counts_override_the_fractions():
+    rates = learning_rates(RunLengthScheduleConfig(warmup_steps=0, max_steps=10, lr_final=1e-6), 12, lr=1e-3)
+    assert rates[0] == pytest.approx(1e-3, rel=1e-12)
+    assert rates[5] == pytest.approx(math.sqrt(1e-3 * 1e-6), rel=1e-9)
+    assert rates[10] == rates[11] == pytest.approx(1e-6, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("fields", "named"),
+    [
+        ({}, "run_steps"),
+        ({"run_steps": 0}, "run_steps"),
+        ({"run_steps": 100, "warmup_fraction": 1.0}, "warmup_fraction"),
+        ({"run_steps": 100, "decay_end_fraction": 0.0}, "decay_end_fraction"),
+        ({"run_steps": 100, "lr_final": -1e-5}, "lr_final"),
+        ({"warmup_steps": 10, "max_steps": 10}, "max_steps"),
+    ],
+)
+def test_bad_settings_name_the_parameter(fields, named):
+    with pytest.raises(ValueError, match=named):
+        RunLengthScheduleConfig(**fields).step_counts()
+
+
+def test_with_run_length_fills_only_missing_run_lengths():
+    given = RunLengthScheduleConfig(run_steps=77)
+    optimizers = {
+        "camera_opt": {"optimizer": None, "scheduler": RunLengthScheduleConfig()},
+        "given": {"optimizer": None, "scheduler": given},
+        "fields": {"optimizer": None, "scheduler": FloatExponentialDecaySchedulerConfig(max_steps=9)},
+    }
+    resolved = with_run_length(optimizers, 600)
+    assert resolved["camera_opt"]["scheduler"].run_steps == 600
+    assert resolved["given"]["scheduler"] is given
+    assert resolved["fields"]["scheduler"].max_steps == 9
+    assert optimizers["camera_opt"]["scheduler"].run_steps is None  # the config itself is not modified
+
+
+def test_the_trainer_gives_s2camp_a_schedule_over_max_num_iterations():
+    config = s2camp_method.config
+    trainer = S2CampTrainer.__new__(S2CampTrainer)
+    trainer.config = SimpleNamespace(optimizers=config.optimizers, max_num_iterations=1200)
+    groups = {name: [torch.nn.Parameter(torch.zeros(2))] for name in ("proposal_networks", "fields", "camera_opt")}
+    trainer.pipeline = SimpleNamespace(get_param_groups=lambda: groups)
+    optimizers = trainer.setup_optimizers()
+    camera, scheduler = optimizers.optimizers["camera_opt"], optimizers.schedulers["camera_opt"]
+    rates = []
+    for _ in range(1001):
+        rates.append(camera.param_groups[0]["lr"])
+        camera.step()
+        scheduler.step()
+    assert rates[100] == pytest.approx(1e-4, rel=1e-12)  # warm-up over 100 of 1200 steps
+    assert rates[99] < 1e-4
+    assert rates[1000] == pytest.approx(1e-5, rel=1e-12)  # decay ends at step 1000 of 1200
+
+
+def test_nerfstudios_stock_optimizer_keeps_its_own_schedule():
+    scheduler = s2camp_so3xr3_method.config.optimizers["camera_opt"]["scheduler"]
+    assert isinstance(scheduler, FloatExponentialDecaySchedulerConfig)
+    assert (scheduler.max_steps, scheduler.lr_final) == (5000, 1e-4)
