@@ -23,10 +23,14 @@ P is refreshed every ``refresh_every`` steps from the current refined intrinsics
 latent so the camera does not move (phi_hat_new = P_new P_old^-1 phi_hat_old) and transforms Adam's moments
 (see ``refresh``).
 
-Checkpoints hold phi_hat, P, P^-1, the refresh schedule and the base intrinsics P was computed for. Resuming on the
-same cameras continues bit-identically; loading onto other base cameras (a warm start resumed with perturbed
-cameras) recomputes P and re-expresses the latent and Adam's moments before the next step instead of using a
-stale P.
+The proxy points' radial range [t_near, t_far] is chosen once per physical camera from the scene's sparse points
+(``core.proxy_range.proxy_ranges``, given to ``set_train_cameras`` by the pipeline), unless the sampling config sets
+it; every refresh uses that stored range.
+
+Checkpoints hold phi_hat, P, P^-1, the refresh schedule and the base intrinsics and proxy range P was computed for.
+Resuming on the same cameras and points continues bit-identically; loading onto other base cameras (a warm start
+resumed with perturbed cameras) or another range recomputes P and re-expresses the latent and Adam's moments before
+the next step instead of using a stale P.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from jaxtyping import Float, Int
 from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 
 from s2camp_ns.core.camera import (
@@ -59,6 +64,7 @@ from s2camp_ns.core.preconditioner import (
     compute_preconditioner,
     reexpress_latent,
 )
+from s2camp_ns.core.proxy_range import ProxyRanges, proxy_ranges
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS, compute_shared_preconditioner, reexpress_shared_latents
 from s2camp_ns.core.validation import check_range
 
@@ -91,7 +97,8 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     "no preconditioning" ablation."""
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     """Where the proxy points go (paper sec. 4): point set, frustum transform, radial measure and contracted range
-    (``s2camp_ns.core.preconditioner.SamplingConfig``; e.g. ``--pipeline.model.camera-optimizer.sampling.t-far``)."""
+    (``s2camp_ns.core.preconditioner.SamplingConfig``). The range is chosen per physical camera from the scene's
+    points unless set, e.g. ``--pipeline.model.camera-optimizer.sampling.t-far 1.8``."""
     damping: DampingConfig = field(default_factory=DampingConfig)
     """Diagonal damping added to Sigma before its square root (``s2camp_ns.core.preconditioner.DampingConfig``)."""
     intrinsics: Literal["per-camera", "per-image"] = "per-camera"
@@ -279,6 +286,13 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.register_buffer("precond_base_intrinsics", torch.zeros_like(self.base_intrinsics))
         # Undamped Gram Sigma of the last refresh (zero until one computes it; the viewer panel's condition numbers).
         self.register_buffer("gram", torch.zeros_like(eye), persistent=False)
+        # Contracted proxy range [t_near, t_far] per image (equal for the images of a physical camera): this run's,
+        # chosen from the scene at ``set_train_cameras`` (not saved, like the base cameras), and the one P was
+        # computed with (saved with P, so a checkpoint loaded with another range is recomputed like other cameras).
+        no_range = torch.zeros(num_cameras, 2, dtype=torch.float64, device=device)
+        self.register_buffer("proxy_range", no_range.clone(), persistent=False)
+        self.register_buffer("precond_proxy_range", no_range.clone())
+        self.proxy_ranges: ProxyRanges | None = None
         # Physical camera of each image (0..C-1); one camera per image until ``set_camera_groups`` says otherwise.
         self.register_buffer("camera_of_image", torch.arange(num_cameras, device=device), persistent=False)
         self.groups_known = False
@@ -311,11 +325,15 @@ class S2CampCameraOptimizer(CameraOptimizer):
             if existing is None or existing.shape != (len(order), m):
                 self.whitened_intrinsics = nn.Parameter(torch.zeros(len(order), m, device=self.precond.device))
 
-    def set_train_cameras(self, cameras: Cameras) -> None:
-        """Store the dataparser's training cameras and compute the initial P (called by the pipeline).
+    def set_train_cameras(self, cameras: Cameras, points: Float[Tensor, "m 3"] | None = None) -> None:
+        """Store the dataparser's training cameras, choose the proxy range from the scene's ``points`` and compute the
+        initial P (called by the pipeline).
 
-        A checkpoint loaded afterwards overwrites phi_hat, P and P^-1 with the saved ones; if its P was computed for
-        other base cameras, it is recomputed before the next training step (see ``_check_base_cameras``).
+        ``points``: the scene's sparse points in the cameras' (normalized) world frame, the dataparser's
+        ``metadata["points3D_xyz"]``; they set each physical camera's contracted range (``choose_proxy_range``).
+        None: the fixed range. A checkpoint loaded afterwards overwrites phi_hat, P and P^-1 with the saved ones; if
+        its P was computed for other base cameras or another range, it is recomputed before the next training step
+        (see ``_check_base_cameras``).
         """
         if cameras.shape[0] != self.num_cameras:
             raise ValueError(f"cameras must hold {self.num_cameras} training cameras, got {cameras.shape[0]}")
@@ -328,11 +346,51 @@ class S2CampCameraOptimizer(CameraOptimizer):
         if self.shared and not self.groups_known:
             self.set_camera_groups(group_identical_intrinsics(cameras))
         self.base_intrinsics = self._shared_base(base) if self.shared else base
+        self.proxy_range = self.choose_proxy_range(cameras, points).to(device)
         self.has_cameras = True
         if int(self.last_refresh_step) < 0:
             self.refresh(step=0)
         else:  # a checkpoint was loaded before the cameras were known
             self._check_base_cameras()
+
+    def choose_proxy_range(self, cameras: Cameras, points: Tensor | None) -> Float[Tensor, "n 2"]:
+        """Contracted [t_near, t_far] per training image: chosen per physical camera from the points it sees
+        (``core.proxy_range.proxy_ranges``, its images pooled) where the sampling config leaves an end unset, the
+        config's range otherwise. Physical cameras: ``camera_of_image`` when known, else identical intrinsics."""
+        sampling = self.config.sampling
+        n = self.num_cameras
+        if not sampling.auto:
+            return torch.tensor(sampling.fixed_range(), dtype=torch.float64).expand(n, 2).clone()
+        groups = self.camera_of_image if self.groups_known or self.shared else group_identical_intrinsics(cameras)
+        groups = groups.cpu()
+        c2w = opengl_to_opencv(cameras.camera_to_worlds.detach().to(torch.float64).cpu())
+        points = None if points is None else torch.as_tensor(points).detach().to(torch.float64).cpu()
+        ranges = proxy_ranges(
+            points, c2w, intrinsics_from_cameras(cameras), groups, sampling.auto_range, sampling.t_near, sampling.t_far
+        )
+        self.proxy_ranges = ranges
+        self._log_proxy_ranges(ranges, 0 if points is None else points.shape[0])
+        return ranges.stacked()[groups]
+
+    def _log_proxy_ranges(self, ranges: ProxyRanges, num_points: int) -> None:
+        sampling = self.config.sampling
+        fixed = sampling.fixed_range()
+        count = ranges.t_near.shape[0]
+        fell_back = int(ranges.fallback.sum())
+        chosen = "t_near " + _span(ranges.t_near) + ", t_far " + _span(ranges.t_far)
+        if num_points == 0:
+            CONSOLE.print(
+                "S2CamP proxy range: the scene has no points (dataparser metadata 'points3D_xyz'), so every camera "
+                f"uses the fixed contracted range ({fixed[0]:g}, {fixed[1]:g}) (sampling.t-near / t-far set it)"
+            )
+            return
+        message = f"S2CamP proxy range from {num_points} scene points, {count} physical cameras: {chosen} (contracted)"
+        if fell_back:
+            message += (
+                f"; {fell_back} camera(s) see fewer than {sampling.auto_range.min_points} points and use the fixed "
+                f"range ({fixed[0]:g}, {fixed[1]:g})"
+            )
+        CONSOLE.print(message)
 
     # ---------------------------------------------------------------------------------------------- checkpoints
     def _load_from_state_dict(
@@ -347,6 +405,10 @@ class S2CampCameraOptimizer(CameraOptimizer):
         if fingerprint not in state_dict:  # written before P's cameras were recorded: treat them as unknown
             missing_keys.remove(fingerprint)
             self.precond_base_intrinsics.fill_(float("nan"))
+        fingerprint = prefix + "precond_proxy_range"
+        if fingerprint not in state_dict:  # written before P's range was recorded: unknown
+            missing_keys.remove(fingerprint)
+            self.precond_proxy_range.fill_(float("nan"))
         if self.has_cameras:
             self._check_base_cameras()
 
@@ -361,18 +423,27 @@ class S2CampCameraOptimizer(CameraOptimizer):
         Adam's state after the pipeline, so this cannot happen at load time). P depends on the intrinsics only.
         """
         self._stale_preconditioner = None
-        if torch.equal(self.precond_base_intrinsics, self.base_intrinsics):
+        same_intrinsics = torch.equal(self.precond_base_intrinsics, self.base_intrinsics)
+        same_range = torch.equal(self.precond_proxy_range, self.proxy_range)
+        if same_intrinsics and same_range:
             return
         if not (self.config.precondition and self.enabled):  # P = I does not depend on the cameras
             self.precond_base_intrinsics.copy_(self.base_intrinsics)
+            self.precond_proxy_range.copy_(self.proxy_range)
             return
-        if bool(torch.isfinite(self.precond_base_intrinsics).all()):
+        if not bool(torch.isfinite(self.precond_base_intrinsics).all()):
+            self._stale_preconditioner = "the intrinsics its P was computed for are not recorded (an older checkpoint)"
+        elif not same_intrinsics:
             self._stale_preconditioner = (
                 f"the training cameras' intrinsics differ from those its P was computed for (largest change "
                 f"{self._largest_intrinsics_change()})"
             )
+        elif not bool(torch.isfinite(self.precond_proxy_range).all()):
+            self._stale_preconditioner = "the proxy range its P was computed for is not recorded (an older checkpoint)"
         else:
-            self._stale_preconditioner = "the intrinsics its P was computed for are not recorded (an older checkpoint)"
+            self._stale_preconditioner = (
+                f"the proxy range differs from the one its P was computed for ({self._largest_range_change()})"
+            )
         warnings.warn(
             f"loaded camera-optimizer state: {self._stale_preconditioner}; P is recomputed for these cameras before "
             "the next training step, the latent and Adam's moments re-expressed (the learned camera deltas are kept)",
@@ -387,6 +458,15 @@ class S2CampCameraOptimizer(CameraOptimizer):
         return (
             f"{names[column]} of camera {camera}: {float(self.precond_base_intrinsics[camera, column]):g} -> "
             f"{float(self.base_intrinsics[camera, column]):g}"
+        )
+
+    def _largest_range_change(self) -> str:
+        difference = (self.proxy_range - self.precond_proxy_range).abs()
+        image, column = divmod(int(difference.argmax()), 2)
+        name = ("t_near", "t_far")[column]
+        return (
+            f"{name} of image {image}: {float(self.precond_proxy_range[image, column]):g} -> "
+            f"{float(self.proxy_range[image, column]):g}"
         )
 
     @property
@@ -702,7 +782,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         elif self.config.precondition and self.enabled:
             device = self.precond.device
             intrinsics = self.refined_intrinsics().detach()
-            result = compute_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
+            result = compute_preconditioner(
+                intrinsics, self.layout, self.config.sampling, self.config.damping, ranges=self._sampling_ranges()
+            )
             old = Preconditioner(matrix=self.precond, inverse=self.precond_inv, gram=self.gram, num_valid=None)
             new = Preconditioner(
                 matrix=result.matrix.to(device), inverse=result.inverse.to(device), gram=result.gram, num_valid=None
@@ -714,6 +796,14 @@ class S2CampCameraOptimizer(CameraOptimizer):
             self.precond_inv.copy_(new.inverse)
             self.gram.copy_(result.gram.to(device))
         self.precond_base_intrinsics.copy_(self.base_intrinsics)
+        self.precond_proxy_range.copy_(self.proxy_range)
+
+    def _sampling_ranges(self, images: Tensor | None = None) -> Tensor | None:
+        """The stored per-image proxy range for ``compute_preconditioner`` (of ``images`` only if given); None when
+        the config fixes the range (the sampling's own, so a fixed range computes P exactly as it always did)."""
+        if not self.config.sampling.auto:
+            return None
+        return (self.proxy_range if images is None else self.proxy_range[images]).cpu()
 
     def _recompute_shared(self, optimizer: torch.optim.Optimizer | None) -> None:
         """The shared-intrinsics recomputation: T per physical camera from its refined intrinsics, latents
@@ -721,7 +811,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         device = self.precond.device
         first = self._first_image_of_each_camera()
         intrinsics = self.refined_intrinsics().detach()[first]
-        result = compute_shared_preconditioner(intrinsics, self.layout, self.config.sampling, self.config.damping)
+        result = compute_shared_preconditioner(
+            intrinsics, self.layout, self.config.sampling, self.config.damping, ranges=self._sampling_ranges(first)
+        )
         matrix, inverse = result.matrix.to(device), result.inverse.to(device)
         states = [None, None]
         if optimizer is not None:
@@ -767,6 +859,11 @@ class S2CampCameraOptimizer(CameraOptimizer):
 
     def get_correction_matrices(self):
         return self(torch.arange(0, self.num_cameras).long())
+
+
+def _span(values: Tensor) -> str:
+    low, high = float(values.min()), float(values.max())
+    return f"{low:.3f}" if low == high else f"{low:.3f}..{high:.3f}"
 
 
 __all__ = [

@@ -703,6 +703,7 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "last_refresh_step",
         "num_refreshes",
         "precond_base_intrinsics",  # what P was computed for: a resume onto other cameras recomputes it
+        "precond_proxy_range",  # and the proxy range it was computed with
     }
     # Buffers move with the module (.to(device)), the base cameras and the Gram included.
     assert {name for name, _ in optimizer.named_buffers()} == {
@@ -715,6 +716,8 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "gram",
         "camera_of_image",
         "precond_base_intrinsics",
+        "proxy_range",
+        "precond_proxy_range",
     }
 
 

@@ -53,9 +53,12 @@ def test_camp_baseline_differs_only_in_camera_sampling():
         500,
         "pyramid",
     )
-    # S2CamP's tuned range does not leak into the baseline: CamP keeps its published ray distances and ladder.
-    assert (s2camp_sampling.radial, s2camp_sampling.t_far) == ("volume", 1.5)
+    # S2CamP chooses its range from the scene (both ends unset, 0.4 / 1.5 without points); none of it leaks into
+    # the baseline: CamP keeps its published, fixed ray distances and ladder.
+    assert (s2camp_sampling.radial, s2camp_sampling.t_near, s2camp_sampling.t_far) == ("volume", None, None)
+    assert s2camp_sampling.auto and s2camp_sampling.fixed_range() == (0.4, 1.5)
     assert (camp_sampling.t_near, camp_sampling.t_far, camp_sampling.ladder_p) == (0.4, 1000.0, -1.5)
+    assert not camp_sampling.auto
     assert (camp_camera.damping.damping_abs, camp_camera.damping.damping_rel) == (1e-8, 0.1)
     # CamP refines intrinsics per image with the symmetric root per image; S2CamP's default shares them per camera.
     assert (camp_camera.intrinsics, s2camp_camera.intrinsics) == ("per-image", "per-camera")

@@ -362,9 +362,14 @@ def test_proxy_points_follow_the_radial_map(radial: str) -> None:
 @pytest.mark.parametrize(
     ("config", "message"),
     [
-        (SamplingConfig(t_near=-0.1), r"^t_near must lie in \[0, inf\)"),
+        (SamplingConfig(t_near=-0.1, t_far=1.5), r"^t_near must lie in \[0, inf\)"),
         (SamplingConfig(t_near=1.0, t_far=1.0), r"^t_far must lie in \(1, 2\)"),
-        (SamplingConfig(t_far=2.0), r"^t_far must lie in \(0.4, 2\)"),
+        (SamplingConfig(t_near=0.4, t_far=2.0), r"^t_far must lie in \(0.4, 2\)"),
+        # One explicit end: room must be left for the chosen other end (min_width 0.2 inside [0.1, 1.99]).
+        (SamplingConfig(t_near=-0.1), r"^t_near must lie in \[0, 1.79\]"),
+        (SamplingConfig(t_near=1.8), r"^t_near must lie in \[0, 1.79\]"),
+        (SamplingConfig(t_far=2.0), r"^t_far must lie in \[0.3, 2\)"),
+        (SamplingConfig(t_far=0.25), r"^t_far must lie in \[0.3, 2\)"),
         (SamplingConfig(transform="cone"), "^transform must be one of"),  # type: ignore[arg-type]
     ],
 )

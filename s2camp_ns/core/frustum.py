@@ -60,6 +60,7 @@ from s2camp_ns.core.validation import check_choice, check_finite, check_range
 __all__ = [
     "RADIALS",
     "TRANSFORMS",
+    "Range",
     "FrustumSamples",
     "Radial",
     "Transform",
@@ -67,6 +68,7 @@ __all__ = [
     "frustum_to_unit",
     "map_unit_to_frustum",
     "radius_from_unit",
+    "radius_per_camera",
     "sample_frustum",
     "unit_from_directions",
     "unit_from_radius",
@@ -89,8 +91,8 @@ class FrustumSamples:
 
 def validate_frustum(
     tangent_bounds: Float[Tensor, "n 4"],
-    t_near: float,
-    t_far: float,
+    t_near: Range,
+    t_far: Range,
     transform: str = "pyramid",
     radial: str = "volume",
 ) -> Float[Tensor, "n 4"]:
@@ -98,7 +100,19 @@ def validate_frustum(
     check_choice("transform", transform, TRANSFORMS)
     check_choice("radial", radial, RADIALS)
     check_range("t_far", t_far, low=0.0, high=2.0, low_inclusive=False, high_inclusive=False)
-    check_range("t_near", t_near, low=0.0, high=float(t_far), high_inclusive=False)
+    if isinstance(t_near, Tensor) or isinstance(t_far, Tensor):
+        near = torch.as_tensor(t_near, dtype=torch.float64)
+        far = torch.as_tensor(t_far, dtype=torch.float64)
+        check_range("t_near", near, low=0.0)
+        check_range("t_far - t_near", far - near, low=0.0, low_inclusive=False)
+        for name, value in (("t_near", near), ("t_far", far)):
+            if value.ndim > 0 and value.numel() != tangent_bounds.shape[0]:
+                raise ValueError(
+                    f"{name} must be a float or hold one value per camera (N = "
+                    f"{tangent_bounds.shape[0]}), got shape {tuple(value.shape)}"
+                )
+    else:
+        check_range("t_near", t_near, low=0.0, high=float(t_far), high_inclusive=False)
     if not isinstance(tangent_bounds, Tensor) or tangent_bounds.ndim != 2 or tangent_bounds.shape[-1] != 4:
         shape = tuple(tangent_bounds.shape) if isinstance(tangent_bounds, Tensor) else type(tangent_bounds).__name__
         raise ValueError(f"tangent_bounds must have shape [N, 4] (a_min, a_max, b_min, b_max), got {shape}")
@@ -108,6 +122,23 @@ def validate_frustum(
     check_range("tangent_bounds a_max - a_min", bounds[:, 1] - bounds[:, 0], low=0.0, low_inclusive=False)
     check_range("tangent_bounds b_max - b_min", bounds[:, 3] - bounds[:, 2], low=0.0, low_inclusive=False)
     return bounds
+
+
+Range = float | Tensor
+"""A contracted radius for every camera (float) or one per camera (tensor [N])."""
+
+
+def radius_per_camera(u1: Float[Tensor, " l"], t_near: Tensor, t_far: Tensor, radial: str = "volume") -> Tensor:
+    """Radii [N, L] of shared unit coordinates ``u1`` [L] for per-camera ranges ``t_near``, ``t_far`` [N].
+
+    Each distinct range is mapped on its own by ``radius_from_unit`` with Python floats, exactly as a range given for
+    all cameras is: a camera's radii are then the same bits whatever the batch it is computed in (vectorised and
+    scalar ``pow`` loops round differently, and which elements take which loop depends on the batch layout).
+    """
+    ranges = torch.stack([t_near.reshape(-1), t_far.reshape(-1)], dim=-1).detach().to(torch.float64).cpu()
+    unique, index = torch.unique(ranges, dim=0, return_inverse=True)
+    radii = [radius_from_unit(u1, float(near), float(far), radial) for near, far in unique.tolist()]
+    return torch.stack(radii)[index.to(u1.device)]
 
 
 def radius_from_unit(u1: Tensor, t_near: float, t_far: float, radial: str = "volume") -> Tensor:
@@ -222,18 +253,28 @@ def _as_batched_unit(unit_points: Tensor, num_cameras: int, device: torch.device
 def map_unit_to_frustum(
     unit_points: Float[Tensor, "l 3"] | Float[Tensor, "n l 3"],
     bounds: Float[Tensor, "n 4"],
-    t_near: float,
-    t_far: float,
+    t_near: Range,
+    t_far: Range,
     transform: str,
     radial: str = "volume",
 ) -> Float[Tensor, "n l 3"]:
     """Contracted frustum points ``Q(u)`` (paper eqs. 8-9, 12), no validation (internal fast path).
 
-    With points shared by all cameras ([L, 3]) the radius does not depend on the camera and is computed once;
-    this also keeps each camera's points bit-identical whatever the batch it is computed in (vectorised and
-    scalar loops of ``pow`` round differently, and which elements take which loop depends on the batch's layout).
+    With points shared by all cameras ([L, 3]) and one range the radius does not depend on the camera and is
+    computed once; this also keeps each camera's points bit-identical whatever the batch it is computed in
+    (vectorised and scalar loops of ``pow`` round differently, and which elements take which loop depends on the
+    batch's layout). Per-camera ranges (tensors [N]) keep that property with shared points (``radius_per_camera``).
     """
-    radius = radius_from_unit(unit_points[..., 0], t_near, t_far, radial)
+    if isinstance(t_near, Tensor) or isinstance(t_far, Tensor):
+        n = bounds.shape[0]
+        near = torch.as_tensor(t_near, dtype=torch.float64, device=bounds.device).expand(n)
+        far = torch.as_tensor(t_far, dtype=torch.float64, device=bounds.device).expand(n)
+        if unit_points.ndim == 2:
+            radius = radius_per_camera(unit_points[..., 0], near, far, radial)
+        else:
+            radius = radius_from_unit(unit_points[..., 0], near[:, None], far[:, None], radial)
+    else:
+        radius = radius_from_unit(unit_points[..., 0], t_near, t_far, radial)
     if unit_points.ndim == 2:
         unit_points = unit_points.expand(bounds.shape[0], -1, -1)
     directions = directions_from_unit(unit_points[..., 1], unit_points[..., 2], bounds, transform)
@@ -262,8 +303,8 @@ def frustum_to_unit(
 def sample_frustum(
     unit_points: Float[Tensor, "l 3"] | Float[Tensor, "n l 3"],
     tangent_bounds: Float[Tensor, "n 4"],
-    t_near: float,
-    t_far: float,
+    t_near: Range,
+    t_far: Range,
     transform: Transform = "pyramid",
     radial: Radial = "volume",
 ) -> FrustumSamples:
@@ -273,10 +314,13 @@ def sample_frustum(
     contracted frustum with radius in ``[t_near, t_far]`` (paper eqs. 6-14; the other maps are described in the
     module docstring); the Euclidean points follow from the inverse contraction (paper eq. 10). Output is float64
     on the device of ``tangent_bounds``. With ``t_near = 0`` a point with ``u1 = 0`` sits on the camera centre.
+    ``t_near`` and ``t_far`` are floats (every camera) or tensors [N] (one range per camera).
     """
     bounds = validate_frustum(tangent_bounds, t_near, t_far, transform, radial)
     u = _as_batched_unit(unit_points, bounds.shape[0], bounds.device)
-    contracted = map_unit_to_frustum(u, bounds, float(t_near), float(t_far), transform, radial)
+    if not isinstance(t_near, Tensor) and not isinstance(t_far, Tensor):
+        t_near, t_far = float(t_near), float(t_far)
+    contracted = map_unit_to_frustum(u, bounds, t_near, t_far, transform, radial)
     radius = torch.linalg.vector_norm(contracted, dim=-1, keepdim=True)
     # Scale by r_euclid / r_contracted; for r <= 1 the ratio is exactly 1 (the contraction is the identity there).
     scale = torch.where(radius <= 1.0, torch.ones_like(radius), uncontract_radius(radius) / radius.clamp_min(1.0))

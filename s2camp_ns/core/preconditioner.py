@@ -12,7 +12,7 @@ keeps P finite and invertible for parameters that the proxy points cannot observ
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Literal
 
 import torch
@@ -22,9 +22,16 @@ from torch import Tensor
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, pixel_to_ray_direction, tangent_bounds
 from s2camp_ns.core.camp_sampling import CAMP_LADDER_P, CAMP_T_FAR, CAMP_T_NEAR, camp_frustum_points, validate_ladder
 from s2camp_ns.core.contraction import uncontract_radius
-from s2camp_ns.core.frustum import RADIALS, Radial, radius_from_unit, sample_frustum
+from s2camp_ns.core.frustum import RADIALS, Radial, radius_from_unit, radius_per_camera, sample_frustum
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
 from s2camp_ns.core.lattice import unit_cube_points
+from s2camp_ns.core.proxy_range import (
+    DEFAULT_T_FAR,
+    DEFAULT_T_NEAR,
+    ProxyRangeConfig,
+    fixed_range,
+    validate_overrides,
+)
 from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
 
 SamplerName = Literal["frolov", "sobol", "halton", "random", "camp-random"]
@@ -55,15 +62,21 @@ class SamplingConfig:
     radial: Radial = "volume"
     """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray
     ("ray", density 1 / r^2 in the contracted ball; CamP's own radial measure is the power ladder of "camp-random")."""
-    t_near: float = 0.4
-    """Near contracted radius of the frustum (scene units; the contraction is the identity below 1); for
-    "camp-random" the near distance along the ray."""
-    t_far: float = 1.5
+    t_near: float | None = None
+    """Near contracted radius of the frustum (scene units; the contraction is the identity below 1). None: chosen
+    per physical camera from the scene's points (``auto_range``, s2camp_ns/core/proxy_range.py), 0.4 without
+    points. A number overrides the choice for every camera. For "camp-random" the near distance along the ray
+    (None: 0.4; ``CAMP_SAMPLING`` sets CamP's 0.4)."""
+    t_far: float | None = None
     """Far contracted radius, below 2: Euclidean distance 1 / (2 - t_far) beyond 1 (paper eq. 10), so 1.5 reaches
-    2 scene units and the paper's 1.99 about 100 (sec. 4). 1.5 is tuned on the recovery benchmark's scenes, where
-    the content lies within about 2 units of the cameras (docs/benchmarks/recovery.md): volume-uniform samples out
-    to 1.99 put most of the Gram's weight on far points, where rotation and translation look alike. For "camp-random"
-    the far distance along the ray (any value above ``t_near``; CamP's 1000)."""
+    2 scene units and the paper's 1.99 about 100 (sec. 4). None: chosen per physical camera from the scene's points
+    (``auto_range``), 1.5 without points (tuned on the recovery benchmark's scenes, docs/benchmarks/recovery.md:
+    volume-uniform samples out to 1.99 put most of the Gram's weight on far points, where rotation and translation
+    look alike). A number overrides the choice for every camera. For "camp-random" the far distance along the ray
+    (any value above ``t_near``; None: 1.5; ``CAMP_SAMPLING`` sets CamP's 1000)."""
+    auto_range: ProxyRangeConfig = field(default_factory=ProxyRangeConfig)
+    """How an unset ``t_near`` / ``t_far`` is chosen from the scene's points: distance quantiles of the points each
+    physical camera sees, contracted (paper eq. 10) and clamped (s2camp_ns/core/proxy_range.py)."""
     seed: int = 0
     """Seed of the random and scrambled samplers; ignored by the deterministic lattice."""
     ladder_p: float = CAMP_LADDER_P
@@ -75,10 +88,23 @@ class SamplingConfig:
         check_choice("transform", self.transform, TRANSFORMS)
         check_choice("radial", self.radial, RADIALS)
         if self.sampler == "camp-random":
-            validate_ladder(self.t_near, self.t_far, self.ladder_p)
+            validate_ladder(*self.fixed_range(), self.ladder_p)
             return
-        check_range("t_near", self.t_near, low=0.0)
-        check_range("t_far", self.t_far, low=self.t_near, high=2.0, low_inclusive=False, high_inclusive=False)
+        self.auto_range.validate()
+        validate_overrides(self.t_near, self.t_far, self.auto_range)
+
+    @property
+    def auto(self) -> bool:
+        """True when some end of the range is chosen from the scene (unset, and not CamP's ray distances)."""
+        return self.sampler != "camp-random" and (self.t_near is None or self.t_far is None)
+
+    def fixed_range(self) -> tuple[float, float]:
+        """The range used without scene points: explicit ends as given, unset ones the defaults (0.4, 1.5; for
+        "camp-random" as ray distances), clamped to keep ``auto_range.min_width`` (``proxy_range.fixed_range``)."""
+        if self.sampler == "camp-random":  # ray distances, never chosen from the scene; CAMP_SAMPLING sets both
+            near = DEFAULT_T_NEAR if self.t_near is None else self.t_near
+            return near, DEFAULT_T_FAR if self.t_far is None else self.t_far
+        return fixed_range(self.auto_range, self.t_near, self.t_far)
 
 
 CAMP_SAMPLING = SamplingConfig(num_points=5000, sampler="camp-random", t_near=CAMP_T_NEAR, t_far=CAMP_T_FAR)
@@ -143,14 +169,17 @@ def symmetric_sqrt_and_inverse(
     return 0.5 * (root + root.transpose(-1, -2)), 0.5 * (inverse_root + inverse_root.transpose(-1, -2))
 
 
-def sample_fisheye_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> Float[Tensor, "n l 3"]:
+def sample_fisheye_points(
+    intrinsics: Intrinsics, sampling: SamplingConfig, ranges: Float[Tensor, "n 2"] | None = None
+) -> Float[Tensor, "n l 3"]:
     """Proxy points of fisheye cameras: uniform in the image, unprojected, at the usual contracted radii.
 
     The pinhole pyramid of ``sample_frustum`` does not exist past 90 degrees, so the two angular unit coordinates
     (u2 vertical, u3 horizontal) become a pixel (u3 W, u2 H), whose ray (``pixel_to_ray_direction``, any angle)
     carries the point at contracted radius Q_r(u1) (paper eq. 12) mapped back through the inverse contraction
     (paper eq. 10). Every sample therefore projects inside the image. The angular measure is uniform in the image,
-    like the "pixel" transform (``transform`` is not used).
+    like the "pixel" transform (``transform`` is not used). ``ranges``: [t_near, t_far] per camera (None: the
+    sampling's fixed range for all).
     """
     intrinsics = intrinsics.detach().to(dtype=torch.float64)
     shared = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed).to(torch.float64)
@@ -160,38 +189,66 @@ def sample_fisheye_points(intrinsics: Intrinsics, sampling: SamplingConfig) -> F
     pixels = torch.stack([unit[..., 2], unit[..., 1]], dim=-1) * size
     with torch.no_grad():
         directions = pixel_to_ray_direction(pixels, intrinsics)
+    if ranges is not None:  # per camera, once per distinct range: still independent of the batch
+        radius = radius_per_camera(shared[:, 0], ranges[:, 0], ranges[:, 1], sampling.radial).to(directions.device)
+        return uncontract_radius(radius)[..., None] * directions
     # The radius does not depend on the camera: computed once, so a camera's points do not depend on its batch.
-    radius = radius_from_unit(shared[:, 0], sampling.t_near, sampling.t_far, sampling.radial)
+    t_near, t_far = sampling.fixed_range()
+    radius = radius_from_unit(shared[:, 0], t_near, t_far, sampling.radial)
     return uncontract_radius(radius)[:, None] * directions
 
 
 def sample_proxy_points(
-    intrinsics: Intrinsics, sampling: SamplingConfig, generator: torch.Generator | None = None
+    intrinsics: Intrinsics,
+    sampling: SamplingConfig,
+    generator: torch.Generator | None = None,
+    ranges: Float[Tensor, "n 2"] | None = None,
 ) -> Float[Tensor, "n l 3"]:
     """Euclidean camera-frame proxy points filling each camera's contracted view frustum (paper eqs. 6-14).
 
     Fisheye cameras are sampled in their image (``sample_fisheye_points``); "camp-random" samples pixels of any model.
     ``generator`` only matters for CamP's per-camera random points: passing the same one to consecutive chunks of
-    cameras continues the random stream, so the chunks get the points of one unchunked call.
+    cameras continues the random stream, so the chunks get the points of one unchunked call. ``ranges``: the
+    contracted [t_near, t_far] of each camera (``core.proxy_range.proxy_ranges``); None uses the sampling's fixed
+    range (``SamplingConfig.fixed_range``) for every camera. A camera's points depend on its own range only.
     """
     sampling.validate()
+    if ranges is not None:
+        ranges = _check_ranges(ranges, intrinsics.num_cameras, sampling)
     if sampling.sampler == "camp-random":  # random pixels, unprojected: any camera model
+        t_near, t_far = sampling.fixed_range()
         return camp_frustum_points(
             intrinsics,
             sampling.num_points,
-            sampling.t_near,
-            sampling.t_far,
+            t_near,
+            t_far,
             sampling.ladder_p,
             generator=generator,
             seed=sampling.seed,
         )
     if intrinsics.is_fisheye:
-        return sample_fisheye_points(intrinsics, sampling)
+        return sample_fisheye_points(intrinsics, sampling, ranges)
     bounds = tangent_bounds(intrinsics.to(dtype=torch.float64))
     unit = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed)
-    return sample_frustum(
-        unit.to(bounds.device), bounds, sampling.t_near, sampling.t_far, sampling.transform, sampling.radial
-    ).camera
+    if ranges is None:
+        t_near, t_far = sampling.fixed_range()
+    else:
+        t_near, t_far = ranges[:, 0].to(bounds.device), ranges[:, 1].to(bounds.device)
+    return sample_frustum(unit.to(bounds.device), bounds, t_near, t_far, sampling.transform, sampling.radial).camera
+
+
+def _check_ranges(ranges: Tensor, num_cameras: int, sampling: SamplingConfig) -> Tensor:
+    """Per-camera contracted ranges [N, 2]: 0 <= t_near < t_far < 2; not for CamP's ray distances."""
+    if sampling.sampler == "camp-random":
+        raise ValueError('ranges must be None for sampler "camp-random" (its t_near / t_far are ray distances)')
+    if not isinstance(ranges, Tensor) or ranges.ndim != 2 or tuple(ranges.shape) != (num_cameras, 2):
+        shape = tuple(ranges.shape) if isinstance(ranges, Tensor) else type(ranges).__name__
+        raise ValueError(f"ranges must have shape [{num_cameras}, 2] ([t_near, t_far] per camera), got {shape}")
+    ranges = ranges.detach().to(torch.float64)
+    check_range("ranges t_near", ranges[:, 0], low=0.0)
+    check_range("ranges t_far", ranges[:, 1], high=2.0, high_inclusive=False)
+    check_range("ranges t_far - t_near", ranges[:, 1] - ranges[:, 0], low=0.0, low_inclusive=False)
+    return ranges
 
 
 def gram_from_points(
@@ -210,8 +267,12 @@ def compute_preconditioner(
     damping: DampingConfig | None = None,
     chunk_size: int | None = DEFAULT_CHUNK_SIZE,
     share_intrinsics: bool = True,
+    ranges: Float[Tensor, "n 2"] | None = None,
 ) -> Preconditioner:
     """P and P^-1 for each camera from proxy points in its frustum (paper eqs. 4, 5 and 20).
+
+    ``ranges``: contracted [t_near, t_far] per camera (the scene's, ``core.proxy_range.proxy_ranges``); None: the
+    sampling's fixed range for all. Cameras are shared by bitwise-equal intrinsics and range.
 
     Memory is bounded by ``chunk_size`` cameras at a time (None: all at once). With the point sets shared by all
     cameras (the lattice, Sobol, Halton, random unit points) every camera's P depends only on its own intrinsics and
@@ -229,10 +290,14 @@ def compute_preconditioner(
         check_positive_int("chunk_size", chunk_size)
     intrinsics = intrinsics.detach().to(dtype=torch.float64)
     intrinsics.validate()
+    if ranges is not None:
+        ranges = _check_ranges(ranges, intrinsics.num_cameras, sampling)
     if share_intrinsics and sampling.sampler != "camp-random":
-        unique, index = unique_intrinsics(intrinsics)
+        unique, index, unique_ranges = unique_intrinsics(intrinsics, ranges)
         if unique.num_cameras < intrinsics.num_cameras:
-            shared = compute_preconditioner(unique, layout, sampling, damping, chunk_size, share_intrinsics=False)
+            shared = compute_preconditioner(
+                unique, layout, sampling, damping, chunk_size, share_intrinsics=False, ranges=unique_ranges
+            )
             return Preconditioner(
                 matrix=shared.matrix[index],
                 inverse=shared.inverse[index],
@@ -245,7 +310,8 @@ def compute_preconditioner(
     result: Preconditioner | None = None
     for start in range(0, max(n, 1), step):
         part = intrinsics[start : start + step]
-        points = sample_proxy_points(part, sampling, generator)
+        part_ranges = None if ranges is None else ranges[start : start + step]
+        points = sample_proxy_points(part, sampling, generator, part_ranges)
         sigma, count = gram_from_points(points, part, layout)
         del points
         matrix, inverse = symmetric_sqrt_and_inverse(damped_gram(sigma, damping), damping.diagonal_only)
@@ -267,13 +333,19 @@ def compute_preconditioner(
     return result
 
 
-def unique_intrinsics(intrinsics: Intrinsics) -> tuple[Intrinsics, Tensor]:
-    """The distinct cameras (bitwise-equal intrinsics) and, per camera, the index of its distinct one."""
+def unique_intrinsics(
+    intrinsics: Intrinsics, ranges: Float[Tensor, "n 2"] | None = None
+) -> tuple[Intrinsics, Tensor, Tensor | None]:
+    """The distinct cameras (bitwise-equal intrinsics and, if given, proxy range), per camera the index of its
+    distinct one, and the distinct cameras' ranges (None without ``ranges``)."""
     names = [f.name for f in fields(intrinsics) if f.name != "model"]
     stacked = torch.stack([getattr(intrinsics, name) for name in names], dim=-1)
+    if ranges is not None:
+        stacked = torch.cat([stacked, ranges.to(stacked)], dim=-1)
     unique, index = torch.unique(stacked, dim=0, return_inverse=True)
-    columns = dict(zip(names, unique.unbind(dim=-1), strict=True))
-    return Intrinsics(**columns, model=intrinsics.model), index
+    columns = dict(zip(names, unique[:, : len(names)].unbind(dim=-1), strict=True))
+    unique_ranges = None if ranges is None else unique[:, len(names) :]
+    return Intrinsics(**columns, model=intrinsics.model), index, unique_ranges
 
 
 def whitening_error(inverse: Float[Tensor, "n k k"], sigma: Float[Tensor, "n k k"]) -> Float[Tensor, " n"]:

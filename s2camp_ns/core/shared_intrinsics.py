@@ -107,15 +107,17 @@ def compute_shared_preconditioner(
     layout: ParameterLayout | None = None,
     sampling: SamplingConfig | None = None,
     damping: DampingConfig | None = None,
+    ranges: Float[Tensor, "c 2"] | None = None,
 ) -> SharedPreconditioner:
-    """T and T^-1 for each physical camera (one row of ``intrinsics`` per camera) from its proxy points."""
+    """T and T^-1 for each physical camera (one row of ``intrinsics`` per camera) from its proxy points; ``ranges``:
+    each camera's contracted [t_near, t_far] (``core.proxy_range``), None: the sampling's fixed range."""
     layout = layout or ParameterLayout()
     if not layout.pose:
         raise ValueError("shared intrinsics need the pose group in the layout: the pose is what stays per image")
     sampling = sampling or SamplingConfig()
     intrinsics = intrinsics.detach().to(dtype=torch.float64)
     intrinsics.validate()
-    points = sample_proxy_points(intrinsics, sampling)
+    points = sample_proxy_points(intrinsics, sampling, ranges=ranges)
     sigma, _ = gram_from_points(points, intrinsics, layout)
     matrix, inverse = block_triangular_factor(sigma, damping)
     return SharedPreconditioner(matrix=matrix, inverse=inverse, gram=sigma)

@@ -119,11 +119,12 @@ class S2CampModel(NerfactoModel):
         """True for S2CamP's camera optimizer, False for nerfstudio's stock one (the s2camp-so3xr3 baseline)."""
         return isinstance(self.camera_optimizer, S2CampCameraOptimizer)
 
-    def set_train_cameras(self, cameras: Cameras) -> None:
-        """Keep the dataparser's training cameras (called by the pipeline before any checkpoint is loaded)."""
+    def set_train_cameras(self, cameras: Cameras, points: Tensor | None = None) -> None:
+        """Keep the dataparser's training cameras (called by the pipeline before any checkpoint is loaded); the
+        scene's sparse ``points`` (normalized world) choose the S2CamP optimizer's proxy range."""
         self._train_cameras = cameras.to("cpu")
         if self.uses_s2camp_optimizer:
-            self.camera_optimizer.set_train_cameras(cameras)
+            self.camera_optimizer.set_train_cameras(cameras, points=points)
 
     @torch.no_grad()
     def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:

@@ -40,7 +40,8 @@ class S2CampPipelineConfig(VanillaPipelineConfig):
 
 
 class S2CampPipeline(VanillaPipeline):
-    """VanillaPipeline + ``camera_optimizer.set_train_cameras`` (before any checkpoint is loaded) + its own DDP."""
+    """VanillaPipeline + ``camera_optimizer.set_train_cameras`` with the scene's points (before any checkpoint is
+    loaded) + its own DDP."""
 
     def __init__(
         self,
@@ -58,10 +59,12 @@ class S2CampPipeline(VanillaPipeline):
         super().__init__(config, device, test_mode, 1, local_rank, grad_scaler)
         assert self.datamanager.train_dataset is not None
         cameras = self.datamanager.train_dataset.cameras
+        # The dataparser's sparse points (normalized world, as the cameras) choose the proxy range per camera.
+        points = (getattr(self.datamanager.train_dataset, "metadata", None) or {}).get("points3D_xyz")
         if hasattr(self.model, "set_train_cameras"):
-            self.model.set_train_cameras(cameras)
+            self.model.set_train_cameras(cameras, points=points)
         elif isinstance(getattr(self.model, "camera_optimizer", None), S2CampCameraOptimizer):
-            self.model.camera_optimizer.set_train_cameras(cameras)
+            self.model.camera_optimizer.set_train_cameras(cameras, points=points)
         self.world_size = world_size
         if world_size > 1:
             on_cuda = torch.device(device).type == "cuda"
