@@ -13,6 +13,7 @@ from .common import DEFAULT_OUTPUT_DIR, emit_json, log
 from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
 from .lattice_search import LatticeSearchConfig
+from .proxy_range import ProxyRangeBenchConfig
 from .recovery import RecoveryConfig
 from .scaling import ScalingConfig
 from .shared_intrinsics import SharedIntrinsicsConfig
@@ -27,6 +28,7 @@ MODULES = {
     ScalingConfig: "scaling",
     TrainTimeConfig: "train_time",
     SharedIntrinsicsConfig: "shared_intrinsics",
+    ProxyRangeBenchConfig: "proxy_range",
 }
 """The benchmarks ``s2camp-bench all`` runs."""
 TOOLS = {LatticeSearchConfig: "lattice_search"}
@@ -49,6 +51,7 @@ Command = Union[
     Annotated[ScalingConfig, tyro.conf.subcommand("scaling")],
     Annotated[TrainTimeConfig, tyro.conf.subcommand("train-time")],
     Annotated[SharedIntrinsicsConfig, tyro.conf.subcommand("shared-intrinsics")],
+    Annotated[ProxyRangeBenchConfig, tyro.conf.subcommand("proxy-range")],
     Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]

@@ -365,8 +365,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         groups = groups.cpu()
         c2w = opengl_to_opencv(cameras.camera_to_worlds.detach().to(torch.float64).cpu())
         points = None if points is None else torch.as_tensor(points).detach().to(torch.float64).cpu()
+        intrinsics = intrinsics_from_cameras(cameras)
         ranges = proxy_ranges(
-            points, c2w, intrinsics_from_cameras(cameras), groups, sampling.auto_range, sampling.t_near, sampling.t_far
+            points, c2w, intrinsics, groups, sampling.auto_range, sampling.t_near, sampling.t_far, sampling.radial
         )
         self.proxy_ranges = ranges
         self._log_proxy_ranges(ranges, 0 if points is None else points.shape[0])

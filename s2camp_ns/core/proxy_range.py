@@ -2,28 +2,49 @@
 
 The proxy points of the preconditioner fill a camera's contracted view frustum between two contracted radii
 (paper sec. 4, eq. 12); the contraction is about the camera centre, t = d for d <= 1 and t = 2 - 1/d beyond
-(paper eq. 10), d the Euclidean distance in the scene's (normalized) units. A fixed range fits one kind of scene
-only: the Gram matrix (eq. 5) weights each depth by its volume, so a far end beyond the content puts most of the
-weight where rotation and translation look alike, and one short of it misses content the camera does see.
+(paper eq. 10), d the Euclidean distance in the scene's (normalized) units. The Gram matrix (eq. 5) is an average
+over the proxy points, so the range sets how much weight each depth gets: a far end beyond the content puts most of
+it where rotation and translation look alike, a near end in front of the content lets the 1/d^2 translation terms
+of points the camera never sees dominate. A fixed range fits one kind of scene only.
 
 Here the range follows the content. For every image, the sparse points (an SfM reconstruction's, or any other
 sample of the surfaces) that lie in front of the camera and project inside its image give distances d; the
-images of one physical camera are pooled (its intrinsics, and so its proxy frustum, are shared). Of these
-distances the ``near_quantile`` and ``far_quantile`` quantiles (linear interpolation between order statistics)
-are contracted (eq. 10), widened by ``margin`` contracted units on each side and clamped:
+images of one physical camera are pooled (its intrinsics, and so its proxy frustum, are shared). The range is
+chosen from these distances by one of three rules (``rule``):
 
-- t_near >= ``T_NEAR_MIN``: below it the 1/d^2 growth of the translation columns lets a few stray points near the
-  camera dominate Sigma;
+``"moments"`` (default)
+    The proxy points reproduce the content's inverse-distance moments E[1/d] and E[1/d^2]. They are what the depth
+    does to Sigma (eqs. 4-5): the translation columns of the Jacobian scale with 1/z, so the translation block of
+    Sigma averages 1/z^2 and its coupling to rotation and intrinsics averages 1/z, while every other block depends
+    on the direction only. The proxy moments of a range (t0, t1) follow from the radial law alone (eq. 12: radius
+    Q_r(u1), u1 uniform; Euclidean d by the inverse of eq. 10), computed by the midpoint rule on ``_MOMENT_NODES``
+    nodes; (t0, t1) is the point of a 0.01 grid in [``T_NEAR_MIN``, ``T_FAR_MAX``] (width >= ``min_width``) that
+    minimises (log M1/m1)^2 + (log M2/m2)^2. The distances are first clipped to their ``clip_quantile`` and
+    1 - ``clip_quantile`` quantiles, so that a few stray points at the lens (a mismatched track) cannot dominate
+    E[1/d^2]; points far away (the sky, a background) add almost nothing, as they add almost nothing to the
+    translation columns of the real content.
+``"fit"``
+    The proxy radial law is matched to the content's at two quantiles c_a, c_b of the contracted distances (levels
+    a < b: ``low_quantile``, ``high_quantile``; linear interpolation between order statistics): its CDF F(t) (paper
+    eq. 11) is (t^3 - t0^3) / (t1^3 - t0^3) for the "volume" radial map (eq. 12) and (t - t0) / (t1 - t0) for "ray",
+    and F(c_a) = a, F(c_b) = b is linear in (t0^3, t1^3), resp. (t0, t1).
+``"span"``
+    [t0, t1] = [c_a, c_b]: the range covers the content between the two quantiles (e.g. 5% / 95%). The volume law then
+    crowds the points at the far end, and a background seen by more than 5% of the points sets t1 near 2.
+
+On the generated scenes of docs/benchmarks/proxy-range.md the moment rule is within a few percent of the fixed range
+or better in Gram error against the visible content, and "span" 5% / 95% is worse on every scene; the measured
+numbers are there. Occlusion is not tested (sparse points carry no surface): points hidden behind nearer content
+count, which biases the content towards larger distances.
+
+Then ``margin`` contracted units are added on each side and the range is clamped:
+
+- t_near >= ``T_NEAR_MIN`` (a negative t0^3 of "fit" included): below it the 1/d^2 growth of the translation
+  columns lets the nearest proxy points dominate Sigma;
 - t_far <= ``T_FAR_MAX`` = 1.99 (the paper's far radius, d = 100): t = 2 is the point at infinity;
 - t_far - t_near >= ``min_width``: content at one depth (a wall facing the camera) would otherwise give a thin
   shell, on which translation across the view and rotation about the perpendicular axis are indistinguishable;
   the width is grown about the middle of the range, then the range is shifted back inside the bounds.
-
-Why quantiles, and why 5% / 95%: the extreme points of a reconstruction are its outliers (a mismatched track
-triangulated behind the scene or in front of the lens) and single points must not move the range; a 5% / 95%
-quantile ignores up to 5% of the visible points on either side, and covers 90% of what the camera sees.
-
-Occlusion is not tested (sparse points carry no surface): a point hidden behind nearer content still counts.
 
 Fallback: a camera with fewer than ``min_points`` visible points (none at all when the scene has no points) gets the
 fixed defaults ``DEFAULT_T_NEAR`` = 0.4 and ``DEFAULT_T_FAR`` = 1.5 (tuned on the recovery benchmark's scenes,
@@ -37,25 +58,32 @@ Everything is float64 and deterministic (sorting, no sampling).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
+from typing import Literal
 
 import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics, in_image, project
-from s2camp_ns.core.contraction import contract_radius
+from s2camp_ns.core.contraction import contract_radius, uncontract_radius
+from s2camp_ns.core.frustum import radius_from_unit
 from s2camp_ns.core.validation import check_finite, check_positive_int, check_range
 
 __all__ = [
     "DEFAULT_T_FAR",
     "DEFAULT_T_NEAR",
+    "RULES",
     "T_FAR_MAX",
     "T_NEAR_MIN",
     "ProxyRangeConfig",
     "ProxyRanges",
     "clamp_range",
+    "fit_radial_law",
     "fixed_range",
     "interpolated_quantile",
+    "inverse_distance_moments",
+    "match_inverse_moments",
     "proxy_ranges",
     "visible_distances",
 ]
@@ -68,6 +96,11 @@ T_NEAR_MIN = 0.1
 """Smallest chosen near radius (contracted = Euclidean below 1)."""
 T_FAR_MAX = 1.99
 """Largest chosen far radius: the paper's 1.99, Euclidean distance 100 (paper eq. 10)."""
+RULES: tuple[str, ...] = ("moments", "fit", "span")
+GRID_STEP = 0.01
+"""Resolution of the "moments" rule's search over (t0, t1), contracted units."""
+_MOMENT_NODES = 512
+"""Midpoint-rule nodes of the proxy radial law's moments."""
 _PAIRS_PER_CHUNK = 1 << 20
 """Image-point pairs projected at a time by ``visible_distances`` (about 0.2 GB of float64 intermediates)."""
 
@@ -76,10 +109,15 @@ _PAIRS_PER_CHUNK = 1 << 20
 class ProxyRangeConfig:
     """How the proxy range is chosen from the scene's points (module docstring)."""
 
-    near_quantile: float = 0.05
-    """Quantile of the visible points' distances that sets t_near."""
-    far_quantile: float = 0.95
-    """Quantile that sets t_far (above ``near_quantile``)."""
+    rule: Literal["moments", "fit", "span"] = "moments"
+    """"moments": the proxy's E[1/d], E[1/d^2] matched to the visible points'; "fit": the proxy radial law matched
+    to their distances at two quantiles; "span": the range is the two quantiles (module docstring)."""
+    clip_quantile: float = 0.02
+    """"moments": the distances are clipped to this quantile and 1 - it before the moments are taken."""
+    low_quantile: float = 0.25
+    """"fit" and "span": lower quantile level a of the visible points' distances."""
+    high_quantile: float = 0.75
+    """"fit" and "span": upper quantile level b (above a)."""
     margin: float = 0.0
     """Contracted units added below t_near and above t_far before clamping."""
     min_width: float = 0.2
@@ -88,8 +126,11 @@ class ProxyRangeConfig:
     """Fewest visible points (pooled over a physical camera's images) for a chosen range; fewer: the defaults."""
 
     def validate(self) -> None:
-        check_range("near_quantile", self.near_quantile, low=0.0, high=1.0)
-        check_range("far_quantile", self.far_quantile, low=self.near_quantile, high=1.0)
+        if self.rule not in RULES:
+            raise ValueError(f"rule must be one of {', '.join(map(repr, RULES))}, got {self.rule!r}")
+        check_range("clip_quantile", self.clip_quantile, low=0.0, high=0.5, high_inclusive=False)
+        check_range("low_quantile", self.low_quantile, low=0.0, high=1.0, high_inclusive=False)
+        check_range("high_quantile", self.high_quantile, low=self.low_quantile, high=1.0, low_inclusive=False)
         check_range("margin", self.margin, low=0.0, high=1.0)
         check_range("min_width", self.min_width, low=0.0, high=T_FAR_MAX - T_NEAR_MIN)
         check_positive_int("min_points", self.min_points)
@@ -174,6 +215,66 @@ def interpolated_quantile(values: Float[Tensor, " m"], q: float) -> Tensor:
     return ordered[low] + fraction * (ordered[high] - ordered[low])
 
 
+def fit_radial_law(
+    low: Tensor, high: Tensor, low_level: float, high_level: float, radial: str = "volume"
+) -> tuple[Tensor, Tensor]:
+    """(t0, t1) whose radial CDF (paper eq. 11: "volume" (t^3 - t0^3) / (t1^3 - t0^3), the law of eq. 12; "ray"
+    (t - t0) / (t1 - t0)) takes the values ``low_level``, ``high_level`` at the contracted radii ``low`` <= ``high``.
+
+    Linear in (t0^3, t1^3) resp. (t0, t1). t0 may come out below zero (content spread towards the camera); it is
+    returned as 0 then and clamped later (``clamp_range``).
+    """
+    if radial not in ("volume", "ray"):
+        raise ValueError(f"radial must be one of 'volume', 'ray', got {radial!r}")
+    power = 3.0 if radial == "volume" else 1.0
+    low_p, high_p = low.to(torch.float64) ** power, high.to(torch.float64) ** power
+    spread = (high_p - low_p) / (high_level - low_level)
+    t0_p = (low_p - low_level * spread).clamp(min=0.0)
+    t1_p = low_p + (1.0 - low_level) * spread
+    return t0_p ** (1.0 / power), t1_p ** (1.0 / power)
+
+
+def inverse_distance_moments(distances: Float[Tensor, " m"], clip_quantile: float) -> tuple[float, float]:
+    """E[1/d] and E[1/d^2] of distances clipped to their ``clip_quantile`` and 1 - ``clip_quantile`` quantiles."""
+    low = interpolated_quantile(distances, clip_quantile)
+    high = interpolated_quantile(distances, 1.0 - clip_quantile)
+    inverse = 1.0 / distances.to(torch.float64).clamp(min=float(low), max=float(high))
+    return float(inverse.mean()), float((inverse * inverse).mean())
+
+
+@lru_cache(maxsize=8)
+def _moment_grid(radial: str, min_width: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Every (t0, t1) of the search grid with t1 - t0 >= min_width, and the proxy's E[1/d], E[1/d^2] there.
+
+    Radius Q_r(u) of the radial law (paper eq. 12) at midpoint nodes u, Euclidean d by the inverse contraction (eq. 10).
+    """
+    steps = round((T_FAR_MAX - T_NEAR_MIN) / GRID_STEP)
+    values = (round(T_NEAR_MIN / GRID_STEP) + torch.arange(steps + 1, dtype=torch.float64)) * GRID_STEP
+    t0, t1 = torch.meshgrid(values, values, indexing="ij")
+    keep = t1 - t0 >= min_width - 1e-9
+    t0, t1 = t0[keep], t1[keep]
+    nodes = (torch.arange(_MOMENT_NODES, dtype=torch.float64) + 0.5) / _MOMENT_NODES
+    radius = radius_from_unit(nodes, t0[:, None], t1[:, None], radial)
+    inverse = 1.0 / uncontract_radius(radius.clamp(max=T_FAR_MAX))
+    return t0, t1, inverse.mean(dim=-1), (inverse * inverse).mean(dim=-1)
+
+
+def match_inverse_moments(
+    first: float, second: float, radial: str = "volume", min_width: float = 0.2
+) -> tuple[float, float]:
+    """The grid range (t0, t1) whose proxy radial law (paper eqs. 10, 12) has E[1/d], E[1/d^2] closest to ``first``,
+    ``second`` in the sense of (log M1/first)^2 + (log M2/second)^2 (module docstring, "moments"). Deterministic:
+    ties go to the first grid point (smallest t0, then t1)."""
+    if radial not in ("volume", "ray"):
+        raise ValueError(f"radial must be one of 'volume', 'ray', got {radial!r}")
+    check_range("first", first, low=0.0, low_inclusive=False)
+    check_range("second", second, low=0.0, low_inclusive=False)
+    t0, t1, m1, m2 = _moment_grid(radial, float(min_width))
+    cost = torch.log(m1 / first) ** 2 + torch.log(m2 / second) ** 2
+    best = int(torch.argmin(cost))
+    return float(t0[best]), float(t1[best])
+
+
 def visible_distances(
     points: Float[Tensor, "m 3"], c2w: Float[Tensor, "n 3 4"], intrinsics: Intrinsics
 ) -> list[Float[Tensor, " v"]]:
@@ -209,12 +310,14 @@ def proxy_ranges(
     config: ProxyRangeConfig | None = None,
     t_near: float | None = None,
     t_far: float | None = None,
+    radial: str = "volume",
 ) -> ProxyRanges:
-    """Contracted proxy range per physical camera from the points it sees (module docstring; paper eqs. 10, 12).
+    """Contracted proxy range per physical camera from the points it sees (module docstring; paper eqs. 10-12).
 
     ``points``: world points in the cameras' units (None or empty: every camera falls back); ``c2w``: OpenCV
     camera-to-world per image; ``camera_of_image``: physical camera 0..C-1 of each image (C = max + 1); ``t_near``,
-    ``t_far``: explicit ends that override the chosen ones. Returns float64 ranges on the cameras' device.
+    ``t_far``: explicit ends that override the chosen ones; ``radial``: the proxy radial map the rules match
+    ("volume" or "ray", ``SamplingConfig.radial``). Returns float64 ranges on the cameras' device.
     """
     config = config or ProxyRangeConfig()
     config.validate()
@@ -243,11 +346,16 @@ def proxy_ranges(
             counts[camera] = pooled.shape[0]
             if pooled.shape[0] < config.min_points:
                 continue
-            levels = (config.near_quantile, config.far_quantile)
-            quantiles = torch.stack([interpolated_quantile(pooled, q) for q in levels])
-            contracted = contract_radius(quantiles)
-            near[camera] = contracted[0] - config.margin
-            far[camera] = contracted[1] + config.margin
+            if config.rule == "moments":
+                moments = inverse_distance_moments(pooled, config.clip_quantile)
+                low, high = match_inverse_moments(*moments, radial, config.min_width)
+            else:
+                levels = (config.low_quantile, config.high_quantile)
+                low, high = contract_radius(torch.stack([interpolated_quantile(pooled, q) for q in levels]))
+                if config.rule == "fit":
+                    low, high = fit_radial_law(low, high, *levels, radial)
+            near[camera] = low - config.margin
+            far[camera] = high + config.margin
     fallback = counts < config.min_points
     near, far = clamp_range(near, far, config, t_near, t_far)
     device = c2w.device
