@@ -9,6 +9,7 @@ import math
 import re
 import warnings
 
+import numpy as np
 import pytest
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
@@ -24,6 +25,7 @@ from s2camp_ns.camera_optimizer import (
 from s2camp_ns.core.camera import PARAMETER_NAMES, Intrinsics, ParameterLayout, in_image, project
 from s2camp_ns.core.jacobian import projection_jacobian
 from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig, compute_preconditioner, sample_proxy_points
+from s2camp_ns.core.proxy_range import ProxyRangeConfig
 from s2camp_ns.core.shared_intrinsics import compute_shared_preconditioner
 
 NUM_CAMERAS = 3
@@ -59,12 +61,15 @@ def make_cameras(k1: float = 0.0, k2: float = 0.0) -> Cameras:
 
 
 def make_optimizer(cameras: Cameras | None = None, **overrides) -> S2CampCameraOptimizer:
-    sampling = overrides.pop("sampling", SamplingConfig(num_points=64, sampler="camp-random"))
+    sampling = overrides.pop("sampling", {})  # a SamplingConfig, or fields replacing these defaults
+    if isinstance(sampling, dict):
+        sampling = SamplingConfig(**{"num_points": 64, "sampler": "camp-random", **sampling})
+    points = overrides.pop("points", None)
     # Per image unless a test asks otherwise: most tests here pin per-image mechanics (one latent row of K per image).
     defaults = {"refresh_every": 10, "sampling": sampling, "intrinsics": "per-image"}
     config = S2CampCameraOptimizerConfig(**{**defaults, **overrides})
     optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
-    optimizer.set_train_cameras(cameras if cameras is not None else make_cameras(k1=-0.05, k2=0.01))
+    optimizer.set_train_cameras(cameras if cameras is not None else make_cameras(k1=-0.05, k2=0.01), points=points)
     return optimizer
 
 
@@ -1041,3 +1046,150 @@ def test_a_unit_latent_step_moves_the_proxy_points_one_normalized_pixel_rms(damp
         # combinations of the 12 parameters (measured down to 0.024) far less.
         assert 0.95 <= float(eigenvalues.max()) <= 1.0 + 1e-2
         assert float(eigenvalues.min()) < 0.1
+
+
+# ------------------------------------------------------------------------- proxy range from the scene's points
+
+
+def scene_cloud(offset: float = 0.0) -> torch.Tensor:
+    """8^3 points filling [-0.4, 0.4]^3 around the point the cameras look at (shifted by ``offset`` along x): every
+    camera sees all of them (about 11 degrees off the axis at distance 2)."""
+    axis = torch.linspace(-0.4, 0.4, 8, dtype=torch.float64)
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)
+    return grid + torch.tensor([offset, 0.0, 0.0], dtype=torch.float64)
+
+
+def contracted_quartiles_by_hand(cameras: Cameras, points: torch.Tensor, widen: bool = True) -> torch.Tensor:
+    """Per camera: distances of all points from its centre, numpy's 25% / 75% quantiles, 2 - 1/d beyond 1, widened
+    to 0.2 if narrower."""
+    out = []
+    for centre in cameras.camera_to_worlds[:, :, 3].double():
+        distances = (points - centre).norm(dim=-1).numpy()
+        low, high = (d if d <= 1.0 else 2.0 - 1.0 / d for d in np.percentile(distances, [25.0, 75.0]))
+        if widen and high - low < 0.2:  # the minimum width: grown about the middle
+            low, high = (low + high) / 2.0 - 0.1, (low + high) / 2.0 + 0.1
+        out.append([low, high])
+    return torch.tensor(out, dtype=torch.float64)
+
+
+SPAN_SAMPLING = {"sampler": "frolov", "auto_range": ProxyRangeConfig(rule="span")}
+"""The lattice (ranges chosen from the scene; CamP's sampler never is) with the hand-computable "span" rule."""
+
+
+def test_proxy_range_is_chosen_from_the_scene_and_enters_p():
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    points = scene_cloud()
+    optimizer = make_optimizer(cameras, sampling=SPAN_SAMPLING, points=points)
+    expected = contracted_quartiles_by_hand(cameras, points)  # three intrinsics: three physical cameras
+    assert optimizer.proxy_ranges.num_points.tolist() == [512] * NUM_CAMERAS  # each sees the whole cloud
+    torch.testing.assert_close(optimizer.proxy_range, expected, rtol=0, atol=1e-12)
+    assert torch.equal(optimizer.precond_proxy_range, optimizer.proxy_range)
+    config = optimizer.config
+    reference = compute_preconditioner(
+        optimizer.base_intrinsics_struct(),
+        optimizer.layout,
+        config.sampling,
+        config.damping,
+        ranges=optimizer.proxy_range,
+    )
+    assert torch.equal(optimizer.precond, reference.matrix)
+    without_points = make_optimizer(cameras, sampling=SPAN_SAMPLING)
+    assert without_points.proxy_range.tolist() == [[0.4, 1.5]] * NUM_CAMERAS
+    assert relative(optimizer.precond, without_points.precond) > 0.01
+
+
+def test_without_points_p_is_the_fixed_range_one_bit_for_bit():
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    auto = make_optimizer(cameras, sampling={"sampler": "frolov"})
+    fixed = make_optimizer(cameras, sampling={"sampler": "frolov", "t_near": 0.4, "t_far": 1.5})
+    assert torch.equal(auto.precond, fixed.precond) and torch.equal(auto.proxy_range, fixed.proxy_range)
+
+
+def test_explicit_t_far_is_honoured_and_t_near_still_chosen():
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    optimizer = make_optimizer(cameras, sampling={**SPAN_SAMPLING, "t_far": 1.8}, points=scene_cloud())
+    assert optimizer.proxy_range[:, 1].tolist() == [1.8] * NUM_CAMERAS
+    # The explicit far end leaves room: the near end is the plain quartile, not widened.
+    quartiles = contracted_quartiles_by_hand(cameras, scene_cloud(), widen=False)
+    torch.testing.assert_close(optimizer.proxy_range[:, 0], quartiles[:, 0], rtol=0, atol=1e-12)
+    both = make_optimizer(cameras, sampling={"sampler": "frolov", "t_near": 0.3, "t_far": 1.8}, points=scene_cloud())
+    assert both.proxy_range.tolist() == [[0.3, 1.8]] * NUM_CAMERAS
+    reference = compute_preconditioner(
+        both.base_intrinsics_struct(), both.layout, SamplingConfig(num_points=64, t_near=0.3, t_far=1.8)
+    )
+    assert torch.equal(both.precond, reference.matrix.to(both.precond))
+
+
+def test_camp_sampling_ignores_the_scene_points():
+    """CamP's ray distances are never chosen from the scene: the s2camp-camp baseline is unchanged."""
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    with_points = make_optimizer(cameras, points=scene_cloud())
+    without = make_optimizer(cameras)
+    assert torch.equal(with_points.precond, without.precond)
+
+
+def test_refresh_uses_the_stored_range():
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    optimizer = make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
+    set_latent(optimizer, scale=1e-6)
+    refined = optimizer.refined_intrinsics().detach()  # what the refresh computes P at
+    optimizer.refresh(step=20)
+    assert int(optimizer.last_refresh_step) == 20
+    torch.testing.assert_close(optimizer.proxy_range, contracted_quartiles_by_hand(cameras, scene_cloud()))
+    config = optimizer.config
+    expected = compute_preconditioner(
+        refined, optimizer.layout, config.sampling, config.damping, ranges=optimizer.proxy_range
+    )
+    assert torch.equal(optimizer.precond, expected.matrix)
+    fixed = compute_preconditioner(refined, optimizer.layout, config.sampling, config.damping)
+    assert relative(optimizer.precond, fixed.matrix) > 0.01
+
+
+def test_checkpoint_round_trip_keeps_the_range_and_p():
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    saved = make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
+    adam = torch.optim.Adam(latents(saved), lr=LR)
+    train(saved, adam, range(1, 6))
+    state = checkpoint(saved, adam)
+    assert torch.equal(state["pipeline"]["precond_proxy_range"], saved.proxy_range)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # same cameras, same points: the saved P is used as is, silently
+        resumed, _ = resume(state, cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
+    assert not resumed.preconditioner_is_stale
+    assert torch.equal(resumed.precond, saved.precond) and torch.equal(resumed.proxy_range, saved.proxy_range)
+
+
+def test_checkpoint_with_another_range_recomputes_p_without_moving_the_cameras():
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    saved = make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
+    adam = torch.optim.Adam(latents(saved), lr=LR)
+    train(saved, adam, range(1, 6))
+    deltas = saved.camera_deltas().detach()
+    moved_points = scene_cloud(offset=0.3)
+    with pytest.warns(UserWarning, match=r"the proxy range differs from the one its P was computed for \(t_"):
+        resumed, resumed_adam = resume(checkpoint(saved, adam), cameras, sampling=SPAN_SAMPLING, points=moved_points)
+    assert resumed.preconditioner_is_stale
+    assert resumed.proxy_ranges.num_points.tolist() == [512] * NUM_CAMERAS
+    resumed.recompute_stale_preconditioner(step=6, optimizer=resumed_adam)
+    torch.testing.assert_close(resumed.camera_deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
+    new_range = contracted_quartiles_by_hand(cameras, moved_points)
+    assert torch.equal(resumed.precond_proxy_range, resumed.proxy_range)
+    torch.testing.assert_close(resumed.proxy_range, new_range, rtol=0, atol=1e-12)
+    config = resumed.config
+    expected = compute_preconditioner(
+        resumed.base_intrinsics_struct().with_delta(deltas), resumed.layout, config.sampling, config.damping,
+        ranges=new_range,
+    )  # fmt: skip
+    torch.testing.assert_close(resumed.precond, expected.matrix, rtol=1e-9, atol=0)
+
+
+def test_checkpoint_without_recorded_range_recomputes_p():
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    saved = make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
+    adam = torch.optim.Adam(latents(saved), lr=LR)
+    state = checkpoint(saved, adam)
+    del state["pipeline"]["precond_proxy_range"]
+    with pytest.warns(UserWarning, match="the proxy range its P was computed for is not recorded"):
+        resumed, resumed_adam = resume(state, cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
+    resumed.recompute_stale_preconditioner(step=3, optimizer=resumed_adam)
+    assert torch.equal(resumed.precond_proxy_range, resumed.proxy_range)

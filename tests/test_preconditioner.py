@@ -476,3 +476,79 @@ def test_cameras_sharing_intrinsics_share_p_bit_for_bit() -> None:
 def test_chunk_size_is_validated() -> None:
     with pytest.raises(ValueError, match="chunk_size"):
         compute_preconditioner(ROOM, chunk_size=0)
+
+
+# ----------------------------------------------------------------------------------- per-camera proxy ranges
+
+
+def _three_cameras() -> Intrinsics:
+    """Two bitwise-equal room cameras and a distorted one."""
+    return Intrinsics.create(
+        fx=torch.tensor([793.13, 793.13, 410.0]),
+        fy=torch.tensor([793.49, 793.49, 405.0]),
+        cx=torch.tensor([389.25, 389.25, 330.0]),
+        cy=torch.tensor([259.375, 259.375, 210.0]),
+        width=torch.tensor([778.0, 778.0, 640.0]),
+        height=torch.tensor([518.0, 518.0, 420.0]),
+        k1=torch.tensor([0.0, 0.0, -0.03]),
+        k2=torch.tensor([0.0, 0.0, 0.004]),
+    )
+
+
+def test_proxy_points_lie_in_each_cameras_own_range() -> None:
+    ranges = torch.tensor([[0.2, 0.9], [0.6, 1.9], [0.4, 1.5]], dtype=torch.float64)
+    points = sample_proxy_points(_three_cameras(), SamplingConfig(num_points=300), ranges=ranges)
+    radius = points.norm(dim=-1)
+    t = torch.where(radius <= 1.0, radius, 2.0 - 1.0 / radius)  # paper eq. 10, written out
+    assert (t >= ranges[:, :1] - 1e-12).all() and (t <= ranges[:, 1:] + 1e-12).all()
+    assert (t.amin(dim=-1) < ranges[:, 0] + 0.05).all() and (t.amax(dim=-1) > ranges[:, 1] - 0.05).all()
+
+
+def test_a_range_given_for_every_camera_is_the_fixed_range_bit_for_bit() -> None:
+    intrinsics = _three_cameras()
+    fixed = compute_preconditioner(intrinsics, sampling=SamplingConfig(t_near=0.4, t_far=1.5))
+    default = compute_preconditioner(intrinsics)  # both ends unset and no scene: the fallback (0.4, 1.5)
+    ranges = torch.tensor([[0.4, 1.5]], dtype=torch.float64).expand(3, 2)
+    per_camera = compute_preconditioner(intrinsics, ranges=ranges)
+    for result in (default, per_camera):
+        assert torch.equal(result.matrix, fixed.matrix) and torch.equal(result.gram, fixed.gram)
+
+
+def test_the_range_enters_p_and_the_same_range_gives_the_same_bits() -> None:
+    intrinsics = _three_cameras()
+    ranges = torch.tensor([[0.4, 1.5], [0.6, 1.2], [0.3, 1.8]], dtype=torch.float64)
+    result = compute_preconditioner(intrinsics, ranges=ranges)
+    again = compute_preconditioner(intrinsics, ranges=ranges.clone())
+    assert torch.equal(result.matrix, again.matrix) and torch.equal(result.inverse, again.inverse)
+    # Cameras 0 and 1 have the same intrinsics but different ranges: they are no longer shared.
+    assert (result.matrix[0] - result.matrix[1]).abs().max() > 1e-3 * result.matrix[0].abs().max()
+    # Each camera's P is its own range's, whatever the batch or the chunking.
+    for camera in range(3):
+        alone = compute_preconditioner(intrinsics[camera : camera + 1], ranges=ranges[camera : camera + 1])
+        assert torch.equal(alone.matrix[0], result.matrix[camera])
+    chunked = compute_preconditioner(intrinsics, ranges=ranges, chunk_size=1, share_intrinsics=False)
+    assert torch.equal(chunked.matrix, result.matrix) and torch.equal(chunked.gram, result.gram)
+
+
+def test_per_camera_ranges_reach_fisheye_proxy_points() -> None:
+    fisheye = Intrinsics.create(
+        fx=torch.tensor([200.0, 200.0]), fy=200.0, cx=320.0, cy=240.0, width=640, height=480, model="fisheye"
+    )
+    ranges = torch.tensor([[0.3, 0.8], [1.2, 1.9]], dtype=torch.float64)
+    radius = sample_proxy_points(fisheye, SamplingConfig(num_points=200), ranges=ranges).norm(dim=-1)
+    t = torch.where(radius <= 1.0, radius, 2.0 - 1.0 / radius)
+    assert (t >= ranges[:, :1] - 1e-12).all() and (t <= ranges[:, 1:] + 1e-12).all()
+
+
+@pytest.mark.parametrize(
+    ("ranges", "sampling", "message"),
+    [
+        (torch.tensor([[0.4, 1.5]]), SamplingConfig(), r"^ranges must have shape \[3, 2\]"),
+        (torch.tensor([[0.4, 1.5]] * 2 + [[0.9, 0.9]]), SamplingConfig(), r"^ranges t_far - t_near must lie in"),
+        (torch.tensor([[0.4, 2.0]] * 3), SamplingConfig(), r"^ranges t_far must lie in \(-inf, 2\)"),
+        (torch.tensor([[0.4, 1.5]] * 3), SamplingConfig(sampler="camp-random"), "^ranges must be None for sampler"),
+    ],
+)
+def test_bad_ranges_are_named(ranges: torch.Tensor, sampling: SamplingConfig, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        compute_preconditioner(_three_cameras(), sampling=sampling, ranges=ranges.double())

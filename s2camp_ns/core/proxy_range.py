@@ -248,8 +248,9 @@ def _moment_grid(radial: str, min_width: float) -> tuple[Tensor, Tensor, Tensor,
 
     Radius Q_r(u) of the radial law (paper eq. 12) at midpoint nodes u, Euclidean d by the inverse contraction (eq. 10).
     """
-    steps = round((T_FAR_MAX - T_NEAR_MIN) / GRID_STEP)
-    values = (round(T_NEAR_MIN / GRID_STEP) + torch.arange(steps + 1, dtype=torch.float64)) * GRID_STEP
+    per_unit = round(1.0 / GRID_STEP)  # grid values k / 100: correctly rounded, 0.3 is the double nearest 0.3
+    indices = torch.arange(round(T_NEAR_MIN * per_unit), round(T_FAR_MAX * per_unit) + 1, dtype=torch.float64)
+    values = indices / per_unit
     t0, t1 = torch.meshgrid(values, values, indexing="ij")
     keep = t1 - t0 >= min_width - 1e-9
     t0, t1 = t0[keep], t1[keep]
