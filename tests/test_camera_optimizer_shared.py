@@ -178,3 +178,40 @@ def test_images_of_one_camera_must_share_the_image_size() -> None:
     )
     with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         make_optimizer(cameras=make_cameras(width=[64, 64, 80, 64]))
+
+
+def test_proxy_range_pools_the_images_of_each_physical_camera() -> None:
+    """A cloud near image 0: camera A's images 0 and 2 see it at about 1.4 and 2.6, camera B's images 1 and 3 at
+    about 2.1. Each camera gets one range, from its images' distances pooled (numpy quartiles, 2 - 1/d)."""
+    import numpy as np
+
+    from s2camp_ns.core.proxy_range import ProxyRangeConfig
+    from s2camp_ns.core.shared_intrinsics import compute_shared_preconditioner
+
+    axis = torch.linspace(-0.2, 0.2, 6, dtype=torch.float64)
+    cloud = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)
+    cloud = cloud + torch.tensor([0.6, 0.0, 0.4], dtype=torch.float64)
+    cameras = make_cameras()
+    config = S2CampCameraOptimizerConfig(
+        sampling=SamplingConfig(num_points=64, auto_range=ProxyRangeConfig(rule="span"))
+    )
+    optimizer = config.setup(num_cameras=4, device="cpu")
+    optimizer.set_camera_groups(CAMERA_IDS)
+    optimizer.set_train_cameras(cameras, points=cloud)
+    assert optimizer.proxy_ranges.num_points.tolist() == [2 * 216, 2 * 216]
+    centres = cameras.camera_to_worlds[:, :, 3].double()
+    expected = []
+    for images in ([0, 2], [1, 3]):
+        distances = torch.cat([(cloud - centres[i]).norm(dim=-1) for i in images]).numpy()
+        low, high = (d if d <= 1.0 else 2.0 - 1.0 / d for d in np.percentile(distances, [25.0, 75.0]))
+        if high - low < 0.2:
+            low, high = (low + high) / 2 - 0.1, (low + high) / 2 + 0.1
+        expected.append([low, high])
+    expected = torch.tensor(expected, dtype=torch.float64)[optimizer.camera_of_image]
+    torch.testing.assert_close(optimizer.proxy_range, expected, rtol=0, atol=1e-12)
+    first = torch.tensor([0, 1])
+    reference = compute_shared_preconditioner(
+        optimizer.base_intrinsics_struct()[first], optimizer.layout, config.sampling, config.damping,
+        ranges=optimizer.proxy_range[first],
+    )  # fmt: skip
+    assert torch.equal(optimizer.precond, reference.matrix[optimizer.camera_of_image])

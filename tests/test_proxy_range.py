@@ -244,3 +244,96 @@ def test_bad_input_is_named(kwargs: dict, message: str) -> None:
     arguments = {"points": in_view(DISTANCES), "camera_of_image": ONE_CAMERA, **kwargs}
     with pytest.raises(ValueError, match=message):
         proxy_ranges(arguments.pop("points"), IDENTITY, CAMERA, arguments.pop("camera_of_image"), **arguments)
+
+
+# ------------------------------------------------------------------------------------- through the pipeline
+
+
+def _visible_distances_by_hand(scene, names: list[str]) -> np.ndarray:
+    """Distances (in the scene's own units) of the scene's sparse points from the centres of the images ``names``
+    that see them: in front and inside the image by pycolmap's own projection (distortion included)."""
+    import json
+
+    import pycolmap
+
+    reconstruction = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    xyz = np.stack([point.xyz for point in reconstruction.points3D.values()])
+    info = json.loads((scene / "scene_info.json").read_text())
+    camera = reconstruction.cameras[1]
+    out = []
+    for image in info["images"]:
+        if image["name"] not in names:
+            continue
+        pose = np.asarray(image["cam_from_world"])
+        in_camera = xyz @ pose[:, :3].T + pose[:, 3]
+        front = in_camera[:, 2] > 0
+        pixels = np.asarray(camera.img_from_cam(in_camera[front]))
+        inside = (pixels[:, 0] >= 0) & (pixels[:, 0] <= camera.width) & (pixels[:, 1] >= 0)
+        inside &= pixels[:, 1] <= camera.height
+        out.append(np.linalg.norm(in_camera[front][inside], axis=1))
+    return np.concatenate(out)
+
+
+def _tiny_pipeline(scene, sampling):
+    from conftest import lpips_offline
+
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+    from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.nerfstudio.model import S2CampModelConfig
+    from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
+
+    model = S2CampModelConfig(
+        num_levels=2,
+        log2_hashmap_size=10,
+        hidden_dim=8,
+        hidden_dim_color=8,
+        num_nerf_samples_per_ray=8,
+        num_proposal_samples_per_ray=(8, 8),
+        proposal_net_args_list=[
+            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
+            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
+        ],
+        implementation="torch",
+        camera_optimizer=S2CampCameraOptimizerConfig(sampling=sampling),
+    )
+    config = S2CampPipelineConfig(
+        datamanager=S2CampDataManagerConfig(
+            dataparser=S2CampDataParserConfig(data=scene), train_num_rays_per_batch=64, eval_num_rays_per_batch=64
+        ),
+        model=model,
+    )
+    with lpips_offline():
+        return config.setup(device="cpu", test_mode="val")
+
+
+def test_pipeline_gives_the_optimizer_the_scenes_points(tiny_scene) -> None:
+    """ns-train's path: data parser (normalized world), pipeline, model, camera optimizer. With the "span" rule the
+    chosen range is the contracted quartiles of what the training images see, computed here from the scene's own
+    COLMAP model and pycolmap's projection, scaled by the data parser's normalization."""
+    from s2camp_ns.core.preconditioner import SamplingConfig
+
+    pipeline = _tiny_pipeline(tiny_scene, SamplingConfig(num_points=64, auto_range=SPAN))
+    optimizer = pipeline.model.camera_optimizer
+    outputs = pipeline.datamanager.train_dataparser_outputs
+    names = [path.name for path in outputs.image_filenames]
+    distances = _visible_distances_by_hand(tiny_scene, names) * float(outputs.dataparser_scale)
+    low, high = (contracted(d) for d in np.percentile(distances, [25.0, 75.0]))
+    assert optimizer.num_physical_cameras == 1 and optimizer.proxy_ranges.num_points.tolist() == [len(distances)]
+    expected = torch.tensor([[low, high]], dtype=torch.float64).expand(len(names), 2)
+    # nerfstudio hands over float32 points and cameras: agreement to float32 rounding, not to the last bit.
+    torch.testing.assert_close(optimizer.proxy_range, expected, rtol=0, atol=1e-6)
+    assert torch.equal(optimizer.precond_proxy_range, optimizer.proxy_range)
+
+
+def test_pipeline_default_range_comes_from_the_scene_and_an_explicit_one_wins(tiny_scene) -> None:
+    from s2camp_ns.core.preconditioner import SamplingConfig
+
+    chosen = _tiny_pipeline(tiny_scene, SamplingConfig(num_points=64)).model.camera_optimizer
+    near, far = chosen.proxy_range[0].tolist()
+    assert not chosen.proxy_ranges.fallback.any() and (near, far) != (0.4, 1.5)
+    assert bool((chosen.proxy_range == chosen.proxy_range[0]).all())  # one physical camera: one range
+    # Both ends on the 0.01 grid of the moment rule.
+    assert round(near * 100) == pytest.approx(near * 100, abs=1e-9) and round(far * 100) == pytest.approx(far * 100)
+    fixed = _tiny_pipeline(tiny_scene, SamplingConfig(num_points=64, t_far=1.8)).model.camera_optimizer
+    assert fixed.proxy_range[:, 1].tolist() == [1.8] * fixed.num_cameras
