@@ -60,6 +60,14 @@ class RecoveryConfig:
         return replace(self, geometric=geometric)
 
 
+def _s2camp_range(sampling) -> str:
+    """How ns-train's S2CamP chooses its proxy range: from the scene's points unless the config fixes it."""
+    near, far = sampling.fixed_range()
+    if sampling.auto:
+        return f"chosen per camera from the scene's points (s2camp_ns/core/proxy_range.py; [{near:g}, {far:g}] without)"
+    return f"in [{near:g}, {far:g}]"
+
+
 def _camp_sampling() -> str:
     c = CAMP_SAMPLING
     return (
@@ -228,7 +236,7 @@ def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
         f"{p.iterations} iterations per variant from the perturbed cameras (seed {p.perturbation_seed}; sigma "
         f"position {p.sigma_position:g}, look-at {p.sigma_look_at:g}, focal {p.sigma_focal_length:g}, dolly "
         f"{p.sigma_dolly_z:g}), camera lr {p.camera_lr:g} -> {p.camera_lr_final:g} for every variant; P refreshed "
-        f"every {p.refresh_every} iterations for s2camp; proxy frustum t in [{sampling.t_near:g}, {sampling.t_far:g}] "
+        f"every {p.refresh_every} iterations for s2camp; proxy frustum t {_s2camp_range(sampling)} "
         f"(contracted) for S2CamP, CamP's published sampling for CamP ({_camp_sampling()}); CamP over seeds "
         f"{list(p.camp_seeds)}. Errors as in tier 1, "
         f"evaluated on checkpoints every {p.checkpoint_every} iterations; start errors {starts}. Held-out views: "
@@ -362,7 +370,7 @@ def _tier1_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
         "error of the "
         f"scene's 3D points (pixels / max(W, H)); lr {g.lr:g} -> {g.lr_final:g} (exponential) for raw and the "
         f"whitened variants, {g.so3xr3_lr:g} -> {g.so3xr3_lr_final:g} for so3xr3; P refreshed every "
-        f"{g.refresh_every} iterations for s2camp; proxy frustum t in [{g.sampling.t_near:g}, {g.sampling.t_far:g}] "
+        f"{g.refresh_every} iterations for s2camp; proxy frustum t in {list(g.sampling.fixed_range())} "
         f"(contracted) for S2CamP, CamP's published sampling for CamP ({_camp_sampling()}); CamP averaged over seeds "
         f"{list(g.camp_seeds)}; perturbation seed "
         f"{g.perturbation_seed} (CamP protocol, distortion zeroed). Errors after a similarity alignment to the true "

@@ -17,6 +17,7 @@ REQUIRED_KEYS = {
     "scaling": {"kind"},
     "recovery": {"tier", "scene", "variant", "rot_err", "pos_err", "focal_err", "sec_per_iter"},
     "train-time": {"kind", "method", "sec_per_iter"},
+    "proxy-range": {"scene", "range", "t_near", "t_far", "gram_error", "cond_whitened", "cond_content"},
 }
 REPORTS = {
     "dispersion": "dispersion.md",
@@ -25,6 +26,7 @@ REPORTS = {
     "scaling": "scaling.md",
     "recovery": "recovery.md",
     "train-time": "train-time.md",
+    "proxy-range": "proxy-range.md",
 }
 
 

@@ -50,19 +50,16 @@ def reference_gram(
         draw = None
     else:
         draw = unit_cube_points("sobol", num_points, seed=seed)
+    t_near, t_far = sampling.fixed_range()  # the reference is for one range: the sampling's own (no scene here)
     total = None
     valid = torch.zeros(intrinsics.num_cameras, dtype=torch.float64, device=bounds.device)
     for start in range(0, num_points, chunk):
         size = min(chunk, num_points - start)
         if draw is None:
-            points = camp_frustum_points(
-                intrinsics, size, sampling.t_near, sampling.t_far, sampling.ladder_p, generator=generator
-            )
+            points = camp_frustum_points(intrinsics, size, t_near, t_far, sampling.ladder_p, generator=generator)
         else:
             unit = draw[start : start + size].to(bounds.device)
-            points = sample_frustum(
-                unit, bounds, sampling.t_near, sampling.t_far, sampling.transform, sampling.radial
-            ).camera
+            points = sample_frustum(unit, bounds, t_near, t_far, sampling.transform, sampling.radial).camera
         _, jacobian, mask = projection_jacobian(points, intrinsics, layout)
         jacobian = jacobian / intrinsics.image_scale()[:, None, None, None]
         jacobian = jacobian * mask[..., None, None].to(jacobian.dtype)
