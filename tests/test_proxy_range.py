@@ -337,3 +337,25 @@ def test_pipeline_default_range_comes_from_the_scene_and_an_explicit_one_wins(ti
     assert round(near * 100) == pytest.approx(near * 100, abs=1e-9) and round(far * 100) == pytest.approx(far * 100)
     fixed = _tiny_pipeline(tiny_scene, SamplingConfig(num_points=64, t_far=1.8)).model.camera_optimizer
     assert fixed.proxy_range[:, 1].tolist() == [1.8] * fixed.num_cameras
+
+
+def test_large_scenes_are_thinned_deterministically() -> None:
+    """max_points keeps every k-th point (k = ceil(M / max_points)); max_images keeps evenly spread images."""
+    config = ProxyRangeConfig(rule="span", max_points=7, min_points=1)
+    ranges = proxy_ranges(in_view(DISTANCES), IDENTITY, CAMERA, ONE_CAMERA, config)
+    kept = np.asarray(DISTANCES[::3])  # 21 points, k = 3: 7 kept
+    low, high = np.percentile(kept, [25.0, 75.0])
+    assert ranges.num_points.tolist() == [7]
+    assert (ranges.t_near.item(), ranges.t_far.item()) == (
+        pytest.approx(contracted(low), abs=1e-12),
+        pytest.approx(contracted(high), abs=1e-12),
+    )
+    # Three images of one camera, max_images 2: images 0 and 1 (k * 3 // 2 for k = 0, 1); image 2 looks the other
+    # way at points nobody else sees, and is left out.
+    flipped = torch.tensor([[-1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]], dtype=torch.float64)
+    c2w = torch.stack([IDENTITY[0], IDENTITY[0], flipped])
+    points = torch.cat([in_view(DISTANCES), -in_view([5.0] * 30)])
+    config = ProxyRangeConfig(rule="span", max_images=2)
+    thinned = proxy_ranges(points, c2w, cameras(3), torch.zeros(3, dtype=torch.long), config)
+    assert thinned.num_points.tolist() == [42]
+    assert thinned.t_near.item() == pytest.approx(1.0, abs=1e-12) and thinned.t_far.item() == pytest.approx(1.5)

@@ -124,6 +124,11 @@ class ProxyRangeConfig:
     """Smallest t_far - t_near, contracted units."""
     min_points: int = 20
     """Fewest visible points (pooled over a physical camera's images) for a chosen range; fewer: the defaults."""
+    max_points: int = 50_000
+    """Scene points used at most: a larger scene keeps every k-th point (k = ceil(M / max_points)), so the start-up
+    cost stays near images x max_points projections (about 0.5 us each on one CPU thread)."""
+    max_images: int = 100
+    """Images used at most per physical camera (evenly spread over its images, in their order)."""
 
     def validate(self) -> None:
         if self.rule not in RULES:
@@ -134,6 +139,8 @@ class ProxyRangeConfig:
         check_range("margin", self.margin, low=0.0, high=1.0)
         check_range("min_width", self.min_width, low=0.0, high=T_FAR_MAX - T_NEAR_MIN)
         check_positive_int("min_points", self.min_points)
+        check_positive_int("max_points", self.max_points)
+        check_positive_int("max_images", self.max_images)
 
 
 @dataclass(frozen=True)
@@ -276,6 +283,13 @@ def match_inverse_moments(
     return float(t0[best]), float(t1[best])
 
 
+def _spread(items: list[int], count: int) -> list[int]:
+    """At most ``count`` of ``items``, evenly spread and in order (all of them when there are few enough)."""
+    if len(items) <= count:
+        return items
+    return [items[(k * len(items)) // count] for k in range(count)]
+
+
 def visible_distances(
     points: Float[Tensor, "m 3"], c2w: Float[Tensor, "n 3 4"], intrinsics: Intrinsics
 ) -> list[Float[Tensor, " v"]]:
@@ -340,9 +354,14 @@ def proxy_ranges(
         if points.ndim != 2 or points.shape[-1] != 3:
             raise ValueError(f"points must have shape [M, 3], got {tuple(points.shape)}")
         check_finite("points", points.detach())
-        per_image = visible_distances(points.cpu(), c2w.cpu(), intrinsics.to(device="cpu"))
+        points = points.detach().cpu()
+        points = points[:: -(-points.shape[0] // config.max_points)]  # every k-th point, k = ceil(M / max_points)
+        images_of = [_spread(torch.nonzero(groups == camera)[:, 0].tolist(), config.max_images) for camera in range(c)]
+        used = torch.tensor(sorted({i for images in images_of for i in images}), dtype=torch.long)
+        seen = visible_distances(points, c2w.cpu()[used], intrinsics.to(device="cpu")[used])
+        per_image = dict(zip(used.tolist(), seen, strict=True))
         for camera in range(c):
-            images = torch.nonzero(groups == camera)[:, 0].tolist()
+            images = images_of[camera]
             pooled = torch.cat([per_image[i] for i in images]) if images else torch.zeros(0, dtype=torch.float64)
             counts[camera] = pooled.shape[0]
             if pooled.shape[0] < config.min_points:
