@@ -359,7 +359,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         config's range otherwise. Physical cameras: ``camera_of_image`` when known, else identical intrinsics."""
         sampling = self.config.sampling
         n = self.num_cameras
-        if not sampling.auto:
+        if not (sampling.auto and self.enabled and self.config.precondition):  # P = I needs no range
             return torch.tensor(sampling.fixed_range(), dtype=torch.float64).expand(n, 2).clone()
         groups = self.camera_of_image if self.groups_known or self.shared else group_identical_intrinsics(cameras)
         groups = groups.cpu()
@@ -421,7 +421,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
         the cameras themselves are right (phi = P_old^-1 phi_hat is what was learned), but P does not whiten their
         Jacobian. Before the next training step, ``recompute_stale_preconditioner`` recomputes P at the current
         refined intrinsics and re-expresses the latents and Adam's moments, as a refresh does (nerfstudio loads
-        Adam's state after the pipeline, so this cannot happen at load time). P depends on the intrinsics only.
+        Adam's state after the pipeline, so this cannot happen at load time). P depends on the intrinsics and the proxy
+        range only; a checkpoint whose range differs (other scene points, another ``sampling.t-far``) is treated alike.
         """
         self._stale_preconditioner = None
         same_intrinsics = torch.equal(self.precond_base_intrinsics, self.base_intrinsics)

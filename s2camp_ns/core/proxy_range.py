@@ -19,10 +19,10 @@ chosen from these distances by one of three rules (``rule``):
     on the direction only. The proxy moments of a range (t0, t1) follow from the radial law alone (eq. 12: radius
     Q_r(u1), u1 uniform; Euclidean d by the inverse of eq. 10), computed by the midpoint rule on ``_MOMENT_NODES``
     nodes; (t0, t1) is the point of a 0.01 grid in [``T_NEAR_MIN``, ``T_FAR_MAX``] (width >= ``min_width``) that
-    minimises (log M1/m1)^2 + (log M2/m2)^2. The distances are first clipped to their ``clip_quantile`` and
-    1 - ``clip_quantile`` quantiles, so that a few stray points at the lens (a mismatched track) cannot dominate
-    E[1/d^2]; points far away (the sky, a background) add almost nothing, as they add almost nothing to the
-    translation columns of the real content.
+    minimises (log M1/m1)^2 + (log M2/m2)^2, M the proxy's moments and m the content's. The distances are first
+    clipped to their ``clip_quantile`` and 1 - ``clip_quantile`` quantiles, so that a few stray points at the lens
+    (a mismatched track) cannot dominate E[1/d^2]; points far away (the sky, a background) add almost nothing, as
+    they add almost nothing to the translation columns of the real content.
 ``"fit"``
     The proxy radial law is matched to the content's at two quantiles c_a, c_b of the contracted distances (levels
     a < b: ``low_quantile``, ``high_quantile``; linear interpolation between order statistics): its CDF F(t) (paper
@@ -52,7 +52,9 @@ docs/benchmarks/recovery.md); the result marks those cameras (``ProxyRanges.fall
 its log. An explicit ``t_near`` or ``t_far`` overrides that end for every camera; the other end is still chosen
 (clamped to keep ``min_width``).
 
-Everything is float64 and deterministic (sorting, no sampling).
+Large scenes are thinned before projecting: at most ``max_points`` points (every k-th) and ``max_images`` images per
+physical camera (evenly spread). Everything is float64 and deterministic (strided thinning, sorting, a grid search;
+no random numbers).
 """
 
 from __future__ import annotations
