@@ -61,13 +61,15 @@ SCENES = {
     "near": MakeSceneConfig(num_cameras=16, width=96, height=72, fov="narrow", ring_radius=2.5, seed=2),
     "far": MakeSceneConfig(num_cameras=16, width=96, height=72, fov="narrow", ring_radius=8.0, seed=3),
 }
-"""narrow / wide: the recovery benchmark's scenes (benchmarks/recovery_photometric.py); near: the camera ring just
-outside the objects (content close, the background sphere far); far: the ring twice as wide (content far)."""
+"""narrow / wide: the recovery benchmark's scenes (benchmarks/recovery_photometric.py). The data parser scales the
+camera ring to radius about 1, so the others differ in where the content sits relative to it: near, the ring just
+outside the objects (objects from about 0.3 normalized units, the background sphere at 16); far, the ring twice as
+wide (objects small, at 0.8 - 1.2, the background at 5)."""
 SCENE_NOTES = {
     "narrow": "recovery scene, 52 deg",
     "wide": "recovery scene, 80 deg",
-    "near": "ring radius 2.5: objects close, background far",
-    "far": "ring radius 8: objects far",
+    "near": "ring radius 2.5: objects close, background at 16",
+    "far": "ring radius 8: objects small, background at 5",
 }
 QUICK_SCENE_SIZE = {"num_cameras": 8, "width": 48, "height": 36}
 SWEEP = {
