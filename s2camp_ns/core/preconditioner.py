@@ -75,8 +75,8 @@ class SamplingConfig:
     look alike). A number overrides the choice for every camera. For "camp-random" the far distance along the ray
     (any value above ``t_near``; None: 1.5; ``CAMP_SAMPLING`` sets CamP's 1000)."""
     auto_range: ProxyRangeConfig = field(default_factory=ProxyRangeConfig)
-    """How an unset ``t_near`` / ``t_far`` is chosen from the scene's points: distance quantiles of the points each
-    physical camera sees, contracted (paper eq. 10) and clamped (s2camp_ns/core/proxy_range.py)."""
+    """How an unset ``t_near`` / ``t_far`` is chosen from the points each physical camera sees: by default the range
+    whose proxy points have their mean 1/d and 1/d^2 (paper eqs. 10, 12), clamped (s2camp_ns/core/proxy_range.py)."""
     seed: int = 0
     """Seed of the random and scrambled samplers; ignored by the deterministic lattice."""
     ladder_p: float = CAMP_LADDER_P
