@@ -552,3 +552,17 @@ def test_per_camera_ranges_reach_fisheye_proxy_points() -> None:
 def test_bad_ranges_are_named(ranges: torch.Tensor, sampling: SamplingConfig, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         compute_preconditioner(_three_cameras(), sampling=sampling, ranges=ranges.double())
+
+
+def test_a_sampling_config_saved_before_auto_range_existed_loads_with_its_default() -> None:
+    """nerfstudio reloads config.yml with PyYAML, which builds the object from the saved fields only: a run saved
+    before ``auto_range`` existed (with its explicit 0.4 / 1.5) must still load, and keep its fixed range."""
+    import yaml
+
+    saved = yaml.dump(SamplingConfig(t_near=0.4, t_far=1.5))
+    old = "\n".join(line for line in saved.splitlines() if "auto_range" not in line and not line.startswith("  "))
+    loaded = yaml.load(old, Loader=yaml.Loader)
+    assert "auto_range" not in old and loaded.auto_range.rule == "moments"
+    assert (loaded.t_near, loaded.t_far, loaded.auto) == (0.4, 1.5, False)
+    loaded.validate()
+    assert yaml.load(saved, Loader=yaml.Loader) == SamplingConfig(t_near=0.4, t_far=1.5)

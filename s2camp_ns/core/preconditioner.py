@@ -12,7 +12,7 @@ keeps P finite and invertible for parameters that the proxy points cannot observ
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from typing import Literal
 
 import torch
@@ -81,6 +81,16 @@ class SamplingConfig:
     """Seed of the random and scrambled samplers; ignored by the deterministic lattice."""
     ladder_p: float = CAMP_LADDER_P
     """Exponent of the power-ladder ray warp of "camp-random" (negative; CamP's -1.5); ignored by the others."""
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickling and nerfstudio's config.yml (PyYAML builds the object from its saved fields): a config saved
+        before a field existed gets that field's default (``auto_range``, added with the scene-chosen range)."""
+        defaults = {
+            f.name: f.default_factory() if f.default_factory is not MISSING else f.default
+            for f in fields(self)
+            if f.default is not MISSING or f.default_factory is not MISSING
+        }
+        self.__dict__.update({**defaults, **state})
 
     def validate(self) -> None:
         check_positive_int("num_points", self.num_points)
