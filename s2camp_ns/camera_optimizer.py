@@ -44,7 +44,7 @@ from jaxtyping import Float, Int
 from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
-from nerfstudio.utils.rich_utils import CONSOLE
+from rich.console import Console
 from torch import Tensor, nn
 
 from s2camp_ns.core.camera import (
@@ -70,6 +70,9 @@ from s2camp_ns.core.validation import check_range
 
 PIXEL_KEY = "s2camp_pixels"
 """RayBundle metadata key of the continuous pixel coordinates (u, v) = (x + 0.5, y + 0.5) of each training ray."""
+LOG = Console(stderr=True, width=120)
+"""Start-up notes of the optimizer (the chosen proxy range): on stderr, so a caller's stdout (JSON of
+``s2camp-bench``) stays clean."""
 TRAIN_CAMERA_KEY = "s2camp_train_camera_index"
 """Cameras metadata key marking a camera as training camera i: the model then renders it fully refined."""
 
@@ -380,7 +383,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         fell_back = int(ranges.fallback.sum())
         chosen = "t_near " + _span(ranges.t_near) + ", t_far " + _span(ranges.t_far)
         if num_points == 0:
-            CONSOLE.print(
+            LOG.print(
                 "S2CamP proxy range: the scene has no points (dataparser metadata 'points3D_xyz'), so every camera "
                 f"uses the fixed contracted range ({fixed[0]:g}, {fixed[1]:g}) (sampling.t-near / t-far set it)"
             )
@@ -391,7 +394,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
                 f"; {fell_back} camera(s) see fewer than {sampling.auto_range.min_points} points and use the fixed "
                 f"range ({fixed[0]:g}, {fixed[1]:g})"
             )
-        CONSOLE.print(message)
+        LOG.print(message)
 
     # ---------------------------------------------------------------------------------------------- checkpoints
     def _load_from_state_dict(

@@ -1193,3 +1193,17 @@ def test_checkpoint_without_recorded_range_recomputes_p():
         resumed, resumed_adam = resume(state, cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
     resumed.recompute_stale_preconditioner(step=3, optimizer=resumed_adam)
     assert torch.equal(resumed.precond_proxy_range, resumed.proxy_range)
+
+
+def test_the_range_and_its_fallback_are_logged(capsys: pytest.CaptureFixture):
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    make_optimizer(cameras, sampling={"sampler": "frolov"})
+    err = " ".join(capsys.readouterr().err.split())
+    assert "the scene has no points" in err and "fixed contracted range (0.4, 1.5)" in err
+    make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
+    captured = capsys.readouterr()
+    err = " ".join(captured.err.split())
+    assert "S2CamP proxy range from 512 scene points, 3 physical cameras" in err and captured.out == ""
+    make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud()[:10])  # 10 < min_points 20
+    err = " ".join(capsys.readouterr().err.split())
+    assert "3 camera(s) see fewer than 20 points and use the fixed range (0.4, 1.5)" in err
