@@ -14,6 +14,7 @@ from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
 from .lattice_search import LatticeSearchConfig
 from .recovery import RecoveryConfig
+from .robustness import RobustnessConfig
 from .scaling import ScalingConfig
 from .shared_intrinsics import SharedIntrinsicsConfig
 from .speed import SpeedConfig
@@ -27,6 +28,7 @@ MODULES = {
     ScalingConfig: "scaling",
     TrainTimeConfig: "train_time",
     SharedIntrinsicsConfig: "shared_intrinsics",
+    RobustnessConfig: "robustness",
 }
 """The benchmarks ``s2camp-bench all`` runs."""
 TOOLS = {LatticeSearchConfig: "lattice_search"}
@@ -49,6 +51,7 @@ Command = Union[
     Annotated[ScalingConfig, tyro.conf.subcommand("scaling")],
     Annotated[TrainTimeConfig, tyro.conf.subcommand("train-time")],
     Annotated[SharedIntrinsicsConfig, tyro.conf.subcommand("shared-intrinsics")],
+    Annotated[RobustnessConfig, tyro.conf.subcommand("robustness")],
     Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]
