@@ -73,12 +73,12 @@ def _scene(num_cameras: int, width: int, height: int, fov: float, ring_radius: f
 
 SCENES: dict[str, RobustnessScene] = {
     "small-narrow-far": RobustnessScene(
-        _scene(8, 48, 36, 40.0, 7.0, seed=0), 40.0, 0,
-        "48x36 px, 40 deg, 8 images, cameras 7 units from the centre: distant objects, shallow depth range",
+        _scene(16, 48, 36, 40.0, 7.0, seed=0), 40.0, 0,
+        "48x36 px, 40 deg, 16 images, cameras 7 units from the centre: distant objects, shallow depth range",
     ),
     "large-wide": RobustnessScene(
-        _scene(16, 192, 144, 100.0, 4.0, seed=1), 100.0, 1,
-        "192x144 px (4x the width of small-narrow-far), 100 deg, 16 images, cameras 4 units out",
+        _scene(8, 192, 144, 100.0, 4.0, seed=1), 100.0, 1,
+        "192x144 px (4x the width of small-narrow-far), 100 deg, 8 images, cameras 4 units out",
     ),
     "near-deep": RobustnessScene(
         _scene(12, 96, 72, 70.0, 2.6, seed=2), 70.0, 2,
@@ -86,7 +86,10 @@ SCENES: dict[str, RobustnessScene] = {
     ),
 }
 """The background sphere has radius 40 (``s2camp_ns.scene.procedural``); the foreground objects lie within 1.8 of
-the centre, so the ring radius sets the depth range each camera sees."""
+the centre, so the ring radius sets the depth range each camera sees. The cameras sit on a full ring, so the number
+of images times the field of view is how often the background is covered: the narrow scene gets the most images
+(with 8 images of 40 degrees a held-out view sees background no training view saw, and its PSNR stayed at 14.7 dB
+from 20 to 200 iterations while the training PSNR rose to 29.5), the wide one the fewest."""
 STARTS = ("accurate", "perturbed")
 VARIANTS = ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp")
 METHODS = {"off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp"}
@@ -335,7 +338,8 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfi
         "eval_seconds": result["eval_seconds"],
         "sec_per_iter": seconds_per_iteration(folder),
     }
-    shutil.rmtree(folder / "nerfstudio_models", ignore_errors=True)
+    for checkpoints in ("nerfstudio_models", "nerfstudio_models.partial"):  # the trainer's atomic-save folder too
+        shutil.rmtree(folder / checkpoints, ignore_errors=True)
     with _ROWS_LOCK, open(root / ROWS_FILE, "a", encoding="utf8") as rows_file:
         rows_file.write(json.dumps(row) + "\n")
     log(
