@@ -238,6 +238,7 @@ def _camera_metrics(model, points, c2w_gl, intrinsics) -> dict[str, float]:
         "pos_err": errors["pos_err_mean"],
         "focal_err": errors["focal_err_mean"],
         "drift_px": drift.rms_px,
+        "drift_behind": drift.behind,
     }
 
 
@@ -272,7 +273,7 @@ def evaluate_run(run: Path, alignment: AlignmentConfig) -> dict:
     points = pipeline.datamanager.train_dataparser_outputs.metadata["points3D_xyz"].to(torch.float64)
     start_cameras = model._train_cameras
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # camera_errors warns about nothing here; drift about points behind
+        warnings.simplefilter("ignore")  # the drift's warning about points behind a camera: counted in the row
         start = _camera_metrics(
             model, points, start_cameras.camera_to_worlds.to(torch.float64), intrinsics_from_cameras(start_cameras)
         )
@@ -329,8 +330,8 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfi
     folder = run_folder(spec, runs)
     result = pool.submit(evaluate_run, folder, config.alignment).result()
     row = {"scene": spec.scene, "start": spec.start, "variant": spec.variant, "seed": spec.seed}
-    row |= {key: result[key] for key in (*METRICS, "psnr_unaligned")}
-    row |= {f"start_{key}": result[f"start_{key}"] for key in ERRORS}
+    row |= {key: result[key] for key in (*METRICS, "psnr_unaligned", "drift_behind")}
+    row |= {f"start_{key}": result[f"start_{key}"] for key in (*ERRORS, "drift_behind")}
     row |= {
         "iterations": config.iterations,
         "eval_views": result["eval_views"],
@@ -562,7 +563,12 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         f"{config.workers} runs side by side"
     )
     minutes = getattr(run, "minutes", None)
-    if minutes is not None:
+    if config.rows_from is not None:
+        seed_count = len({row["seed"] for row in rows})
+        timing += f"; rows read from `{config.rows_from.name}` of an earlier run ({seed_count} seed(s)"
+        stopped = f"; the command runs {config.seeds}: that run was stopped early"
+        timing += ")" if seed_count >= config.seeds else stopped + ")"
+    elif minutes is not None:
         timing += f"; wall time of this run {minutes:.1f} minutes"
     sections = [
         "Does camera refinement with each method's default options help or hurt, from accurate and from perturbed "

@@ -128,6 +128,8 @@ def _check_robustness_rows(rows: list[dict], folder: Path) -> None:
         for key in REQUIRED_KEYS["robustness"] - {"scene", "start", "variant", "seed"}:
             assert isinstance(row[key], float) and math.isfinite(row[key]), (key, row)
         assert 5.0 < row["psnr"] < 60.0 and 0.0 < row["ssim"] <= 1.0, row
+        # Small camera errors: no visible point falls behind a camera (it would leave the drift).
+        assert row["drift_behind"] == 0 and row["start_drift_behind"] == 0, row
     by = {(row["start"], row["variant"]): row for row in rows}
     accurate, perturbed = by[("accurate", "off")], by[("perturbed", "off")]
     # The accurate start is the truth; CamP's perturbation moves every camera (0.005 look-at and position, 2 %
