@@ -15,6 +15,7 @@ from .gram_error import GramErrorConfig
 from .lattice_search import LatticeSearchConfig
 from .proxy_range import ProxyRangeBenchConfig
 from .recovery import RecoveryConfig
+from .robustness import RobustnessConfig
 from .scaling import ScalingConfig
 from .shared_intrinsics import SharedIntrinsicsConfig
 from .speed import SpeedConfig
@@ -29,6 +30,7 @@ MODULES = {
     TrainTimeConfig: "train_time",
     SharedIntrinsicsConfig: "shared_intrinsics",
     ProxyRangeBenchConfig: "proxy_range",
+    RobustnessConfig: "robustness",
 }
 """The benchmarks ``s2camp-bench all`` runs."""
 TOOLS = {LatticeSearchConfig: "lattice_search"}
@@ -52,6 +54,7 @@ Command = Union[
     Annotated[TrainTimeConfig, tyro.conf.subcommand("train-time")],
     Annotated[SharedIntrinsicsConfig, tyro.conf.subcommand("shared-intrinsics")],
     Annotated[ProxyRangeBenchConfig, tyro.conf.subcommand("proxy-range")],
+    Annotated[RobustnessConfig, tyro.conf.subcommand("robustness")],
     Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]

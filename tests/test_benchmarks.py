@@ -18,6 +18,10 @@ REQUIRED_KEYS = {
     "recovery": {"tier", "scene", "variant", "rot_err", "pos_err", "focal_err", "sec_per_iter"},
     "train-time": {"kind", "method", "sec_per_iter"},
     "proxy-range": {"scene", "range", "t_near", "t_far", "gram_error", "cond_whitened", "cond_content"},
+    "robustness": {
+        "scene", "start", "variant", "seed", "rot_err", "pos_err", "focal_err", "psnr", "ssim", "drift_px",
+        "start_rot_err", "start_pos_err", "start_focal_err", "start_drift_px", "train_seconds",
+    },  # fmt: skip
 }
 REPORTS = {
     "dispersion": "dispersion.md",
@@ -27,6 +31,7 @@ REPORTS = {
     "recovery": "recovery.md",
     "train-time": "train-time.md",
     "proxy-range": "proxy-range.md",
+    "robustness": "robustness.md",
 }
 
 
@@ -85,6 +90,8 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
         assert 1e-4 < tier3["start"]["rot_err"] < 0.1 and 1e-4 < tier3["start"]["pos_err"] < 0.2, tier3["start"]
         assert (tmp_path / "recovery-tier3.png").exists()
         assert "## Tier 3" in report.read_text()
+    if name == "robustness":
+        _check_robustness_rows(rows, tmp_path)
     if name == "train-time":
         summary = {row["method"]: row for row in rows if row["kind"] == "summary"}
         assert set(summary) == {"s2camp-so3xr3", "s2camp", "s2camp-camp"}
@@ -110,3 +117,32 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
         assert {row["intrinsics"] for row in rows if row["kind"] == "P"} == {"distinct", "unchunked", "shared"}
         flag = [row for row in rows if row["kind"] == "allreduce" and row["bytes"] == 8]
         assert len(flag) == 1
+
+
+def _check_robustness_rows(rows: list[dict], folder: Path) -> None:
+    """Quick mode: one scene, one seed, variants off and s2camp from both starts; values finite and plausible."""
+    import math
+
+    assert {(row["start"], row["variant"]) for row in rows} == {
+        (start, variant) for start in ("accurate", "perturbed") for variant in ("off", "s2camp")
+    }
+    for row in rows:
+        for key in REQUIRED_KEYS["robustness"] - {"scene", "start", "variant", "seed"}:
+            assert isinstance(row[key], float) and math.isfinite(row[key]), (key, row)
+        assert 5.0 < row["psnr"] < 60.0 and 0.0 < row["ssim"] <= 1.0, row
+        # Small camera errors: no visible point falls behind a camera (it would leave the drift).
+        assert row["drift_behind"] == 0 and row["start_drift_behind"] == 0, row
+    by = {(row["start"], row["variant"]): row for row in rows}
+    accurate, perturbed = by[("accurate", "off")], by[("perturbed", "off")]
+    # The accurate start is the truth; CamP's perturbation moves every camera (0.005 look-at and position, 2 %
+    # focal, 5 % dolly in normalized units): about 0.3 deg, 4.5 px focal and 1 px drift on this scene.
+    for key, at_least in (("rot_err", 0.05), ("pos_err", 1e-3), ("focal_err", 0.5), ("drift_px", 0.2)):
+        assert accurate[f"start_{key}"] < 1e-9, (key, accurate)
+        assert perturbed[f"start_{key}"] > at_least, (key, perturbed)
+        # Camera optimizer off: the cameras end where they started.
+        assert perturbed[key] == pytest.approx(perturbed[f"start_{key}"], rel=1e-9, abs=1e-12), (key, perturbed)
+    for start in ("accurate", "perturbed"):
+        assert by[(start, "s2camp")]["start_drift_px"] == pytest.approx(by[(start, "off")]["start_drift_px"])
+    assert (folder / "robustness.png").exists()
+    text = (folder / "robustness.md").read_text()
+    assert "s2camp-bench robustness --quick" in text and "small-narrow-far" in text

@@ -1,0 +1,587 @@
+"""``s2camp-bench robustness``: does camera refinement with the methods' default options help, or hurt, from
+accurate and from perturbed cameras, across scenes that differ in resolution, field of view, image count and depth?
+
+Protocol (every run alike): scenes x start {accurate, perturbed} x variant {off, s2camp-so3xr3, s2camp-camp,
+s2camp} x seeds. Every run is one ``ns-train`` FROM SCRATCH with the method's default options, except what a CPU
+run needs: a small nerfacto field (``train_commands.SMALL_MODEL``), ``--machine.device-type cpu``, the same
+``--max-num-iterations`` for every run, no evaluation during training, no camera-error logging during training
+(errors are computed afterwards, identically for every variant), tensorboard instead of the viewer. No camera
+learning rate, schedule or sampling option is given: the camera schedule is the method's default, whatever it is in
+this checkout. ``--machine.seed`` is the seed.
+
+- start "accurate": the generated scene's true cameras; "perturbed": the data parser's CamP perturbation
+  (``s2camp-data --perturbation.enabled True``, CamP's sigmas, one fixed perturbation seed per scene);
+- variant "off": ``ns-train s2camp --pipeline.model.camera-optimizer.mode off`` (no camera refinement); the others
+  are the ``ns-train`` methods of those names.
+
+Metrics of the final checkpoint: rotation (degrees), position (normalized scene units: the data parser scales the
+camera centres into [-1, 1]^3) and focal (px, training resolution) errors, means over the training cameras after a
+similarity alignment to the true cameras (``core.alignment``); the reprojection drift (``core.drift``): RMS pixel
+displacement of the scene's 3D points (the generated COLMAP model's points3D, in the data parser's frame) between
+the true and the similarity-aligned refined cameras; PSNR / SSIM of the held-out views (every 8th image) after
+test-time alignment (``s2camp_ns.nerfstudio.test_time_alignment``, CamP's protocol). The same errors of the start
+cameras (before refinement) are recorded. Up to ``workers`` runs train side by side, one thread each; each run is
+evaluated right after it trains and its checkpoints are deleted.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing
+import shutil
+import statistics
+import subprocess
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from s2camp_ns.core.validation import check_choice, check_positive_int
+from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
+from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_arguments, training_environment
+from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+
+from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
+
+
+def focal_for_fov(width: int, fov_degrees: float) -> float:
+    """Pinhole focal length (px) of a horizontal field of view ``fov_degrees`` over ``width`` pixels."""
+    return 0.5 * width / math.tan(math.radians(fov_degrees) / 2.0)
+
+
+@dataclass(frozen=True)
+class RobustnessScene:
+    """A generated scene of the benchmark and the seed of its CamP perturbation."""
+
+    scene: MakeSceneConfig
+    fov_degrees: float
+    perturbation_seed: int
+    varies: str
+    """What the scene stands for among the others (the report's scene table)."""
+
+
+def _scene(num_cameras: int, width: int, height: int, fov: float, ring_radius: float, seed: int) -> MakeSceneConfig:
+    # Pinhole cameras (no distortion): the CamP perturbation zeroes distortion, so a distorted scene would give the
+    # perturbed start an error that no variant refining pose and focal can remove, and the accurate start none.
+    return MakeSceneConfig(
+        num_cameras=num_cameras, width=width, height=height, focal=focal_for_fov(width, fov),
+        ring_radius=ring_radius, k1=0.0, k2=0.0, seed=seed,
+    )  # fmt: skip
+
+
+SCENES: dict[str, RobustnessScene] = {
+    "small-narrow-far": RobustnessScene(
+        _scene(16, 48, 36, 40.0, 7.0, seed=0), 40.0, 0,
+        "48x36 px, 40 deg, 16 images, cameras 7 units from the centre: distant objects, shallow depth range",
+    ),
+    "large-wide": RobustnessScene(
+        _scene(8, 192, 144, 100.0, 4.0, seed=1), 100.0, 1,
+        "192x144 px (4x the width of small-narrow-far), 100 deg, 8 images, cameras 4 units out",
+    ),
+    "near-deep": RobustnessScene(
+        _scene(12, 96, 72, 70.0, 2.6, seed=2), 70.0, 2,
+        "96x72 px, 70 deg, 12 images, cameras 2.6 units out: objects 1 unit away, background 40: deepest range",
+    ),
+}
+"""The background sphere has radius 40 (``s2camp_ns.scene.procedural``); the foreground objects lie within 1.8 of
+the centre, so the ring radius sets the depth range each camera sees. The cameras sit on a full ring, so the number
+of images times the field of view is how often the background is covered: the narrow scene gets the most images
+(with 8 images of 40 degrees a held-out view sees background no training view saw, and its PSNR stayed at 14.7 dB
+from 20 to 200 iterations while the training PSNR rose to 29.5), the wide one the fewest."""
+STARTS = ("accurate", "perturbed")
+VARIANTS = ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp")
+METHODS = {"off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp"}
+VARIANT_ARGUMENTS = {"off": ["--pipeline.model.camera-optimizer.mode", "off"]}
+"""Method options per variant beyond the CPU-sized run: only "off" has one (camera refinement disabled)."""
+METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim")
+ERRORS = ("rot_err", "pos_err", "focal_err", "drift_px")
+QUICK = {"iterations": 20, "seeds": 1, "variants": ("off", "s2camp")}
+"""``--quick``: the first scene only, both starts, these settings, 10 test-time alignment steps of 64 rays."""
+
+
+@dataclass
+class RobustnessConfig:
+    """Camera refinement with default options from accurate and perturbed cameras (module docstring)."""
+
+    scenes: tuple[str, ...] = tuple(SCENES)
+    """Scenes (``SCENES``)."""
+    starts: tuple[str, ...] = STARTS
+    variants: tuple[str, ...] = VARIANTS
+    seeds: int = 3
+    """Runs per scene, start and variant, ``--machine.seed`` 0 .. seeds - 1."""
+    iterations: int = 200
+    """``--max-num-iterations`` of every run."""
+    rays_per_batch: int = 512
+    """Training rays per step."""
+    workers: int = 2
+    """Runs training (then evaluating) side by side, one CPU thread each."""
+    alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    """Test-time alignment of the held-out views (every run alike)."""
+    quick: bool = False
+    """Small run for CI (``QUICK``, under 5 minutes on 2 CPU cores)."""
+    work_dir: Path | None = None
+    """Where scenes and runs go (a temporary /tmp/robust-* folder by default, removed afterwards). Each finished
+    run's row is appended to ``rows.jsonl`` there as soon as it is evaluated."""
+    rows_from: Path | None = None
+    """Train nothing: report the rows of a ``rows.jsonl`` written by an earlier (possibly interrupted) run."""
+    output_dir: Path = DEFAULT_OUTPUT_DIR
+    write: bool = True
+    json: bool = False
+
+    def effective(self) -> RobustnessConfig:
+        if not self.quick:
+            return self
+        alignment = replace(self.alignment, steps=10, rays=64)
+        return replace(self, scenes=self.scenes[:1], alignment=alignment, **QUICK)
+
+    def validate(self) -> None:
+        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", VARIANTS)):
+            values = getattr(self, name)
+            if not values:
+                raise ValueError(f"{name} must name at least one of {', '.join(allowed)}, got none")
+            for value in values:
+                check_choice(name, value, allowed)
+        for name in ("seeds", "iterations", "rays_per_batch", "workers"):
+            check_positive_int(name, getattr(self, name))
+        self.alignment.validate()
+
+    def command(self) -> str:
+        """The ``s2camp-bench`` command line that regenerates this report."""
+        parts = ["s2camp-bench robustness"]
+        if self.quick:
+            return " ".join([*parts, "--quick"])
+        default = RobustnessConfig()
+        for name in ("scenes", "starts", "variants"):
+            if getattr(self, name) != getattr(default, name):
+                parts.append(f"--{name} " + " ".join(getattr(self, name)))
+        for name in ("seeds", "iterations", "rays_per_batch", "workers"):
+            if getattr(self, name) != getattr(default, name):
+                parts.append(f"--{name.replace('_', '-')} {getattr(self, name)}")
+        return " ".join(parts)
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run of the protocol."""
+
+    scene: str
+    start: str
+    variant: str
+    seed: int
+
+    @property
+    def experiment(self) -> str:
+        return f"{self.scene}-{self.start}"
+
+    @property
+    def timestamp(self) -> str:
+        return f"{self.variant}-seed{self.seed}"
+
+
+def run_specs(config: RobustnessConfig) -> list[RunSpec]:
+    """Every run, seeds outermost: a run cut short still leaves whole seeds of every scene, start and variant."""
+    return [
+        RunSpec(scene, start, variant, seed)
+        for seed in range(config.seeds)
+        for scene in config.scenes
+        for start in config.starts
+        for variant in config.variants
+    ]
+
+
+def train_command(spec: RunSpec, scene_dir: Path, runs: Path, config: RobustnessConfig) -> list[str]:
+    """``ns-train`` of one run: the method's defaults plus the CPU-sized run (module docstring)."""
+    command = [
+        *ns_train_arguments(
+            METHODS[spec.variant], scene_dir, runs, spec.experiment, spec.timestamp, config.iterations,
+            config.iterations, config.rays_per_batch,
+        ),
+        "--machine.device-type", "cpu",
+        "--machine.seed", str(spec.seed),
+        "--vis", "tensorboard",
+        "--pipeline.model.camera-error-every", "0",
+        *VARIANT_ARGUMENTS.get(spec.variant, []),
+    ]  # fmt: skip
+    if spec.start == "perturbed":
+        seed = SCENES[spec.scene].perturbation_seed
+        command += [DATAPARSER_SUBCOMMAND, "--perturbation.enabled", "True", "--perturbation.seed", str(seed)]
+    return command
+
+
+def run_folder(spec: RunSpec, runs: Path) -> Path:
+    return runs / spec.experiment / METHODS[spec.variant] / spec.timestamp
+
+
+# ----------------------------------------------------------------------------------------------------- evaluation
+def _camera_metrics(model, points, c2w_gl, intrinsics) -> dict[str, float]:
+    """Errors of cameras (OpenGL c2w, Intrinsics) against the model's true training cameras, and their drift."""
+    import torch
+
+    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
+    from s2camp_ns.core.alignment import camera_errors
+    from s2camp_ns.core.camera import opengl_to_opencv
+    from s2camp_ns.core.drift import reprojection_drift
+
+    reference = model.reference_cameras()
+    if reference is None:
+        reference = model._train_cameras
+    true_c2w = reference.camera_to_worlds.to(torch.float64).cpu()
+    true_intrinsics = intrinsics_from_cameras(reference.to("cpu"))
+    errors = camera_errors(c2w_gl, true_c2w, intrinsics.fx, true_intrinsics.fx, align=True)
+    drift = reprojection_drift(
+        points, opengl_to_opencv(true_c2w), true_intrinsics, opengl_to_opencv(c2w_gl), intrinsics, align=True
+    )
+    return {
+        "rot_err": math.degrees(errors["rot_err_mean"]),
+        "pos_err": errors["pos_err_mean"],
+        "focal_err": errors["focal_err_mean"],
+        "drift_px": drift.rms_px,
+        "drift_behind": drift.behind,
+    }
+
+
+def _refined_cameras(model):
+    """OpenGL c2w and Intrinsics of the training cameras as the model sees them at the end (float64, CPU)."""
+    import torch
+
+    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
+
+    with torch.no_grad():
+        if model.uses_s2camp_optimizer:
+            optimizer = model.camera_optimizer
+            return optimizer.refined_c2w(opengl=True).cpu(), optimizer.refined_intrinsics().detach().to("cpu")
+        c2w, _ = model.refined_train_cameras()  # nerfstudio's pose optimizer leaves the intrinsics alone
+        return c2w, intrinsics_from_cameras(model._train_cameras)
+
+
+def evaluate_run(run: Path, alignment: AlignmentConfig) -> dict:
+    """Start and final camera metrics, held-out PSNR / SSIM after test-time alignment, of a finished run."""
+    import warnings
+
+    import torch
+
+    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
+    from s2camp_ns.nerfstudio.test_time_alignment import evaluate_held_out_views
+
+    from .recovery_photometric import _load_pipeline
+
+    began = time.perf_counter()
+    pipeline = _load_pipeline(run)
+    model = pipeline.model
+    points = pipeline.datamanager.train_dataparser_outputs.metadata["points3D_xyz"].to(torch.float64)
+    start_cameras = model._train_cameras
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the drift's warning about points behind a camera: counted in the row
+        start = _camera_metrics(
+            model, points, start_cameras.camera_to_worlds.to(torch.float64), intrinsics_from_cameras(start_cameras)
+        )
+        final = _camera_metrics(model, points, *_refined_cameras(model))
+    views = evaluate_held_out_views(pipeline, alignment)
+    result = {key: value for key, value in final.items()}
+    result |= {f"start_{key}": value for key, value in start.items()}
+    result["psnr"] = statistics.fmean(view.psnr for view in views)
+    result["ssim"] = statistics.fmean(view.ssim for view in views)
+    result["psnr_unaligned"] = statistics.fmean(view.psnr_unaligned for view in views)
+    result["eval_views"] = len(views)
+    result["eval_seconds"] = time.perf_counter() - began
+    return result
+
+
+def _single_thread() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+# ------------------------------------------------------------------------------------------------------------ run
+def _train(spec: RunSpec, scene_dir: Path, runs: Path, logs: Path, config: RobustnessConfig) -> float:
+    """Train one run; return its wall-clock seconds (start-up included)."""
+    log_path = logs / f"{spec.experiment}-{spec.timestamp}.log"
+    environment = training_environment() | {"OMP_NUM_THREADS": "1"}
+    began = time.perf_counter()
+    with open(log_path, "w", encoding="utf8") as output:
+        result = subprocess.run(
+            train_command(spec, scene_dir, runs, config), stdout=output, stderr=subprocess.STDOUT, env=environment
+        )
+    if result.returncode != 0:
+        tail = "\n".join(log_path.read_text(encoding="utf8", errors="replace").splitlines()[-30:])
+        raise RuntimeError(f"ns-train {spec} failed with status {result.returncode}; log {log_path}:\n{tail}")
+    return time.perf_counter() - began
+
+
+ROWS_FILE = "rows.jsonl"
+_ROWS_LOCK = threading.Lock()
+
+
+def read_rows(path: Path) -> list[dict]:
+    """Rows of a ``rows.jsonl`` (one JSON object per line), in the order the runs finished."""
+    if not Path(path).is_file():
+        raise ValueError(f"rows_from must be an existing rows.jsonl file, got {str(path)!r}")
+    return [json.loads(line) for line in Path(path).read_text(encoding="utf8").splitlines() if line.strip()]
+
+
+def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfig, pool: ProcessPoolExecutor) -> dict:
+    from .recovery_photometric import seconds_per_iteration
+
+    runs, logs = root / "runs", root / "logs"
+    train_seconds = _train(spec, scene_dir, runs, logs, config)
+    folder = run_folder(spec, runs)
+    result = pool.submit(evaluate_run, folder, config.alignment).result()
+    row = {"scene": spec.scene, "start": spec.start, "variant": spec.variant, "seed": spec.seed}
+    row |= {key: result[key] for key in (*METRICS, "psnr_unaligned", "drift_behind")}
+    row |= {f"start_{key}": result[f"start_{key}"] for key in (*ERRORS, "drift_behind")}
+    row |= {
+        "iterations": config.iterations,
+        "eval_views": result["eval_views"],
+        "train_seconds": train_seconds,
+        "eval_seconds": result["eval_seconds"],
+        "sec_per_iter": seconds_per_iteration(folder),
+    }
+    for checkpoints in ("nerfstudio_models", "nerfstudio_models.partial"):  # the trainer's atomic-save folder too
+        shutil.rmtree(folder / checkpoints, ignore_errors=True)
+    with _ROWS_LOCK, open(root / ROWS_FILE, "a", encoding="utf8") as rows_file:
+        rows_file.write(json.dumps(row) + "\n")
+    log(
+        f"robustness {spec.scene} {spec.start:9s} {spec.variant:13s} seed {spec.seed}: rot {row['rot_err']:.3f} deg "
+        f"pos {row['pos_err']:.2e} focal {row['focal_err']:.3f} px drift {row['drift_px']:.3f} px "
+        f"psnr {row['psnr']:.2f} ssim {row['ssim']:.3f} (start rot {row['start_rot_err']:.3f} drift "
+        f"{row['start_drift_px']:.3f}; {train_seconds:.0f} s + {row['eval_seconds']:.0f} s)"
+    )
+    return row
+
+
+def run(config: RobustnessConfig) -> list[dict]:
+    config = config.effective()
+    config.validate()
+    if config.rows_from is not None:
+        return read_rows(config.rows_from)
+    return in_work_folder(config.work_dir, "robust-", lambda root: _run(config, root))
+
+
+def _run(config: RobustnessConfig, root: Path) -> list[dict]:
+    began = time.perf_counter()
+    (root / "logs").mkdir(parents=True, exist_ok=True)
+    (root / ROWS_FILE).unlink(missing_ok=True)
+    scene_dirs = {
+        name: make_scene(replace(SCENES[name].scene, output_dir=root / "scenes" / name)) for name in config.scenes
+    }
+    specs = run_specs(config)
+    log(f"robustness: {len(specs)} runs of {config.iterations} iterations, {config.workers} at a time (work: {root})")
+    context = multiprocessing.get_context("spawn")  # a forked torch (threads, OpenMP state) is not safe
+    with (
+        ProcessPoolExecutor(config.workers, mp_context=context, initializer=_single_thread) as pool,
+        ThreadPoolExecutor(config.workers) as threads,
+    ):
+        futures = [threads.submit(_run_one, spec, scene_dirs[spec.scene], root, config, pool) for spec in specs]
+        rows = [future.result() for future in futures]
+    run.minutes = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
+    return rows
+
+
+# --------------------------------------------------------------------------------------------------------- report
+@dataclass(frozen=True)
+class Spread:
+    """Mean, min and max of one metric over seeds."""
+
+    mean: float
+    low: float
+    high: float
+    count: int
+
+    @classmethod
+    def of(cls, values: list[float]) -> Spread:
+        return cls(statistics.fmean(values), min(values), max(values), len(values))
+
+    @property
+    def width(self) -> float:
+        return self.high - self.low
+
+    def cell(self, digits: int = 3) -> str:
+        if self.count == 1:
+            return f"{self.mean:.{digits}g}"
+        return f"{self.mean:.{digits}g} [{self.low:.{digits}g}, {self.high:.{digits}g}]"
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    """One row per scene, start and variant: the metrics over seeds (``Spread``), the PSNR difference against "off"
+    (labelled "no difference" when smaller than the larger of the two seed ranges) and, for perturbed starts, the
+    fraction of the start error removed (1 - mean final / start; the start is the same for every seed)."""
+    groups: dict[tuple[str, str, str], list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["scene"], row["start"], row["variant"]), []).append(row)
+    summary = []
+    for (scene, start, variant), chosen in groups.items():
+        entry = {"scene": scene, "start": start, "variant": variant, "seeds": len(chosen)}
+        for key in METRICS:
+            entry[key] = Spread.of([row[key] for row in chosen])
+        for key in ERRORS:
+            entry[f"start_{key}"] = statistics.fmean(row[f"start_{key}"] for row in chosen)
+            start_value = entry[f"start_{key}"]
+            entry[f"removed_{key}"] = (
+                1.0 - entry[key].mean / start_value if start == "perturbed" and start_value > 0 else math.nan
+            )
+        summary.append(entry)
+    for entry in summary:
+        off = next(
+            (e for e in summary if (e["scene"], e["start"], e["variant"]) == (entry["scene"], entry["start"], "off")),
+            None,
+        )
+        entry["psnr_vs_off"] = math.nan if off is None else entry["psnr"].mean - off["psnr"].mean
+        entry["psnr_vs_off_label"] = _difference_label(entry, off)
+    return summary
+
+
+def _difference_label(entry: dict, off: dict | None) -> str:
+    if off is None or entry["variant"] == "off":
+        return ""
+    difference = entry["psnr"].mean - off["psnr"].mean
+    spread = max(entry["psnr"].width, off["psnr"].width)
+    text = f"{difference:+.2f} dB"
+    if min(entry["seeds"], off["seeds"]) < 2:
+        return f"{text} (1 seed, no spread)"
+    return f"{text} (no difference)" if abs(difference) < spread else f"{text} (beyond the seed range {spread:.2f})"
+
+
+def plot(summary: list[dict], path: Path) -> None:
+    """PSNR and drift per variant and start, one column per scene, error bars from the seed range."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(dict.fromkeys(entry["scene"] for entry in summary))
+    variants = list(dict.fromkeys(entry["variant"] for entry in summary))
+    starts = list(dict.fromkeys(entry["start"] for entry in summary))
+    keys = (("psnr", "held-out PSNR (dB)"), ("drift_px", "drift (px RMS)"))
+    figure, axes = plt.subplots(len(keys), len(scenes), figsize=(4.2 * len(scenes), 6.0), squeeze=False)
+    width = 0.8 / len(starts)
+    for column, scene in enumerate(scenes):
+        for row_index, (key, label) in enumerate(keys):
+            axis = axes[row_index][column]
+            for offset, start in enumerate(starts):
+                chosen = [
+                    next((e[key] for e in summary if (e["scene"], e["start"], e["variant"]) == (scene, start, v)), None)
+                    for v in variants
+                ]
+                xs = [i + (offset - (len(starts) - 1) / 2) * width for i in range(len(variants))]
+                means = [s.mean if s else math.nan for s in chosen]
+                errors = [
+                    [s.mean - s.low if s else 0.0 for s in chosen],
+                    [s.high - s.mean if s else 0.0 for s in chosen],
+                ]
+                axis.bar(xs, means, width, yerr=errors, capsize=3, label=start)
+            axis.set_xticks(range(len(variants)), variants, rotation=20, fontsize=8)
+            axis.set_title(f"{scene}: {label}", fontsize=9)
+            axis.grid(True, axis="y", alpha=0.3)
+            if key == "psnr":
+                finite = [e["psnr"].low for e in summary if e["scene"] == scene]
+                axis.set_ylim(bottom=max(0.0, min(finite) - 2.0))
+        axes[0][column].legend(fontsize=8)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+def _scene_table(config: RobustnessConfig, summary: list[dict]) -> str:
+    rows = []
+    for name in dict.fromkeys(entry["scene"] for entry in summary):
+        preset = SCENES[name]
+        s = preset.scene
+        starts = {e["start"]: e for e in summary if e["scene"] == name}
+        perturbed = starts.get("perturbed")
+        rows.append(
+            {
+                "scene": name,
+                "images": s.num_cameras,
+                "size": f"{s.width}x{s.height}",
+                "fov": f"{preset.fov_degrees:g} deg (f {s.focal:.1f} px)",
+                "ring": s.ring_radius,
+                "seed": preset.perturbation_seed,
+                "start": "" if perturbed is None else (
+                    f"rot {perturbed['start_rot_err']:.3f} deg, pos {perturbed['start_pos_err']:.2e}, focal "
+                    f"{perturbed['start_focal_err']:.3f} px, drift {perturbed['start_drift_px']:.3f} px"
+                ),
+                "varies": preset.varies,
+            }
+        )  # fmt: skip
+    columns = ["scene", "images", "size", "fov", "ring", "seed", "start", "varies"]
+    headers = ["scene", "images", "size", "fov", "ring radius", "perturbation seed", "perturbed start errors", "what"]
+    return markdown_table(rows, columns, headers)
+
+
+def _summary_rows(summary: list[dict]) -> list[dict]:
+    table = []
+    for entry in summary:
+        row = {key: entry[key] for key in ("scene", "start", "variant", "seeds")}
+        row |= {key: entry[key].cell() for key in METRICS}
+        row["psnr_vs_off"] = entry["psnr_vs_off_label"]
+        row["removed"] = (
+            ", ".join(f"{key.replace('_err', '').replace('_px', '')} {entry[f'removed_{key}']:.0%}" for key in ERRORS)
+            if entry["start"] == "perturbed"
+            else ""
+        )
+        table.append(row)
+    return table
+
+
+def report(rows: list[dict], config: RobustnessConfig) -> Path:
+    config = config.effective()
+    summary = summarize(rows)
+    iterations = ", ".join(str(value) for value in sorted({row["iterations"] for row in rows}))
+    seeds = ", ".join(str(value) for value in sorted({row["seed"] for row in rows}))
+    plot(summary, config.output_dir / "robustness.png")
+    a = config.alignment
+    setup = (
+        f"Every run: `ns-train <method>` from scratch with the method's default options (camera learning rate and "
+        f"schedule included) and only what a CPU run needs: the small nerfacto field "
+        f"(`s2camp_ns.nerfstudio.train_commands.SMALL_MODEL`), `--machine.device-type cpu`, "
+        f"`--max-num-iterations {iterations}`, {config.rays_per_batch} rays per step, no evaluation or "
+        f"camera-error logging during training; `--machine.seed` {seeds}. 'off' is `ns-train s2camp "
+        f"--pipeline.model.camera-optimizer.mode off`. 'perturbed' is the data parser's CamP perturbation "
+        f"(CamP's sigmas, the scene's perturbation seed), 'accurate' the true cameras. Errors of the final "
+        f"checkpoint after a similarity alignment to the true cameras: rotation in degrees, position in normalized "
+        f"scene units (the cameras fit in [-1, 1]^3), focal in px; drift = RMS pixel displacement of the scene's 3D "
+        f"points between the true and the aligned refined cameras (`s2camp_ns.core.drift`). PSNR / SSIM: held-out "
+        f"views (every 8th image) after {a.steps} test-time alignment steps of {a.rays} rays. Cells: mean "
+        f"[min, max] over seeds. 'PSNR vs off': difference of the means, 'no difference' when smaller than the "
+        f"larger seed range of the two. 'removed': 1 - final / start error for perturbed starts."
+    )
+    columns = ["scene", "start", "variant", "seeds", *METRICS, "psnr_vs_off", "removed"]
+    headers = [
+        "scene", "start", "variant", "seeds", "rot err (deg)", "pos err", "focal err (px)", "drift (px)", "PSNR",
+        "SSIM", "PSNR vs off", "start error removed",
+    ]  # fmt: skip
+    def average(key: str) -> float:
+        return statistics.fmean(row[key] for row in rows)
+
+    timing = (
+        f"{len(rows)} runs; per run on average: training {average('train_seconds'):.0f} s (start-up included, "
+        f"{average('sec_per_iter'):.3f} s / iteration), evaluation {average('eval_seconds'):.0f} s; "
+        f"{config.workers} runs side by side"
+    )
+    minutes = getattr(run, "minutes", None)
+    if config.rows_from is not None:
+        seed_count = len({row["seed"] for row in rows})
+        timing += f"; rows read from `{config.rows_from.name}` of an earlier run ({seed_count} seed(s)"
+        stopped = f"; the command runs {config.seeds}: that run was stopped early"
+        timing += ")" if seed_count >= config.seeds else stopped + ")"
+    elif minutes is not None:
+        timing += f"; wall time of this run {minutes:.1f} minutes"
+    sections = [
+        "Does camera refinement with each method's default options help or hurt, from accurate and from perturbed "
+        "cameras? Protocol and metrics: `benchmarks/robustness.py`.",
+        "## Scenes",
+        _scene_table(config, summary),
+        "## Results",
+        setup,
+        markdown_table(_summary_rows(summary), columns, headers),
+        "![PSNR and drift per variant](robustness.png)",
+        timing + ".",
+    ]
+    return write_report(
+        config.output_dir, "robustness", "Robustness: default camera refinement from accurate and perturbed cameras",
+        config.command(), sections,
+    )  # fmt: skip

@@ -1,0 +1,110 @@
+"""The pieces of ``s2camp-bench robustness`` that need no training: commands, scenes, summary (the quick ns-train run
+is in test_benchmarks.py)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from s2camp_ns.benchmarks.robustness import (
+    SCENES,
+    VARIANTS,
+    RobustnessConfig,
+    RunSpec,
+    focal_for_fov,
+    run_specs,
+    summarize,
+    train_command,
+)
+
+
+def _option(command: list[str], name: str) -> str:
+    return command[command.index(name) + 1]
+
+
+@pytest.mark.parametrize("start", ["accurate", "perturbed"])
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
+    config = RobustnessConfig(iterations=123)
+    command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
+    assert command[1] == ("s2camp" if variant == "off" else variant)
+    assert _option(command, "--max-num-iterations") == "123"
+    assert _option(command, "--machine.seed") == "2"
+    assert _option(command, "--machine.device-type") == "cpu"
+    # No camera learning rate, schedule or sampling option: the method's defaults.
+    assert not [arg for arg in command if arg.startswith("--optimizers.")]
+    camera_options = [arg for arg in command if arg.startswith("--pipeline.model.camera-optimizer.")]
+    assert camera_options == (["--pipeline.model.camera-optimizer.mode"] if variant == "off" else [])
+    if variant == "off":
+        assert _option(command, "--pipeline.model.camera-optimizer.mode") == "off"
+    if start == "perturbed":
+        assert command[command.index("s2camp-data") :] == [
+            "s2camp-data", "--perturbation.enabled", "True", "--perturbation.seed",
+            str(SCENES["near-deep"].perturbation_seed),
+        ]  # fmt: skip
+    else:
+        assert "s2camp-data" not in command
+
+
+def test_the_scenes_differ_in_resolution_field_of_view_image_count_and_depth() -> None:
+    widths = [preset.scene.width for preset in SCENES.values()]
+    assert max(widths) == 4 * min(widths)
+    fovs = [preset.fov_degrees for preset in SCENES.values()]
+    assert (min(fovs), max(fovs)) == (40.0, 100.0)
+    for preset in SCENES.values():
+        # The focal length written into the scene gives the stated field of view.
+        fov = 2.0 * math.degrees(math.atan(0.5 * preset.scene.width / preset.scene.focal))
+        assert fov == pytest.approx(preset.fov_degrees, abs=1e-9)
+    assert len({preset.scene.num_cameras for preset in SCENES.values()}) == len(SCENES)
+    assert len({preset.scene.ring_radius for preset in SCENES.values()}) == len(SCENES)
+    assert len({preset.perturbation_seed for preset in SCENES.values()}) == len(SCENES)
+
+
+def test_focal_for_fov_of_a_right_angle_is_half_the_width() -> None:
+    assert focal_for_fov(100, 90.0) == pytest.approx(50.0, abs=1e-12)
+
+
+def test_seeds_are_the_outermost_loop_of_the_runs() -> None:
+    specs = run_specs(RobustnessConfig(scenes=("large-wide",), seeds=2))
+    assert len(specs) == 2 * 2 * len(VARIANTS)
+    assert [spec.seed for spec in specs] == [0] * 8 + [1] * 8
+
+
+def test_bad_choices_are_rejected_with_the_parameter_name() -> None:
+    with pytest.raises(ValueError, match="variants"):
+        RobustnessConfig(variants=("s2camp", "nope")).validate()
+    with pytest.raises(ValueError, match="seeds"):
+        RobustnessConfig(seeds=0).validate()
+    with pytest.raises(ValueError, match="starts"):
+        RobustnessConfig(starts=()).validate()
+
+
+def _row(start: str, variant: str, seed: int, psnr: float, rot: float, start_rot: float) -> dict:
+    row = {"scene": "s", "start": start, "variant": variant, "seed": seed, "psnr": psnr, "ssim": 0.5}
+    row |= {"rot_err": rot, "pos_err": 0.0, "focal_err": 0.0, "drift_px": 2.0 * rot}
+    row |= {"start_rot_err": start_rot, "start_pos_err": 0.0, "start_focal_err": 0.0, "start_drift_px": 2 * start_rot}
+    return row
+
+
+def test_summary_spread_difference_against_off_and_removed_start_error() -> None:
+    rows = [_row("perturbed", "off", seed, 20.0 + seed, 1.0, 1.0) for seed in range(3)]
+    rows += [_row("perturbed", "s2camp", seed, 20.5 + seed, 0.2 * (seed + 1), 1.0) for seed in range(3)]
+    rows += [_row("accurate", "off", seed, 25.0 + 0.1 * seed, 0.0, 0.0) for seed in range(3)]
+    rows += [_row("accurate", "s2camp", seed, 24.0 + 0.1 * seed, 0.1, 0.0) for seed in range(3)]
+    summary = {(entry["start"], entry["variant"]): entry for entry in summarize(rows)}
+    s2camp = summary[("perturbed", "s2camp")]
+    assert (s2camp["psnr"].mean, s2camp["psnr"].low, s2camp["psnr"].high) == pytest.approx((21.5, 20.5, 22.5))
+    # +0.5 dB against seed ranges of 2 dB: no difference.
+    assert s2camp["psnr_vs_off"] == pytest.approx(0.5)
+    assert s2camp["psnr_vs_off_label"] == "+0.50 dB (no difference)"
+    # Final rotation errors 0.2, 0.4, 0.6 from 1.0: 60 % of the start error removed (drift alike).
+    assert s2camp["removed_rot_err"] == pytest.approx(0.6)
+    assert s2camp["removed_drift_px"] == pytest.approx(0.6)
+    assert summary[("perturbed", "off")]["removed_rot_err"] == pytest.approx(0.0)
+    # -1 dB against seed ranges of 0.2 dB: a difference; no removed fraction from an accurate start.
+    accurate = summary[("accurate", "s2camp")]
+    assert accurate["psnr_vs_off_label"].startswith("-1.00 dB (beyond")
+    assert math.isnan(accurate["removed_rot_err"])
+    assert summary[("accurate", "off")]["psnr_vs_off_label"] == ""
