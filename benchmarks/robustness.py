@@ -73,15 +73,21 @@ def _scene(num_cameras: int, width: int, height: int, fov: float, ring_radius: f
 
 SCENES: dict[str, RobustnessScene] = {
     "small-narrow-far": RobustnessScene(
-        _scene(16, 48, 36, 40.0, 7.0, seed=0), 40.0, 0,
+        _scene(16, 48, 36, 40.0, 7.0, seed=0),
+        40.0,
+        0,
         "48x36 px, 40 deg, 16 images, cameras 7 units from the centre: distant objects, shallow depth range",
     ),
     "large-wide": RobustnessScene(
-        _scene(8, 192, 144, 100.0, 4.0, seed=1), 100.0, 1,
+        _scene(8, 192, 144, 100.0, 4.0, seed=1),
+        100.0,
+        1,
         "192x144 px (4x the width of small-narrow-far), 100 deg, 8 images, cameras 4 units out",
     ),
     "near-deep": RobustnessScene(
-        _scene(12, 96, 72, 70.0, 2.6, seed=2), 70.0, 2,
+        _scene(12, 96, 72, 70.0, 2.6, seed=2),
+        70.0,
+        2,
         "96x72 px, 70 deg, 12 images, cameras 2.6 units out: objects 1 unit away, background 40: deepest range",
     ),
 }
@@ -554,6 +560,7 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         "scene", "start", "variant", "seeds", "rot err (deg)", "pos err", "focal err (px)", "drift (px)", "PSNR",
         "SSIM", "PSNR vs off", "start error removed",
     ]  # fmt: skip
+
     def average(key: str) -> float:
         return statistics.fmean(row[key] for row in rows)
 

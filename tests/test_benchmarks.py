@@ -19,8 +19,21 @@ REQUIRED_KEYS = {
     "train-time": {"kind", "method", "sec_per_iter"},
     "proxy-range": {"scene", "range", "t_near", "t_far", "gram_error", "cond_whitened", "cond_content"},
     "robustness": {
-        "scene", "start", "variant", "seed", "rot_err", "pos_err", "focal_err", "psnr", "ssim", "drift_px",
-        "start_rot_err", "start_pos_err", "start_focal_err", "start_drift_px", "train_seconds",
+        "scene",
+        "start",
+        "variant",
+        "seed",
+        "rot_err",
+        "pos_err",
+        "focal_err",
+        "psnr",
+        "ssim",
+        "drift_px",
+        "start_rot_err",
+        "start_pos_err",
+        "start_focal_err",
+        "start_drift_px",
+        "train_seconds",
     },  # fmt: skip
 }
 REPORTS = {
