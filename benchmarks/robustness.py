@@ -473,9 +473,10 @@ def plot(summary: list[dict], path: Path) -> None:
                 ]
                 xs = [i + (offset - (len(starts) - 1) / 2) * width for i in range(len(variants))]
                 means = [s.mean if s else math.nan for s in chosen]
+                # Clamped: the mean of equal values can differ from them in the last bit.
                 errors = [
-                    [s.mean - s.low if s else 0.0 for s in chosen],
-                    [s.high - s.mean if s else 0.0 for s in chosen],
+                    [max(s.mean - s.low, 0.0) if s else 0.0 for s in chosen],
+                    [max(s.high - s.mean, 0.0) if s else 0.0 for s in chosen],
                 ]
                 axis.bar(xs, means, width, yerr=errors, capsize=3, label=start)
             axis.set_xticks(range(len(variants)), variants, rotation=20, fontsize=8)
