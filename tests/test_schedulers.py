@@ -26,8 +26,9 @@ def learning_rates(scheduler_config, steps: int, lr: float = 1e-4) -> list[float
     return rates
 
 
-def test_a_600_step_run_gets_the_schedule_compressed():
-    rates = learning_rates(RunLengthScheduleConfig(lr_pre_warmup=1e-8, lr_final=1e-5, run_steps=600), 601)
+def test_a_600_step_run_gets_the_schedule_compressed_without_the_warmup_floor():
+    config = RunLengthScheduleConfig(lr_pre_warmup=1e-8, lr_final=1e-5, run_steps=600, min_warmup_steps=0)
+    rates = learning_rates(config, 601)
     # 2500/30000 of 600 steps = 50 warm-up steps, decay to the end at 25000/30000 of 600 = 500.
     assert rates[0] == pytest.approx(1e-8, rel=1e-9)
     assert rates[25] == pytest.approx(1e-8 + (1e-4 - 1e-8) * math.sin(math.pi / 4), rel=1e-9)  # cosine ramp half way
@@ -36,6 +37,15 @@ def test_a_600_step_run_gets_the_schedule_compressed():
     assert rates[500] == pytest.approx(1e-5, rel=1e-12)
     assert rates[600] == pytest.approx(1e-5, rel=1e-12)
     assert all(isinstance(rate, float) for rate in rates)  # plain floats: checkpoints load with weights_only
+
+
+def test_the_warmup_never_gets_shorter_than_the_floor():
+    # 600 steps: 1/12 would be 50 warm-up steps; the floor keeps CamP's 2500, so the run stays in the warm-up.
+    rates = learning_rates(RunLengthScheduleConfig(run_steps=600), 600)
+    assert rates[599] == pytest.approx(1e-8 + (1e-4 - 1e-8) * math.sin(0.5 * math.pi * 599 / 2500), rel=1e-9)
+    assert RunLengthScheduleConfig(run_steps=600).step_counts() == (2500, 2501)
+    assert RunLengthScheduleConfig(run_steps=10000).step_counts() == (2500, 8333)
+    assert RunLengthScheduleConfig(run_steps=60000).step_counts() == (5000, 50000)
 
 
 def test_the_default_30k_run_keeps_camps_step_counts():
@@ -63,6 +73,7 @@ def test_absolute_step_counts_override_the_fractions():
         ({"run_steps": 100, "decay_end_fraction": 0.0}, "decay_end_fraction"),
         ({"run_steps": 100, "lr_final": -1e-5}, "lr_final"),
         ({"warmup_steps": 10, "max_steps": 10}, "max_steps"),
+        ({"run_steps": 100, "min_warmup_steps": -1}, "min_warmup_steps"),
     ],
 )
 def test_bad_settings_name_the_parameter(fields, named):
@@ -87,19 +98,19 @@ def test_with_run_length_fills_only_missing_run_lengths():
 def test_the_trainer_gives_s2camp_a_schedule_over_max_num_iterations():
     config = s2camp_method.config
     trainer = S2CampTrainer.__new__(S2CampTrainer)
-    trainer.config = SimpleNamespace(optimizers=config.optimizers, max_num_iterations=1200)
+    trainer.config = SimpleNamespace(optimizers=config.optimizers, max_num_iterations=36000)
     groups = {name: [torch.nn.Parameter(torch.zeros(2))] for name in ("proposal_networks", "fields", "camera_opt")}
     trainer.pipeline = SimpleNamespace(get_param_groups=lambda: groups)
     optimizers = trainer.setup_optimizers()
     camera, scheduler = optimizers.optimizers["camera_opt"], optimizers.schedulers["camera_opt"]
     rates = []
-    for _ in range(1001):
+    for _ in range(30001):
         rates.append(camera.param_groups[0]["lr"])
         camera.step()
         scheduler.step()
-    assert rates[100] == pytest.approx(1e-4, rel=1e-12)  # warm-up over 100 of 1200 steps
-    assert rates[99] < 1e-4
-    assert rates[1000] == pytest.approx(1e-5, rel=1e-12)  # decay ends at step 1000 of 1200
+    assert rates[3000] == pytest.approx(1e-4, rel=1e-12)  # warm-up over 3000 of 36000 steps
+    assert rates[2999] < 1e-4
+    assert rates[30000] == pytest.approx(1e-5, rel=1e-12)  # decay ends at step 30000 of 36000
 
 
 def test_nerfstudios_stock_optimizer_keeps_its_own_schedule():
