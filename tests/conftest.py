@@ -14,6 +14,9 @@ from typing import TYPE_CHECKING
 import pytest
 
 if TYPE_CHECKING:
+    from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+
+    from s2camp_ns.nerfstudio.model import S2CampModelConfig
     from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 TINY_SCENE = {"num_cameras": 12, "width": 64, "height": 48, "points_per_image": 150, "seed": 0}
@@ -53,3 +56,29 @@ def lpips_offline() -> Iterator[None]:
         yield
     finally:
         lpip_module.LearnedPerceptualImagePatchSimilarity = original
+
+
+def tiny_model_config(
+    camera_optimizer: CameraOptimizerConfig,
+    num_levels: int = 2,
+    log2_hashmap_size: int = 10,
+    hidden_dim: int = 8,
+    samples_per_ray: int = 8,
+    **fields,
+) -> S2CampModelConfig:
+    """A sized-down nerfacto (S2CampModelConfig) for CPU unit tests: torch hash grids, two 2-level proposal nets."""
+    from s2camp_ns.nerfstudio.model import S2CampModelConfig
+
+    proposal_net = {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False}
+    return S2CampModelConfig(
+        num_levels=num_levels,
+        log2_hashmap_size=log2_hashmap_size,
+        hidden_dim=hidden_dim,
+        hidden_dim_color=hidden_dim,
+        num_nerf_samples_per_ray=samples_per_ray,
+        num_proposal_samples_per_ray=(samples_per_ray, samples_per_ray),
+        proposal_net_args_list=[dict(proposal_net), dict(proposal_net)],
+        implementation="torch",
+        camera_optimizer=camera_optimizer,
+        **fields,
+    )

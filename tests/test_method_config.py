@@ -11,7 +11,7 @@ from importlib.metadata import entry_points
 import pytest
 import torch
 import tyro
-from conftest import lpips_offline
+from conftest import lpips_offline, tiny_model_config
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
@@ -140,8 +140,11 @@ def tiny_cameras() -> Cameras:
 def tiny_model() -> S2CampModel:
     """A nerfacto-sized-down S2CampModel on the CPU with LPIPS made unavailable (offline behaviour)."""
     with lpips_offline():
-        config = _tiny_model_config(
-            S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=64, sampler="camp-random"))
+        config = tiny_model_config(
+            S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=64, sampler="camp-random")),
+            num_levels=4,
+            log2_hashmap_size=12,
+            hidden_dim=16,
         )
         model = config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=NUM_CAMERAS)
     model.camera_optimizer.set_train_cameras(tiny_cameras())
@@ -218,29 +221,12 @@ def test_camera_errors_logged_with_reference_cameras(tiny_model: S2CampModel):
         tiny_model._camera_errors = {}
 
 
-def _tiny_model_config(camera_optimizer) -> S2CampModelConfig:
-    return S2CampModelConfig(
-        num_levels=4,
-        log2_hashmap_size=12,
-        hidden_dim=16,
-        hidden_dim_color=16,
-        num_nerf_samples_per_ray=8,
-        num_proposal_samples_per_ray=(8, 8),
-        proposal_net_args_list=[
-            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
-            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
-        ],
-        implementation="torch",
-        camera_optimizer=camera_optimizer,
-    )
-
-
 def test_stock_optimizer_refined_cameras_follow_its_ray_correction():
     """s2camp-so3xr3: the camera the errors are computed for is the one nerfstudio's correction gives the rays."""
     with lpips_offline():
-        model = _tiny_model_config(CameraOptimizerConfig(mode="SO3xR3")).setup(
-            scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=NUM_CAMERAS
-        )
+        model = tiny_model_config(
+            CameraOptimizerConfig(mode="SO3xR3"), num_levels=4, log2_hashmap_size=12, hidden_dim=16
+        ).setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=NUM_CAMERAS)
     cameras = tiny_cameras()
     model.set_train_cameras(cameras)
     assert not model.uses_s2camp_optimizer and not hasattr(model, "S2CamP")

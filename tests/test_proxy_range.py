@@ -275,28 +275,14 @@ def _visible_distances_by_hand(scene, names: list[str]) -> np.ndarray:
 
 
 def _tiny_pipeline(scene, sampling):
-    from conftest import lpips_offline
+    from conftest import lpips_offline, tiny_model_config
 
     from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
     from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
     from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-    from s2camp_ns.nerfstudio.model import S2CampModelConfig
     from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
 
-    model = S2CampModelConfig(
-        num_levels=2,
-        log2_hashmap_size=10,
-        hidden_dim=8,
-        hidden_dim_color=8,
-        num_nerf_samples_per_ray=8,
-        num_proposal_samples_per_ray=(8, 8),
-        proposal_net_args_list=[
-            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
-            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
-        ],
-        implementation="torch",
-        camera_optimizer=S2CampCameraOptimizerConfig(sampling=sampling),
-    )
+    model = tiny_model_config(S2CampCameraOptimizerConfig(sampling=sampling))
     config = S2CampPipelineConfig(
         datamanager=S2CampDataManagerConfig(
             dataparser=S2CampDataParserConfig(data=scene), train_num_rays_per_batch=64, eval_num_rays_per_batch=64

@@ -28,7 +28,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import lpips_offline
+from conftest import lpips_offline, tiny_model_config
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.scene_box import SceneBox
@@ -38,7 +38,7 @@ from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerElement
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.model import S2CampModel, S2CampModelConfig
+from s2camp_ns.nerfstudio.model import S2CampModel
 from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, DisplayText, S2CampViewerPanel
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -73,23 +73,13 @@ def tiny_cameras(shift: float = 0.0, focal: float = 30.0) -> Cameras:
 def build_model(viewer_update_period: float = 0.0, initial: Cameras | None = None) -> S2CampModel:
     """A sized-down S2CampModel whose reference cameras differ from its initial ones (as with the perturbation)."""
     with lpips_offline():
-        config = S2CampModelConfig(
-            num_levels=2,
-            log2_hashmap_size=10,
-            hidden_dim=8,
-            hidden_dim_color=8,
-            num_nerf_samples_per_ray=4,
-            num_proposal_samples_per_ray=(4, 4),
-            proposal_net_args_list=[
-                {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
-                {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False},
-            ],
-            implementation="torch",
-            camera_optimizer=S2CampCameraOptimizerConfig(
+        config = tiny_model_config(
+            S2CampCameraOptimizerConfig(
                 sampling=SamplingConfig(num_points=64, sampler="camp-random"),
                 parameters="pose+focal",
                 intrinsics="per-image",
             ),
+            samples_per_ray=4,
             viewer_update_period=viewer_update_period,
         )
         model = config.setup(
