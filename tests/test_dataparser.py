@@ -420,6 +420,39 @@ def test_reference_model_is_aligned_into_the_input_frame_and_scaled_to_the_image
         assert torch.allclose(outputs.cameras.fx, torch.full_like(reference.fx, 1.1 * true_focal * 25 / WIDTH))
 
 
+@pytest.mark.parametrize("model", list(COLMAP_CASES))
+def test_reference_model_of_every_supported_model_keeps_its_distortion(scene: Path, tmp_path: Path, model: str):
+    """The reference's own model and coefficients (the truth's), not the input's: the input has the same model with
+    a 10% focal error and no distortion."""
+    params, expected = COLMAP_CASES[model]
+    _set_camera(scene, model, params)
+    truth = input_model(scene)
+    truth_folder = _write_model(truth, tmp_path / "truth")
+    wrong = list(params)
+    wrong[0] *= 1.1
+    first_distortion = {"SIMPLE_RADIAL": 3, "RADIAL": 3, "OPENCV": 4, "FULL_OPENCV": 4, "OPENCV_FISHEYE": 4}
+    first = first_distortion.get(model, len(params))
+    wrong[first:] = [0.0] * (len(params) - first)
+    _set_camera(scene, model, wrong)
+    outputs = parse(scene, reference_model=truth_folder)
+    reference = outputs.metadata["reference_cameras"]
+    torch.testing.assert_close(reference.distortion_params, torch.tensor(expected).expand(8, 6).float())
+    torch.testing.assert_close(outputs.cameras.distortion_params, torch.zeros(8, 6))
+    assert torch.allclose(reference.fx, torch.full_like(reference.fx, float(params[0])), atol=1e-4)
+    assert torch.allclose(outputs.cameras.fx, torch.full_like(reference.fx, 1.1 * params[0]), atol=1e-4)
+    assert torch.equal(reference.camera_type, outputs.cameras.camera_type)
+
+
+def test_reference_model_of_another_projection_is_refused(scene: Path, tmp_path: Path):
+    truth = input_model(scene)
+    camera = truth.cameras[1]
+    camera.model = pycolmap.CameraModelId.OPENCV_FISHEYE
+    camera.params = COLMAP_CASES["OPENCV_FISHEYE"][0]
+    truth_folder = _write_model(truth, tmp_path / "truth")
+    with pytest.raises(ValueError, match=r"camera 1 \(OPENCV_FISHEYE\) is a fisheye camera.*input is perspective"):
+        parse(scene, reference_model=truth_folder)
+
+
 def test_reference_model_missing_image_is_named(scene: Path, tmp_path: Path):
     truth = input_model(scene)
     image = next(image for image in truth.images.values() if image.name == "frame_00003.png")

@@ -579,21 +579,6 @@ def _world_poses(images: dict, names: list[str]) -> torch.Tensor:
     return torch.stack(poses)
 
 
-def _colmap_intrinsics(camera) -> tuple[float, float, float, float, float, float]:
-    """(fx, fy, cx, cy, k1, k2) of a COLMAP camera of a supported model."""
-    p = [float(v) for v in camera.params]
-    if camera.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
-        radial = p[3:5] + [0.0] * (5 - len(p))
-        return p[0], p[0], p[1], p[2], radial[0], radial[1]
-    if camera.model in ("PINHOLE", "OPENCV"):
-        radial = p[4:6] + [0.0] * (6 - len(p))
-        return p[0], p[1], p[2], p[3], radial[0], radial[1]
-    raise ValueError(
-        f"reference camera {camera.id} uses the COLMAP camera model {camera.model}; supported: "
-        f"{', '.join(SUPPORTED_COLMAP_MODELS)}"
-    )
-
-
 def reference_from_model(
     reference_model: Path,
     input_model: Path,
@@ -608,7 +593,9 @@ def reference_from_model(
     The reference world is mapped onto the input model's world by the similarity that best maps the reference camera
     centres onto the input's, over every image of the input model (Umeyama, ``s2camp_ns.core.alignment``): the same
     map for every split. nerfstudio's normalization of the input (``dataparser_transform``, ``dataparser_scale``)
-    follows. Intrinsics are scaled from the reference camera's size to each camera's (training) image size.
+    follows. Intrinsics are scaled from the reference camera's size to each camera's (training) image size; the
+    distortion is every coefficient of the reference's COLMAP model (``colmap_to_values``, the mapping the input
+    goes through), and its projection (perspective or fisheye) must be the input camera's.
     """
     from s2camp_ns.core.alignment import umeyama
 
@@ -632,24 +619,36 @@ def reference_from_model(
     c2w = colmap_world_to_c2w(world, dataparser_transform, dataparser_scale)
 
     by_name = {image.name: image for image in reference_images.values()}
-    values = torch.zeros(len(names), 6, dtype=torch.float64)
+    pinhole = torch.zeros(len(names), 4, dtype=torch.float64)
+    distortion = torch.zeros(len(names), len(NERFSTUDIO_DISTORTION), dtype=torch.float64)
     for i, name in enumerate(names):
         camera = reference_cameras[by_name[name].camera_id]
-        fx, fy, cx, cy, k1, k2 = _colmap_intrinsics(camera)
+        if camera.model not in SUPPORTED_COLMAP_MODELS:
+            raise ValueError(
+                f"{reference_file}: camera {camera.id} uses the COLMAP camera model {camera.model}; supported: "
+                f"{', '.join(SUPPORTED_COLMAP_MODELS)}"
+            )
+        projection = CAMERA_MODEL_PROJECTION[camera.model]
+        input_projection = "fisheye" if int(cameras.camera_type[i]) == CameraType.FISHEYE.value else "perspective"
+        if projection != input_projection:
+            raise ValueError(
+                f"{reference_file}: camera {camera.id} ({camera.model}) is a {projection} camera, but image "
+                f"'{name}' of the input is {input_projection}; the reference must use the input's projection"
+            )
+        values = colmap_to_values(camera.model, camera.params)
         sx = float(cameras.width[i]) / camera.width
         sy = float(cameras.height[i]) / camera.height
-        values[i] = torch.tensor([fx * sx, fy * sy, cx * sx, cy * sy, k1, k2], dtype=torch.float64)
-    distortion = torch.zeros(len(names), 6, dtype=cameras.fx.dtype)
-    distortion[:, :2] = values[:, 4:6].to(distortion.dtype)
+        pinhole[i] = torch.tensor([values["fx"] * sx, values["fy"] * sy, values["cx"] * sx, values["cy"] * sy])
+        distortion[i] = torch.tensor([values[key] for key in NERFSTUDIO_DISTORTION])
     dtype = cameras.fx.dtype
     return _replace_cameras(
         cameras,
         camera_to_worlds=c2w.to(cameras.camera_to_worlds.dtype),
-        fx=values[:, 0:1].to(dtype),
-        fy=values[:, 1:2].to(dtype),
-        cx=values[:, 2:3].to(dtype),
-        cy=values[:, 3:4].to(dtype),
-        distortion_params=distortion,
+        fx=pinhole[:, 0:1].to(dtype),
+        fy=pinhole[:, 1:2].to(dtype),
+        cx=pinhole[:, 2:3].to(dtype),
+        cy=pinhole[:, 3:4].to(dtype),
+        distortion_params=distortion.to(cameras.distortion_params.dtype),
     )
 
 
