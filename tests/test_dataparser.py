@@ -12,12 +12,12 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
-from nerfstudio.cameras.cameras import CameraType
+from nerfstudio.cameras.cameras import Cameras, CameraType
 from PIL import Image
 
 from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
-from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig, perturb_nerfstudio_cameras
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 # 50 x 38 so that a quarter-size folder must round (12.5 x 9.5 -> 13 x 10), like mip-NeRF 360's images_4.
@@ -132,6 +132,32 @@ def test_perturbation_off_by_default_on_when_enabled(generated_scene: Path):
     assert test.metadata["perturbed"] is False
     torch.testing.assert_close(test.cameras.camera_to_worlds, plain_test.cameras.camera_to_worlds)
     torch.testing.assert_close(test.cameras.distortion_params, plain_test.cameras.distortion_params)
+
+
+def test_perturbation_of_fisheye_cameras_draws_the_same_poses_and_focals(scene: Path):
+    """The draws depend on poses and focal lengths only: a fisheye model of the same scene gets the perspective one's
+    perturbed poses and focals, keeps its camera type, and loses its distortion when configured to."""
+    config = PerturbationConfig(enabled=True, seed=3)
+    perspective_plain, perspective = parse(scene), parse(scene, perturbation=config)
+    _set_camera(scene, "OPENCV_FISHEYE", [50, 50, 25, 19, 0.02, -0.004, 1e-3, -2e-4])
+    plain = parse(scene)
+    fisheye = parse(scene, perturbation=config)
+    assert (fisheye.cameras.camera_type == CameraType.FISHEYE.value).all()
+    torch.testing.assert_close(fisheye.cameras.camera_to_worlds, perspective.cameras.camera_to_worlds)
+    focal_scale = perspective.cameras.fx / perspective_plain.cameras.fx
+    torch.testing.assert_close(fisheye.cameras.fx / plain.cameras.fx, focal_scale)
+    assert not torch.allclose(fisheye.cameras.fx, plain.cameras.fx, rtol=1e-3)
+    assert float(fisheye.cameras.distortion_params.abs().max()) == 0.0
+    assert float(fisheye.metadata["reference_cameras"].distortion_params[:, 0].min()) == pytest.approx(0.02)
+
+
+def test_perturbation_of_other_camera_types_is_refused_by_name():
+    cameras = Cameras(
+        camera_to_worlds=torch.eye(4)[:3][None], fx=10.0, fy=10.0, cx=5.0, cy=5.0, width=10, height=10,
+        camera_type=CameraType.EQUIRECTANGULAR,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="supports PERSPECTIVE and FISHEYE cameras, got EQUIRECTANGULAR"):
+        perturb_nerfstudio_cameras(cameras, PerturbationConfig(enabled=True))
 
 
 def test_missing_image_is_named(scene: Path):

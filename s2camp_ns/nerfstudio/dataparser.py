@@ -331,9 +331,17 @@ def _fit_intrinsics_to_images(
 
 
 def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> Cameras:
-    """Apply the CamP perturbation to nerfstudio (OpenGL) cameras; zero their distortion if configured."""
-    if cameras.camera_type.ne(CameraType.PERSPECTIVE.value).any():
-        raise ValueError("the camera perturbation supports perspective cameras only")
+    """Apply the CamP perturbation to nerfstudio (OpenGL) cameras; zero their distortion if configured.
+
+    Perspective and fisheye cameras: the protocol draws poses and focal lengths only, which both projections share
+    (a fisheye's focal scales its image-space angle as a pinhole's scales its tangent); zeroed distortion leaves a
+    fisheye equidistant.
+    """
+    supported = (CameraType.PERSPECTIVE.value, CameraType.FISHEYE.value)
+    unsupported = sorted({int(t) for t in cameras.camera_type.reshape(-1).tolist()} - set(supported))
+    if unsupported:
+        names = ", ".join(CameraType(t).name for t in unsupported)
+        raise ValueError(f"the camera perturbation supports PERSPECTIVE and FISHEYE cameras, got {names}")
     c2w = opengl_to_opencv(cameras.camera_to_worlds.double())
     out = perturb_cameras(c2w, cameras.fx[:, 0].double(), cameras.fy[:, 0].double(), config)
     dtype = cameras.camera_to_worlds.dtype
