@@ -16,6 +16,7 @@ from s2camp_ns.core.camera import (
     project,
     tangent_bounds,
     unproject,
+    vertical_field_of_view,
 )
 from s2camp_ns.core.colmap_models import (
     COLMAP_PARAMETERS,
@@ -242,3 +243,28 @@ def test_deltas_of_the_paper_twelve_or_all_sixteen_parameters() -> None:
         assert torch.equal(getattr(intrinsics.with_delta(twelve), name), getattr(intrinsics.with_delta(full), name))
     with pytest.raises(ValueError, match="delta must have 16 columns .* or the paper's 12, got 13"):
         intrinsics.with_delta(torch.zeros(1, 13, dtype=torch.float64))
+
+
+def test_vertical_field_of_view_against_closed_forms():
+    # Pinhole, centred and off-centre principal point: atan of each half-height over the focal length.
+    pinhole = intrinsics_from_colmap("PINHOLE", [300.0, 250.0, 320.0, 240.0], 640, 480)
+    off_centre = intrinsics_from_colmap("PINHOLE", [300.0, 250.0, 320.0, 100.0], 640, 480)
+    # Equidistant fisheye without distortion: the angle is the image distance over f, past 180 degrees here.
+    fisheye = intrinsics_from_colmap("OPENCV_FISHEYE", [110.0, 110.0, 240.0, 240.0, 0.0, 0.0, 0.0, 0.0], 480, 480)
+    torch.testing.assert_close(vertical_field_of_view(pinhole), torch.tensor([2 * math.atan(240 / 250)]).double())
+    expected = math.atan(100 / 250) + math.atan(380 / 250)
+    torch.testing.assert_close(vertical_field_of_view(off_centre), torch.tensor([expected]).double())
+    torch.testing.assert_close(vertical_field_of_view(fisheye), torch.tensor([480 / 110]).double())
+    assert float(vertical_field_of_view(fisheye)) > math.pi
+
+
+def test_vertical_field_of_view_undoes_radial_distortion():
+    """SIMPLE_RADIAL: the edge's distorted tangent r_d = (h / 2) / f comes from r with r (1 + k1 r^2) = r_d; numpy's
+    polynomial roots give r, the field of view is 2 atan(r)."""
+    f, k1, height = 200.0, -0.02, 480
+    intrinsics = intrinsics_from_colmap("SIMPLE_RADIAL", [f, 320.0, height / 2, k1], 640, height)
+    r_d = (height / 2) / f
+    roots = np.roots([k1, 0.0, 1.0, -r_d])
+    r = min(root.real for root in roots if abs(root.imag) < 1e-12 and root.real > 0)
+    assert r != pytest.approx(r_d, rel=1e-3)  # the distortion matters here
+    torch.testing.assert_close(vertical_field_of_view(intrinsics), torch.tensor([2 * math.atan(r)]).double())

@@ -37,9 +37,10 @@ from nerfstudio.viewer.utils import parse_object
 from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerElement
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+from s2camp_ns.core.camera import vertical_field_of_view
 from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio.model import S2CampModel
-from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, DisplayText, S2CampViewerPanel
+from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, MAX_DRAWN_FOV, DisplayText, S2CampViewerPanel
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO_ROOT / "docs" / "viewer-screenshot.png"
@@ -53,7 +54,7 @@ def free_port() -> int:
 
 
 # ----------------------------------------------------------------------------------------------- fast: the panel
-def tiny_cameras(shift: float = 0.0, focal: float = 30.0) -> Cameras:
+def tiny_cameras(shift: float = 0.0, focal: float = 30.0, camera_type: CameraType = CameraType.PERSPECTIVE) -> Cameras:
     c2w = torch.eye(4)[:3].expand(NUM_CAMERAS, 3, 4).clone()
     c2w[:, 0, 3] = torch.linspace(-0.3, 0.3, NUM_CAMERAS) + shift
     c2w[:, 1, 3] = torch.tensor([0.0, 0.1, -0.1, 0.05])
@@ -66,11 +67,13 @@ def tiny_cameras(shift: float = 0.0, focal: float = 30.0) -> Cameras:
         cy=HEIGHT / 2,
         width=WIDTH,
         height=HEIGHT,
-        camera_type=CameraType.PERSPECTIVE,
+        camera_type=camera_type,
     )
 
 
-def build_model(viewer_update_period: float = 0.0, initial: Cameras | None = None) -> S2CampModel:
+def build_model(
+    viewer_update_period: float = 0.0, initial: Cameras | None = None, reference: Cameras | None = None
+) -> S2CampModel:
     """A sized-down S2CampModel whose reference cameras differ from its initial ones (as with the perturbation)."""
     with lpips_offline():
         config = tiny_model_config(
@@ -85,7 +88,7 @@ def build_model(viewer_update_period: float = 0.0, initial: Cameras | None = Non
         model = config.setup(
             scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])),
             num_train_data=NUM_CAMERAS,
-            metadata={"reference_cameras": tiny_cameras()},
+            metadata={"reference_cameras": reference if reference is not None else tiny_cameras()},
         )
     model.camera_optimizer.set_train_cameras(initial if initial is not None else tiny_cameras(0.02, 31.0))
     return model
@@ -193,7 +196,7 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         assert moved["i_since_refresh"].startswith("7 steps ago")
         assert all((panel._poses["initial"][i][0] == p).all() for i, p in initial_positions.items())
         refined = optimizer.refined_intrinsics().detach()
-        expected_fov = 2 * math.atan(HEIGHT / (2 * float(refined.fy[1])))
+        expected_fov = float(vertical_field_of_view(refined)[1])  # tested against closed forms in test_camera_models
         assert panel._poses["refined"][1][2] == pytest.approx(expected_fov) and expected_fov != refined_fov
         refined_position = optimizer.refined_c2w().detach()[1, :, 3].numpy() * 10.0
         assert panel._poses["refined"][1][0] == pytest.approx(refined_position)
@@ -222,7 +225,7 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         event = fake_click()
         panel._go_to_camera(event, "refined", 2)
         position, wxyz, fov = panel._poses["refined"][2]
-        assert event.client.camera.fov == pytest.approx(2 * math.atan(HEIGHT / (2 * float(refined.fy[2]))))
+        assert event.client.camera.fov == pytest.approx(float(vertical_field_of_view(refined)[2]))
         assert event.client.camera.position == pytest.approx(position)
         assert event.client.camera.wxyz == pytest.approx(wxyz)
         assert viewer.current_camera_idx == 2
@@ -247,6 +250,23 @@ def test_unperturbed_cameras_hide_the_initial_and_reference_sets_and_ns_viewer_h
         assert panel._handles["initial"] == {} and panel._handles["reference"] == {}
         assert sorted(panel._handles["refined"]) == list(range(NUM_CAMERAS))
         assert float(panel.c_rotation_error.value.split(" / ")[1]) < 1e-4
+
+
+def test_fisheye_frusta_get_the_fisheye_field_of_view_capped_for_drawing():
+    """Equidistant fisheyes (no distortion): the vertical field of view is height / f. f = 12 px gives 2 rad, wider
+    than a pinhole's 2 atan(12 / 12) = pi / 2; f = 7 px gives 3.43 rad, past 180 degrees, drawn and shown at
+    MAX_DRAWN_FOV."""
+    fisheye = CameraType.FISHEYE
+    model = build_model(initial=tiny_cameras(0.02, 12.0, fisheye), reference=tiny_cameras(0.0, 7.0, fisheye))
+    panel: S2CampViewerPanel = model.S2CamP
+    with viewer_with(model):
+        assert panel._poses["initial"][0][2] == pytest.approx(2.0)
+        assert panel._poses["refined"][0][2] == pytest.approx(2.0)
+        assert HEIGHT / 7.0 > MAX_DRAWN_FOV == pytest.approx(math.radians(170.0))
+        assert all(pose[2] == pytest.approx(MAX_DRAWN_FOV) for pose in panel._poses["reference"].values())
+        event = fake_click()
+        panel._go_to_camera(event, "reference", 1)
+        assert event.client.camera.fov == pytest.approx(MAX_DRAWN_FOV)
 
 
 def test_a_panel_failure_never_stops_training(capsys):

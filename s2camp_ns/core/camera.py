@@ -689,6 +689,19 @@ def pixel_to_ray_direction(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsic
     return directions / torch.linalg.norm(directions, dim=-1, keepdim=True)
 
 
+def vertical_field_of_view(intrinsics: Intrinsics) -> Float[Tensor, " n"]:
+    """Angle between the rays through the top and the bottom edge of the image at the principal point's column.
+
+    The sum of the two rays' angles to the optical axis, so distortion and an off-centre principal point count, and
+    a fisheye's field of view can exceed 180 degrees (pinhole with cy = h / 2: 2 atan(h / (2 fy))).
+    """
+    zeros = torch.zeros_like(intrinsics.cx)
+    edges = torch.stack([torch.stack([intrinsics.cx, zeros], -1), torch.stack([intrinsics.cx, intrinsics.height], -1)])
+    directions = pixel_to_ray_direction(edges.transpose(0, 1), intrinsics)
+    off_axis = torch.atan2(torch.linalg.norm(directions[..., :2], dim=-1), directions[..., 2])
+    return off_axis.sum(dim=-1)
+
+
 def tangent_bounds(intrinsics: Intrinsics, samples_per_edge: int = 129, inset: float = 1e-5) -> Float[Tensor, "n 4"]:
     """Inner box (a_min, a_max, b_min, b_max) of undistorted tangents whose rays land inside the image.
 

@@ -28,8 +28,9 @@ from s2camp_ns.camera_optimizer import (
     TRAIN_CAMERA_KEY,
     S2CampCameraOptimizer,
     S2CampCameraOptimizerConfig,
+    intrinsics_from_cameras,
 )
-from s2camp_ns.core.camera import opengl_to_opencv
+from s2camp_ns.core.camera import opengl_to_opencv, vertical_field_of_view
 from s2camp_ns.core.validation import check_positive_int
 from s2camp_ns.nerfstudio.distributed import any_rank, world_size
 from s2camp_ns.nerfstudio.viewer_panel import CameraFrusta, FrustumSet, RefinementStatus, S2CampViewerPanel
@@ -223,19 +224,20 @@ class S2CampModel(NerfactoModel):
         if which == "refined":
             deltas = optimizer.camera_deltas()
             refined = optimizer.refined_intrinsics(deltas)
-            return CameraFrusta(optimizer.refined_c2w(deltas), refined.fy, refined.width, refined.height)
+            fov = vertical_field_of_view(refined)
+            return CameraFrusta(optimizer.refined_c2w(deltas), fov, refined.width, refined.height)
         if which == "initial":
-            return CameraFrusta(optimizer.base_c2w_cv, base.fy, base.width, base.height)
+            return CameraFrusta(optimizer.base_c2w_cv, vertical_field_of_view(base), base.width, base.height)
         reference = self.reference_cameras()
         if reference is None:
             return None
         c2w = opengl_to_opencv(reference.camera_to_worlds.to(torch.float64)).cpu()
-        fy = reference.fy.reshape(-1).to(torch.float64).cpu()
+        fov = vertical_field_of_view(intrinsics_from_cameras(reference.to("cpu"))).cpu()
         same_poses = torch.allclose(c2w, optimizer.base_c2w_cv.cpu(), atol=1e-6)
-        if same_poses and torch.allclose(fy, base.fy.cpu()):
+        if same_poses and torch.allclose(fov, vertical_field_of_view(base).cpu()):
             return None
         return CameraFrusta(
-            c2w, fy, reference.width.reshape(-1).to(torch.float64), reference.height.reshape(-1).to(torch.float64)
+            c2w, fov, reference.width.reshape(-1).to(torch.float64), reference.height.reshape(-1).to(torch.float64)
         )
 
     def request_refresh(self) -> None:

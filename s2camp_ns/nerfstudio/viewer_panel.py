@@ -58,16 +58,20 @@ FRUSTUM_COLORS: dict[FrustumSet, tuple[int, int, int]] = {
 """Colours of the three frustum sets (amber, red, green); the checkbox labels name them."""
 FRUSTUM_ROOT = "/s2camp_cameras"
 """Scene-tree folder of the panel's frusta (nerfstudio draws its own image frusta under /cameras)."""
+MAX_DRAWN_FOV = math.radians(170.0)
+"""Widest field of view drawn and given to the viewer's camera: a pinhole frustum and the browser's perspective camera
+end before 180 degrees, where a fisheye's field of view can go on."""
 _POSE_TOLERANCE = 1e-6
 """Frusta whose pose and field of view moved less than this (viser units, radians) are not re-sent."""
 
 
 @dataclass(frozen=True)
 class CameraFrusta:
-    """Cameras to draw: OpenCV camera-to-world [n, 3, 4] (nerfstudio's scene units), fy, width and height [n]."""
+    """Cameras to draw: OpenCV camera-to-world [n, 3, 4] (nerfstudio's scene units), vertical field of view (radians,
+    ``s2camp_ns.core.camera.vertical_field_of_view``: distortion and fisheyes included), width and height [n]."""
 
     c2w_cv: Tensor
-    fy: Tensor
+    vertical_fov: Tensor
     width: Tensor
     height: Tensor
 
@@ -333,10 +337,11 @@ class S2CampViewerPanel(nn.Module):
         c2w = frusta.c2w_cv.detach().double().cpu().numpy()[indices]
         positions = c2w[:, :, 3] * self._scale_ratio()
         wxyz = vtf.SO3.from_matrix(c2w[:, :, :3]).wxyz.reshape(-1, 4)
-        fy, width, height = (
-            value.detach().double().cpu().numpy()[indices] for value in (frusta.fy, frusta.width, frusta.height)
+        fov, width, height = (
+            value.detach().double().cpu().numpy()[indices]
+            for value in (frusta.vertical_fov, frusta.width, frusta.height)
         )
-        return positions, wxyz, 2.0 * np.arctan(height / (2.0 * fy)), width / height
+        return positions, wxyz, np.minimum(fov, MAX_DRAWN_FOV), width / height
 
     @torch.no_grad()
     def _draw_static_sets(self) -> None:
