@@ -44,8 +44,22 @@ def test_the_warmup_never_gets_shorter_than_the_floor():
     rates = learning_rates(RunLengthScheduleConfig(run_steps=600), 600)
     assert rates[599] == pytest.approx(1e-8 + (1e-4 - 1e-8) * math.sin(0.5 * math.pi * 599 / 2500), rel=1e-9)
     assert RunLengthScheduleConfig(run_steps=600).step_counts() == (2500, 2501)
-    assert RunLengthScheduleConfig(run_steps=10000).step_counts() == (2500, 8333)
     assert RunLengthScheduleConfig(run_steps=60000).step_counts() == (5000, 50000)
+
+
+def test_under_the_floor_the_decay_keeps_its_share_of_the_steps_after_the_warmup():
+    # CamP decays over 22.5k of the 27.5k steps after its warm-up (9/11): 10k steps end at 2500 + 9/11 * 7500.
+    assert RunLengthScheduleConfig(run_steps=10000).step_counts() == (2500, 2500 + 6136)
+    assert RunLengthScheduleConfig(run_steps=4000).step_counts() == (2500, 2500 + 1227)
+    assert RunLengthScheduleConfig(run_steps=2600).step_counts() == (2500, 2500 + 82)
+    assert RunLengthScheduleConfig(run_steps=2501).step_counts() == (2500, 2501)
+    # The end of the decay moves with the run length, without the jump of "5/6 of the run, at least the warm-up".
+    ends = [RunLengthScheduleConfig(run_steps=steps).step_counts()[1] for steps in range(2400, 12001, 50)]
+    assert all(0 <= later - earlier <= 41 for earlier, later in zip(ends, ends[1:], strict=False))
+    rates = learning_rates(RunLengthScheduleConfig(run_steps=3000), 3000)
+    assert rates[2500] == pytest.approx(1e-4, rel=1e-12)
+    assert rates[2501] > 0.99 * 1e-4  # decays over 409 steps, not at once
+    assert rates[2909] == pytest.approx(1e-5, rel=1e-12)
 
 
 def test_the_default_30k_run_keeps_camps_step_counts():
@@ -71,6 +85,7 @@ def test_absolute_step_counts_override_the_fractions():
         ({"run_steps": 0}, "run_steps"),
         ({"run_steps": 100, "warmup_fraction": 1.0}, "warmup_fraction"),
         ({"run_steps": 100, "decay_end_fraction": 0.0}, "decay_end_fraction"),
+        ({"run_steps": 100, "decay_end_fraction": 0.05}, "decay_end_fraction"),
         ({"run_steps": 100, "lr_final": -1e-5}, "lr_final"),
         ({"warmup_steps": 10, "max_steps": 10}, "max_steps"),
         ({"run_steps": 100, "min_warmup_steps": -1}, "min_warmup_steps"),

@@ -8,7 +8,8 @@ schedule with the multipliers cast to float.
 
 ``RunLengthScheduleConfig`` states the decay as a fraction of the run instead of a step count, and the warm-up as a
 fraction with a floor in steps: CamP's camera schedule (warm-up over the first 2.5k of 30k steps, decay to a tenth by
-25k) applies as is to nerfacto's 30k steps, and a longer or shorter run gets its decay stretched or compressed. The
+25k) applies as is to nerfacto's 30k steps, and a longer or shorter run gets its decay stretched or compressed
+(over 9/11 of the steps after the warm-up, as CamP's 22.5k of 27.5k, so it stays continuous in the run length). The
 warm-up is never shorter than ``min_warmup_steps`` (CamP's 2.5k): the field converges in its own number of steps,
 not in a fraction of the run, and a camera that moves before the field fits follows the field's errors. Measured
 (docs/DESIGN-NOTES.md sec. 10): a warm-up compressed to 1/12 of a 200-step run let accurate cameras drift 0.27-0.53 px
@@ -57,8 +58,10 @@ class FloatExponentialDecayScheduler(ExponentialDecayScheduler):
 @dataclass
 class RunLengthScheduleConfig(SchedulerConfig):
     """Cosine warm-up from ``lr_pre_warmup`` to the optimizer's lr over the first ``warmup_fraction`` of the run (at
-    least ``min_warmup_steps``), then exponential decay to ``lr_final`` at ``decay_end_fraction`` of it (at least one
-    step after the warm-up), constant after (module docstring).
+    least ``min_warmup_steps``), then exponential decay to ``lr_final`` at ``decay_end_fraction`` of it, constant
+    after (module docstring). Where the floor lengthens the warm-up, the decay keeps its share of the steps after
+    the warm-up ((decay_end_fraction - warmup_fraction) / (1 - warmup_fraction), CamP's 22.5k of 27.5k), so the end
+    of the decay moves continuously with the run length; it ends at least one step after the warm-up.
 
     ``warmup_steps`` / ``max_steps`` (nerfstudio's names and meaning) replace the fractions by absolute step counts.
     """
@@ -73,11 +76,12 @@ class RunLengthScheduleConfig(SchedulerConfig):
     min_warmup_steps: int = 2500
     """Fewest warm-up steps (CamP's 2.5k): the camera waits for the field, whatever the run length."""
     decay_end_fraction: float = 25000 / 30000
-    """Fraction of the run at which the decay reaches ``lr_final`` (CamP: 25k of 30k steps)."""
+    """Fraction of the run at which the decay reaches ``lr_final`` (CamP: 25k of 30k steps) when the warm-up is
+    ``warmup_fraction`` of it; more than ``warmup_fraction``."""
     warmup_steps: int | None = None
     """Warm-up steps; None: ``warmup_fraction`` of the run, at least ``min_warmup_steps``."""
     max_steps: int | None = None
-    """Step at which the decay ends; None: ``decay_end_fraction`` of the run."""
+    """Step at which the decay ends; None: from ``decay_end_fraction`` (class docstring)."""
     run_steps: int | None = None
     """Steps of the run; None (the default): ``--max-num-iterations``, filled in by ``S2CampTrainer``."""
 
@@ -103,7 +107,9 @@ class RunLengthScheduleConfig(SchedulerConfig):
             warmup = self.warmup_steps
         if self.max_steps is None:
             assert self.run_steps is not None
-            end = max(round(self.decay_end_fraction * self.run_steps), warmup + 1)
+            check_range("decay_end_fraction", self.decay_end_fraction, low=self.warmup_fraction, low_inclusive=False)
+            decay_share = (self.decay_end_fraction - self.warmup_fraction) / (1.0 - self.warmup_fraction)
+            end = warmup + max(round(decay_share * (self.run_steps - warmup)), 1)
         else:
             check_range("max_steps", self.max_steps, low=warmup, low_inclusive=False)
             end = self.max_steps
