@@ -12,11 +12,13 @@ from s2camp_ns.core.camera import Intrinsics, ParameterLayout, in_image, project
 from s2camp_ns.core.lattice import unit_cube_points
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
+    Preconditioner,
     SamplingConfig,
     compute_preconditioner,
     condition_number,
     damped_gram,
     gram_from_points,
+    reexpress_adam_state,
     sample_proxy_points,
     symmetric_sqrt_and_inverse,
     whitening_error,
@@ -566,3 +568,69 @@ def test_a_sampling_config_saved_before_auto_range_existed_loads_with_its_defaul
     assert (loaded.t_near, loaded.t_far, loaded.auto) == (0.4, 1.5, False)
     loaded.validate()
     assert yaml.load(saved, Loader=yaml.Loader) == SamplingConfig(t_near=0.4, t_far=1.5)
+
+
+@pytest.mark.parametrize(
+    ("ranges", "message"),
+    [
+        (
+            torch.tensor([[0.4, 1.5]], dtype=torch.float64),
+            "ranges must have shape [3, 2] ([t_near, t_far] per camera), got (1, 2)",
+        ),
+        ([[0.4, 1.5]] * 3, "ranges must have shape [3, 2] ([t_near, t_far] per camera), got list"),
+        (
+            torch.tensor([[0.4, 1.5], [-0.1, 1.5], [0.4, 1.5]], dtype=torch.float64),
+            "ranges t_near must lie in [0, inf), got -0.1 (element 1)",
+        ),
+    ],
+    ids=["shape", "not-a-tensor", "negative-t-near"],
+)
+def test_bad_ranges_messages_name_the_parameter_the_value_and_the_allowed_range(ranges, message: str) -> None:
+    with pytest.raises(ValueError) as error:
+        compute_preconditioner(_three_cameras(), ranges=ranges)
+    assert str(error.value) == message
+
+
+def test_reexpress_adam_state_maps_the_moments_of_non_symmetric_preconditioners() -> None:
+    """Every P = Q Sigma^(1/2) whitens (eqs. 18-19), so P need not be symmetric. With M = P_new P_old^-1,
+    m_new = M^-T m_old = P_new^-T P_old^T m_old and v_new = (M^-T)^2 v_old (elementwise square), by hand for
+    P_old = [[1, 1], [0, 1]], P_new = [[1, 0], [2, 1]]:
+    M^-T = [[1, -2], [0, 1]] [[1, 0], [1, 1]] = [[-1, -2], [1, 1]]."""
+
+    def preconditioner(matrix: list[list[float]], inverse: list[list[float]]) -> Preconditioner:
+        p = torch.tensor([matrix], dtype=torch.float64)
+        return Preconditioner(matrix=p, inverse=torch.tensor([inverse], dtype=torch.float64), gram=p, num_valid=p)
+
+    old = preconditioner([[1.0, 1.0], [0.0, 1.0]], [[1.0, -1.0], [0.0, 1.0]])
+    new = preconditioner([[1.0, 0.0], [2.0, 1.0]], [[1.0, 0.0], [-2.0, 1.0]])
+    state = {"exp_avg": torch.tensor([[1.0, 2.0]]), "exp_avg_sq": torch.tensor([[1.0, 4.0]])}
+    reexpress_adam_state(old, new, state)
+    assert state["exp_avg"].tolist() == [[-5.0, 3.0]] and state["exp_avg"].dtype == torch.float32
+    assert state["exp_avg_sq"].tolist() == [[17.0, 5.0]] and state["exp_avg_sq"].dtype == torch.float32
+
+
+@pytest.mark.parametrize("radial", [None, "ray"], ids=["default-volume", "ray"])
+def test_per_camera_ranges_give_fisheye_points_the_radius_of_their_lattice_point(radial: str | None) -> None:
+    """Contracted radius of fisheye proxy n, l = Q_r(u1_l) on camera n's own [t_near, t_far] (paper eq. 12)."""
+    ranges = torch.tensor([[0.3, 0.8], [1.2, 1.9]], dtype=torch.float64)
+    sampling = SamplingConfig(num_points=200) if radial is None else SamplingConfig(num_points=200, radial=radial)
+    radius = sample_proxy_points(FISHEYE, sampling, ranges=ranges).norm(dim=-1)
+    contracted = torch.where(radius <= 1.0, radius, 2.0 - 1.0 / radius)  # paper eq. 10 by hand
+    u1 = unit_cube_points("frolov", 200).double()[:, 0]
+    near, far = ranges[:, :1], ranges[:, 1:]
+    if radial == "ray":
+        expected = near + u1 * (far - near)
+    else:
+        expected = (near**3 + u1 * (far**3 - near**3)) ** (1.0 / 3.0)
+    torch.testing.assert_close(contracted, expected, atol=1e-12, rtol=0)
+
+
+def test_a_reloaded_old_sampling_config_saves_every_field_again() -> None:
+    """nerfstudio writes the loaded config back to config.yml: a field missing from an old file (here ``seed`` and
+    ``ladder_p``) must come back with its default, not vanish from the next saved file."""
+    import yaml
+
+    saved = yaml.dump(SamplingConfig(t_near=0.4, t_far=1.5))
+    old = "\n".join(line for line in saved.splitlines() if not line.startswith(("seed:", "ladder_p:")))
+    assert "seed" not in old and "ladder_p" not in old
+    assert yaml.dump(yaml.load(old, Loader=yaml.Loader)) == saved
