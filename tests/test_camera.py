@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from decimal import Decimal, getcontext
 
 import mpmath
@@ -20,6 +21,7 @@ from s2camp_ns.core.camera import (
     check_distortion_monotonic,
     fisheye_fold_angle,
     fisheye_terms,
+    image_grid,
     in_image,
     opengl_to_opencv,
     pixel_to_ray_direction,
@@ -525,3 +527,71 @@ def test_tangent_bounds_of_a_pincushion_camera_are_its_undistorted_corners() -> 
     a, b = a_d * r / r_d, b_d * r / r_d
     expected = torch.tensor([[-a * (1 - 2e-5), a * (1 - 2e-5), -b * (1 - 2e-5), b * (1 - 2e-5)]], dtype=torch.float64)
     torch.testing.assert_close(tangent_bounds(intrinsics), expected, atol=1e-12, rtol=0)
+
+
+def test_image_grid_is_the_border_and_an_interior_lattice_in_the_intrinsics_dtype():
+    """edge = 4 per side: u in {0, 1/3, 2/3, 1} along each side; interior = 4: the 4 x 4 lattice of the same values,
+    row by row; both scaled by (W, H) of each camera (1/3 is not a float32 number: the dtype shows)."""
+    intrinsics = Intrinsics.create(fx=300.0, fy=300.0, cx=150.0, cy=100.0, width=[640.0, 300.0], height=[480.0, 200.0])
+    grid = image_grid(intrinsics, edge=4, interior=4)
+    t = [0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0]
+    border = [(u, 0.0) for u in t] + [(u, 1.0) for u in t] + [(0.0, u) for u in t] + [(1.0, u) for u in t]
+    inner = [(a, b) for a in t for b in t]
+    size = torch.tensor([[640.0, 480.0], [300.0, 200.0]], dtype=torch.float64)
+    expected = torch.tensor(border + inner, dtype=torch.float64)[None] * size[:, None, :]
+    assert grid.dtype == torch.float64 and grid.shape == (2, 32, 2)
+    torch.testing.assert_close(grid, expected, atol=1e-12, rtol=0)
+    assert image_grid(intrinsics.to(dtype=torch.float32), edge=4, interior=3).dtype == torch.float32
+
+
+def test_image_grid_passes_meshgrid_its_indexing():
+    """torch warns (once per process, always under set_warn_always) when meshgrid gets no indexing argument."""
+    intrinsics = Intrinsics.create(fx=300.0, fy=300.0, cx=150.0, cy=100.0, width=640.0, height=480.0)
+    previous = torch.is_warn_always_enabled()
+    torch.set_warn_always(True)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            image_grid(intrinsics, edge=4, interior=3)
+    finally:
+        torch.set_warn_always(previous)
+
+
+def test_from_tensors_defaults_to_a_perspective_camera():
+    intrinsics = Intrinsics.create(fx=300.0, fy=301.0, cx=150.0, cy=100.0, width=320.0, height=200.0, k1=-0.01)
+    again = Intrinsics.from_tensors(intrinsics.tensors())
+    assert again.model == "perspective" and torch.equal(again.tensors(), intrinsics.tensors())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_strong_tangential_distortion_of_a_wide_camera_is_accepted_and_undistorts(dtype: torch.dtype) -> None:
+    """p1 = 0.08 on a 94 x 77 degree camera (corner tangents up to 1.07): x_d = x (1 + 2 p1 y),
+    y_d = y + p1 (x^2 + 3 y^2), whose Jacobian (1 + 2 p1 y)(1 + 6 p1 y) - 4 p1^2 x^2 stays positive at the corner
+    (0, 0) preimage, (x, y) = (-1.40, -1.49). Accepted in float32 too (the check runs in float64), and undistortion
+    inverts the distortion at the corners and edge midpoints."""
+    intrinsics = Intrinsics.create(fx=300.0, fy=300.0, cx=320.0, cy=240.0, width=640, height=480, p1=0.08, dtype=dtype)
+    p1, (xd, yd) = 0.08, (-320.0 / 300.0, -240.0 / 300.0)
+    # y + p1 (xd^2 / (1 + 2 p1 y)^2 + 3 y^2) = yd, times (1 + 2 p1 y)^2: a quartic in y (numpy's roots).
+    quartic = np.polynomial.Polynomial([-yd, 1.0, 3 * p1]) * np.polynomial.Polynomial([1.0, 2 * p1]) ** 2 + p1 * xd**2
+    y = max(r.real for r in quartic.roots() if abs(r.imag) < 1e-12)
+    x = xd / (1 + 2 * p1 * y)
+    assert (1 + 2 * p1 * y) * (1 + 6 * p1 * y) - 4 * p1**2 * x**2 > 0.1
+    pixels = torch.tensor([[[0.0, 0.0], [640.0, 0.0], [0.0, 480.0], [640.0, 480.0], [320.0, 0.0], [0.0, 240.0]]])
+    camera64 = intrinsics.to(dtype=torch.float64)
+    back, _ = project(pixel_to_ray_direction(pixels.double(), camera64), camera64)
+    torch.testing.assert_close(back, pixels.double(), atol=1e-9, rtol=0)
+
+
+def test_a_tangential_fold_names_the_camera_its_coefficients_and_the_first_pixel_in_full() -> None:
+    """Camera 1's p1 = 0.09: the image corner (0, 0), tangents (-320/300, -240/300), has no undistorted preimage (the
+    quartic of the test above has no real root), and it is the first point of the check's grid (border first)."""
+    p1, (xd, yd) = 0.09, (-320.0 / 300.0, -240.0 / 300.0)
+    quartic = np.polynomial.Polynomial([-yd, 1.0, 3 * p1]) * np.polynomial.Polynomial([1.0, 2 * p1]) ** 2 + p1 * xd**2
+    assert all(abs(r.imag) > 1e-3 for r in quartic.roots())
+    message = (
+        "k1, k2, k3, k4, p1, p2 = (0, 0, 0, 0, 0.09, 0) of camera 1 make the distortion fold inside the image: it is "
+        "not invertible at pixel (0.0, 0.0); allowed are coefficients whose distortion stays one-to-one over the "
+        "whole image"
+    )
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        Intrinsics.create(fx=300.0, fy=300.0, cx=320.0, cy=240.0, width=640, height=480, p1=[0.001, 0.09])

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from s2camp_ns.core.contraction import contract, contract_radius, uncontract, uncontract_radius
-from s2camp_ns.core.frustum import frustum_to_unit, sample_frustum
+from s2camp_ns.core.frustum import frustum_to_unit, radius_per_camera, sample_frustum
 
 ROOM = torch.tensor([[-389.25 / 793.13, 388.75 / 793.13, -259.375 / 793.49, 258.625 / 793.49]], dtype=torch.float64)
 OFF_CENTRE = torch.tensor([[-0.3, 0.9, 0.1, 0.6]], dtype=torch.float64)  # principal point far off centre
@@ -263,3 +263,16 @@ def test_frustum_errors_state_parameter_and_range() -> None:
         sample_frustum(u, torch.zeros(4, dtype=torch.float64), 0.0, 1.5)
     with pytest.raises(ValueError, match=re.escape(prefix + "list")):
         sample_frustum(u, [[-0.5, 0.5, -0.3, 0.3]], 0.0, 1.5)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("radial", ["ray", "volume"])
+def test_radius_per_camera_maps_each_cameras_own_range(radial: str) -> None:
+    """Q_r(u1) on each camera's [t_near, t_far] (paper eq. 12; "ray": uniform in contracted distance)."""
+    u1 = torch.tensor([0.0, 0.25, 0.5, 1.0], dtype=torch.float64)
+    near = torch.tensor([0.2, 0.5, 0.2])
+    far = torch.tensor([1.0, 1.9, 1.0])
+    radius = radius_per_camera(u1, near, far, radial)
+    n, f = near.double()[:, None], far.double()[:, None]
+    expected = n + u1 * (f - n) if radial == "ray" else (n**3 + u1 * (f**3 - n**3)) ** (1.0 / 3.0)
+    assert radius.dtype == torch.float64
+    torch.testing.assert_close(radius, expected, atol=1e-15, rtol=0)
