@@ -595,3 +595,25 @@ def test_a_tangential_fold_names_the_camera_its_coefficients_and_the_first_pixel
     )
     with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         Intrinsics.create(fx=300.0, fy=300.0, cx=320.0, cy=240.0, width=640, height=480, p1=[0.001, 0.09])
+
+
+def test_tangential_distortion_just_inside_its_fold_is_accepted() -> None:
+    """p1 = 0.082 on the 640 x 480, f = 300 camera: every pixel of a 17 x 13 grid (corners included) has an undistorted
+    preimage (the largest real root of the quartic above) where the Jacobian (1 + 2 p1 y)(1 + 6 p1 y) - 4 p1^2 x^2 is
+    still positive, but only just at the corner (0, 0) (about 0.1; p1 = 0.084 has no preimage there). Undistortion
+    must converge there within its iterations."""
+    p1 = 0.082
+    smallest = math.inf
+    for u in np.linspace(0.0, 640.0, 17):
+        for v in np.linspace(0.0, 480.0, 13):
+            xd, yd = (u - 320.0) / 300.0, (v - 240.0) / 300.0
+            poly = np.polynomial.Polynomial
+            quartic = poly([-yd, 1.0, 3 * p1]) * poly([1.0, 2 * p1]) ** 2 + p1 * xd**2
+            y = max(r.real for r in quartic.roots() if abs(r.imag) < 1e-9)
+            x = xd / (1 + 2 * p1 * y)
+            smallest = min(smallest, (1 + 2 * p1 * y) * (1 + 6 * p1 * y) - 4 * p1**2 * x**2)
+    assert 0.05 < smallest < 0.15
+    intrinsics = Intrinsics.create(fx=300.0, fy=300.0, cx=320.0, cy=240.0, width=640, height=480, p1=p1)
+    corner = torch.zeros(1, 1, 2, dtype=torch.float64)
+    back, _ = project(pixel_to_ray_direction(corner, intrinsics), intrinsics)
+    torch.testing.assert_close(back, corner, atol=1e-9, rtol=0)
