@@ -276,3 +276,49 @@ def test_radius_per_camera_maps_each_cameras_own_range(radial: str) -> None:
     expected = n + u1 * (f - n) if radial == "ray" else (n**3 + u1 * (f**3 - n**3)) ** (1.0 / 3.0)
     assert radius.dtype == torch.float64
     torch.testing.assert_close(radius, expected, atol=1e-15, rtol=0)
+
+
+@pytest.mark.parametrize("per_camera_points", [False, True], ids=["shared-points", "per-camera-points"])
+@pytest.mark.parametrize("radial", ["volume", "ray"])
+def test_per_camera_ranges_set_only_each_cameras_radii(per_camera_points: bool, radial: str) -> None:
+    """Tensor ranges [N]: camera n's contracted radii are Q_r(u1) on its own [t_near, t_far] (paper eq. 12), its
+    directions those of any range (the range moves points along their rays only); a float end is shared by all."""
+    u = uniform_cube(50, seed=8)
+    if per_camera_points:
+        u = torch.stack([u, uniform_cube(50, seed=9), uniform_cube(50, seed=10)])
+    near = torch.tensor([0.2, 0.5, 0.0], dtype=torch.float64)
+    far = torch.tensor([1.0, 1.9, 1.5], dtype=torch.float64)
+    u1 = u[..., 0].expand(3, -1)
+    for t_near, t_far in ((near, far), (0.2, far), (near, 1.9)):
+        n = torch.as_tensor(t_near, dtype=torch.float64).expand(3)[:, None]
+        f = torch.as_tensor(t_far, dtype=torch.float64).expand(3)[:, None]
+        contracted = sample_frustum(u, BOUNDS, t_near, t_far, "pyramid", radial).contracted
+        expected = n + u1 * (f - n) if radial == "ray" else (n**3 + u1 * (f**3 - n**3)) ** (1.0 / 3.0)
+        radius = contracted.norm(dim=-1)
+        torch.testing.assert_close(radius, expected, atol=1e-12, rtol=0)
+        reference = sample_frustum(u, BOUNDS, 0.3, 1.2, "pyramid", radial).contracted
+        directions = contracted / radius[..., None].clamp_min(1e-300)
+        moved = radius > 0  # t_near = 0 with u1 = 0 sits on the camera centre
+        expected_directions = (reference / reference.norm(dim=-1, keepdim=True))[moved]
+        torch.testing.assert_close(directions[moved], expected_directions, atol=1e-12, rtol=0)
+
+
+def _f64(*values: float) -> torch.Tensor:
+    return torch.tensor(values, dtype=torch.float64)
+
+
+@pytest.mark.parametrize(
+    ("t_near", "t_far", "message"),
+    [
+        (_f64(0.2, -0.1, 0.2), 1.5, "t_near must lie in [0, inf), got -0.1 (element 1)"),
+        (0.4, _f64(1.5, 0.4, 1.5), "t_far - t_near must lie in (0, inf), got 0 (element 1)"),
+        (_f64(0.2, 1.9, 0.2), 1.9, "t_far - t_near must lie in (0, inf), got 0 (element 1)"),
+        (0.2, _f64(1.5, 2.0, 1.5), "t_far must lie in (0, 2), got 2 (element 1)"),
+        (_f64(0.2, 0.3), 1.5, "t_near must be a float or hold one value per camera (N = 3), got shape (2,)"),
+        (0.2, _f64(1.5, 1.6, 1.7, 1.8), "t_far must be a float or hold one value per camera (N = 3), got shape (4,)"),
+    ],
+)
+def test_bad_per_camera_ranges_are_named_in_full(t_near, t_far, message: str) -> None:
+    with pytest.raises(ValueError) as error:
+        sample_frustum(uniform_cube(10), BOUNDS, t_near, t_far)
+    assert str(error.value) == message
