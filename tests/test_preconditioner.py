@@ -634,3 +634,61 @@ def test_a_reloaded_old_sampling_config_saves_every_field_again() -> None:
     old = "\n".join(line for line in saved.splitlines() if not line.startswith(("seed:", "ladder_p:")))
     assert "seed" not in old and "ladder_p" not in old
     assert yaml.dump(yaml.load(old, Loader=yaml.Loader)) == saved
+
+
+def test_camp_random_uses_the_configured_ray_distances_ladder_and_seed() -> None:
+    """CamP's sampler: ray distances (no contraction) from the config's t_near / t_far (0.4 / 1.5 when unset, CamP's
+    0.4 / 1000 in CAMP_SAMPLING), on the power ladder of its ladder_p, from draws of a CPU generator seeded with its
+    seed: [N, L, 3] uniforms whose third coordinate is the ladder's s (s2camp_ns/core/camp_sampling.py)."""
+    from s2camp_ns.core.camp_sampling import ladder_distance
+    from s2camp_ns.core.preconditioner import CAMP_SAMPLING
+
+    assert SamplingConfig(sampler="camp-random").fixed_range() == (0.4, 1.5)
+    assert SamplingConfig(sampler="camp-random", t_near=0.6, t_far=50.0).fixed_range() == (0.6, 50.0)
+    assert CAMP_SAMPLING.fixed_range() == (0.4, 1000.0)
+    sampling = SamplingConfig(sampler="camp-random", num_points=50, seed=3, t_near=0.6, t_far=50.0, ladder_p=-2.5)
+    distance = sample_proxy_points(ROOM, sampling).norm(dim=-1)
+    draws = torch.rand((1, 50, 3), generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    torch.testing.assert_close(distance, ladder_distance(draws[..., 2], 0.6, 50.0, -2.5), atol=1e-12, rtol=1e-12)
+
+
+def test_chunks_of_camp_random_cameras_continue_one_random_stream() -> None:
+    """Passing one generator through the chunks gives the points of one unchunked call (up to the last bits of pow
+    and undistortion, compute_preconditioner's docstring), so P agrees to rounding; fresh draws per chunk would not."""
+    cameras = _varied_cameras(5)
+    sampling = SamplingConfig(sampler="camp-random", num_points=64, seed=2)
+    whole = compute_preconditioner(cameras, sampling=sampling, chunk_size=None)
+    chunked = compute_preconditioner(cameras, sampling=sampling, chunk_size=2)
+    torch.testing.assert_close(chunked.matrix, whole.matrix, rtol=1e-9, atol=1e-12)
+
+
+def test_fixed_ranges_keep_the_configured_minimum_width_but_not_for_camp_random() -> None:
+    """An explicit t_far = 0.5 leaves the default near end 0.4 too close: it moves to 0.5 - min_width (0.2 by default,
+    0.3 here). CamP's ray distances are taken as given: t_near = 1.45 keeps the default far end 1.5."""
+    from s2camp_ns.core.proxy_range import ProxyRangeConfig
+
+    assert SamplingConfig(t_far=0.5).fixed_range() == pytest.approx((0.3, 0.5), abs=1e-15)
+    wide = SamplingConfig(t_far=0.5, auto_range=ProxyRangeConfig(min_width=0.3))
+    assert wide.fixed_range() == pytest.approx((0.2, 0.5), abs=1e-15)
+    assert SamplingConfig(sampler="camp-random", t_near=1.45).fixed_range() == (1.45, 1.5)
+
+
+def test_camp_random_cameras_with_equal_intrinsics_get_their_own_points() -> None:
+    """CamP's per-camera random points are never shared: two bitwise-equal cameras get different points, so
+    different P (the other samplers share one computation, bit-identical to separate ones)."""
+    cameras = _varied_cameras(3)[torch.tensor([0, 0, 1])]
+    result = compute_preconditioner(cameras, sampling=SamplingConfig(sampler="camp-random", num_points=64))
+    assert float((result.matrix[0] - result.matrix[1]).abs().max()) > 1e-6 * float(result.matrix[0].abs().max())
+
+
+def test_shared_computation_keeps_the_layout_damping_and_ranges() -> None:
+    """Cameras 0 and 2 are equal in intrinsics and range, so they share one computation: it must use the caller's
+    layout, damping and ranges, bit for bit as separate computations do."""
+    cameras = _varied_cameras(2)[torch.tensor([0, 1, 0])]
+    ranges = torch.tensor([[0.6, 1.2], [0.3, 1.8], [0.6, 1.2]], dtype=torch.float64)
+    layout = ParameterLayout.from_preset("pose+focal")
+    damping = DampingConfig(damping_rel=0.5)
+    shared = compute_preconditioner(cameras, layout, damping=damping, ranges=ranges)
+    separate = compute_preconditioner(cameras, layout, damping=damping, ranges=ranges, share_intrinsics=False)
+    _assert_same_bits(shared, separate)
+    assert shared.matrix.shape == (3, 7, 7) and torch.equal(shared.matrix[0], shared.matrix[2])
