@@ -617,3 +617,15 @@ def test_tangential_distortion_just_inside_its_fold_is_accepted() -> None:
     corner = torch.zeros(1, 1, 2, dtype=torch.float64)
     back, _ = project(pixel_to_ray_direction(corner, intrinsics), intrinsics)
     torch.testing.assert_close(back, corner, atol=1e-9, rtol=0)
+
+
+def test_radial_helpers_default_to_the_two_coefficient_model() -> None:
+    """Without k3, k4: D'(r^2) = k1 + 2 k2 r^2, and s = r / r_d solves s (1 + k1 r^2 + k2 r^4) = 1 (r = s r_d)."""
+    from s2camp_ns.core.camera import distortion_slope, undistort_scale
+
+    r2 = torch.tensor([0.0, 0.25, 1.0, 2.0], dtype=torch.float64)
+    k1, k2 = torch.tensor(-0.05, dtype=torch.float64), torch.tensor(0.01, dtype=torch.float64)
+    torch.testing.assert_close(distortion_slope(r2, k1, k2), k1 + 2.0 * k2 * r2, atol=1e-15, rtol=0)
+    r_d = r2.sqrt()
+    r = undistort_scale(r2, k1, k2) * r_d
+    torch.testing.assert_close(r * (1.0 + k1 * r**2 + k2 * r**4), r_d, atol=1e-12, rtol=0)

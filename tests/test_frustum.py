@@ -322,3 +322,10 @@ def test_bad_per_camera_ranges_are_named_in_full(t_near, t_far, message: str) ->
     with pytest.raises(ValueError) as error:
         sample_frustum(uniform_cube(10), BOUNDS, t_near, t_far)
     assert str(error.value) == message
+
+
+def test_validate_frustum_defaults_to_the_pyramid_and_volume_maps() -> None:
+    from s2camp_ns.core.frustum import validate_frustum
+
+    bounds = validate_frustum(BOUNDS.float(), 0.2, 1.5)
+    assert bounds.dtype == torch.float64 and torch.equal(bounds, BOUNDS.float().double())

@@ -476,7 +476,7 @@ def test_cameras_sharing_intrinsics_share_p_bit_for_bit() -> None:
 
 
 def test_chunk_size_is_validated() -> None:
-    with pytest.raises(ValueError, match="chunk_size"):
+    with pytest.raises(ValueError, match=r"^chunk_size must be an integer in \[1, inf\), got 0$"):
         compute_preconditioner(ROOM, chunk_size=0)
 
 
@@ -688,7 +688,26 @@ def test_shared_computation_keeps_the_layout_damping_and_ranges() -> None:
     ranges = torch.tensor([[0.6, 1.2], [0.3, 1.8], [0.6, 1.2]], dtype=torch.float64)
     layout = ParameterLayout.from_preset("pose+focal")
     damping = DampingConfig(damping_rel=0.5)
-    shared = compute_preconditioner(cameras, layout, damping=damping, ranges=ranges)
-    separate = compute_preconditioner(cameras, layout, damping=damping, ranges=ranges, share_intrinsics=False)
+    sampling = SamplingConfig(num_points=200, transform="spherical", radial="ray")
+    shared = compute_preconditioner(cameras, layout, sampling, damping, ranges=ranges)
+    separate = compute_preconditioner(cameras, layout, sampling, damping, ranges=ranges, share_intrinsics=False)
     _assert_same_bits(shared, separate)
     assert shared.matrix.shape == (3, 7, 7) and torch.equal(shared.matrix[0], shared.matrix[2])
+    fisheye = FISHEYE[torch.tensor([0, 1, 0])]  # and the projection model
+    _assert_same_bits(compute_preconditioner(fisheye), compute_preconditioner(fisheye, share_intrinsics=False))
+
+
+def test_equal_cameras_are_computed_once_by_default(monkeypatch: pytest.MonkeyPatch) -> None:
+    """compute_preconditioner's docstring: cameras with bitwise-equal intrinsics share one computation."""
+    from s2camp_ns.core import preconditioner as module
+
+    cameras_seen = []
+    original = module.gram_from_points
+
+    def counting(points, intrinsics, layout=None):
+        cameras_seen.append(intrinsics.num_cameras)
+        return original(points, intrinsics, layout)
+
+    monkeypatch.setattr(module, "gram_from_points", counting)
+    compute_preconditioner(_varied_cameras(2)[torch.tensor([0, 1, 0, 1])])
+    assert cameras_seen == [2]
