@@ -629,3 +629,33 @@ def test_radial_helpers_default_to_the_two_coefficient_model() -> None:
     r_d = r2.sqrt()
     r = undistort_scale(r2, k1, k2) * r_d
     torch.testing.assert_close(r * (1.0 + k1 * r**2 + k2 * r**4), r_d, atol=1e-12, rtol=0)
+
+
+def test_intrinsics_built_without_the_opencv_terms_get_zero_ones() -> None:
+    """The nine-field constructor of the radial model: k3, k4, p1, p2 default to zeros shaped and typed like k1."""
+    one = torch.tensor([1.0, 2.0], dtype=torch.float64)
+    k1 = torch.tensor([-0.01, 0.02], dtype=torch.float64)
+    intrinsics = Intrinsics(300.0 * one, 300.0 * one, 160.0 * one, 100.0 * one, 0.0 * one, k1, 0.0 * one, 320.0 * one,
+                            200.0 * one)  # fmt: skip
+    for name in ("k3", "k4", "p1", "p2"):
+        value = getattr(intrinsics, name)
+        assert torch.equal(value, torch.zeros(2, dtype=torch.float64)) and value.dtype == torch.float64
+
+
+def test_undistortion_takes_the_radial_path_exactly_when_there_is_no_tangential_term() -> None:
+    """p1 = p2 = 0: the scalar radial inverse (undistort_scale with all four k) bit for bit; p1 or p2 alone: the 2-D
+    inverse, which the forward distortion maps back onto the distorted tangents."""
+    from s2camp_ns.core.camera import distort_tangents, undistort_scale, undistort_tangents
+
+    a_d = torch.tensor([[0.3, -0.5, 0.7]], dtype=torch.float64)
+    b_d = torch.tensor([[0.2, 0.4, -0.6]], dtype=torch.float64)
+    base = dict(fx=300.0, fy=300.0, cx=320.0, cy=240.0, width=640, height=480, k1=-0.05, k2=0.01)
+    radial = Intrinsics.create(**base, k3=0.002, k4=-0.0005)
+    ks = (getattr(radial, name)[:, None] for name in ("k1", "k2", "k3", "k4"))
+    scale = undistort_scale(a_d * a_d + b_d * b_d, *ks)
+    a, b = undistort_tangents(a_d, b_d, radial)
+    assert torch.equal(a, a_d * scale) and torch.equal(b, b_d * scale)
+    for name in ("p1", "p2"):
+        camera = Intrinsics.create(**base, **{name: 0.002})
+        fa, fb = distort_tangents(*undistort_tangents(a_d, b_d, camera), camera)
+        torch.testing.assert_close(torch.stack([fa, fb]), torch.stack([a_d, b_d]), atol=1e-12, rtol=0)
