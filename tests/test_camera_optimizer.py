@@ -1500,3 +1500,15 @@ def test_a_checkpoint_loaded_before_the_cameras_keeps_its_p_even_from_step_zero(
     resumed.load_state_dict(state)
     resumed.set_train_cameras(make_cameras(k1=-0.05, k2=0.01))
     assert int(resumed.num_refreshes) == 1 and torch.equal(resumed.precond, saved.precond)
+
+
+def test_pose_only_warning_is_attributed_to_a_caller():
+    """Any stack level above 1: the warning names a caller's line, not the warnings.warn call (this holds under
+    mutmut's trampolines too, unlike the exact frame of test_pose_only_warning_points_at_apply_to_raybundle)."""
+    optimizer = raw_optimizer()
+    bundle = random_ray_bundle(num_rays=8, seed=3)
+    bundle.metadata.pop(PIXEL_KEY)
+    with pytest.warns(UserWarning, match="carries no") as record:
+        optimizer.apply_to_raybundle(bundle)
+    source = linecache.getline(record[0].filename, record[0].lineno)
+    assert source.strip() and "warnings.warn(" not in source, source
