@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import inspect
 import io
+import linecache
 import math
 import re
 import warnings
@@ -1218,3 +1219,296 @@ def test_the_range_and_its_fallback_are_logged(capsys: pytest.CaptureFixture):
     make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud()[:10])  # 10 < min_points 20
     err = " ".join(capsys.readouterr().err.split())
     assert "3 camera(s) see fewer than 20 points and use the fixed range (0.4, 1.5)" in err
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Tests added for the second mutation run (docs/mutation-testing.md): messages in full, the state before the cameras
+# are known, subsets of cameras, and how the proxy range is chosen. Expected text and numbers are written out or
+# derived by hand (contracted_quartiles_by_hand), not taken from the optimizer.
+
+
+def _stderr(capsys: pytest.CaptureFixture) -> str:
+    """What the optimizer printed on stderr since the last read, whitespace-normalised (rich wraps at 120)."""
+    return " ".join(capsys.readouterr().err.split())
+
+
+def test_the_proxy_range_note_in_full(capsys: pytest.CaptureFixture):
+    """The start-up note with every number: a span where the physical cameras differ, one value where they agree,
+    the fallback appended to (not replacing) the chosen ranges."""
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    capsys.readouterr()
+    make_optimizer(cameras, sampling={"sampler": "frolov"})
+    assert _stderr(capsys) == (
+        "S2CamP proxy range: the scene has no points (dataparser metadata 'points3D_xyz'), so every camera uses the "
+        "fixed contracted range (0.4, 1.5) (sampling.t-near / t-far set it)"
+    )
+    make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
+    expected = contracted_quartiles_by_hand(cameras, scene_cloud())
+    near, far = expected[:, 0], expected[:, 1]
+    near_span, far_span = f"{near.min():.3f}..{near.max():.3f}", f"{far.min():.3f}..{far.max():.3f}"
+    assert near_span.split("..")[0] != near_span.split("..")[1] and far_span.split("..")[0] != far_span.split("..")[1]
+    assert _stderr(capsys) == (
+        f"S2CamP proxy range from 512 scene points, 3 physical cameras: t_near {near_span}, t_far {far_span} "
+        "(contracted)"
+    )
+    make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud()[:10])  # 10 < min_points 20: all fall back
+    assert _stderr(capsys) == (
+        "S2CamP proxy range from 10 scene points, 3 physical cameras: t_near 0.400, t_far 1.500 (contracted); "
+        "3 camera(s) see fewer than 20 points and use the fixed range (0.4, 1.5)"
+    )
+
+
+@pytest.mark.parametrize(("p1", "p2"), [(0.003, 0.0), (0.0, -0.001)])
+def test_one_tangential_coefficient_makes_an_opencv_camera(p1: float, p2: float):
+    from s2camp_ns.camera_optimizer import camera_model_of
+
+    intrinsics = Intrinsics.create(fx=60.0, fy=60.0, cx=32.0, cy=24.0, width=64, height=48, k1=-0.05, p1=p1, p2=p2)
+    assert camera_model_of(intrinsics) == "OPENCV"
+
+
+def test_every_unsupported_camera_type_is_named():
+    from s2camp_ns.camera_optimizer import projection_of
+
+    cameras = _with(make_cameras(), [0.0] * 6, CameraType.EQUIRECTANGULAR)
+    cameras.camera_type = cameras.camera_type.clone()
+    cameras.camera_type[2] = CameraType.OMNIDIRECTIONALSTEREO_L.value
+    message = "camera type EQUIRECTANGULAR, OMNIDIRECTIONALSTEREO_L is not supported by S2CamP's camera refinement; "
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}supported are PERSPECTIVE"):
+        projection_of(cameras)
+
+
+def test_distortion_is_checked_in_the_requested_dtype():
+    """The zero checks see the values the returned intrinsics hold: a float64 k4 that is 0 in float32 is accepted
+    for float32 intrinsics and refused for float64 ones."""
+    cameras = _with(make_cameras(), [-0.05, 0.01, 0.0, 0.0, 0.0, 0.0])
+    cameras.distortion_params = cameras.distortion_params.double()
+    cameras.distortion_params[:, 3] = 1e-60  # below float32's smallest subnormal: 0 in float32
+    assert intrinsics_from_cameras(cameras, dtype=torch.float32).k4.tolist() == [0.0] * NUM_CAMERAS
+    with pytest.raises(ValueError, match=r"^distortion parameter k4 = 1e-60 of perspective camera 0 is not supported"):
+        intrinsics_from_cameras(cameras)
+
+
+@pytest.mark.parametrize("intrinsics", ["per-image", "per-camera"])
+def test_a_new_optimizer_holds_float64_placeholders_and_no_refresh(intrinsics: str):
+    """Before set_train_cameras (the model builds the optimizer, moves it with .to(device) and may load a checkpoint
+    first): the buffers have their final shapes and dtypes, all zero; no refresh yet (-1), nothing stale, no range
+    chosen; the latents are zero, the intrinsics one row per image until set_camera_groups says otherwise; nerfstudio's
+    CameraOptimizer attributes are set although its __init__ is skipped."""
+    config = S2CampCameraOptimizerConfig(intrinsics=intrinsics, sampling=SamplingConfig(num_points=64))
+    optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
+    n = NUM_CAMERAS
+    shapes = {
+        "base_c2w_cv": (n, 3, 4),
+        "base_intrinsics": (n, 13),
+        "precond_base_intrinsics": (n, 13),
+        "proxy_range": (n, 2),
+        "precond_proxy_range": (n, 2),
+        "gram": (n, 12, 12),
+    }
+    for name, shape in shapes.items():
+        buffer = getattr(optimizer, name)
+        assert tuple(buffer.shape) == shape and buffer.dtype == torch.float64 and not bool(buffer.any()), name
+    assert optimizer.last_refresh_step.dtype == torch.long and int(optimizer.last_refresh_step) == -1
+    assert optimizer.num_refreshes.dtype == torch.long and int(optimizer.num_refreshes) == 0
+    assert optimizer.camera_of_image.tolist() == [0, 1, 2]
+    assert not optimizer.preconditioner_is_stale and optimizer.proxy_ranges is None
+    assert optimizer.projection == "perspective"
+    assert optimizer.device == "cpu" and optimizer.num_cameras == n and optimizer.non_trainable_camera_indices is None
+    shared = intrinsics == "per-camera"
+    assert tuple(optimizer.whitened_delta.shape) == (n, 6 if shared else 12)
+    if shared:
+        assert tuple(optimizer.whitened_intrinsics.shape) == (n, 6) and not bool(optimizer.whitened_intrinsics.any())
+
+
+def test_pose_only_refinement_has_no_intrinsics_latent():
+    optimizer = make_optimizer(parameters="pose", intrinsics="per-camera")
+    assert not optimizer.shared
+    assert [name for name, _ in optimizer.named_parameters()] == ["whitened_delta"]
+
+
+@pytest.mark.parametrize("overrides", [{"precondition": False}, {"mode": "off"}], ids=["P=I", "off"])
+def test_p_equal_to_identity_loads_silently_onto_other_cameras(overrides: dict):
+    """P = I does not depend on the cameras: nothing is stale, the record is simply updated."""
+    state = make_optimizer(**overrides).state_dict()
+    resumed = make_optimizer(other_base_cameras(), **overrides)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        resumed.load_state_dict(state)
+    assert not resumed.preconditioner_is_stale
+    assert not torch.equal(state["precond_base_intrinsics"], resumed.base_intrinsics)
+    assert torch.equal(resumed.precond_base_intrinsics, resumed.base_intrinsics)
+    assert torch.equal(resumed.precond_proxy_range, resumed.proxy_range)
+
+
+STALE_TAIL = (
+    "; P is recomputed for these cameras before the next training step, the latent and Adam's moments re-expressed "
+    "(the learned camera deltas are kept)"
+)
+
+
+def _drop(key: str):
+    return lambda state: state.pop(key)
+
+
+def _set_range(image: int, column: int, value: float):
+    return lambda state: state["precond_proxy_range"].__setitem__((image, column), value)
+
+
+NOT_RECORDED = "its P was computed for {} not recorded (an older checkpoint)"
+RANGE_DIFFERS = "the proxy range differs from the one its P was computed for ({})"
+
+
+@pytest.mark.parametrize(
+    ("edit", "reason"),
+    [
+        (_drop("precond_base_intrinsics"), "the intrinsics " + NOT_RECORDED.format("are")),
+        (_drop("precond_proxy_range"), "the proxy range " + NOT_RECORDED.format("is")),
+        (_set_range(1, 1, 1.25), RANGE_DIFFERS.format("t_far of image 1: 1.25 -> 1.5")),
+        (_set_range(2, 0, 0.3), RANGE_DIFFERS.format("t_near of image 2: 0.3 -> 0.4")),
+    ],
+    ids=["no-intrinsics-record", "no-range-record", "t_far", "t_near"],
+)
+def test_stale_checkpoint_warnings_in_full(edit, reason: str):
+    """The fixed range (0.4, 1.5) without points; one entry of the saved range edited: the largest change is named."""
+    sampling = {"sampler": "frolov"}
+    state = make_optimizer(sampling=sampling).state_dict()
+    edit(state)
+    resumed = make_optimizer(sampling=sampling)
+    with pytest.warns(UserWarning, match="loaded camera-optimizer state") as record:
+        resumed.load_state_dict(state)
+    messages = [str(w.message) for w in record if "camera-optimizer" in str(w.message)]
+    assert messages == [f"loaded camera-optimizer state: {reason}{STALE_TAIL}"]
+    # Attributed to a caller, not to the warnings.warn call itself (any stack level above 1).
+    source = linecache.getline(record[0].filename, record[0].lineno)
+    assert "warnings.warn(" not in source, source
+
+
+def test_loading_still_reports_unexpected_keys_and_wrong_shapes():
+    state = make_optimizer().state_dict()
+    with pytest.raises(RuntimeError, match=r'Unexpected key\(s\) in state_dict: "bogus"'):
+        make_optimizer().load_state_dict({**state, "bogus": torch.zeros(1)})
+    wrong = {**state, "precond": torch.zeros(2, 12, 12, dtype=torch.float64)}
+    with pytest.raises(RuntimeError, match=r"size mismatch for precond: copying a param with shape torch.Size\(\[2, "):
+        make_optimizer().load_state_dict(wrong)
+
+
+def test_a_subset_of_cameras_gets_exactly_their_rows():
+    config = S2CampCameraOptimizerConfig(intrinsics="per-image", sampling=SamplingConfig(num_points=64))
+    optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu", non_trainable_camera_indices=torch.tensor([1]))
+    optimizer.set_train_cameras(make_cameras(k1=-0.05, k2=0.01))
+    set_latent(optimizer)
+    subset = torch.tensor([2, 1])
+    deltas = optimizer.camera_deltas().detach()
+    assert bool(deltas[2].ne(0).any()) and not bool(deltas[1].any())  # camera 1 is not trainable
+    exact = {"rtol": 0.0, "atol": 1e-15}
+    torch.testing.assert_close(optimizer.camera_deltas(subset).detach(), deltas[subset], **exact)
+    torch.testing.assert_close(optimizer.refined_c2w(cameras=subset), optimizer.refined_c2w()[subset], **exact)
+    subset_intrinsics = optimizer.refined_intrinsics(cameras=subset).tensors()
+    torch.testing.assert_close(subset_intrinsics, optimizer.refined_intrinsics().tensors()[subset], **exact)
+    off = make_optimizer(mode="off")
+    assert torch.equal(off.camera_deltas(torch.tensor([2])), torch.zeros(1, len(PARAMETER_NAMES), dtype=torch.float64))
+
+
+def test_pixel_area_of_rays_from_one_camera_uses_that_cameras_focal_length():
+    optimizer = raw_optimizer(make_cameras())
+    delta = torch.zeros(NUM_CAMERAS, 12)
+    delta[1, 6] = 4.0  # focal of camera 1 only: fx = fy = 62 -> 66
+    set_raw_delta(optimizer, delta)
+    bundle = random_ray_bundle(num_rays=16, seed=7)
+    bundle.camera_indices = torch.ones(16, 1, dtype=torch.long)
+    bundle.pixel_area = torch.full((16, 1), 2.0)
+    optimizer.apply_to_raybundle(bundle)
+    torch.testing.assert_close(bundle.pixel_area, torch.full((16, 1), 2.0 * 62.0 * 62.0 / (66.0 * 66.0)))
+
+
+def test_fisheye_cameras_stay_fisheye_in_every_intrinsics_view():
+    optimizer = make_optimizer(_with(make_cameras(), [0.05, -0.01, 0.002, -0.0003, 0.0, 0.0], CameraType.FISHEYE))
+    assert optimizer.projection == "fisheye"
+    assert optimizer.base_intrinsics_struct().is_fisheye and optimizer.refined_intrinsics().is_fisheye
+
+
+def test_rays_come_in_the_requested_dtype_whatever_the_pixels():
+    cameras = make_cameras()
+    optimizer = raw_optimizer(cameras)
+    pixels = torch.tensor([[10.5, 20.5], [30.25, 5.5]], dtype=torch.float64)
+    origins, directions, norms = optimizer.regenerate_rays(torch.tensor([0, 2]), pixels, dtype=torch.float32)
+    assert origins.dtype == directions.dtype == norms.dtype == torch.float32
+    index = torch.tensor([0, 2])
+    rays = _pinhole_directions_cv(pixels, cameras.fx[index, 0], cameras.fy[index, 0], cameras.cx[index, 0],
+                                  cameras.cy[index, 0])  # fmt: skip
+    torch.testing.assert_close(norms[:, 0].double(), rays.norm(dim=-1), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {"mode": "off", "sampling": {"sampler": "frolov"}},
+        {"sampling": {"sampler": "frolov", "t_near": 0.3, "t_far": 1.8}},
+    ],
+    ids=["off", "both-ends-set"],
+)
+def test_no_range_is_chosen_where_none_is_needed(overrides: dict, capsys: pytest.CaptureFixture):
+    capsys.readouterr()
+    optimizer = make_optimizer(points=scene_cloud(), **overrides)
+    assert optimizer.proxy_ranges is None and _stderr(capsys) == ""
+
+
+def test_per_image_ranges_pool_the_images_of_each_physical_camera():
+    """Per-image intrinsics still choose one range per physical camera: identical intrinsics, or the given ids."""
+    same = make_cameras(k1=-0.05, k2=0.01)
+    same.fx, same.fy = torch.full((NUM_CAMERAS, 1), 60.0), torch.full((NUM_CAMERAS, 1), 61.0)
+    same.cx, same.cy = torch.full((NUM_CAMERAS, 1), 32.0), torch.full((NUM_CAMERAS, 1), 24.0)
+    pooled = make_optimizer(same, sampling=SPAN_SAMPLING, points=scene_cloud())
+    assert pooled.proxy_ranges.num_points.tolist() == [3 * 512]  # one camera, its three images pooled
+    assert bool((pooled.proxy_range == pooled.proxy_range[0]).all())
+    config = S2CampCameraOptimizerConfig(
+        intrinsics="per-image", sampling=SamplingConfig(num_points=64, **SPAN_SAMPLING)
+    )
+    grouped = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
+    grouped.set_camera_groups([5, 5, 9])  # distinct intrinsics, but two physical cameras
+    grouped.set_train_cameras(make_cameras(k1=-0.05, k2=0.01), points=scene_cloud())
+    assert grouped.proxy_ranges.num_points.tolist() == [2 * 512, 512]
+    assert torch.equal(grouped.proxy_range[0], grouped.proxy_range[1])
+
+
+def test_explicit_t_near_is_honoured():
+    optimizer = make_optimizer(sampling={**SPAN_SAMPLING, "t_near": 0.3}, points=scene_cloud())
+    assert optimizer.proxy_range[:, 0].tolist() == [0.3] * NUM_CAMERAS
+
+
+def test_the_configured_radial_measure_chooses_the_range():
+    from s2camp_ns.core.camera import opengl_to_opencv
+    from s2camp_ns.core.proxy_range import proxy_ranges
+
+    cameras = make_cameras(k1=-0.05, k2=0.01)
+    ray = make_optimizer(cameras, sampling={"sampler": "frolov", "radial": "ray"}, points=scene_cloud())
+    volume = make_optimizer(cameras, sampling={"sampler": "frolov"}, points=scene_cloud())
+    c2w = opengl_to_opencv(cameras.camera_to_worlds.double())
+    expected = proxy_ranges(scene_cloud(), c2w, intrinsics_from_cameras(cameras), torch.arange(3), radial="ray")
+    assert torch.equal(ray.proxy_range, expected.stacked())
+    assert relative(ray.proxy_range, volume.proxy_range) > 1e-3
+
+
+def test_a_checkpoint_loaded_before_the_cameras_keeps_its_p_even_from_step_zero():
+    """nerfstudio may load the checkpoint before the pipeline gives the cameras; a P saved right after the initial
+    refresh (step 0) is still the saved one, not recomputed at the loaded latent."""
+    saved = make_optimizer()
+    set_latent(saved)
+    state = saved.state_dict()
+    assert int(state["last_refresh_step"]) == 0
+    resumed = saved.config.setup(num_cameras=NUM_CAMERAS, device="cpu")
+    resumed.load_state_dict(state)
+    resumed.set_train_cameras(make_cameras(k1=-0.05, k2=0.01))
+    assert int(resumed.num_refreshes) == 1 and torch.equal(resumed.precond, saved.precond)
+
+
+def test_pose_only_warning_is_attributed_to_a_caller():
+    """Any stack level above 1: the warning names a caller's line, not the warnings.warn call (this holds under
+    mutmut's trampolines too, unlike the exact frame of test_pose_only_warning_points_at_apply_to_raybundle)."""
+    optimizer = raw_optimizer()
+    bundle = random_ray_bundle(num_rays=8, seed=3)
+    bundle.metadata.pop(PIXEL_KEY)
+    with pytest.warns(UserWarning, match="carries no") as record:
+        optimizer.apply_to_raybundle(bundle)
+    source = linecache.getline(record[0].filename, record[0].lineno)
+    assert source.strip() and "warnings.warn(" not in source, source

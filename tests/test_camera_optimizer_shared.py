@@ -215,3 +215,50 @@ def test_proxy_range_pools_the_images_of_each_physical_camera() -> None:
         ranges=optimizer.proxy_range[first],
     )  # fmt: skip
     assert torch.equal(optimizer.precond, reference.matrix[optimizer.camera_of_image])
+
+
+def _first_moment_in_camera_parameters(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam) -> torch.Tensor:
+    """Adam's first moment mapped back to the camera parameters phi (gradients map with T^T, T = [[X, Y], [0, Z]]):
+    per image X^T m_z, and per physical camera T^T [sum of its images' m_z; m_w]. A change of basis that moves no
+    camera leaves both unchanged (the moment is linear in the gradients)."""
+    m_z = adam.state[optimizer.whitened_delta]["exp_avg"].double()
+    m_w = adam.state[optimizer.whitened_intrinsics]["exp_avg"].double()
+    index = optimizer.camera_of_image
+    first = [index.tolist().index(c) for c in range(m_w.shape[0])]
+    transposed = optimizer.precond.transpose(-1, -2)
+    per_image = (transposed[:, :6, :6] @ m_z[..., None])[..., 0]
+    summed = torch.zeros(m_w.shape[0], 6, dtype=torch.float64).index_add_(0, index, m_z)
+    per_camera = (transposed[first] @ torch.cat([summed, m_w], dim=-1)[..., None])[..., 0]
+    return torch.cat([per_image.reshape(-1), per_camera.reshape(-1)])
+
+
+def test_shared_refresh_maps_adams_moments_with_the_latents() -> None:
+    optimizer = make_optimizer(refresh_every=0)
+    adam = torch.optim.Adam([optimizer.whitened_delta, optimizer.whitened_intrinsics], lr=1e-4)
+    generator = torch.Generator().manual_seed(3)
+    for _ in range(3):  # moments of arbitrary gradients
+        for latent in (optimizer.whitened_delta, optimizer.whitened_intrinsics):
+            latent.grad = torch.randn(latent.shape, generator=generator)
+        adam.step()
+    shape = optimizer.whitened_intrinsics.shape
+    with torch.no_grad():  # refined intrinsics away from the base ones (k1 by up to 0.9): the refresh changes T by 8%
+        optimizer.whitened_intrinsics.copy_(0.02 * torch.randn(shape, generator=generator))
+    old_precond = optimizer.precond.clone()
+    before = _first_moment_in_camera_parameters(optimizer, adam)
+    optimizer.refresh(step=10, optimizer=adam)
+    assert float((optimizer.precond - old_precond).norm() / old_precond.norm()) > 1e-3
+    torch.testing.assert_close(_first_moment_in_camera_parameters(optimizer, adam), before, rtol=1e-5, atol=1e-9)
+
+
+def test_shared_p_uses_the_configured_damping() -> None:
+    from s2camp_ns.core.preconditioner import DampingConfig
+    from s2camp_ns.core.shared_intrinsics import compute_shared_preconditioner
+
+    damping = DampingConfig(damping_rel=0.5)
+    optimizer = make_optimizer(damping=damping)
+    refined = optimizer.refined_intrinsics().detach()[torch.tensor([0, 1])]  # first images of cameras 7 and 3
+    sampling = optimizer.config.sampling
+    expected = compute_shared_preconditioner(refined, optimizer.layout, sampling, damping).matrix
+    assert torch.equal(optimizer.precond, expected[optimizer.camera_of_image])
+    default = compute_shared_preconditioner(refined, optimizer.layout, sampling, DampingConfig()).matrix
+    assert float((expected - default).norm() / default.norm()) > 1e-2
