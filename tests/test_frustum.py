@@ -316,6 +316,11 @@ def _f64(*values: float) -> torch.Tensor:
         (0.2, _f64(1.5, 2.0, 1.5), "t_far must lie in (0, 2), got 2 (element 1)"),
         (_f64(0.2, 0.3), 1.5, "t_near must be a float or hold one value per camera (N = 3), got shape (2,)"),
         (0.2, _f64(1.5, 1.6, 1.7, 1.8), "t_far must be a float or hold one value per camera (N = 3), got shape (4,)"),
+        (
+            _f64(0.2, 0.3, 0.25)[None],
+            1.5,
+            "t_near must be a float or hold one value per camera (N = 3), got shape (1, 3)",
+        ),
     ],
 )
 def test_bad_per_camera_ranges_are_named_in_full(t_near, t_far, message: str) -> None:

@@ -106,7 +106,7 @@ def validate_frustum(
         check_range("t_near", near, low=0.0)
         check_range("t_far - t_near", far - near, low=0.0, low_inclusive=False)
         for name, value in (("t_near", near), ("t_far", far)):
-            if value.ndim > 0 and value.numel() != tangent_bounds.shape[0]:
+            if value.ndim > 0 and (value.ndim != 1 or value.numel() != tangent_bounds.shape[0]):
                 raise ValueError(
                     f"{name} must be a float or hold one value per camera (N = "
                     f"{tangent_bounds.shape[0]}), got shape {tuple(value.shape)}"
