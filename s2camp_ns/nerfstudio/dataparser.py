@@ -46,7 +46,13 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat
 from PIL import Image
 
-from s2camp_ns.camera_optimizer import camera_model_of, group_identical_intrinsics, intrinsics_from_cameras
+from s2camp_ns.camera_optimizer import (
+    SUPPORTED_CAMERA_TYPES,
+    camera_model_of,
+    group_identical_intrinsics,
+    intrinsics_from_cameras,
+    projection_of,
+)
 from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics, opengl_to_opencv
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, colmap_to_values
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
@@ -337,8 +343,7 @@ def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> 
     (a fisheye's focal scales its image-space angle as a pinhole's scales its tangent); zeroed distortion leaves a
     fisheye equidistant.
     """
-    supported = (CameraType.PERSPECTIVE.value, CameraType.FISHEYE.value)
-    unsupported = sorted({int(t) for t in cameras.camera_type.reshape(-1).tolist()} - set(supported))
+    unsupported = sorted({int(t) for t in cameras.camera_type.reshape(-1).tolist()} - set(SUPPORTED_CAMERA_TYPES))
     if unsupported:
         names = ", ".join(CameraType(t).name for t in unsupported)
         raise ValueError(f"the camera perturbation supports PERSPECTIVE and FISHEYE cameras, got {names}")
@@ -627,6 +632,7 @@ def reference_from_model(
     c2w = colmap_world_to_c2w(world, dataparser_transform, dataparser_scale)
 
     by_name = {image.name: image for image in reference_images.values()}
+    input_projection = projection_of(cameras)
     pinhole = torch.zeros(len(names), 4, dtype=torch.float64)
     distortion = torch.zeros(len(names), len(NERFSTUDIO_DISTORTION), dtype=torch.float64)
     for i, name in enumerate(names):
@@ -637,7 +643,6 @@ def reference_from_model(
                 f"{', '.join(SUPPORTED_COLMAP_MODELS)}"
             )
         projection = CAMERA_MODEL_PROJECTION[camera.model]
-        input_projection = "fisheye" if int(cameras.camera_type[i]) == CameraType.FISHEYE.value else "perspective"
         if projection != input_projection:
             raise ValueError(
                 f"{reference_file}: camera {camera.id} ({camera.model}) is a {projection} camera, but image "
@@ -647,7 +652,7 @@ def reference_from_model(
         sx = float(cameras.width[i]) / camera.width
         sy = float(cameras.height[i]) / camera.height
         pinhole[i] = torch.tensor([values["fx"] * sx, values["fy"] * sy, values["cx"] * sx, values["cy"] * sy])
-        distortion[i] = torch.tensor([values[key] for key in NERFSTUDIO_DISTORTION])
+        distortion[i] = torch.tensor(distortion_of(camera))
     dtype = cameras.fx.dtype
     return _replace_cameras(
         cameras,
