@@ -246,12 +246,31 @@ def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
         "error. s / iter from nerfstudio's per-step event stamps (checkpoint saves and refreshes included); "
         "so3xr3 is `ns-train s2camp-so3xr3`, nerfstudio's stock pose optimizer in the same pipeline."
     )
-    return [
+    sections = [
         "## Tier 2: photometric joint optimisation (ns-train)",
         setup,
         markdown_table(rows, columns, headers),
-        "![tier 2](recovery-tier2.png)",
     ]
+    if any(row["seeds"] > 1 and row["variant"] != "camp" for row in rows):
+        sections.append(_spread_table(rows, p))
+    return [*sections, "![tier 2](recovery-tier2.png)"]
+
+
+def _spread_table(rows: list[dict], config: PhotometricConfig) -> str:
+    """Each repeated variant's final errors as min - max over its runs (the table above gives their mean)."""
+    keys = ("rot_err", "pos_err", "focal_err")
+    ranges = [
+        {"scene": row["scene"], "variant": row["variant"], "seeds": row["seeds"]}
+        | {key: f"{row[f'{key}_min']:.3g} - {row[f'{key}_max']:.3g}" for key in keys}
+        for row in rows
+        if row["seeds"] > 1
+    ]
+    headers = ["scene", "variant", "runs", "rot err range (rad)", "pos err range", "focal err range (px)"]
+    caption = (
+        f"Run-to-run range of the final errors (nerfstudio seeds {list(config.training_seeds)}; CamP: its sampling "
+        f"seeds {list(config.camp_seeds)}):"
+    )
+    return caption + "\n\n" + markdown_table(ranges, ["scene", "variant", "seeds", *keys], headers)
 
 
 def _tier3_section(rows: list[dict], quality: list[dict], config: RecoveryConfig) -> list[str]:

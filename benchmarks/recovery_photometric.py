@@ -66,6 +66,8 @@ METHODS = {
 PER_CAMERA = ("s2camp-per-camera",)
 """Variants that share intrinsics per physical camera; every other S2CamP variant refines them per image, as
 CamP does (rows carry ``intrinsics``)."""
+NERFSTUDIO_SEED = 42
+"""nerfstudio's default ``--machine.seed``."""
 SKIPPED_TIMING_STEPS = 5
 """Steps excluded from the seconds-per-iteration (start-up, first allocations)."""
 
@@ -99,6 +101,10 @@ class PhotometricConfig:
     perturbation_seed: int = 0
     camp_seeds: tuple[int, ...] = (0, 1, 2)
     """Seeds of CamP's random proxy points (one run each, errors and metrics averaged)."""
+    training_seeds: tuple[int, ...] = (NERFSTUDIO_SEED,)
+    """nerfstudio's ``--machine.seed`` (which rays each step trains on) of every variant but CamP, one run each,
+    errors and metrics averaged and their range reported; CamP varies ``camp_seeds`` instead. Several seeds measure
+    the run-to-run spread of a variant."""
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     """Test-time alignment of the held-out cameras (every variant alike)."""
     eval_workers: int = 2
@@ -113,6 +119,7 @@ class PhotometricConfig:
             refresh_every=2,
             checkpoint_every=2,
             camp_seeds=self.camp_seeds[:1],
+            training_seeds=self.training_seeds[:1],
             alignment=replace(self.alignment, steps=3, rays=64),
         )
 
@@ -130,18 +137,38 @@ def _arguments(
     ]  # fmt: skip
 
 
+def run_seeds(variant: str, config: PhotometricConfig) -> tuple[int, ...]:
+    """The seeds ``variant`` runs with, one run each: CamP's sampling seeds, nerfstudio's for the others."""
+    return config.camp_seeds if variant == "camp" else config.training_seeds
+
+
+def run_timestamp(variant: str, seed: int, config: PhotometricConfig) -> str:
+    """The run folder's name: the variant, with its seed where the variant runs more than once or is CamP."""
+    if variant == "camp":
+        return f"camp-seed{seed}"
+    return variant if len(config.training_seeds) == 1 else f"{variant}-seed{seed}"
+
+
+def seed_arguments(variant: str, seed: int) -> list[str]:
+    """CamP's seed draws its random proxy points; every other variant's seeds nerfstudio (ray sampling)."""
+    if variant == "camp":
+        return ["--pipeline.model.camera-optimizer.sampling.seed", str(seed)]
+    return ["--machine.seed", str(seed)]
+
+
 def _variant_arguments(variant: str, seed: int, config: PhotometricConfig) -> list[str]:
     prefix = "--pipeline.model.camera-optimizer."
     per_image = [prefix + "intrinsics", "per-image"]
-    return {
+    options = {
         "none": [prefix + "mode", "off"],
         "so3xr3": [],
         "raw": [prefix + "precondition", "False", prefix + "refresh-every", "0", *per_image],
-        "camp": [prefix + "sampling.seed", str(seed), prefix + "refresh-every", "0"],
+        "camp": [prefix + "refresh-every", "0"],
         "s2camp": [prefix + "refresh-every", str(config.refresh_every), *per_image],
         "s2camp-once": [prefix + "refresh-every", "0", *per_image],
         "s2camp-per-camera": [prefix + "refresh-every", str(config.refresh_every), prefix + "intrinsics", "per-camera"],
     }[variant]
+    return seed_arguments(variant, seed) + options
 
 
 def _run_ns_train(command: list[str], log_path: Path, what: str) -> None:
@@ -191,9 +218,8 @@ def warm_start(
 def train_variant(
     scene: Path, work: Path, scene_name: str, warm: Path | None, variant: str, seed: int, config: PhotometricConfig
 ) -> Path:
-    timestamp = variant if variant != "camp" else f"camp-seed{seed}"
     return train_from_warm_start(
-        scene, work, scene_name, warm, METHODS[variant], timestamp,
+        scene, work, scene_name, warm, METHODS[variant], run_timestamp(variant, seed, config),
         _variant_arguments(variant, seed, config), perturbation_arguments(config), config,
     )  # fmt: skip
 
@@ -330,7 +356,7 @@ class TrainedRun:
 def train_scene(
     scene_name: str, variants: tuple[str, ...], config: PhotometricConfig, root: Path, quick: bool
 ) -> list[TrainedRun]:
-    """Generate the scene, train the shared warm start, then every variant (CamP once per seed), one at a time."""
+    """Generate the scene, train the shared warm start, then every variant (once per seed), one at a time."""
     scene_config = replace(SCENES[scene_name], output_dir=root / "scenes" / scene_name)
     if quick:
         scene_config = replace(scene_config, **QUICK_SCENE_SIZE)
@@ -341,7 +367,7 @@ def train_scene(
     return [
         TrainedRun(scene_name, variant, train_variant(scene, work, scene_name, warm, variant, seed, config))
         for variant in variants
-        for seed in (config.camp_seeds if variant == "camp" else (0,))
+        for seed in run_seeds(variant, config)
     ]
 
 
@@ -361,7 +387,8 @@ def evaluate_runs(runs: list[TrainedRun], config: PhotometricConfig) -> list[dic
 
 
 def summarize_scene(scene_name: str, results: list[tuple[TrainedRun, dict]], tier: int = 2) -> tuple[list[dict], dict]:
-    """One row per variant (CamP: mean over its seeds) and the mean error curve, for one scene."""
+    """One row per variant (the mean over its seeds, and each error's range) and the mean error curve, for one
+    scene."""
     rows, histories = [], {}
     variants = list(dict.fromkeys(run.variant for run, _ in results if run.scene == scene_name))
     for variant in variants:
@@ -379,6 +406,8 @@ def summarize_scene(scene_name: str, results: list[tuple[TrainedRun, dict]], tie
         for key in ("rot_err", "pos_err", "focal_err"):
             row[f"start_{key}"] = start[key]
             row[key] = _mean([r["final"][key] for r in chosen])
+            row[f"{key}_min"] = min(r["final"][key] for r in chosen)
+            row[f"{key}_max"] = max(r["final"][key] for r in chosen)
             row[f"iters_to_half_{key}"] = iterations_to_fraction(history, start, key, 0.5)
         for key in ("psnr", "ssim", "lpips", "psnr_unaligned", "sec_per_iter"):
             row[key] = _mean([r[key] for r in chosen])

@@ -35,6 +35,9 @@ from .recovery_photometric import (
     PhotometricConfig,
     TrainedRun,
     evaluate_runs,
+    run_seeds,
+    run_timestamp,
+    seed_arguments,
     summarize_scene,
     train_from_warm_start,
     warm_start,
@@ -99,13 +102,14 @@ def available_variants(variants: tuple[str, ...]) -> tuple[str, ...]:
 def variant_arguments(variant: str, seed: int, config: PhotometricConfig) -> list[str]:
     prefix = "--pipeline.model.camera-optimizer."
     intrinsics = [prefix + "intrinsics", INTRINSICS[variant]] if intrinsics_option_available() else []
-    return {
+    options = {
         "none": [prefix + "mode", "off"],
         "so3xr3": [],
-        "camp": [prefix + "sampling.seed", str(seed), prefix + "refresh-every", "0", *intrinsics],
+        "camp": [prefix + "refresh-every", "0", *intrinsics],
         "s2camp-per-image": [prefix + "refresh-every", str(config.refresh_every), *intrinsics],
         "s2camp-per-camera": [prefix + "refresh-every", str(config.refresh_every), *intrinsics],
     }[variant]
+    return seed_arguments(variant, seed) + options
 
 
 def dataparser_arguments(truth: Path) -> list[str]:
@@ -134,17 +138,16 @@ def sfm_scene(name: str, root: Path, config: SfmRecoveryConfig, quick: bool) -> 
 def train_sfm_scene(
     name: str, truth: Path, sfm: Path, variants: tuple[str, ...], config: PhotometricConfig, root: Path
 ) -> list[TrainedRun]:
-    """Shared warm start on the SfM cameras, then every variant (CamP once per seed), one at a time."""
+    """Shared warm start on the SfM cameras, then every variant (once per seed), one at a time."""
     work = root / "runs"
     arguments = dataparser_arguments(truth)
     warm = warm_start(sfm, work, name, config, tuple(arguments)) if config.warm_start > 0 else None
     runs = []
     for variant in variants:
-        for seed in config.camp_seeds if variant == "camp" else (0,):
-            timestamp = variant if variant != "camp" else f"camp-seed{seed}"
+        for seed in run_seeds(variant, config):
             path = train_from_warm_start(
-                sfm, work, name, warm, METHODS[variant], timestamp, variant_arguments(variant, seed, config),
-                arguments, config,
+                sfm, work, name, warm, METHODS[variant], run_timestamp(variant, seed, config),
+                variant_arguments(variant, seed, config), arguments, config,
             )  # fmt: skip
             runs.append(TrainedRun(name, variant, path))
     return runs
