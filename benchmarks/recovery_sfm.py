@@ -42,7 +42,7 @@ from .recovery_photometric import (
     train_from_warm_start,
     warm_start,
 )
-from .sfm import SfmCheck, SfmResult, run_sfm
+from .sfm import SfmCheck, SfmResult, local_refinement_check, run_sfm
 
 SFM_SCENES = {
     "sfm-narrow": MakeSceneConfig(num_cameras=24, width=320, height=240, fov="narrow", points_per_image=50, seed=0),
@@ -80,6 +80,12 @@ class SfmRecoveryConfig:
     variants: tuple[str, ...] = SFM_VARIANTS
     camera_model: str = "SIMPLE_RADIAL"
     """Shared COLMAP camera model of SfM (SIMPLE_RADIAL or OPENCV)."""
+    focal_prior: float | None = 1.05
+    """SfM's initial focal length as a factor of the true one, as the EXIF focal length of a real capture gives it
+    (the generated images carry no EXIF); None starts from COLMAP's guess without EXIF, 1.2 x max(W, H), which on
+    the wide scene ends in a local minimum (benchmarks/sfm.py)."""
+    sfm_only: bool = False
+    """Run SfM and its checks on every scene (the quality table), train nothing."""
     check: SfmCheck = field(default_factory=SfmCheck)
     photometric: PhotometricConfig = field(default_factory=lambda: PhotometricConfig(camp_seeds=(0,)))
     """Training and evaluation as tier 2 (its perturbation fields are not used); one CamP seed."""
@@ -126,7 +132,7 @@ def sfm_scene(name: str, root: Path, config: SfmRecoveryConfig, quick: bool) -> 
     if quick:
         scene_config = replace(scene_config, **QUICK_SFM_SCENE)
     truth = make_scene(scene_config)
-    result = run_sfm(truth, root / "sfm" / name, config.camera_model, config.check)
+    result = run_sfm(truth, root / "sfm" / name, config.camera_model, config.check, config.focal_prior)
     log(
         f"recovery tier 3 {name}: SfM registered {result.registered}/{result.images} images, {result.points} points, "
         f"rot {result.rot_err_mean:.2e} rad, centre {result.centre_err_mean:.2e}, focal {result.focal:.1f} px "
@@ -181,6 +187,9 @@ def run_sfm_tier(config: SfmRecoveryConfig, root: Path, quick: bool) -> tuple[li
         result = sfm_scene(name, root, config, quick)
         sfm_rows.append(sfm_row(name, result))
         if result.failure is not None:  # a failed scene is no data point: only its SfM quality row
+            continue
+        sfm_rows[-1] |= local_refinement_check(root / "scenes" / name, result.scene, config.check)
+        if config.sfm_only:
             continue
         good.append(name)
         runs += train_sfm_scene(name, root / "scenes" / name, result.scene, variants, photometric, root)

@@ -4,9 +4,15 @@
 ``images_2/`` (symbolic links) and ``sparse/0`` = the SfM model, whose image names are the truth's. One shared camera
 (``CameraMode.SINGLE``) of the chosen COLMAP model. COLMAP's log lines go to ``sfm.log`` in the output folder.
 
-``check_sfm`` compares the SfM model with the truth (the generated scene's ``sparse/0``) after a similarity alignment
-of the camera centres (Umeyama, ``s2camp_ns.core.alignment``): a reconstruction that misses images, splits into
-several models, or whose centres or rotations are far from the truth is a failed scene, not a data point.
+``focal_prior`` plays the EXIF focal length a real capture carries: the mapper starts from that factor times the true
+focal length instead of COLMAP's guess for images without EXIF (1.2 x max(W, H)). On the generated wide scene the
+guess (2x the true 190.7 px) leads incremental mapping into a local minimum (rotation 0.031 rad, centres 3.5% of the
+ring radius and focal 2.8% off) that its own bundle adjustment does not leave, even with the true RADIAL model; an
+EXIF-like prior 5% off gives 0.004 rad, 0.6% and 0.7% (docs/benchmarks/recovery.md, tier 3).
+
+``compare_with_truth`` compares the SfM model with the truth (the generated scene's ``sparse/0``) after a similarity
+alignment of the camera centres (Umeyama, ``s2camp_ns.core.alignment``): a reconstruction that misses images, splits
+into several models, or whose centres or rotations are far from the truth is a failed scene, not a data point.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import numpy as np
 import torch
 
 from s2camp_ns.core.alignment import rotation_angle, umeyama
-from s2camp_ns.core.validation import check_choice
+from s2camp_ns.core.validation import check_choice, check_range
 
 SFM_CAMERA_MODELS = ("SIMPLE_RADIAL", "OPENCV")
 """Shared camera models of the SfM start (both map onto S2CamP's intrinsics; OPENCV's p1, p2 are zeroed)."""
@@ -100,11 +106,31 @@ def _output_to(path: Path):
                 os.close(descriptor)
 
 
-def run_sfm(scene: Path, output: Path, camera_model: str = "SIMPLE_RADIAL", check: SfmCheck = SfmCheck()) -> SfmResult:
-    """SfM on ``scene/images`` into ``output`` (module docstring); compared with ``scene/sparse/0``."""
+def initial_camera_params(camera_model: str, focal: float, width: int, height: int) -> str:
+    """COLMAP's ``camera_params`` string for a start at ``focal`` (pixels), principal point at the image centre and
+    no distortion, in the parameter order of ``camera_model``."""
+    cx, cy = width / 2.0, height / 2.0
+    values = {
+        "SIMPLE_RADIAL": (focal, cx, cy, 0.0),
+        "OPENCV": (focal, focal, cx, cy, 0.0, 0.0, 0.0, 0.0),
+    }[camera_model]
+    return ",".join(repr(float(value)) for value in values)
+
+
+def run_sfm(
+    scene: Path,
+    output: Path,
+    camera_model: str = "SIMPLE_RADIAL",
+    check: SfmCheck = SfmCheck(),
+    focal_prior: float | None = None,
+) -> SfmResult:
+    """SfM on ``scene/images`` into ``output`` (module docstring); compared with ``scene/sparse/0``. ``focal_prior``:
+    the mapper's initial focal length as a factor of the true one (None: COLMAP's guess without EXIF)."""
     import pycolmap
 
     check_choice("camera_model", camera_model, SFM_CAMERA_MODELS)
+    if focal_prior is not None:
+        check_range("focal_prior", focal_prior, low=0.1, high=10.0)
     if output.exists():
         shutil.rmtree(output)
     work = output / "colmap"
@@ -113,12 +139,19 @@ def run_sfm(scene: Path, output: Path, camera_model: str = "SIMPLE_RADIAL", chec
         (output / folder).symlink_to((scene / folder).resolve(), target_is_directory=True)
     database = work / "database.db"
     images = scene / "images"
+    truth = pycolmap.Reconstruction(scene / "sparse" / "0")
+    reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
+    if focal_prior is not None:
+        camera = next(iter(truth.cameras.values()))
+        reader.camera_params = initial_camera_params(
+            camera_model, focal_prior * camera.focal_length_x, camera.width, camera.height
+        )
     with _output_to(output / "sfm.log"):
         pycolmap.extract_features(
             database,
             images,
             camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=pycolmap.ImageReaderOptions(camera_model=camera_model),
+            reader_options=reader,
             extraction_options=pycolmap.FeatureExtractionOptions(num_threads=SFM_THREADS),
             device=pycolmap.Device.cpu,
         )
@@ -128,7 +161,6 @@ def run_sfm(scene: Path, output: Path, camera_model: str = "SIMPLE_RADIAL", chec
             device=pycolmap.Device.cpu,
         )
         models = pycolmap.incremental_mapping(database, images, work / "sparse", options=_mapping_options())
-    truth = pycolmap.Reconstruction(scene / "sparse" / "0")
     if not models:
         return _failed(output, truth, "incremental mapping produced no model")
     best = max(models.values(), key=lambda model: model.num_reg_images())
@@ -219,3 +251,73 @@ def _failed(output: Path, truth, failure: str, registered: int = 0, models: int 
         true_focal=_focal(truth),
         failure=failure,
     )
+
+
+LOCAL_REFINEMENT_ITERATIONS = 1000
+"""Iteration cap of the diagnostic bundle adjustment (every tolerance zero: it stops when no step lowers the cost)."""
+
+
+def triangulated_reprojection_error(sfm, reference) -> float:
+    """Mean reprojection error (px) of ``sfm``'s SIFT tracks under ``reference``'s cameras (matched by image name),
+    each 3D point triangulated from its track by linear least squares (DLT) with those cameras."""
+    by_name = {image.name: image for image in reference.images.values()}
+    errors = []
+    for point in sfm.points3D.values():
+        rows, observations = [], []
+        for element in point.track.elements:
+            image = sfm.images[element.image_id]
+            pixel = np.asarray(image.points2D[element.point2D_idx].xy, dtype=np.float64)
+            reference_image = by_name[image.name]
+            camera = reference.cameras[reference_image.camera_id]
+            pose = np.asarray(reference_image.cam_from_world().matrix())
+            ray = np.asarray(camera.cam_from_img(pixel))
+            rows += [ray[0] * pose[2] - pose[0], ray[1] * pose[2] - pose[1]]
+            observations.append((pixel, pose, camera))
+        homogeneous = np.linalg.svd(np.stack(rows))[2][-1]
+        position = homogeneous[:3] / homogeneous[3]
+        for pixel, pose, camera in observations:
+            projected = np.asarray(camera.img_from_cam(pose[:, :3] @ position + pose[:, 3]))
+            errors.append(float(np.linalg.norm(projected - pixel)))
+    return float(np.mean(errors))
+
+
+def _with_camera_model(reconstruction, model: str):
+    """A copy of ``reconstruction`` whose shared camera is ``model``; SIMPLE_RADIAL's k becomes RADIAL's k1 (k2 = 0)."""
+    import pycolmap
+
+    copy = pycolmap.Reconstruction(reconstruction)
+    for camera_id, camera in copy.cameras.items():
+        if camera.model.name == model:
+            continue
+        if (camera.model.name, model) != ("SIMPLE_RADIAL", "RADIAL"):
+            raise ValueError(f"camera model {camera.model.name} cannot be widened to {model}")
+        params = [*camera.params, 0.0]
+        copy.cameras[camera_id] = pycolmap.Camera(
+            model=model, width=camera.width, height=camera.height, params=params, camera_id=camera_id
+        )
+    return copy
+
+
+def local_refinement_check(scene: Path, sfm_scene: Path, check: SfmCheck = SfmCheck()) -> dict[str, float]:
+    """Can local refinement reach the truth from SfM's cameras? Bundle adjustment of the SfM model with the true
+    camera model (no tolerance, until no step lowers the cost) and its errors against the truth, beside the
+    reprojection error of SfM's tracks under SfM's cameras and under the true ones (points triangulated for both)."""
+    import pycolmap
+
+    truth = pycolmap.Reconstruction(scene / "sparse" / "0")
+    sfm = pycolmap.Reconstruction(sfm_scene / "sparse" / "0")
+    adjusted = _with_camera_model(sfm, next(iter(truth.cameras.values())).model.name)
+    options = pycolmap.BundleAdjustmentOptions()
+    solver = options.ceres.solver_options
+    solver.max_num_iterations = LOCAL_REFINEMENT_ITERATIONS
+    solver.function_tolerance = solver.gradient_tolerance = solver.parameter_tolerance = 0.0
+    with _output_to(sfm_scene / "sfm.log"):
+        pycolmap.bundle_adjustment(adjusted, options)
+    after = compare_with_truth(sfm_scene, adjusted, truth, 1, check)
+    return {
+        "sfm_reprojection_px": triangulated_reprojection_error(sfm, sfm),
+        "truth_reprojection_px": triangulated_reprojection_error(sfm, truth),
+        "ba_rot_err_mean": after.rot_err_mean,
+        "ba_centre_err_mean": after.centre_err_mean,
+        "ba_focal": after.focal,
+    }
