@@ -287,14 +287,15 @@ def _tier3_section(rows: list[dict], quality: list[dict], config: RecoveryConfig
         )
     quality_columns = [
         "scene", "registered", "points", "sfm_rot_err_mean", "sfm_rot_err_max", "sfm_centre_err_mean",
-        "sfm_centre_err_max", "sfm_focal", "true_focal", "sfm_reprojection_px", "truth_reprojection_px",
+        "sfm_centre_err_max", "sfm_focal", "true_focal", "sfm_reprojection_median_px",
+        "truth_reprojection_median_px", "sfm_reprojection_rms_px", "truth_reprojection_rms_px",
         "ba_rot_err_mean", "ba_centre_err_mean", "ba_focal", "status",
     ]  # fmt: skip
     quality_headers = [
         "scene", "registered", "3D points", "rot err mean (rad)", "rot err max (rad)", "centre err mean",
-        "centre err max", "SfM focal (px)", "true focal (px)", "reproj. err, SfM cameras (px)",
-        "reproj. err, true cameras (px)", "after BA: rot err mean", "after BA: centre err mean",
-        "after BA: focal (px)", "status",
+        "centre err max", "SfM focal (px)", "true focal (px)", "reproj. median, SfM cameras (px)",
+        "reproj. median, true cameras (px)", "reproj. RMS, SfM cameras (px)", "reproj. RMS, true cameras (px)",
+        "after BA: rot err mean", "after BA: centre err mean", "after BA: focal (px)", "status",
     ]  # fmt: skip
     columns = [
         "scene", "variant", "intrinsics", "rot_err", "pos_err", "focal_err",
@@ -317,12 +318,11 @@ def _tier3_section(rows: list[dict], quality: list[dict], config: RecoveryConfig
         f"{s.camera_model} camera on the full-resolution images, {_focal_start(s.focal_prior)}. A scene counts only "
         f"if every image is registered in one model whose camera centres are within {s.check.max_centre_error:g} x "
         f"the ring radius of the truth and rotations within {s.check.max_rotation_error:g} rad after a similarity "
-        "alignment; otherwise it is "
-        "reported as failed and skipped. SfM quality (truth world units, ring radius 4; focal at full resolution). "
-        "Reprojection errors: mean over SfM's SIFT observations, each track triangulated (DLT) with SfM's cameras "
-        "and with the true ones. 'after BA': COLMAP's bundle adjustment of the SfM model with the true camera model "
-        "(RADIAL) and no tolerance, run until no step lowers the cost: whether local refinement of SfM's own "
-        "objective moves its cameras towards the truth:"
+        "alignment; otherwise it is reported as failed and skipped. SfM quality (truth world units, ring radius 4; "
+        "focal at full resolution). Reprojection errors: median and root mean square over SfM's SIFT observations, "
+        "each track triangulated (DLT) with SfM's cameras and with the true ones. 'after BA': COLMAP's bundle "
+        "adjustment of the SfM model with the true camera model (RADIAL) and no tolerance, run until no step lowers "
+        "the cost: whether local refinement of SfM's own objective moves its cameras towards the truth:"
     )
     training = (
         f"Training as tier 2 on the 1/{TRAINING_DOWNSCALE} resolution images: a shared warm start of {p.warm_start} "
