@@ -3,9 +3,11 @@
 Per generated scene:
 
 1. SfM (``benchmarks.sfm``): pycolmap SIFT extraction, exhaustive matching and incremental mapping with one shared
-   camera (SIMPLE_RADIAL by default) on the full-resolution images; the scene counts only if every image is
-   registered in a single model whose similarity-aligned centres and rotations are close to the truth
-   (``SfmCheck``); otherwise it is reported as failed and skipped;
+   camera (SIMPLE_RADIAL by default) on the full-resolution images, the mapper starting from an EXIF-like focal
+   length (``focal_prior``); the scene counts only if every image is registered in a single model whose
+   similarity-aligned centres and rotations are close to the truth (``SfmCheck``); otherwise it is reported as
+   failed and skipped. ``local_refinement_check`` adds whether bundle adjustment with the true camera model moves
+   SfM's cameras, and how well SfM's tracks fit SfM's and the true cameras;
 2. as tier 2 (``recovery_photometric``): a shared warm start on the SfM cameras with the camera learning rate frozen,
    stripped of camera state, then every variant from it with the same camera schedule and iteration count, trained
    on the half-resolution images; no perturbation: the SfM cameras are the start;
