@@ -344,6 +344,8 @@ def _tier3_section(rows: list[dict], quality: list[dict], config: RecoveryConfig
     ]
     if rows:
         sections += [markdown_table(rows, columns, headers)]
+    if any(row["seeds"] > 1 and row["variant"] != "camp" for row in rows):
+        sections.append(_spread_table(rows, p))
     if any(row["variant"] != "start" for row in rows):
         sections.append("![tier 3](recovery-tier3.png)")
     return sections

@@ -94,3 +94,17 @@ def test_the_report_lists_the_range_of_repeated_variants_only() -> None:
     assert "nerfstudio seeds [0, 1, 2]" in text
     single = [dict(rows[0], seeds=1)]
     assert "Run-to-run range" not in "\n".join(_tier2_section(single, config))
+
+
+def test_the_sfm_report_lists_the_range_of_repeated_variants_and_not_the_start() -> None:
+    from s2camp_ns.benchmarks.recovery import _tier3_section
+    from s2camp_ns.benchmarks.recovery_sfm import SfmRecoveryConfig
+
+    (row,) = _summary()
+    row = dict(row, tier=3, scene="sfm-wide")
+    start = {"tier": 3, "scene": "sfm-wide", "variant": "start", "seeds": 1, "intrinsics": "per-camera"}
+    photometric = PhotometricConfig(training_seeds=(0, 1, 2))
+    config = RecoveryConfig(tiers=(3,), sfm=SfmRecoveryConfig(scenes=("sfm-wide",), photometric=photometric))
+    text = "\n".join(_tier3_section([start, row], [], config))
+    assert "| sfm-wide | s2camp-per-camera | 3 | 0.01 - 0.03 | 0.01 - 0.03 | 0.3 - 0.9 |" in text
+    assert "| sfm-wide | start | 1 |" not in text
