@@ -84,8 +84,8 @@ class SfmRecoveryConfig:
     """Shared COLMAP camera model of SfM (SIMPLE_RADIAL or OPENCV)."""
     focal_prior: float | None = 1.05
     """SfM's initial focal length as a factor of the true one, as the EXIF focal length of a real capture gives it
-    (the generated images carry no EXIF); None starts from COLMAP's guess without EXIF, 1.2 x max(W, H), which on
-    the wide scene ends in a local minimum (benchmarks/sfm.py)."""
+    (the generated images carry no EXIF); None starts from COLMAP's guess without EXIF, 1.2 x max(W, H), from which
+    SfM ends 6-7x further from the truth on the wide scene (benchmarks/sfm.py)."""
     sfm_only: bool = False
     """Run SfM and its checks on every scene (the quality table), train nothing."""
     check: SfmCheck = field(default_factory=SfmCheck)
