@@ -321,8 +321,9 @@ def _tier3_section(rows: list[dict], quality: list[dict], config: RecoveryConfig
         "alignment; otherwise it is reported as failed and skipped. SfM quality (truth world units, ring radius 4; "
         "focal at full resolution). Reprojection errors: median and root mean square over SfM's SIFT observations, "
         "each track triangulated (DLT) with SfM's cameras and with the true ones. 'after BA': COLMAP's bundle "
-        "adjustment of the SfM model with the true camera model (RADIAL) and no tolerance, run until no step lowers "
-        "the cost: whether local refinement of SfM's own objective moves its cameras towards the truth:"
+        "adjustment of the SfM model with the true camera model (RADIAL; an OPENCV start keeps OPENCV) and no "
+        "tolerance, run until no step lowers the cost: whether local refinement of SfM's own objective moves its "
+        "cameras towards the truth:"
     )
     training = (
         f"Training as tier 2 on the 1/{TRAINING_DOWNSCALE} resolution images: a shared warm start of {p.warm_start} "

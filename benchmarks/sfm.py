@@ -284,15 +284,14 @@ def triangulated_reprojection_errors(sfm, reference) -> np.ndarray:
 
 
 def _with_camera_model(reconstruction, model: str):
-    """A copy of ``reconstruction`` whose shared camera is ``model``; SIMPLE_RADIAL's k becomes RADIAL's k1 (k2 = 0)."""
+    """A copy of ``reconstruction`` whose SIMPLE_RADIAL cameras become ``model`` = RADIAL (k becomes k1, k2 = 0); any
+    other camera is kept (OPENCV already has RADIAL's k1, k2)."""
     import pycolmap
 
     copy = pycolmap.Reconstruction(reconstruction)
     for camera_id, camera in copy.cameras.items():
-        if camera.model.name == model:
-            continue
         if (camera.model.name, model) != ("SIMPLE_RADIAL", "RADIAL"):
-            raise ValueError(f"camera model {camera.model.name} cannot be widened to {model}")
+            continue
         params = [*camera.params, 0.0]
         copy.cameras[camera_id] = pycolmap.Camera(
             model=model, width=camera.width, height=camera.height, params=params, camera_id=camera_id
@@ -302,8 +301,9 @@ def _with_camera_model(reconstruction, model: str):
 
 def local_refinement_check(scene: Path, sfm_scene: Path, check: SfmCheck = SfmCheck()) -> dict[str, float]:
     """Can local refinement reach the truth from SfM's cameras? Bundle adjustment of the SfM model with the true
-    camera model (no tolerance, until no step lowers the cost) and its errors against the truth, beside the median
-    and root-mean-square reprojection errors of SfM's tracks under SfM's cameras and under the true ones (points
+    camera model (RADIAL for a SIMPLE_RADIAL start; an OPENCV start keeps its model, which contains RADIAL), no
+    tolerance, until no step lowers the cost, and its errors against the truth; beside them the median and
+    root-mean-square reprojection errors of SfM's tracks under SfM's cameras and under the true ones (points
     triangulated for both). Bundle adjustment minimizes the squared errors, so a few tracks the true cameras cannot
     fit (mismatched or poorly localised keypoints) can hold SfM's cameras away from the truth although the truth fits
     most observations better."""

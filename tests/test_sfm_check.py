@@ -82,8 +82,8 @@ def test_widening_simple_radial_to_radial_keeps_its_parameters_and_adds_k2_zero(
     assert next(iter(model.cameras.values())).model.name == "SIMPLE_RADIAL"  # the input is left alone
     opencv = pycolmap.Reconstruction()
     opencv.add_camera(pycolmap.Camera(model="OPENCV", width=64, height=48, params=[50.0, 50.0, 32.0, 24.0] + [0.0] * 4))
-    with pytest.raises(ValueError, match="OPENCV cannot be widened to RADIAL"):
-        _with_camera_model(opencv, "RADIAL")
+    (kept,) = _with_camera_model(opencv, "RADIAL").cameras.values()  # OPENCV already has RADIAL's k1, k2
+    assert kept.model.name == "OPENCV" and kept.params.tolist() == [50.0, 50.0, 32.0, 24.0] + [0.0] * 4
 
 
 def test_tracks_reproject_exactly_under_their_own_cameras_and_not_under_moved_ones(tiny_scene: Path):
