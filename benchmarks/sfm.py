@@ -59,7 +59,7 @@ class SfmCheck:
 
     max_centre_error: float = 0.1
     """Largest camera-centre error after similarity alignment, as a fraction of the ring radius. Loose enough for an
-    inaccurate but consistent reconstruction (the wide scene's SIMPLE_RADIAL model cannot represent its lens' k2:
+    inaccurate but consistent reconstruction (the wide scene mapped from COLMAP's focal-length guess without EXIF:
     8% at worst, 3.5% on average), tight enough to reject a broken one (a mirrored or folded ring is off by ~100%)."""
     max_rotation_error: float = 0.1
     """Largest rotation error after alignment (rad, about 6 degrees; the wide scene: 0.085 at worst)."""
