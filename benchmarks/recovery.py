@@ -251,9 +251,14 @@ def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
         setup,
         markdown_table(rows, columns, headers),
     ]
+    return [*sections, *_spread_sections(rows, p), "![tier 2](recovery-tier2.png)"]
+
+
+def _spread_sections(rows: list[dict], config: PhotometricConfig) -> list[str]:
+    """The range table where a variant other than CamP repeated (CamP always does, and its seeds are listed)."""
     if any(row["seeds"] > 1 and row["variant"] != "camp" for row in rows):
-        sections.append(_spread_table(rows, p))
-    return [*sections, "![tier 2](recovery-tier2.png)"]
+        return [_spread_table(rows, config)]
+    return []
 
 
 def _spread_table(rows: list[dict], config: PhotometricConfig) -> str:
@@ -345,8 +350,7 @@ def _tier3_section(rows: list[dict], quality: list[dict], config: RecoveryConfig
     ]
     if rows:
         sections += [markdown_table(rows, columns, headers)]
-    if any(row["seeds"] > 1 and row["variant"] != "camp" for row in rows):
-        sections.append(_spread_table(rows, p))
+    sections += _spread_sections(rows, p)
     if any(row["variant"] != "start" for row in rows):
         sections.append("![tier 3](recovery-tier3.png)")
     return sections
