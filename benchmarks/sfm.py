@@ -262,16 +262,17 @@ LOCAL_REFINEMENT_ITERATIONS = 1000
 def triangulated_reprojection_errors(sfm, reference) -> np.ndarray:
     """Reprojection error (px) of every observation of ``sfm``'s SIFT tracks under ``reference``'s cameras (matched by
     image name), each 3D point triangulated from its track by linear least squares (DLT) with those cameras."""
-    by_name = {image.name: image for image in reference.images.values()}
+    camera_and_pose = {
+        image.name: (reference.cameras[image.camera_id], np.asarray(image.cam_from_world().matrix()))
+        for image in reference.images.values()
+    }
     errors = []
     for point in sfm.points3D.values():
         rows, observations = [], []
         for element in point.track.elements:
             image = sfm.images[element.image_id]
             pixel = np.asarray(image.points2D[element.point2D_idx].xy, dtype=np.float64)
-            reference_image = by_name[image.name]
-            camera = reference.cameras[reference_image.camera_id]
-            pose = np.asarray(reference_image.cam_from_world().matrix())
+            camera, pose = camera_and_pose[image.name]
             ray = np.asarray(camera.cam_from_img(pixel))
             rows += [ray[0] * pose[2] - pose[0], ray[1] * pose[2] - pose[1]]
             observations.append((pixel, pose, camera))
