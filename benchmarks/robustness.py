@@ -121,6 +121,9 @@ STARTS = ("accurate", "perturbed", "sfm", "phone")
 """accurate: the true cameras; perturbed: CamP's perturbation; sfm: pycolmap SfM on the full-size images with an
 EXIF-like focal prior (``benchmarks/sfm.py``); phone: ``PHONE_PROFILE`` without SfM tracks (module docstring)."""
 DEFAULT_STARTS = ("accurate", "perturbed")
+RECOVERY_STARTS = ("perturbed", "phone")
+"""Starts that refinement must correct (the report gives the fraction of the start error removed); the others
+(accurate, sfm) it must not make worse."""
 VARIANTS = ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-track-prior")
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
@@ -141,7 +144,7 @@ error. Four times CamP's pose sigmas. These exports carry no SfM tracks, so this
 (``s2camp-data --tracks False``)."""
 SFM_FOCAL_PRIOR = 1.05
 """The sfm start's focal prior (the EXIF focal of a real capture; ``benchmarks/sfm.py``)."""
-METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim")
+METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim", "psnr_unaligned")
 ERRORS = ("rot_err", "pos_err", "focal_err", "drift_px")
 QUICK = {"iterations": 20, "seeds": 1, "variants": ("off", "s2camp")}
 REGIME = {"scenes": ("regime-wide",), "starts": STARTS, "iterations": 3000, "variants": VARIANTS[:4]}
@@ -185,7 +188,7 @@ class RobustnessConfig:
 
     def effective(self) -> RobustnessConfig:
         if self.preset == "regime":
-            return replace(self, preset="", **REGIME)
+            return replace(self, **REGIME)
         if not self.quick:
             return self
         alignment = replace(self.alignment, steps=10, rays=64)
@@ -211,10 +214,13 @@ class RobustnessConfig:
         if self.quick:
             return " ".join([*parts, "--quick"])
         default = RobustnessConfig()
+        if self.preset:
+            parts.append(f"--preset {self.preset}")
+            default = RobustnessConfig(preset=self.preset).effective()
         for name in ("scenes", "starts", "variants"):
             if getattr(self, name) != getattr(default, name):
                 parts.append(f"--{name} " + " ".join(getattr(self, name)))
-        for name in ("seeds", "iterations", "rays_per_batch", "workers"):
+        for name in ("seeds", "iterations", "rays_per_batch", "workers", "trace_every"):
             if getattr(self, name) != getattr(default, name):
                 parts.append(f"--{name.replace('_', '-')} {getattr(self, name)}")
         return " ".join(parts)
@@ -412,7 +418,7 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfi
         result["trace"] = pool.submit(trace_run, folder).result()
     row = {"scene": spec.scene, "start": spec.start, "variant": spec.variant, "seed": spec.seed}
     row["passes"] = config.iterations * config.rays_per_batch / SCENES[spec.scene].training_pixels
-    row |= {key: result[key] for key in (*METRICS, "psnr_unaligned", "drift_behind")}
+    row |= {key: result[key] for key in (*METRICS, "drift_behind")}
     row |= {f"start_{key}": result[f"start_{key}"] for key in (*ERRORS, "drift_behind")}
     row |= {
         "iterations": config.iterations,
@@ -520,13 +526,14 @@ def summarize(rows: list[dict]) -> list[dict]:
     summary = []
     for (scene, start, variant), chosen in groups.items():
         entry = {"scene": scene, "start": start, "variant": variant, "seeds": len(chosen)}
+        entry["passes"] = statistics.fmean(row.get("passes", math.nan) for row in chosen)
         for key in METRICS:
             entry[key] = Spread.of([row[key] for row in chosen])
         for key in ERRORS:
             entry[f"start_{key}"] = statistics.fmean(row[f"start_{key}"] for row in chosen)
             start_value = entry[f"start_{key}"]
             entry[f"removed_{key}"] = (
-                1.0 - entry[key].mean / start_value if start == "perturbed" and start_value > 0 else math.nan
+                1.0 - entry[key].mean / start_value if start in RECOVERY_STARTS and start_value > 0 else math.nan
             )
         summary.append(entry)
     for entry in summary:
@@ -625,9 +632,14 @@ def _summary_rows(summary: list[dict]) -> list[dict]:
         row = {key: entry[key] for key in ("scene", "start", "variant", "seeds")}
         row |= {key: entry[key].cell() for key in METRICS}
         row["psnr_vs_off"] = entry["psnr_vs_off_label"]
+        row["passes"] = f"{entry['passes']:.2f}"
+        row["start_errors"] = (
+            f"{entry['start_rot_err']:.3g} / {entry['start_pos_err']:.3g} / {entry['start_focal_err']:.3g} / "
+            f"{entry['start_drift_px']:.3g}"
+        )
         row["removed"] = (
             ", ".join(f"{key.replace('_err', '').replace('_px', '')} {entry[f'removed_{key}']:.0%}" for key in ERRORS)
-            if entry["start"] == "perturbed"
+            if entry["start"] in RECOVERY_STARTS
             else ""
         )
         table.append(row)
@@ -639,7 +651,7 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
     summary = summarize(rows)
     iterations = ", ".join(str(value) for value in sorted({row["iterations"] for row in rows}))
     seeds = ", ".join(str(value) for value in sorted({row["seed"] for row in rows}))
-    plot(summary, config.output_dir / "robustness.png")
+    plot(summary, config.output_dir / f"{config.preset or 'robustness'}.png")
     a = config.alignment
     setup = (
         f"Every run: `ns-train <method>` from scratch with the method's default options (camera learning rate and "
@@ -648,18 +660,21 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         f"`--max-num-iterations {iterations}`, {config.rays_per_batch} rays per step, no evaluation or "
         f"camera-error logging during training; `--machine.seed` {seeds}. 'off' is `ns-train s2camp "
         f"--pipeline.model.camera-optimizer.mode off`. 'perturbed' is the data parser's CamP perturbation "
-        f"(CamP's sigmas, the scene's perturbation seed), 'accurate' the true cameras. Errors of the final "
+        f"(CamP's sigmas, the scene's perturbation seed), 'accurate' the true cameras, 'sfm' pycolmap SfM on the "
+        f"full-size images (focal prior {SFM_FOCAL_PRIOR} x the true focal), 'phone' `PHONE_PROFILE` without SfM "
+        f"tracks (`benchmarks/robustness.py`). Errors of the final "
         f"checkpoint after a similarity alignment to the true cameras: rotation in degrees, position in normalized "
         f"scene units (the cameras fit in [-1, 1]^3), focal in px; drift = RMS pixel displacement of the scene's 3D "
         f"points between the true and the aligned refined cameras (`s2camp_ns.core.drift`). PSNR / SSIM: held-out "
         f"views (every 8th image) after {a.steps} test-time alignment steps of {a.rays} rays. Cells: mean "
         f"[min, max] over seeds. 'PSNR vs off': difference of the means, 'no difference' when smaller than the "
-        f"larger seed range of the two. 'removed': 1 - final / start error for perturbed starts."
+        f"larger seed range of the two. 'removed': 1 - final / start error for perturbed and phone starts."
     )
-    columns = ["scene", "start", "variant", "seeds", *METRICS, "psnr_vs_off", "removed"]
+    columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]
     headers = [
-        "scene", "start", "variant", "seeds", "rot err (deg)", "pos err", "focal err (px)", "drift (px)", "PSNR",
-        "SSIM", "PSNR vs off", "start error removed",
+        "scene", "start", "variant", "seeds", "passes", "start rot / pos / focal / drift", "rot err (deg)",
+        "pos err", "focal err (px)", "drift (px)", "PSNR", "SSIM", "PSNR unaligned", "PSNR vs off",
+        "start error removed",
     ]  # fmt: skip
 
     def average(key: str) -> float:
@@ -678,18 +693,41 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         timing += ")" if seed_count >= config.seeds else stopped + ")"
     elif minutes is not None:
         timing += f"; wall time of this run {minutes:.1f} minutes"
+    name = config.preset or "robustness"
     sections = [
         "Does camera refinement with each method's default options help or hurt, from accurate and from perturbed "
-        "cameras? Protocol and metrics: `benchmarks/robustness.py`.",
+        "cameras? Protocol and metrics: `benchmarks/robustness.py`. passes = steps x rays / training pixels.",
         "## Scenes",
         _scene_table(config, summary),
         "## Results",
         setup,
         markdown_table(_summary_rows(summary), columns, headers),
-        "![PSNR and drift per variant](robustness.png)",
+        f"![PSNR and drift per variant]({name}.png)",
         timing + ".",
+        *trace_sections(rows),
     ]
     return write_report(
-        config.output_dir, "robustness", "Robustness: default camera refinement from accurate and perturbed cameras",
+        config.output_dir, name, "Robustness: default camera refinement from accurate and perturbed cameras",
         config.command(), sections,
     )  # fmt: skip
+
+
+TRACE_COLUMNS = (
+    "step", "train_loss", "rot_err", "moved_rot", "moved_pos", "moved_focal", "gauge_scale", "gauge_rot",
+    "forward_shift", "focal_forward_corr", "pose_consistency", "intrinsics_consistency",
+)  # fmt: skip
+
+
+def trace_sections(rows: list[dict]) -> list[str]:
+    """One table per traced run: the cameras' path through training (``benchmarks/regime_trace.py``)."""
+    sections = []
+    for row in rows:
+        trace = row.get("trace")
+        if not trace:
+            continue
+        title = f"### Camera path: {row['scene']}, {row['start']} start, {row['variant']}, seed {row['seed']}"
+        cells = [{key: f"{point[key]:.4g}" for key in TRACE_COLUMNS} for point in trace]
+        sections += [title, markdown_table(cells, list(TRACE_COLUMNS), list(TRACE_COLUMNS))]
+    if sections:
+        sections.insert(0, "## The mechanism: camera paths (`--trace-every`; columns: `benchmarks/regime_trace.py`)")
+    return sections

@@ -125,6 +125,7 @@ def test_bad_choices_are_rejected_with_the_parameter_name() -> None:
 
 def _row(start: str, variant: str, seed: int, psnr: float, rot: float, start_rot: float) -> dict:
     row = {"scene": "s", "start": start, "variant": variant, "seed": seed, "psnr": psnr, "ssim": 0.5}
+    row |= {"psnr_unaligned": psnr - 0.25, "passes": 1.5}
     row |= {"rot_err": rot, "pos_err": 0.0, "focal_err": 0.0, "drift_px": 2.0 * rot}
     row |= {"start_rot_err": start_rot, "start_pos_err": 0.0, "start_focal_err": 0.0, "start_drift_px": 2 * start_rot}
     return row
@@ -150,3 +151,25 @@ def test_summary_spread_difference_against_off_and_removed_start_error() -> None
     assert accurate["psnr_vs_off_label"].startswith("-1.00 dB (beyond")
     assert math.isnan(accurate["removed_rot_err"])
     assert summary[("accurate", "off")]["psnr_vs_off_label"] == ""
+
+
+def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path: Path) -> None:
+    from s2camp_ns.benchmarks.robustness import TRACE_COLUMNS, report
+
+    rows = [
+        _row("sfm", variant, seed, psnr, rot, 0.1) | {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000,
+                                                     "eval_seconds": 1.0, "sec_per_iter": 0.5}  # fmt: skip
+        for variant, psnr, rot in (("off", 20.0, 0.1), ("s2camp", 21.0, 0.3))
+        for seed in (0, 1)
+    ]
+    rows[-1]["trace"] = [dict.fromkeys(TRACE_COLUMNS, 0.5) | {"step": 250}, dict.fromkeys(TRACE_COLUMNS, 0.25)]
+    config = RobustnessConfig(preset="regime", output_dir=tmp_path)
+    path = report(rows, config)
+    assert path == tmp_path / "regime.md"
+    text = path.read_text()
+    assert "Regenerate with `s2camp-bench robustness --preset regime`." in text
+    assert "| regime-wide | sfm | s2camp | 2 | 1.50 | 0.1 / 0 / 0 / 0.2 | 0.3 [0.3, 0.3] |" in text
+    assert "20.8" in text  # the unaligned PSNR of s2camp (21 - 0.25)
+    assert "### Camera path: regime-wide, sfm start, s2camp, seed 1" in text
+    assert "| 250 | 0.5 |" in text and "| 0.25 | 0.25 |" in text
+    assert (tmp_path / "regime.png").exists()
