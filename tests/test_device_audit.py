@@ -198,8 +198,12 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
     corrected = optimizer.apply_to_camera(camera)
     state = {key: value.cpu() for key, value in optimizer.state_dict().items()}  # a checkpoint, as torch.save has it
     resumed = config.setup(num_cameras=NUM_CAMERAS, device=device)
-    resumed.set_train_cameras(cameras, points=None if sampler == "camp-random" else scene_points(device))
+    # Loaded before the cameras are known, the layout announced first as the model does from the dataparser (the
+    # order that needs no second P computation: the saved P is checked against the cameras and kept).
+    resumed.set_camera_model(camera_model)
     resumed.load_state_dict(state)
+    resumed.set_train_cameras(cameras, points=None if sampler == "camp-random" else scene_points(device))
+    assert not resumed.preconditioner_is_stale
     return {
         "initial_p": initial_p,
         "p": optimizer.precond,
@@ -227,15 +231,15 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
 FLOAT64_ISLANDS = ("initial_p", "p", "p_inv", "gram", "proxy_range")
 
 
-@pytest.mark.parametrize(
-    ("camera_model", "intrinsics", "sampler"),
-    [
-        ("RADIAL", "per-camera", "frolov"),
-        ("OPENCV", "per-image", "camp-random"),
-        ("FULL_OPENCV", "per-camera", "camp-random"),
-        ("OPENCV_FISHEYE", "per-image", "frolov"),
-    ],
-)
+OPTIMIZER_CASES = [
+    ("RADIAL", "per-camera", "frolov"),
+    ("OPENCV", "per-image", "camp-random"),
+    ("FULL_OPENCV", "per-camera", "camp-random"),
+    ("OPENCV_FISHEYE", "per-image", "frolov"),
+]
+
+
+@pytest.mark.parametrize(("camera_model", "intrinsics", "sampler"), OPTIMIZER_CASES)
 def test_camera_optimizer_on_cuda(camera_model: str, intrinsics: str, sampler: str):
     """Every tensor of the run lands on "cuda" (P, P^-1, Sigma and the proxy range in float64), and every value is
     the CPU run's: P computation and refresh, ray regeneration and its gradients, Adam, refined cameras, the
@@ -254,6 +258,21 @@ def test_camera_optimizer_on_cuda(camera_model: str, intrinsics: str, sampler: s
         if name in FLOAT64_ISLANDS:
             assert tensor.dtype == torch.float64, name
         close(tensor, expected[name])
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a real CUDA device (make gpu-check)")
+@pytest.mark.parametrize(("camera_model", "intrinsics", "sampler"), OPTIMIZER_CASES)
+def test_camera_optimizer_on_real_cuda(camera_model: str, intrinsics: str, sampler: str):
+    """The emulated run of ``test_camera_optimizer_on_cuda`` on a real GPU: every tensor on CUDA, the values the
+    CPU's up to the kernels' rounding."""
+    expected = optimizer_run("cpu", camera_model, intrinsics, sampler)
+    got = optimizer_run("cuda", camera_model, intrinsics, sampler)
+    for name, tensor in got.items():
+        assert tensor.device.type == "cuda", name
+        if name in FLOAT64_ISLANDS:
+            assert tensor.dtype == torch.float64, name
+        torch.testing.assert_close(tensor.cpu().to(expected[name].dtype), expected[name], rtol=1e-5, atol=1e-7)
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)
@@ -311,6 +330,7 @@ def pipeline_config(scene: Path):
     datamanager.data = scene
     datamanager.dataparser.data = scene
     datamanager.dataparser.perturbation.enabled = True  # reference cameras: camera errors, frusta, alignment
+    datamanager.dataparser.downscale_factor = 2  # 32 x 24 images: the full-image renders stay cheap
     datamanager.train_num_rays_per_batch = datamanager.eval_num_rays_per_batch = 64
     config.pipeline.model = tiny_model_config(
         S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=64), refresh_every=1),
@@ -381,6 +401,7 @@ def test_viewer_panel_rendering_and_test_time_alignment_on_cuda(cuda_pipeline):
     with fake_cuda():
         panel = model.S2CamP.panel_values(step=3)
         frusta = {which: model.camera_frusta(which) for which in ("refined", "initial", "reference")}
+        drawn = {which: model.S2CamP._frustum_params(frusta[which], [0, 2]) for which in frusta}  # numpy for viser
         camera = pipeline.datamanager.train_dataset.cameras[0:1].to("cuda")
         camera.metadata = {TRAIN_CAMERA_KEY: 0}
         model.eval()  # as nerfstudio's evaluation and viewer render
@@ -395,6 +416,7 @@ def test_viewer_panel_rendering_and_test_time_alignment_on_cuda(cuda_pipeline):
         )
     assert panel["b_errors"] == "mean / max" and panel["g_condition_sigma"] != "n/a"
     assert all(f is not None for f in frusta.values())
+    assert all(positions.shape == (2, 3) and math.isfinite(positions.sum()) for positions, *_ in drawn.values())
     assert on_cuda(image) and image.shape[-1] == 3
     assert len(aligned) == len(pipeline.datamanager.eval_dataset)
     assert all(math.isfinite(view.psnr) for view in aligned)
