@@ -33,6 +33,7 @@ from s2camp_ns.camera_optimizer import (
     PIXEL_KEY,
     TRAIN_CAMERA_KEY,
     S2CampCameraOptimizerConfig,
+    intrinsics_from_cameras,
 )
 from s2camp_ns.core.alignment import camera_errors
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, opengl_to_opencv
@@ -47,6 +48,7 @@ from s2camp_ns.core.preconditioner import (
     damped_gram,
     sample_proxy_points,
 )
+from s2camp_ns.core.proxy_range import proxy_ranges
 
 NUM_CAMERAS, WIDTH, HEIGHT = 3, 64, 48
 CAMERA_MODELS = {
@@ -297,6 +299,22 @@ def test_preconditioner_of_cuda_intrinsics_for_every_sampler(sampler: str):
         close(tensor, getattr(expected, name))
 
 
+def test_proxy_ranges_of_cuda_cameras_and_points():
+    """``core.proxy_range.proxy_ranges`` called with everything on "cuda" (a framework-agnostic caller): every field
+    of the result on the cameras' device, the CPU's values."""
+    cameras = make_cameras("RADIAL")
+    c2w, intrinsics = opengl_to_opencv(cameras.camera_to_worlds.double()), intrinsics_from_cameras(cameras)
+    points, groups = scene_points("cpu").double(), torch.tensor([0, 0, 1])
+    expected = proxy_ranges(points, c2w, intrinsics, groups)
+    with fake_cuda():
+        got = proxy_ranges(points.to("cuda"), c2w.to("cuda"), intrinsics.to(device="cuda"), groups.to("cuda"))
+        stacked = got.stacked()
+    for name in ("t_near", "t_far", "num_points", "fallback"):
+        assert on_cuda(getattr(got, name)), name
+        close(getattr(got, name), getattr(expected, name))
+    assert on_cuda(stacked) and stacked.dtype == torch.float64 and not bool(values(got.fallback).any())
+
+
 # ------------------------------------------------------------------------------------ core: evaluation helpers
 def test_perturbation_camera_errors_and_drift_on_cuda():
     cameras = make_cameras("RADIAL")
@@ -406,7 +424,9 @@ def test_viewer_panel_rendering_and_test_time_alignment_on_cuda(cuda_pipeline):
         camera.metadata = {TRAIN_CAMERA_KEY: 0}
         model.eval()  # as nerfstudio's evaluation and viewer render
         try:
-            image = model.get_outputs_for_camera(camera)["rgb"]
+            rendered = model.get_outputs_for_camera(camera)
+            image = rendered["rgb"]
+            metrics, _ = model.get_image_metrics_and_images(rendered, {"image": torch.rand(*image.shape)})
         finally:
             model.train()
         aligned = evaluate_held_out_views(pipeline, AlignmentConfig(steps=2, rays=16, chunk=1024))
@@ -418,6 +438,7 @@ def test_viewer_panel_rendering_and_test_time_alignment_on_cuda(cuda_pipeline):
     assert all(f is not None for f in frusta.values())
     assert all(positions.shape == (2, 3) and math.isfinite(positions.sum()) for positions, *_ in drawn.values())
     assert on_cuda(image) and image.shape[-1] == 3
+    assert math.isfinite(metrics["psnr"]) and "lpips" not in metrics  # LPIPS offline here
     assert len(aligned) == len(pipeline.datamanager.eval_dataset)
     assert all(math.isfinite(view.psnr) for view in aligned)
     assert refined.device == pipeline.datamanager.train_dataset.cameras.device  # Cameras come back where they were
