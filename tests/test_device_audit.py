@@ -4,9 +4,10 @@ The CUDA run is emulated by ``tests/fake_cuda.py`` (tensors that say "cuda:0" an
 every op, backward included, checks its arguments' devices with CUDA's rules and raises torch's
 ``FakeTensorDeviceMismatchError`` on a CPU tensor meeting a CUDA one). torch's own ``FakeTensorMode`` carries no
 values, so it stops at the first data-dependent op (``bool(...)`` of the input checks, ``torch.unique``, ``.item()``)
-and cannot run the camera optimizer, the data manager or a training step; it is used here for what it can run:
-the preconditioner's float64 algebra (Jacobian, Gram matrix, eigensolve) on "cuda", and as the reference that the
-emulation's device rules agree with (``test_fake_cuda_agrees_with_fake_tensor_mode``).
+and cannot run the camera optimizer, the data manager or a training step (nor any backward pass on "cuda": the
+autograd engine asks for a CUDA context); it is used here for what it can run: the preconditioner's float64 algebra
+(Jacobian, Gram matrix, eigensolve) and nerfacto's field forward on "cuda", and as the reference that the emulation's
+device rules agree with (``test_fake_cuda_agrees_with_fake_tensor_mode``).
 
 Nothing is replaced by a test double: nerfacto's field (torch hash grids; tiny-cuda-nn is not installed here and
 nerfstudio falls back to torch) runs under the emulation with real values, as do the data manager, the pixel
@@ -131,6 +132,37 @@ def test_fake_tensor_mode_runs_the_preconditioner_algebra_in_float64_on_cuda():
         eigenvalues, eigenvectors = torch.linalg.eigh(damped_gram(sigma, DampingConfig()))
     for tensor in (jacobian, sigma, eigenvalues, eigenvectors):
         assert tensor.device == torch.device("cuda", 0) and tensor.dtype == torch.float64
+
+
+def test_nerfacto_field_forward_under_fake_tensor_mode():
+    """nerfacto's field (torch hash grids: tiny-cuda-nn is not installed here, nerfstudio's fallback) built and run on
+    "cuda" under torch's FakeTensorMode: density and colour on "cuda", float32. Its backward cannot run there (the
+    autograd engine looks for a CUDA context); the emulation runs it (``test_training_step_on_cuda``)."""
+    from nerfstudio.field_components.spatial_distortions import SceneContraction
+    from nerfstudio.fields.nerfacto_field import NerfactoField
+    from nerfstudio.model_components.ray_samplers import UniformSampler
+
+    with FakeTensorMode(), torch.device("cuda"):
+        field = NerfactoField(
+            aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), num_images=3, num_levels=2, log2_hashmap_size=10,
+            hidden_dim=8, hidden_dim_color=8, spatial_distortion=SceneContraction(order=float("inf")),
+            implementation="torch",
+        )  # fmt: skip
+        num_rays = 16
+        bundle = RayBundle(
+            origins=torch.zeros(num_rays, 3),
+            directions=torch.nn.functional.normalize(torch.randn(num_rays, 3), dim=-1),
+            pixel_area=torch.ones(num_rays, 1),
+            camera_indices=torch.zeros(num_rays, 1, dtype=torch.long),
+            nears=torch.full((num_rays, 1), 0.05),
+            fars=torch.full((num_rays, 1), 2.0),
+        )
+        outputs = field(UniformSampler(num_samples=4)(bundle))
+    assert {p.device for p in field.parameters()} == {torch.device("cuda", 0)}
+    assert {name.value for name in outputs} == {"rgb", "density"}
+    for output in outputs.values():
+        assert output.device == torch.device("cuda", 0) and output.dtype == torch.float32
+        assert tuple(output.shape[:2]) == (num_rays, 4)
 
 
 # -------------------------------------------------------------------------------------------- camera optimizer
