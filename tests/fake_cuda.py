@@ -4,9 +4,10 @@ Why not ``torch._subclasses.fake_tensor.FakeTensorMode`` alone: fake tensors car
 result depends on the data stops it (``DataDependentOutputException`` on ``.item()`` / ``bool(t)`` / ``int(t)``,
 ``DynamicOutputShapeException`` on ``torch.unique`` / ``nonzero`` / boolean masks). The camera optimizer does
 these everywhere: the input checks of ``core.validation`` (``bool((x < low).any())``), ``torch.unique`` of the
-step's camera indices, the refresh schedule's ``int(self.last_refresh_step)``. FakeTensorMode is still used where
-it can go (tests/test_device_audit.py: nerfacto's field, the eigensolve's meta kernel, and as the reference for the
-device rules below).
+step's camera indices, the refresh schedule's ``int(self.last_refresh_step)``; and no backward pass runs on a fake
+"cuda" tensor (the autograd engine looks for a CUDA context). FakeTensorMode is still used where it can go
+(tests/test_device_audit.py: nerfacto's field forward, the preconditioner's float64 algebra, and as the reference
+for the device rules below).
 
 ``fake_cuda()`` is the "equivalent that executes every op and fails on a mismatch": inside it,
 - a tensor created with ``device="cuda"`` (factories, ``.to("cuda")``, ``.cuda()``, ``module.to("cuda")``) is a
@@ -22,9 +23,19 @@ op implementations of ``torch._subclasses.fake_impls``), plus the generator rule
 - ``copy_`` / ``_to_copy`` move between devices;
 - indexing a CUDA tensor accepts CPU index tensors; a CPU tensor indexed by a CUDA index fails;
 - a random op on CUDA needs a CUDA generator (a CPU ``torch.Generator()`` fails).
-A violation raises ``FakeTensorDeviceMismatchError`` (torch's own error class, so the message reads like
-FakeTensorMode's: "Expected all tensors to be on the same device, but found at least two devices, cuda:0 and
-cpu!"), or ``RuntimeError`` for the index and generator rules, with the op's name.
+A violation raises ``DeviceMismatchError``, a subclass of torch's ``FakeTensorDeviceMismatchError`` whose message
+reads like FakeTensorMode's ("Expected all tensors to be on the same device, but found at least two devices,
+cuda:0 and cpu!") followed by the op and its tensor arguments, or ``RuntimeError`` for the index and generator rules.
+
+How it is built, and its limits:
+- a ``FakeCudaTensor``'s C++ metadata says CPU (see the class), so C++ code that copies a tensor's options (autograd's
+  formulas: ``new_zeros(..., device=cpu)``, ``grad.to(self.options())``) asks for "cpu" where CUDA code would get
+  "cuda": such requests on a CUDA tensor are taken as its own device. Python's moves (``.to``, ``.cpu()``,
+  ``.cuda()``, ``.type_as``) are intercepted before C++ (``_Moves``), so a deliberate ``.cpu()`` is still a move;
+  an explicit ``device="cpu"`` in ``new_*`` / ``*_like`` of a CUDA tensor would be missed (the library has none);
+- ``torch.cuda.is_available()`` stays False, and nothing CUDA-specific runs: CUDA generators and their state
+  (``torch.cuda.get_rng_state``, ``fork_rng`` on CUDA), pinned memory, streams, NCCL, CUDA kernels (tiny-cuda-nn,
+  gsplat). Those are for a real GPU (``pytest -m cuda``).
 """
 
 from __future__ import annotations
