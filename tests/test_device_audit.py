@@ -299,14 +299,15 @@ def test_camera_optimizer_on_cuda(camera_model: str, intrinsics: str, sampler: s
 @pytest.mark.parametrize(("camera_model", "intrinsics", "sampler"), OPTIMIZER_CASES)
 def test_camera_optimizer_on_real_cuda(camera_model: str, intrinsics: str, sampler: str):
     """The emulated run of ``test_camera_optimizer_on_cuda`` on a real GPU: every tensor on CUDA, the values the
-    CPU's up to the kernels' rounding."""
+    CPU's up to the kernels' rounding (float32 sums over the rays in another order: 1e-4 relative; not yet run on a
+    GPU, so the bound is an estimate)."""
     expected = optimizer_run("cpu", camera_model, intrinsics, sampler)
     got = optimizer_run("cuda", camera_model, intrinsics, sampler)
     for name, tensor in got.items():
         assert tensor.device.type == "cuda", name
         if name in FLOAT64_ISLANDS:
             assert tensor.dtype == torch.float64, name
-        torch.testing.assert_close(tensor.cpu().to(expected[name].dtype), expected[name], rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(tensor.cpu().to(expected[name].dtype), expected[name], rtol=1e-4, atol=1e-6)
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)
