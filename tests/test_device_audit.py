@@ -440,6 +440,23 @@ def test_training_step_on_cuda(cuda_pipeline):
     assert model._camera_errors["camera_errors/aligned"] == 1.0
 
 
+def test_global_batch_sampling_on_cuda(cuda_pipeline, monkeypatch):
+    """The data manager's global batch sampling (docs/SCALING.md) with the model on "cuda": the rays and their pixels
+    on "cuda", each ray's pixel the one the sampler drew. The CUDA generator state that ``fork_rng`` saves on a GPU
+    does not exist here, so the fork keeps the CPU's generator only (the sampler draws on the images' device, the
+    CPU)."""
+    pipeline, _ = cuda_pipeline
+    datamanager = pipeline.datamanager
+    fork_rng = torch.random.fork_rng
+    monkeypatch.setattr(torch.random, "fork_rng", lambda devices=(), **kwargs: fork_rng(devices=[], **kwargs))
+    monkeypatch.setattr(datamanager.config, "global_batch_sampling", True)
+    with fake_cuda():
+        ray_bundle, batch = datamanager.next_train(2)
+    assert on_cuda(ray_bundle.origins) and on_cuda(ray_bundle.metadata[PIXEL_KEY])
+    assert batch["indices"].shape[0] == ray_bundle.origins.shape[0] == datamanager.config.train_num_rays_per_batch
+    torch.testing.assert_close(values(ray_bundle.metadata[PIXEL_KEY]), batch["indices"][:, [2, 1]].float() + 0.5)
+
+
 def test_viewer_panel_rendering_and_test_time_alignment_on_cuda(cuda_pipeline):
     """The viewer panel's values and frusta, rendering a refined training camera, the test-time alignment of the
     held-out views, and the refined cameras exported as a COLMAP model, from a model on "cuda"."""
