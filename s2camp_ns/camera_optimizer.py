@@ -287,8 +287,12 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.register_buffer("last_refresh_step", torch.tensor(-1, dtype=torch.long, device=device))
         self.register_buffer("num_refreshes", torch.tensor(0, dtype=torch.long, device=device))
         # Base cameras come from the dataparser on every run, so they are not saved.
-        self.register_buffer("base_c2w_cv", torch.zeros(num_cameras, 3, 4, dtype=torch.float64), persistent=False)
-        self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 13, dtype=torch.float64), persistent=False)
+        self.register_buffer(
+            "base_c2w_cv", torch.zeros(num_cameras, 3, 4, dtype=torch.float64, device=device), persistent=False
+        )
+        self.register_buffer(
+            "base_intrinsics", torch.zeros(num_cameras, 13, dtype=torch.float64, device=device), persistent=False
+        )
         self.projection = "perspective"
         # The base intrinsics of the run that computed P, saved with P: a checkpoint loaded onto other base cameras
         # is detected and P recomputed (``_check_base_cameras``) instead of silently reused. P depends on
