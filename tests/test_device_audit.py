@@ -348,6 +348,41 @@ def test_proxy_ranges_of_cuda_cameras_and_points():
     assert on_cuda(stacked) and stacked.dtype == torch.float64 and not bool(values(got.fallback).any())
 
 
+def test_track_reprojection_and_track_prior_on_cuda():
+    """``core.tracks`` with points, cameras and observations on "cuda", and the camera optimizer's track prior
+    (``set_track_prior`` from CPU values, ``apply_track_prior`` on the cuda latents): the CPU's values."""
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+    from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
+
+    cameras = make_cameras("RADIAL")
+    c2w, intrinsics = opengl_to_opencv(cameras.camera_to_worlds.double()), intrinsics_from_cameras(cameras)
+    points = scene_points("cpu").double()[:8]
+    image = torch.arange(24) % 3
+    point = torch.arange(24) % 8
+    pixels = torch.rand(24, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 40.0
+    expected = track_reprojection_rms(Tracks(points, image, point, pixels), c2w, intrinsics)
+    config = S2CampCameraOptimizerConfig(track_prior=True)
+
+    def prior_step(device: str) -> torch.Tensor:
+        optimizer = config.setup(num_cameras=3, device=device)
+        optimizer.set_train_cameras(cameras.to(device))
+        with torch.no_grad():
+            optimizer.whitened_delta.fill_(1.0)
+        optimizer.set_track_prior(expected)  # the data parser's CPU tensor
+        optimizer.apply_track_prior(1e-3)
+        return optimizer.whitened_delta.detach()
+
+    reference = prior_step("cpu")
+    with fake_cuda():
+        tracks = Tracks(points.to("cuda"), image.to("cuda"), point.to("cuda"), pixels.to("cuda"))
+        got = track_reprojection_rms(tracks, c2w.to("cuda"), intrinsics.to(device="cuda"))
+        latent = prior_step("cuda")
+    assert on_cuda(got) and on_cuda(latent)
+    close(got, expected)
+    close(latent, reference)
+    assert float(values(latent).max()) < 1.0  # the prior did shrink the latent
+
+
 # ------------------------------------------------------------------------------------ core: evaluation helpers
 def test_perturbation_camera_errors_and_drift_on_cuda():
     cameras = make_cameras("RADIAL")
