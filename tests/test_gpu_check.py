@@ -388,3 +388,30 @@ def test_the_report_file(tmp_path: Path) -> None:
         assert part in text
     assert not list(tmp_path.glob("*.tmp"))
     json.dumps(text)  # plain text, no objects
+
+
+# ---------------------------------------------------------------------------------------------- end to end
+@pytest.mark.slow
+def test_cpu_smoke_run_trains_and_evaluates_stock_nerfacto(tmp_path: Path) -> None:
+    """The training stage end to end on the CPU (``--cpu-smoke``): measured_train runs stock nerfacto (offline
+    without its LPIPS weights), evaluates it through StockNerfactoModel, and the report holds its row. About 35 s of
+    CPU time."""
+    output = tmp_path / "out"
+    result = subprocess.run(
+        [sys.executable, "-m", "s2camp_ns.gpu_check", "--cpu-smoke", "--methods", "nerfacto", "--output-dir",
+         str(output)],
+        capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout[-3000:] + (output / "logs" / "train-nerfacto.log").read_text()[-3000:]
+    text = (output / "gpu-check.md").read_text()
+    assert "**CPU smoke run of the script itself (`--cpu-smoke`)" in text
+    assert "| scene | passed | 9 images 48x36, generated in" in text
+    row = next(line for line in text.splitlines() if line.startswith("| nerfacto |")).split(" | ")
+    assert row[2] == "1.00x" and row[3] == "-"  # its own baseline; no CUDA memory on the CPU
+    start_rot, final_rot = (float(value) for value in row[4].split(" → "))
+    assert start_rot > 0.05 and final_rot != start_rot  # perturbed start; the stock optimizer moved the cameras
+    assert 5.0 < float(row[7]) < 60.0  # held-out PSNR after test-time alignment
+    assert row[8] == "passed |"
+    measured = json.loads((output / "runs" / "nerfacto.json").read_text())
+    assert len(measured["step_seconds"]) == 7 and all(seconds > 0 for seconds in measured["step_seconds"])
+    assert not list((output / "runs").glob("gpu-check/*/*/nerfstudio_models"))  # checkpoints removed
