@@ -63,42 +63,23 @@ def run(config: GpuCheckConfig) -> bool:
     config.output_dir.mkdir(parents=True, exist_ok=True)
     stages: list[report.StageResult] = []
     if config.tcnn_source is not None:
-        try:
-            install_tinycudann(
-                config.tcnn_source, environment, config.logs_dir / "tinycudann.log", 60 * config.run_timeout_minutes
-            )
-            stages.append(report.StageResult("tiny-cuda-nn build", True, f"from {config.tcnn_source}"))
-        except GpuCheckError as error:
-            stages.append(report.StageResult("tiny-cuda-nn build", False, str(error)))
+        stages.append(build_tinycudann(config, environment))
         environment = detect_environment()
     lines = describe(environment)
     for line in lines:
         CONSOLE.print(line)
-
     if "tests" in config.stages:
-        CONSOLE.print(">>> pytest -m cuda")
-        stages.append(run_cuda_tests(config))
-        CONSOLE.print(f"    {stages[-1].detail}")
+        stages.append(announced("pytest -m cuda", lambda: run_cuda_tests(config)))
     results: list[report.MethodResult] = []
     if "train" in config.stages or "nccl" in config.stages:
-        CONSOLE.print(">>> scene")
-        scene_stage, scene = generate_scene(config)
-        stages.append(scene_stage)
-        CONSOLE.print(f"    {scene_stage.detail}")
+        stages.append(announced("scene", lambda: generate_scene(config)))
+        scene = config.scene_dir if stages[-1].passed else None
         if scene is not None and "train" in config.stages:
-            for method in config.methods:
-                CONSOLE.print(f">>> ns-train {method}")
-                result, measured = train_method(config, method, scene)
-                results.append(result)
-                if measured is not None and measured.get("lpips_left_out"):
-                    lines.append(f"{method}: LPIPS left out (its AlexNet weights are not cached and cannot be fetched)")
-                CONSOLE.print(f"    {'passed' if result.error is None else result.error}")
-            for checkpoints in config.runs_dir.glob(f"{EXPERIMENT}/*/*/nerfstudio_models"):
-                shutil.rmtree(checkpoints)  # nerfacto-sized checkpoints with Adam's moments: not needed afterwards
+            results, notes = train_all(config, scene)
+            lines.extend(notes)
         if scene is not None and "nccl" in config.stages:
-            CONSOLE.print(">>> ns-train s2camp --machine.num-devices 2")
-            stages.append(run_nccl(config, scene, environment.device_count))
-            CONSOLE.print(f"    {stages[-1].detail}")
+            command = "ns-train s2camp --machine.num-devices 2"
+            stages.append(announced(command, lambda: run_nccl(config, scene, environment.device_count)))
 
     minutes = (time.perf_counter() - began) / 60.0
     arguments = (lines, stages, results, setup_text(config), config.baseline, minutes, config.time_budget_minutes)
@@ -108,6 +89,39 @@ def run(config: GpuCheckConfig) -> bool:
     print(path.read_text(), flush=True)
     CONSOLE.print(f"report: {path}")
     return report.all_passed(stages, results)
+
+
+def announced(what: str, stage) -> report.StageResult:
+    """Run ``stage`` (returns a StageResult) between a line naming it and a line with its outcome."""
+    CONSOLE.print(f">>> {what}", highlight=False)
+    result = stage()
+    CONSOLE.print(f"    {result.detail}", highlight=False)
+    return result
+
+
+def build_tinycudann(config: GpuCheckConfig, environment) -> report.StageResult:
+    name = "tiny-cuda-nn build"
+    log_path = config.logs_dir / "tinycudann.log"
+    try:
+        install_tinycudann(config.tcnn_source, environment, log_path, 60 * config.run_timeout_minutes)
+    except GpuCheckError as error:
+        return report.StageResult(name, False, str(error))
+    return report.StageResult(name, True, f"from {config.tcnn_source}")
+
+
+def train_all(config: GpuCheckConfig, scene) -> tuple[list[report.MethodResult], list[str]]:
+    """Every method, one after the other; the results and notes for the report (LPIPS left out)."""
+    results, notes = [], []
+    for method in config.methods:
+        CONSOLE.print(f">>> ns-train {method}", highlight=False)
+        result, measured = train_method(config, method, scene)
+        results.append(result)
+        if measured is not None and measured.get("lpips_left_out"):
+            notes.append(f"{method}: LPIPS left out (torchvision's AlexNet weights are not cached and not reachable)")
+        CONSOLE.print(f"    {'passed' if result.error is None else result.error}", highlight=False)
+    for checkpoints in config.runs_dir.glob(f"{EXPERIMENT}/*/*/nerfstudio_models"):
+        shutil.rmtree(checkpoints)  # nerfacto-sized checkpoints with Adam's moments: not needed afterwards
+    return results, notes
 
 
 def main(config: GpuCheckConfig) -> int:

@@ -87,6 +87,8 @@ class GpuCheckConfig:
         )  # fmt: skip
 
     def validate(self) -> None:
+        if self.cpu_smoke and self.write_docs:
+            raise ValueError("write_docs must be False with cpu_smoke: a CPU smoke run is no GPU check for docs/")
         if not self.stages:
             raise ValueError(f"stages must name at least one of {', '.join(STAGES)}, got none")
         for stage in self.stages:

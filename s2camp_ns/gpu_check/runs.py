@@ -7,6 +7,7 @@ as failed.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -46,9 +47,18 @@ def run_logged(command: list[str], log_path: Path, timeout_s: float) -> int | No
         try:
             return process.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
-            os.killpg(process.pid, signal.SIGKILL)
-            process.wait()
+            _kill_group(process)
             return None
+        except BaseException:  # Ctrl-C does not reach the command's own session: stop it here, then stop
+            _kill_group(process)
+            raise
+
+
+def _kill_group(process: subprocess.Popen) -> None:
+    """Kill the command and everything it started (data-loader workers, the ranks of a multi-process run)."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
 
 
 def log_tail(log_path: Path, lines: int = 20) -> str:
@@ -118,18 +128,19 @@ def scene_config(config: GpuCheckConfig):
     return replace(config.scene, output_dir=config.scene_dir)
 
 
-def generate_scene(config: GpuCheckConfig) -> tuple[StageResult, Path | None]:
+def generate_scene(config: GpuCheckConfig) -> StageResult:
+    """Generate ``config.scene`` into ``config.scene_dir``, or reuse the one there if it has the same settings."""
     s = config.scene
     name = "scene"
     what = f"{s.num_cameras} images {s.width}x{s.height}"
     if scene_is_current(config):
-        return StageResult(name, True, f"{what}, reused from {config.scene_dir}"), config.scene_dir
+        return StageResult(name, True, f"{what}, reused from {config.scene_dir}")
     began = time.perf_counter()
     try:
-        scene = make_scene(scene_config(config))
+        make_scene(scene_config(config))
     except (ValueError, RuntimeError) as error:
-        return StageResult(name, False, f"s2camp-make-scene failed: {error}"), None
-    return StageResult(name, True, f"{what}, generated in {time.perf_counter() - began:.0f} s"), scene
+        return StageResult(name, False, f"s2camp-make-scene failed: {error}")
+    return StageResult(name, True, f"{what}, generated in {time.perf_counter() - began:.0f} s")
 
 
 # --------------------------------------------------------------------------------------------------- training
