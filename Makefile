@@ -10,13 +10,14 @@ STAMP := $(VENV)/.s2camp-installed
 # Installed first, on their own, so resolving the package cannot pull in a different torch.
 TORCH_PINS := torch==2.14.1 torchvision==0.29.1
 
-.PHONY: help venv demo test lint bench mutation clean
+.PHONY: help venv demo test lint bench gpu-check mutation clean
 
 help:
 	@echo "make demo   generate a synthetic scene and run the S2CamP demo (creates $(VENV) on first use)"
 	@echo "make test   ruff + the whole pytest suite, end-to-end tests included"
 	@echo "make lint   ruff only"
 	@echo "make bench  all benchmarks (s2camp-bench all)"
+	@echo "make gpu-check  on a CUDA machine: the cuda tests, 4 methods side by side, NCCL with 2 GPUs (docs/GPU-CHECK.md)"
 	@echo "make mutation  mutation testing of the core and the camera optimizer (mutmut, about 40 min on one CPU)"
 	@echo "make venv   create/refresh $(VENV) (VENV=path to use another one, PYTHON=python3.x to pick the interpreter)"
 	@echo "make clean  remove caches, build outputs and generated scenes (keeps $(VENV) and ns-train outputs/)"
@@ -56,6 +57,12 @@ test: lint
 bench: venv
 	@echo ">>> s2camp-bench all"
 	$(BIN)/s2camp-bench all
+
+# The GPU check (docs/GPU-CHECK.md): refuses to run without CUDA; report in outputs/gpu-check/gpu-check.md.
+# Options go through GPU_CHECK_ARGS, e.g. make gpu-check GPU_CHECK_ARGS="--write-docs".
+gpu-check: venv
+	@echo ">>> python -m s2camp_ns.gpu_check $(GPU_CHECK_ARGS)"
+	$(BIN)/python -m s2camp_ns.gpu_check $(GPU_CHECK_ARGS)
 
 # Mutation testing (docs/mutation-testing.md): mutmut (the "mutation" extra) mutates the modules listed under
 # [tool.mutmut] in pyproject.toml and runs their unit tests against each mutant, one worker at a time. The run

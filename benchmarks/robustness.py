@@ -335,6 +335,16 @@ def _refined_cameras(model):
 
 def evaluate_run(run: Path, alignment: AlignmentConfig) -> dict:
     """Start and final camera metrics, held-out PSNR / SSIM after test-time alignment, of a finished run."""
+    from .recovery_photometric import _load_pipeline
+
+    began = time.perf_counter()
+    result = evaluate_pipeline(_load_pipeline(run), alignment)
+    result["eval_seconds"] = time.perf_counter() - began
+    return result
+
+
+def evaluate_pipeline(pipeline, alignment: AlignmentConfig) -> dict:
+    """``evaluate_run`` of a pipeline in memory (also used by ``make gpu-check``, in the training process)."""
     import warnings
 
     import torch
@@ -342,10 +352,7 @@ def evaluate_run(run: Path, alignment: AlignmentConfig) -> dict:
     from s2camp_ns.camera_optimizer import intrinsics_from_cameras
     from s2camp_ns.nerfstudio.test_time_alignment import evaluate_held_out_views
 
-    from .recovery_photometric import _load_pipeline
-
     began = time.perf_counter()
-    pipeline = _load_pipeline(run)
     model = pipeline.model
     points = pipeline.datamanager.train_dataparser_outputs.metadata["points3D_xyz"].to(torch.float64)
     start_cameras = model._train_cameras

@@ -19,6 +19,26 @@ if TYPE_CHECKING:
     from s2camp_ns.nerfstudio.model import S2CampModelConfig
     from s2camp_ns.scene.make_scene import MakeSceneConfig
 
+CUDA_SKIP_REASON = (
+    "needs a CUDA device and torch.cuda.is_available() is False here; these tests run on a GPU machine with "
+    "`make gpu-check` (docs/GPU-CHECK.md)"
+)
+"""The one reason a test of this suite may skip: it is marked ``cuda`` and the machine has no CUDA device."""
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Skip the tests marked ``cuda`` where there is no CUDA device, with CUDA_SKIP_REASON; nothing else."""
+    cuda_items = [item for item in items if item.get_closest_marker("cuda") is not None]
+    if not cuda_items:
+        return
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    for item in cuda_items:
+        item.add_marker(pytest.mark.skip(reason=CUDA_SKIP_REASON))
+
+
 TINY_SCENE = {"num_cameras": 12, "width": 64, "height": 48, "points_per_image": 150, "seed": 0}
 """Config of the session scene: about a second to generate, small enough for CPU training smoke tests."""
 
