@@ -44,7 +44,14 @@ CUDA_TESTS = [
     "tests/test_cuda.py::test_training_steps_on_cuda_with_mixed_precision[s2camp-camp]",
     "tests/test_cuda.py::test_training_steps_on_cuda_with_mixed_precision[s2camp-so3xr3]",
     "tests/test_cuda.py::test_gsplat_imports",
+    "tests/test_device_audit.py::test_camera_optimizer_on_real_cuda[RADIAL-per-camera-frolov]",
+    "tests/test_device_audit.py::test_camera_optimizer_on_real_cuda[OPENCV-per-image-camp-random]",
+    "tests/test_device_audit.py::test_camera_optimizer_on_real_cuda[FULL_OPENCV-per-camera-camp-random]",
+    "tests/test_device_audit.py::test_camera_optimizer_on_real_cuda[OPENCV_FISHEYE-per-image-frolov]",
+    "tests/test_mixed_precision.py::test_camera_gradients_under_cuda_autocast_are_close_to_float32",
 ]
+CUDA_MODULES = ["test_cuda.py", "test_device_audit.py", "test_mixed_precision.py"]
+"""The test modules that use the ``cuda`` marker."""
 NO_GPU = Environment(
     cuda_available=False, device_names=(), torch_version="2.14.1", torch_cuda="13.0", tinycudann=False, nvcc=None,
     gsplat=True,
@@ -190,15 +197,15 @@ def test_the_scene_is_generated_once_and_reused(tmp_path: Path) -> None:
 
 # -------------------------------------------------------------------------------------- the cuda test selection
 def test_the_cuda_marker_selects_exactly_the_cuda_tests() -> None:
-    """``-m cuda`` selects every test of test_cuda.py and nothing unmarked (here: this module's tests); no other test
-    module uses the marker. (Collecting the whole suite would say the same in about 30 s of CPU time.)"""
+    """``-m cuda`` selects exactly the marked tests of the modules that use the marker and nothing unmarked (here:
+    this module's tests). (Collecting the whole suite would say the same in about 30 s of CPU time.)"""
     uses_marker = re.compile(r"mark\.cuda\b")
     marked = [path.name for path in sorted((REPOSITORY / "tests").glob("*.py")) if uses_marker.search(path.read_text())]
-    assert marked == ["test_cuda.py"]
+    assert marked == CUDA_MODULES
     result = subprocess.run(
         [
-            sys.executable, "-m", "pytest", "--collect-only", "-q", "-m", "cuda", "tests/test_cuda.py",
-            "tests/test_gpu_check.py", "-p", "no:cacheprovider",
+            sys.executable, "-m", "pytest", "--collect-only", "-q", "-m", "cuda",
+            *[f"tests/{name}" for name in CUDA_MODULES], "tests/test_gpu_check.py", "-p", "no:cacheprovider",
         ],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=600,
     )  # fmt: skip
