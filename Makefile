@@ -16,7 +16,7 @@ help:
 	@echo "make demo   generate a synthetic scene and run the S2CamP demo (creates $(VENV) on first use)"
 	@echo "make test   ruff + the whole pytest suite, end-to-end tests included"
 	@echo "make lint   ruff only"
-	@echo "make bench  all benchmarks (s2camp-bench all)"
+	@echo "make bench  all benchmarks (s2camp-bench all) into outputs/benchmarks (BENCH_DIR=docs/benchmarks rewrites the committed tables)"
 	@echo "make mutation  mutation testing of the core and the camera optimizer (mutmut, about 40 min on one CPU)"
 	@echo "make venv   create/refresh $(VENV) (VENV=path to use another one, PYTHON=python3.x to pick the interpreter)"
 	@echo "make clean  remove caches, build outputs and generated scenes (keeps $(VENV) and ns-train outputs/)"
@@ -53,9 +53,12 @@ test: lint
 		if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests"; fi; \
 		exit $$rc
 
+# Reports and plots go to $(BENCH_DIR); `make bench BENCH_DIR=docs/benchmarks` rewrites the committed ones.
+BENCH_DIR ?= outputs/benchmarks
+
 bench: venv
-	@echo ">>> s2camp-bench all"
-	$(BIN)/s2camp-bench all
+	@echo ">>> s2camp-bench all --output-dir $(BENCH_DIR)"
+	$(BIN)/s2camp-bench all --output-dir $(BENCH_DIR)
 
 # Mutation testing (docs/mutation-testing.md): mutmut (the "mutation" extra) mutates the modules listed under
 # [tool.mutmut] in pyproject.toml and runs their unit tests against each mutant, one worker at a time. The run
