@@ -11,8 +11,9 @@ With the environment not activated (``.venv/bin/ns-render`` called by its path),
 nerfstudio glue then calls ``make_bundled_ffmpeg_findable`` on import (an s2camp run's config imports it before
 nerfstudio's check), which adds the folder to this process's PATH when no other ffmpeg is found.
 
-An ffmpeg of the system keeps precedence wherever it comes first on PATH; ``IMAGEIO_FFMPEG_EXE`` picks another
-binary for this script (imageio-ffmpeg's own setting).
+In an activated environment this script comes before a system ffmpeg on PATH and runs imageio-ffmpeg's static
+build (H.264 and PNG included); ``IMAGEIO_FFMPEG_EXE`` (imageio-ffmpeg's own setting) points it at another binary,
+the system's for example.
 """
 
 from __future__ import annotations
