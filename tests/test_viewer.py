@@ -114,8 +114,15 @@ def viewer_with(model: S2CampModel, training: bool = True) -> Iterator[SimpleNam
 
     server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     trainer = object() if training else None
+    header_steps: list[int] = []  # what nerfstudio's Viewer.update_step would write as "Step: N"
     viewer = SimpleNamespace(
-        viser_server=server, config=ViewerConfig(), camera_handles={}, current_camera_idx=0, trainer=trainer
+        viser_server=server,
+        config=ViewerConfig(),
+        camera_handles={},
+        current_camera_idx=0,
+        trainer=trainer,
+        update_step=header_steps.append,
+        header_steps=header_steps,
     )
     try:
         for _, element in parse_object(model, ViewerElement, "Custom Elements/model"):
@@ -192,6 +199,7 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         callback.func(step=7)
         moved = panel_text(panel)
         assert moved["a_status"].startswith("step 7 ")
+        assert viewer.header_steps == [0, 7]  # nerfstudio's "Step: N" header follows the panel's step
         assert moved["c_rotation_error"] != first["c_rotation_error"]
         assert moved["i_since_refresh"].startswith("7 steps ago")
         assert all((panel._poses["initial"][i][0] == p).all() for i, p in initial_positions.items())
@@ -244,8 +252,9 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
 def test_unperturbed_cameras_hide_the_initial_and_reference_sets_and_ns_viewer_has_no_refresh():
     model = build_model(initial=tiny_cameras())
     panel: S2CampViewerPanel = model.S2CamP
-    with viewer_with(model, training=False):
+    with viewer_with(model, training=False) as viewer:
         assert panel.j_refresh_now.gui_handle.disabled  # ns-viewer: no training step would apply it
+        assert viewer.header_steps == []  # ns-viewer keeps nerfstudio's own header (the checkpoint's step)
         assert not panel.l_show_initial.gui_handle.visible and not panel.m_show_reference.gui_handle.visible
         assert panel._handles["initial"] == {} and panel._handles["reference"] == {}
         assert sorted(panel._handles["refined"]) == list(range(NUM_CAMERAS))
