@@ -44,7 +44,7 @@ from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, MAX_DRAWN_FOV, Dis
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO_ROOT / "docs" / "viewer-screenshot.png"
-SCREENSHOT_STEPS = 600
+SCREENSHOT_STEPS = 1500
 """Training steps before the screenshot written with ``S2CAMP_UPDATE_SCREENSHOT=1``."""
 VIEW_MOVED = 20.0
 """Mean change of the view's pixel values (0-255) that a jump of the viewer camera to a training camera exceeds."""
@@ -699,10 +699,9 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
                 clicks = go_to_a_training_camera(devtools, tmp_path / "before-click.png")
                 assert clicks and clicks[-1][2] > VIEW_MOVED, f"no click moved the view to a camera: {clicks}"
                 assert click_button(devtools, "Hide Train Cams")
-                # A little forward, through that camera's own frusta (drawn around the view otherwise), towards the
+                # One step forward, through that camera's own frusta (drawn around the view otherwise), towards the
                 # scene; the full-size render follows the quick low-resolution one of the move.
-                for _ in range(2):
-                    devtools.call("Input.dispatchMouseEvent", type="mouseWheel", x=500, y=600, deltaX=0, deltaY=-200)
+                devtools.call("Input.dispatchMouseEvent", type="mouseWheel", x=500, y=600, deltaX=0, deltaY=-200)
                 time.sleep(3.0)
                 with contextlib.suppress(pytest.fail.Exception):
                     wait_for(devtools, lambda v: render_width(v) >= 100, 120, "a full-size render")
