@@ -16,7 +16,7 @@ help:
 	@echo "make demo   generate a synthetic scene and run the S2CamP demo (creates $(VENV) on first use)"
 	@echo "make test   ruff + the whole pytest suite, end-to-end tests included"
 	@echo "make lint   ruff only"
-	@echo "make bench  all benchmarks (s2camp-bench all)"
+	@echo "make bench  all benchmarks (s2camp-bench all) into outputs/benchmarks (BENCH_DIR=docs/benchmarks rewrites the committed tables)"
 	@echo "make gpu-check  on a CUDA machine: the cuda tests, 4 methods side by side, NCCL with 2 GPUs (docs/GPU-CHECK.md)"
 	@echo "make mutation  mutation testing of the core and the camera optimizer (mutmut, about 40 min on one CPU)"
 	@echo "make venv   create/refresh $(VENV) (VENV=path to use another one, PYTHON=python3.x to pick the interpreter)"
@@ -54,9 +54,12 @@ test: lint
 		if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests"; fi; \
 		exit $$rc
 
+# Reports and plots go to $(BENCH_DIR); `make bench BENCH_DIR=docs/benchmarks` rewrites the committed ones.
+BENCH_DIR ?= outputs/benchmarks
+
 bench: venv
-	@echo ">>> s2camp-bench all"
-	$(BIN)/s2camp-bench all
+	@echo ">>> s2camp-bench all --output-dir $(BENCH_DIR)"
+	$(BIN)/s2camp-bench all --output-dir $(BENCH_DIR)
 
 # The GPU check (docs/GPU-CHECK.md): refuses to run without CUDA; report in outputs/gpu-check/gpu-check.md.
 # Options go through GPU_CHECK_ARGS, e.g. make gpu-check GPU_CHECK_ARGS="--write-docs".

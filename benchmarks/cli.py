@@ -1,4 +1,5 @@
-"""``s2camp-bench``: run a benchmark, write its report under docs/benchmarks/, optionally print JSON rows."""
+"""``s2camp-bench``: run a benchmark, write its report under outputs/benchmarks/ (``--output-dir`` elsewhere, e.g.
+docs/benchmarks for the committed tables), optionally print JSON rows."""
 
 from __future__ import annotations
 
@@ -43,6 +44,7 @@ class AllConfig:
 
     quick: bool = False
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
 
 
 Command = Union[

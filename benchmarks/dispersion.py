@@ -51,8 +51,9 @@ class DispersionConfig:
     quick: bool = False
     """Small run for CI: room frustum, pyramid, L = 100 and 500, two seeds."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
-    """Write docs/benchmarks/dispersion.md and dispersion-fig4.png."""
+    """Write <output_dir>/dispersion.md and dispersion-fig4.png."""
     json: bool = False
     """Print one JSON object {"rows": [...]} on stdout."""
 
@@ -228,7 +229,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def report(rows: list[dict], config: DispersionConfig) -> Path:
-    """Write docs/benchmarks/dispersion.md (summary and all rows) and the Fig. 4 scatter."""
+    """Write <output_dir>/dispersion.md (summary and all rows) and the Fig. 4 scatter."""
     config = config.effective()
     png = config.output_dir / "dispersion-fig4.png"
     deterministic, random = fig4_samples(config.t_near, config.t_far)

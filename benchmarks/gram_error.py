@@ -46,8 +46,9 @@ class GramErrorConfig:
     quick: bool = False
     """Small run for CI: one frustum, two values of L, two seeds, 10^6-point reference."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
-    """Write docs/benchmarks/gram-error.md and gram-error.png."""
+    """Write <output_dir>/gram-error.md and gram-error.png."""
     json: bool = False
     """Print one JSON object {"rows": [...]} on stdout."""
 

@@ -141,6 +141,7 @@ class LatticeSearchConfig:
     quick: bool = False
     """Small run for CI: L = 100 with 8 candidates and 2^14 reference points."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
     json: bool = False
 

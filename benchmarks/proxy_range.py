@@ -100,8 +100,9 @@ class ProxyRangeBenchConfig:
     quick: bool = False
     """Small run for CI: two scenes at 8 images of 48 x 36, a coarser content grid, two quantiles."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
-    """Write docs/benchmarks/proxy-range.md."""
+    """Write <output_dir>/proxy-range.md."""
     json: bool = False
     """Print one JSON object {"rows": [...]} on stdout."""
 

@@ -50,6 +50,7 @@ class RecoveryConfig:
     scene_dir: Path | None = None
     """Where the scenes are generated (a temporary folder by default)."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
     json: bool = False
 

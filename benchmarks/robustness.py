@@ -178,6 +178,7 @@ class RobustnessConfig:
     rows_from: Path | None = None
     """Train nothing: report the rows of a ``rows.jsonl`` written by an earlier (possibly interrupted) run."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
     json: bool = False
     trace_every: int = 0

@@ -65,6 +65,7 @@ class ScalingConfig:
     quick: bool = False
     """Small run for CI: hundreds of cameras, one repeat."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
     json: bool = False
 

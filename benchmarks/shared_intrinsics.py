@@ -37,6 +37,7 @@ class SharedIntrinsicsConfig:
     quick: bool = False
     """Small run for CI: the room frustum with 1 and 10 images."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
     json: bool = False
 

@@ -58,6 +58,7 @@ class SpeedConfig:
     quick: bool = False
     """Small run for CI: 20 cameras, one repeat, short scaling sweeps."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
     json: bool = False
 

@@ -47,6 +47,7 @@ class TrainTimeConfig:
     scene_dir: Path | None = None
     """Where the scene and the runs go (a temporary folder by default)."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
     json: bool = False
 

@@ -465,6 +465,13 @@ class S2CampCameraOptimizer(CameraOptimizer):
     def _load_from_state_dict(
         self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
     ) -> None:
+        saved = state_dict.get(prefix + "precond")
+        if saved is not None and saved.shape[0] != self.num_cameras:
+            # torch would list a size mismatch per tensor without saying why; the cause is another scene or split.
+            raise ValueError(
+                f"the camera optimizer's checkpoint holds {saved.shape[0]} training cameras, but this model has "
+                f"{self.num_cameras}: it is a checkpoint of another scene or of another train/eval split"
+            )
         super()._load_from_state_dict(
             state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
         )

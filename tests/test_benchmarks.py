@@ -1,4 +1,5 @@
-"""Every `s2camp-bench` subcommand runs in quick mode, prints one JSON object and writes its report."""
+"""Every `s2camp-bench` subcommand runs in quick mode, prints one JSON object and writes its report, under
+outputs/benchmarks unless ``--output-dir`` names another folder (the committed docs/benchmarks only when asked)."""
 
 from __future__ import annotations
 
@@ -159,3 +160,59 @@ def _check_robustness_rows(rows: list[dict], folder: Path) -> None:
     assert (folder / "robustness.png").exists()
     text = (folder / "robustness.md").read_text()
     assert "s2camp-bench robustness --quick" in text and "small-narrow-far" in text
+
+
+def test_every_benchmark_writes_outside_the_committed_docs_by_default() -> None:
+    """Without ``--output-dir`` every subcommand (``all`` included) writes under outputs/benchmarks, never docs/."""
+    import tyro
+
+    from s2camp_ns.benchmarks.cli import Command
+
+    names = [*REQUIRED_KEYS, "shared-intrinsics", "lattice-search", "all"]
+    for name in names:
+        config = tyro.cli(Command, args=[name])
+        assert config.output_dir == Path("outputs/benchmarks"), (name, config.output_dir)
+
+
+def test_regenerate_line_names_the_output_folder(tmp_path: Path) -> None:
+    """A report's "Regenerate with" command writes the report where it is: the committed ones name docs/benchmarks."""
+    from s2camp_ns.benchmarks.common import regenerate_command, write_report
+
+    assert regenerate_command("s2camp-bench speed", Path("outputs/benchmarks")) == "s2camp-bench speed"
+    docs = "s2camp-bench speed --quick --output-dir docs/benchmarks"
+    assert regenerate_command("s2camp-bench speed --quick", Path("docs/benchmarks")) == docs
+    path = write_report(tmp_path / "reports", "speed", "Speed", "s2camp-bench speed", ["body"])
+    assert f"Regenerate with `s2camp-bench speed --output-dir {(tmp_path / 'reports').as_posix()}`." in path.read_text()
+
+
+def test_committed_reports_regenerate_into_docs() -> None:
+    """Each committed report's first "Regenerate with" command writes docs/benchmarks (the default would not)."""
+    docs = Path(__file__).resolve().parents[1] / "docs" / "benchmarks"
+    for report in [*REPORTS.values(), "shared-intrinsics.md"]:
+        line = (docs / report).read_text().splitlines()[2]
+        command = line.split("`")[1]
+        assert command.startswith("s2camp-bench ") and command.endswith(" --output-dir docs/benchmarks"), line
+
+
+@pytest.mark.timeout(120)
+def test_quick_json_run_leaves_docs_untouched(tmp_path: Path) -> None:
+    """``s2camp-bench <name> --quick --json`` without ``--output-dir``, run from a checkout-like folder: the report
+    goes to outputs/benchmarks and the committed docs/benchmarks files keep their bytes."""
+    docs = tmp_path / "docs" / "benchmarks"
+    docs.mkdir(parents=True)
+    committed = docs / "shared-intrinsics.md"
+    committed.write_text("committed table\n")
+    result = subprocess.run(
+        [_bench(), "shared-intrinsics", "--quick", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=100,
+        check=False,
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert json.loads(result.stdout)["rows"]
+    assert committed.read_text() == "committed table\n"
+    assert sorted(p.name for p in docs.iterdir()) == ["shared-intrinsics.md"]
+    report = tmp_path / "outputs" / "benchmarks" / "shared-intrinsics.md"
+    assert "Regenerate with `s2camp-bench shared-intrinsics --quick`." in report.read_text()

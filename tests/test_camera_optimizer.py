@@ -460,6 +460,15 @@ def test_checkpoint_that_cannot_fit_the_cameras_is_refused():
         optimizer.recompute_stale_preconditioner(step=1, optimizer=None)
 
 
+def test_camera_optimizer_state_of_other_cameras_is_refused_with_both_counts():
+    """A camera-optimizer state dict of 5 cameras loaded into an optimizer of 7 (model.load_state_dict's path)."""
+    config = S2CampCameraOptimizerConfig()
+    saved = config.setup(num_cameras=5, device="cpu").state_dict()
+    with pytest.raises(ValueError, match=r"holds 5 training cameras, but this model has 7: .*another scene"):
+        config.setup(num_cameras=7, device="cpu").load_state_dict(saved)
+    config.setup(num_cameras=5, device="cpu").load_state_dict(saved)  # the same count loads
+
+
 def test_viewer_correction_matches_refined_pose():
     """nerfstudio's viewer draws c2w_gl @ forward(i); that must be the refined pose."""
     cameras = make_cameras()

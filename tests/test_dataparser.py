@@ -89,7 +89,24 @@ def test_auto_picks_images_4_and_fits_rounded_sizes(scene: Path):
     # A folder that does not match the model's size is reported, not silently used.
     for path in (scene / "images_4").iterdir():
         Image.open(path).resize((20, 10)).save(path)
-    with pytest.raises(ValueError, match=r"is 20x10 but its COLMAP camera is 50x38"):
+    with pytest.raises(
+        ValueError,
+        match=r"image .*images_4/frame_\d+\.png is 20x10 but its COLMAP camera 1 in .*sparse/0/cameras\.bin is 50x38, "
+        r"which at downscale_factor 4 gives 12\.5x9\.5",
+    ):
+        parse(scene)
+
+
+def test_colmap_camera_size_that_disagrees_with_the_images_is_named(scene: Path):
+    """A COLMAP camera twice as wide as its images: refused with the image, the cameras file and both sizes."""
+    reconstruction = input_model(scene)
+    reconstruction.cameras[1].width = 2 * WIDTH
+    reconstruction.write_binary(str(scene / "sparse" / "0"))
+    with pytest.raises(
+        ValueError,
+        match=r"image .*/images/frame_\d+\.png is 50x38 but its COLMAP camera 1 in .*sparse/0/cameras\.bin is "
+        r"100x38: every ray would go through the wrong pixel",
+    ):
         parse(scene)
 
 
@@ -488,3 +505,68 @@ def test_reference_model_missing_image_is_named(scene: Path, tmp_path: Path):
         parse(scene, reference_model=folder)
     with pytest.raises(FileNotFoundError, match="reference_model"):
         parse(scene, reference_model=tmp_path / "nowhere")
+
+
+def _write_transforms(generated_scene: Path, data: Path, **meta) -> Path:
+    """A transforms.json of the generated scene's cameras (global w/h, OPENCV) with its images, ``meta`` overriding
+    top-level keys."""
+    shutil.copytree(generated_scene / "images", data / "images")
+    reconstruction = input_model(generated_scene)
+    frames = []
+    for image_id in sorted(reconstruction.images):
+        image = reconstruction.images[image_id]
+        c2w = np.linalg.inv(np.vstack([image.cam_from_world().matrix(), [0, 0, 0, 1]]))
+        c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
+        frames.append({"file_path": f"images/{image.name}", "transform_matrix": c2w.tolist()})
+    f, cx, cy, k1, k2 = reconstruction.cameras[1].params
+    content = {"camera_model": "OPENCV", "fl_x": f, "fl_y": f, "cx": cx, "cy": cy, "w": WIDTH, "h": HEIGHT}
+    content.update(k1=k1, k2=k2, p1=0.0, p2=0.0, frames=frames, **meta)
+    (data / "transforms.json").write_text(json.dumps(content))
+    return data / "transforms.json"
+
+
+def test_transforms_size_that_disagrees_with_the_images_is_named(generated_scene: Path, tmp_path: Path):
+    """transforms.json ``w`` twice the images' width (global, then per frame as ns-process-data writes it): refused
+    with the image, the json file and both sizes, instead of training every ray through the wrong pixel."""
+    source = _write_transforms(generated_scene, tmp_path / "global", w=2 * WIDTH)
+    with pytest.raises(
+        ValueError,
+        match=rf"image .*/global/images/frame_\d+\.png is 50x38 but the w x h in {re.escape(str(source))} is 100x38: "
+        r"every ray would go through the wrong pixel",
+    ):
+        parse(source)
+    source = _write_transforms(generated_scene, tmp_path / "per_frame")
+    meta = json.loads(source.read_text())
+    del meta["w"], meta["h"]
+    for i, frame in enumerate(meta["frames"]):
+        frame.update(w=WIDTH, h=HEIGHT + 5 * (i == 3))
+    source.write_text(json.dumps(meta))
+    with pytest.raises(
+        ValueError, match=r"images/frame_00003\.png is 50x38 but the w x h in .*transforms\.json is 50x43"
+    ):
+        parse(source)
+
+
+def test_transforms_images_of_a_downscaled_folder_are_checked_and_fitted(generated_scene: Path, tmp_path: Path):
+    """downscale_factor 4 reads images_4 beside the json: its rounded sizes (13 x 10 for 50 x 38) are the cameras'
+    (nerfstudio alone floors them to 12 x 9 and keeps f / 4), and a folder of another size is refused by name."""
+    source = _write_transforms(generated_scene, tmp_path / "ns")
+    (source.parent / "images_4").mkdir()
+    small = (13, 10)
+    for path in (source.parent / "images").iterdir():
+        Image.open(path).resize(small).save(source.parent / "images_4" / path.name)
+    f, cx, cy = (json.loads(source.read_text())[key] for key in ("fl_x", "cx", "cy"))
+    out = parse(source, downscale_factor=4)
+    assert all(Path(p).parent.name == "images_4" for p in out.image_filenames)
+    assert (int(out.cameras.width[0]), int(out.cameras.height[0])) == small
+    assert float(out.cameras.fx[0]) == pytest.approx(f * 13 / 50, rel=1e-6)
+    assert float(out.cameras.fy[0]) == pytest.approx(f * 10 / 38, rel=1e-6)
+    assert float(out.cameras.cx[0]) == pytest.approx(cx * 13 / 50, rel=1e-6)
+    assert float(out.cameras.cy[0]) == pytest.approx(cy * 10 / 38, rel=1e-6)
+    for path in (source.parent / "images_4").iterdir():
+        Image.open(path).resize((25, 19)).save(path)  # a half-size folder saved as images_4
+    with pytest.raises(
+        ValueError, match=r"images_4/frame_\d+\.png is 25x19 but the w x h in .*transforms\.json is 50x38, which at "
+        r"downscale_factor 4 gives 12\.5x9\.5.*pick the downscale_factor that matches the folder",
+    ):
+        parse(source, downscale_factor=4)

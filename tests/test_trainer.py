@@ -4,6 +4,7 @@ restores the random state."""
 from __future__ import annotations
 
 import random
+import re
 import signal
 import subprocess
 import sys
@@ -201,3 +202,69 @@ def test_several_processes_keep_their_own_random_streams_on_resume(tmp_path: Pat
     resumed._load_checkpoint()
     assert torch.equal(torch.random.get_rng_state(), expected)
     assert not torch.equal(torch.rand(4), rank0_draws)
+
+
+def _tiny_pipeline(scene: Path, eval_interval: int):
+    from conftest import lpips_offline, tiny_model_config
+
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+    from s2camp_ns.core.preconditioner import SamplingConfig
+    from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
+
+    config = S2CampPipelineConfig(
+        datamanager=S2CampDataManagerConfig(
+            dataparser=S2CampDataParserConfig(data=scene, eval_interval=eval_interval),
+            train_num_rays_per_batch=64,
+            eval_num_rays_per_batch=64,
+        ),
+        model=tiny_model_config(S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=32))),
+    )
+    with lpips_offline():
+        return config.setup(device="cpu", test_mode="val")
+
+
+def test_checkpoint_of_another_scene_is_refused_with_both_camera_counts(tiny_scene: Path, tmp_path: Path):
+    """A checkpoint trained on 10 training cameras (the 12-image scene, every 8th held out) loaded onto 9 (every 4th
+    held out): ``--load-dir`` / ``--load-checkpoint`` (the trainer) and nerfstudio's ``eval_setup`` loader (ns-render,
+    ns-eval) stop with both counts instead of torch's list of size mismatches; the same split still loads."""
+    from s2camp_ns.nerfstudio.pipeline import CheckpointCamerasError
+
+    trained = _tiny_pipeline(tiny_scene, eval_interval=8)
+    assert trained.model.num_train_data == 10
+    checkpoint_dir = tmp_path / "nerfstudio_models"
+    checkpoint_dir.mkdir()
+    path = checkpoint_dir / "step-000000005.ckpt"
+    torch.save({"step": 5, "pipeline": trained.state_dict()}, path)
+
+    other = _tiny_pipeline(tiny_scene, eval_interval=4)
+    assert other.model.num_train_data == 9
+    trainer = make_trainer(tmp_path / "run")
+    trainer.pipeline = other
+    trainer.config.load_checkpoint = path
+    counts = rf"the checkpoint was trained on 10 training cameras, but the data \({re.escape(str(tiny_scene))}\) has 9"
+    with pytest.raises(CheckpointCamerasError, match=rf"^checkpoint {re.escape(str(path))}: {counts}: it is a "):
+        trainer._load_checkpoint()
+    with pytest.raises(CheckpointCamerasError, match=counts):
+        eval_load_checkpoint(SimpleNamespace(load_dir=checkpoint_dir, load_step=None), other)
+
+    # The same split loads: the check passes the checkpoint on to nerfstudio's loader.
+    saved_precond = trained.state_dict()["_model.camera_optimizer.precond"].clone()
+    trained.model.camera_optimizer.precond.zero_()
+    eval_load_checkpoint(SimpleNamespace(load_dir=checkpoint_dir, load_step=None), trained)
+    assert torch.equal(trained.model.camera_optimizer.precond, saved_precond)
+
+
+def test_checkpoint_camera_count_reads_every_method_state():
+    """s2camp (P), s2camp-so3xr3 (nerfstudio's pose deltas) and a model without camera optimizer (nerfacto's
+    appearance codes), with the pipeline's and DDP's prefixes."""
+    from s2camp_ns.nerfstudio.pipeline import check_checkpoint_cameras, checkpoint_camera_count
+
+    assert checkpoint_camera_count({"_model.camera_optimizer.precond": torch.zeros(4, 6, 6)}) == 4
+    assert checkpoint_camera_count({"_model.module.camera_optimizer.pose_adjustment": torch.zeros(3, 6)}) == 3
+    assert checkpoint_camera_count({"_model.field.embedding_appearance.embedding.weight": torch.zeros(2, 32)}) == 2
+    assert checkpoint_camera_count({"_model.field.mlp.weight": torch.zeros(8, 8)}) is None
+    check_checkpoint_cameras({"_model.camera_optimizer.pose_adjustment": torch.zeros(3, 6)}, 3)
+    with pytest.raises(ValueError, match=r"trained on 3 training cameras, but the data has 4"):
+        check_checkpoint_cameras({"_model.camera_optimizer.pose_adjustment": torch.zeros(3, 6)}, 4)

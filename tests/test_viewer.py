@@ -44,6 +44,10 @@ from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, MAX_DRAWN_FOV, Dis
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO_ROOT / "docs" / "viewer-screenshot.png"
+SCREENSHOT_STEPS = 1500
+"""Training steps before the screenshot written with ``S2CAMP_UPDATE_SCREENSHOT=1``."""
+VIEW_MOVED = 20.0
+"""Mean change of the view's pixel values (0-255) that a jump of the viewer camera to a training camera exceeds."""
 NUM_CAMERAS, WIDTH, HEIGHT = 4, 32, 24
 
 
@@ -114,8 +118,15 @@ def viewer_with(model: S2CampModel, training: bool = True) -> Iterator[SimpleNam
 
     server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     trainer = object() if training else None
+    header_steps: list[int] = []  # what nerfstudio's Viewer.update_step would write as "Step: N"
     viewer = SimpleNamespace(
-        viser_server=server, config=ViewerConfig(), camera_handles={}, current_camera_idx=0, trainer=trainer
+        viser_server=server,
+        config=ViewerConfig(),
+        camera_handles={},
+        current_camera_idx=0,
+        trainer=trainer,
+        update_step=header_steps.append,
+        header_steps=header_steps,
     )
     try:
         for _, element in parse_object(model, ViewerElement, "Custom Elements/model"):
@@ -192,6 +203,7 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         callback.func(step=7)
         moved = panel_text(panel)
         assert moved["a_status"].startswith("step 7 ")
+        assert viewer.header_steps == [0, 7]  # nerfstudio's "Step: N" header follows the panel's step
         assert moved["c_rotation_error"] != first["c_rotation_error"]
         assert moved["i_since_refresh"].startswith("7 steps ago")
         assert all((panel._poses["initial"][i][0] == p).all() for i, p in initial_positions.items())
@@ -244,8 +256,9 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
 def test_unperturbed_cameras_hide_the_initial_and_reference_sets_and_ns_viewer_has_no_refresh():
     model = build_model(initial=tiny_cameras())
     panel: S2CampViewerPanel = model.S2CamP
-    with viewer_with(model, training=False):
+    with viewer_with(model, training=False) as viewer:
         assert panel.j_refresh_now.gui_handle.disabled  # ns-viewer: no training step would apply it
+        assert viewer.header_steps == []  # ns-viewer keeps nerfstudio's own header (the checkpoint's step)
         assert not panel.l_show_initial.gui_handle.visible and not panel.m_show_reference.gui_handle.visible
         assert panel._handles["initial"] == {} and panel._handles["reference"] == {}
         assert sorted(panel._handles["refined"]) == list(range(NUM_CAMERAS))
@@ -541,6 +554,83 @@ def last_refresh_step(values: dict[str, str]) -> int:
     return panel_step(values) - since if since >= 0 and panel_step(values) >= 0 else -1
 
 
+def header_step(values: dict[str, str]) -> int:
+    """The step in nerfstudio's "Step: N" line above its controls (-1 if absent)."""
+    match = re.search(r"Step: (\d+)", values.get("__text__", ""))
+    return int(match.group(1)) if match else -1
+
+
+def capture(devtools: DevTools) -> bytes:
+    return base64.b64decode(devtools.call("Page.captureScreenshot", format="png")["data"])
+
+
+def view_pixels(png: bytes):
+    """RGB array of the 3D view (the page left of nerfstudio's control panel, below its header)."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+    return pixels[60:, : int(VIEWPORT[0] * 0.76)]
+
+
+def wait_for_still_view(devtools: DevTools, timeout: float) -> bytes:
+    """A screenshot once two in a row, two seconds apart, are identical (the view's renders have finished; the last
+    one taken when ``timeout`` runs out)."""
+    previous, deadline = capture(devtools), time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        time.sleep(2.0)
+        current = capture(devtools)
+        if current == previous:
+            return current
+        previous = current
+    return previous
+
+
+def frustum_click_points(png: bytes) -> list[tuple[int, int]]:
+    """Page points inside the panel's drawn frusta (amber, red, green, drawn over each other), largest frustum first:
+    the centre of each one's bounding box and the mean of its pixels (one of them lies on nerfstudio's image plane
+    at the frustum's base)."""
+    import numpy as np
+    from scipy import ndimage
+
+    pixels = view_pixels(png)
+    drawn = np.zeros(pixels.shape[:2], dtype=bool)
+    for color in FRUSTUM_COLORS.values():  # anti-aliased lines: their colour blended with the view's
+        drawn |= np.abs(pixels - np.array(color)).sum(axis=-1) < 150
+    drawn &= (pixels.max(axis=-1) - pixels.min(axis=-1)) > 60  # saturated: not the grey or brown of the render
+    drawn[-160:, :160] = False  # viser's axes gizmo in the bottom-left corner
+    labels, count = ndimage.label(ndimage.binary_dilation(drawn, iterations=12))
+    points = []
+    for index in sorted(range(1, count + 1), key=lambda i: -int((labels == i).sum())):
+        rows, cols = np.nonzero((labels == index) & drawn)
+        if rows.size < 150:  # a few stray pixels, not a frustum
+            continue
+        for row, col in ((rows.min() + rows.max()) / 2, (cols.min() + cols.max()) / 2), (rows.mean(), cols.mean()):
+            points.append((int(col), int(row) + 60))
+    return points
+
+
+def go_to_a_training_camera(devtools: DevTools, save_to: Path) -> list[tuple[int, int, float]]:
+    """Click nerfstudio's image frusta where the refined frusta are drawn until the view jumps to a training camera
+    (it then shows what the model learned from that image). The frusta are found in a screenshot of the view
+    (written to ``save_to``) taken before nerfstudio's image frusta are shown over them. Returns each click (x, y,
+    mean change of the view); the last one moved the view if its change exceeds ``VIEW_MOVED``."""
+    before = wait_for_still_view(devtools, 30)
+    save_to.write_bytes(before)
+    assert click_button(devtools, "Show Train Cams")
+    clicks = []
+    for x, y in dict.fromkeys(frustum_click_points(before)):
+        for kind in ("mousePressed", "mouseReleased"):
+            devtools.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", buttons=1, clickCount=1)
+        after = wait_for_still_view(devtools, 30)
+        clicks.append((x, y, float(abs(view_pixels(after) - view_pixels(before)).mean())))
+        if clicks[-1][2] > VIEW_MOVED or len(clicks) == 6:
+            break
+    return clicks
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(1200)  # includes installing chromium on a fresh machine; the test itself takes 1-2 minutes
 def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_path: Path):
@@ -591,16 +681,31 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
             assert click_button(devtools, "Refresh P now")
             wait_for(devtools, lambda v: last_refresh_step(v) >= clicked_after, 150, "P to be refreshed")
 
-            # For the screenshot, pause training (no more low-resolution step renders) and give the view a moment to
-            # show a full render; neither is part of what is tested.
-            if updating_docs:  # a few hundred steps make a less blank picture
+            if updating_docs:  # the model of a few hundred steps shows the scene from a training camera
                 with contextlib.suppress(pytest.fail.Exception):
-                    wait_for(devtools, lambda v: panel_step(v) >= 300, 300, "training to reach step 300")
+                    wait_for(devtools, lambda v: panel_step(v) >= SCREENSHOT_STEPS, 600, "the screenshot's step")
             assert click_button(devtools, "Pause Training")
-            with contextlib.suppress(pytest.fail.Exception):
-                wait_for(devtools, lambda v: render_width(v) >= 100, 90 if updating_docs else 20, "a render")
-            data = devtools.call("Page.captureScreenshot", format="png")["data"]
-            screenshot.write_bytes(base64.b64decode(data))
+            # nerfstudio's "Step: N" line agrees with the panel (nerfstudio alone would still say 0 here): the panel
+            # sets it, and nerfstudio's own training-step renders only ever set a later step.
+            paused = wait_for(
+                devtools, lambda v: header_step(v) >= panel_step(v) > 0, 30, "the header's step to follow the panel"
+            )
+            assert header_step(paused) >= panel_step(paused) >= panel_step(later)
+
+            # For the screenshot (not part of what is tested): the view is rendered again only when the camera moves
+            # (or every thousand or more steps at "Fast" on a CPU), so it still shows the model of the first steps,
+            # a grey fog. Moving to a training camera renders the trained model from a view it has learned.
+            if updating_docs:
+                clicks = go_to_a_training_camera(devtools, tmp_path / "before-click.png")
+                assert clicks and clicks[-1][2] > VIEW_MOVED, f"no click moved the view to a camera: {clicks}"
+                assert click_button(devtools, "Hide Train Cams")
+                # One step forward, through that camera's own frusta (drawn around the view otherwise), towards the
+                # scene; the full-size render follows the quick low-resolution one of the move.
+                devtools.call("Input.dispatchMouseEvent", type="mouseWheel", x=500, y=600, deltaX=0, deltaY=-200)
+                time.sleep(3.0)
+                with contextlib.suppress(pytest.fail.Exception):
+                    wait_for(devtools, lambda v: render_width(v) >= 100, 120, "a full-size render")
+            screenshot.write_bytes(wait_for_still_view(devtools, 90 if updating_docs else 20))
         assert process.poll() is None, "ns-train exited while the viewer was open"
     # Ctrl+C, or else SIGTERM, stopped it and left no process behind (stop_process_group checks). Once a viewer client
     # has been rendered to, ns-train may end with "terminate called without an active exception", exit status -6

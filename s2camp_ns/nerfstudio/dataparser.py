@@ -12,7 +12,9 @@ on the terminal and exit). Intrinsics are rescaled to the actual size of those i
 point by half a pixel.
 
 Before training, the scene is validated (corrupt or truncated model files, images listed by the model but missing
-on disk, unsupported camera models, empty scenes) with errors that name the file and what was expected.
+on disk, images whose size is not the one the COLMAP camera or the transforms.json ``w``/``h`` declare, unsupported
+camera models, empty scenes) with errors that name the file and what was expected. Both formats get the same image
+size check and intrinsics fit (``_fit_intrinsics_to_images``), against the images the parser actually uses.
 
 Camera models: COLMAP SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV (k4 = k5 = k6 = 0) and
 OPENCV_FISHEYE; transforms.json with camera_model OPENCV or OPENCV_FISHEYE (what ``ns-process-data`` writes).
@@ -32,6 +34,7 @@ from __future__ import annotations
 
 import copy
 import json
+import os
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -251,6 +254,8 @@ class _ValidatingColmapDataParser(ColmapDataParser):
         self.image_folder = image_folder
         self.full_sizes: dict[str, tuple[int, int]] = {}
         self.distortion: dict[str, list[float]] = {}
+        self.size_source: dict[str, str] = {}
+        """Image name -> the COLMAP camera that declares its size (for errors)."""
 
     def _get_all_images_and_cameras(self, recon_dir: Path):
         camera_models = validate_colmap_cameras(recon_dir)
@@ -269,6 +274,10 @@ class _ValidatingColmapDataParser(ColmapDataParser):
                     f"{model_file(recon_dir, 'cameras').name} does not hold (cameras: {sorted(camera_models)})"
                 )
         self.distortion = {image.name: distortion_of(cameras[image.camera_id]) for image in images.values()}
+        cameras_file = model_file(recon_dir, "cameras")
+        self.size_source = {
+            image.name: f"its COLMAP camera {image.camera_id} in {cameras_file}" for image in images.values()
+        }
         try:
             with _explicit_camera_mapping():
                 out = super()._get_all_images_and_cameras(recon_dir)
@@ -321,26 +330,55 @@ def _replace_cameras(cameras: Cameras, **fields) -> Cameras:
 
 
 def _fit_intrinsics_to_images(
-    cameras: Cameras, image_filenames: list[Path], image_folder: Path, full_sizes: dict[str, tuple[int, int]], k: int
+    cameras: Cameras, image_filenames: list[Path], declared: list[tuple[int, int, str]], k: int
 ) -> Cameras:
-    """Set each camera's size to its image's and scale the intrinsics by the true per-axis resize ratio."""
+    """Check each image's size against the size its scene file declares and fit the cameras to the images.
+
+    ``declared[i]`` = (width, height, where it is declared) of image i at full size (the COLMAP camera's or the
+    transforms.json ``w``/``h``). The image, read from the folder the parser uses (``images_{k}`` at downscale factor
+    k), must be that size divided by k within a pixel (rounding of the downscaled folder); otherwise a ValueError
+    names the image, the declaring file and both sizes: with a wrong size every ray would go through the wrong pixel.
+    Each camera then gets its image's size, and its intrinsics (already divided by k) the true per-axis resize
+    ratio, so that a rounded folder (mip-NeRF 360's 3114 -> 779) does not shift the principal point. Only image
+    headers are read (PIL's ``Image.open`` decodes no pixels).
+    """
     fx, fy, cx, cy = (getattr(cameras, name).clone() for name in ("fx", "fy", "cx", "cy"))
     width, height = cameras.width.clone(), cameras.height.clone()
     for i, path in enumerate(image_filenames):
-        name = Path(path).relative_to(image_folder).as_posix()
-        full_w, full_h = full_sizes[name]
+        full_w, full_h, declared_by = declared[i]
         with Image.open(path) as image:
             w, h = image.size
         if abs(w - full_w / k) > 1.0 or abs(h - full_h / k) > 1.0:
+            if k == 1:
+                expected, advice = "", "correct the size there"
+            else:
+                expected = f", which at downscale_factor {k} gives {full_w / k:g}x{full_h / k:g}"
+                advice = "pick the downscale_factor that matches the folder, or correct the size there"
             raise ValueError(
-                f"image {path} is {w}x{h} but its COLMAP camera is {full_w}x{full_h}, which at downscale_factor {k} "
-                f"gives {full_w / k:g}x{full_h / k:g}; pick the downscale_factor that matches the folder"
+                f"image {path} is {w}x{h} but {declared_by} is {full_w}x{full_h}{expected}: every ray would go "
+                f"through the wrong pixel; {advice}"
             )
         # nerfstudio already divided the intrinsics by k; correct for the rounding of the stored image size.
         sx, sy = w / (full_w / k), h / (full_h / k)
         fx[i], cx[i], fy[i], cy[i] = fx[i] * sx, cx[i] * sx, fy[i] * sy, cy[i] * sy
         width[i], height[i] = w, h
     return _replace_cameras(cameras, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
+
+
+def transforms_declared_sizes(source: Path, k: int) -> dict[str, tuple[int, int]]:
+    """Full-size (w, h) of every frame of a transforms.json, keyed by the image path nerfstudio's parser reads at
+    downscale factor k (``images_{k}/<name>`` beside the json for k > 1); the top-level ``w``/``h`` win over a
+    frame's, as in nerfstudio's parser."""
+    with open(source, encoding="utf8") as f:
+        meta = json.load(f)
+    data_dir = source.parent
+    sizes = {}
+    for frame in meta.get("frames", []):
+        file_path = Path(frame["file_path"])
+        path = data_dir / file_path if k == 1 else data_dir / f"images_{k}" / file_path.name
+        w, h = meta["w"] if "w" in meta else frame["w"], meta["h"] if "h" in meta else frame["h"]
+        sizes[os.path.normpath(path)] = (int(w), int(h))
+    return sizes
 
 
 def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> Cameras:
@@ -492,10 +530,9 @@ class S2CampDataParser(DataParser):
         outputs = parser.get_dataparser_outputs(split=split)
         if not outputs.image_filenames:
             raise ValueError(f"the {split} split of {model} is empty (eval_mode={self.config.eval_mode!r})")
-        cameras = _fit_intrinsics_to_images(
-            outputs.cameras, outputs.image_filenames, image_folder, parser.full_sizes, k
-        )
         full_names = [Path(p).relative_to(image_folder).as_posix() for p in outputs.image_filenames]
+        declared = [(*parser.full_sizes[name], parser.size_source[name]) for name in full_names]
+        cameras = _fit_intrinsics_to_images(outputs.cameras, outputs.image_filenames, declared, k)
         distortion = torch.tensor([parser.distortion[name] for name in full_names], dtype=torch.float32)
         cameras = _replace_cameras(cameras, distortion_params=distortion)
         outputs = DataparserOutputs(
@@ -535,6 +572,19 @@ class S2CampDataParser(DataParser):
                 f"{source} lists image '{missing[0]}', which does not exist ({len(missing)} of "
                 f"{len(outputs.image_filenames)} {split} images missing)"
             )
+        sizes = transforms_declared_sizes(source, k)
+        declared = [(*sizes[os.path.normpath(p)], f"the w x h in {source}") for p in outputs.image_filenames]
+        cameras = _fit_intrinsics_to_images(outputs.cameras, outputs.image_filenames, declared, k)
+        outputs = DataparserOutputs(
+            image_filenames=outputs.image_filenames,
+            cameras=cameras,
+            alpha_color=outputs.alpha_color,
+            scene_box=outputs.scene_box,
+            mask_filenames=outputs.mask_filenames,
+            dataparser_transform=outputs.dataparser_transform,
+            dataparser_scale=outputs.dataparser_scale,
+            metadata=outputs.metadata,
+        )
         return outputs, dict(image_names=[Path(p).name for p in outputs.image_filenames], downscale_factor=k)
 
     @staticmethod

@@ -19,8 +19,10 @@ The launcher stays nerfstudio's on CUDA; ``s2camp_ns.nerfstudio.distributed`` ha
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 import torch
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
@@ -30,6 +32,42 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from torch.nn.parallel import DistributedDataParallel
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
+
+CAMERA_COUNT_KEYS = (
+    "camera_optimizer.precond",  # S2CamP's P, one per training camera [N, K, K]
+    "camera_optimizer.pose_adjustment",  # nerfstudio's SO3xR3 / SE3 deltas [N, 6] (s2camp-so3xr3)
+    "field.embedding_appearance.embedding.weight",  # nerfacto's appearance code per training image [N, d]
+)
+"""Pipeline state-dict entries (after any ``_model.`` / ``module.`` prefix) whose first dimension is the number of
+training cameras, in the order they are looked up."""
+
+
+class CheckpointCamerasError(ValueError):
+    """A checkpoint trained on another number of training cameras than the data at hand."""
+
+
+def checkpoint_camera_count(state: Mapping[str, Any]) -> int | None:
+    """Number of training cameras a pipeline state dict was trained on (``CAMERA_COUNT_KEYS``), None if it holds none
+    of those entries."""
+    for suffix in CAMERA_COUNT_KEYS:
+        for key, value in state.items():
+            if (key == suffix or key.endswith("." + suffix)) and hasattr(value, "shape"):
+                return int(value.shape[0])
+    return None
+
+
+def check_checkpoint_cameras(state: Mapping[str, Any], num_train_cameras: int, data: Path | None = None) -> None:
+    """Refuse a checkpoint of another scene (or split) before torch does: its per-camera tensors cannot be loaded
+    onto this data's cameras, and torch's error is a list of size mismatches that never says why."""
+    saved = checkpoint_camera_count(state)
+    if saved is None or saved == num_train_cameras:
+        return
+    where = f" ({data})" if data is not None else ""
+    raise CheckpointCamerasError(
+        f"the checkpoint was trained on {saved} training cameras, but the data{where} has {num_train_cameras}: it is "
+        "a checkpoint of another scene or of another train/eval split (eval_mode, eval_interval); load a checkpoint "
+        "of this scene and split, or train without --load-dir / --load-checkpoint"
+    )
 
 
 @dataclass
@@ -41,7 +79,7 @@ class S2CampPipelineConfig(VanillaPipelineConfig):
 
 class S2CampPipeline(VanillaPipeline):
     """VanillaPipeline + ``camera_optimizer.set_train_cameras`` with the scene's points (before any checkpoint is
-    loaded) + its own DDP."""
+    loaded) + its own DDP + a checkpoint of another scene refused by name (``check_checkpoint_cameras``)."""
 
     def __init__(
         self,
@@ -81,3 +119,12 @@ class S2CampPipeline(VanillaPipeline):
                 broadcast_buffers=False,
             )
             comms.synchronize()
+
+    def load_pipeline(self, loaded_state: dict[str, Any], step: int) -> None:
+        """VanillaPipeline's loading (training ``--load-dir``, and ``eval_setup`` of ns-render, ns-eval, s2camp-eval)
+        after checking the checkpoint has as many training cameras as the data."""
+        data = getattr(self.datamanager.config, "data", None) or getattr(
+            getattr(self.datamanager.config, "dataparser", None), "data", None
+        )
+        check_checkpoint_cameras(loaded_state, self.model.num_train_data, data)
+        super().load_pipeline(loaded_state, step)

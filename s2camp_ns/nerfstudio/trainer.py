@@ -34,6 +34,7 @@ from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from s2camp_ns.nerfstudio.pipeline import CheckpointCamerasError
 from s2camp_ns.nerfstudio.schedulers import RunLengthScheduleConfig
 
 PARTIAL_SUFFIX = ".partial"
@@ -200,7 +201,10 @@ class S2CampTrainer(Trainer):
             raise FileNotFoundError(f"checkpoint {path} does not exist")
         state = torch.load(path, map_location="cpu")
         self._start_step = state["step"] + 1
-        self.pipeline.load_pipeline(state["pipeline"], state["step"])
+        try:
+            self.pipeline.load_pipeline(state["pipeline"], state["step"])
+        except CheckpointCamerasError as error:
+            raise CheckpointCamerasError(f"checkpoint {path}: {error}") from None
         self.optimizers.load_optimizers(state["optimizers"])
         if "schedulers" in state and config.load_scheduler:
             self.optimizers.load_schedulers(state["schedulers"])

@@ -308,8 +308,18 @@ class S2CampViewerPanel(nn.Module):
         self._update_refined_frusta()
         if not self._nerfstudio_frusta_hooked:
             self._hook_nerfstudio_frusta()
+        self._show_step_in_viewer_header(step)
         self._last_update = time.monotonic()
         self.num_updates += 1
+
+    def _show_step_in_viewer_header(self, step: int) -> None:
+        """Set the "Step: N" line above nerfstudio's controls to the step the panel shows. nerfstudio writes it only
+        when it renders a training-step image, which at the "Fast" train speed on a CPU is every thousand or more
+        steps, so it would read "Step: 0" next to a panel at step 300. Only while training (ns-viewer has no
+        trainer and shows the checkpoint's step)."""
+        update_step = getattr(self._viewer, "update_step", None)
+        if update_step is not None and getattr(self._viewer, "trainer", None) is not None:
+            update_step(step)
 
     # --------------------------------------------------------------------------------------------------- frusta
     def _server(self) -> ViserServer:
