@@ -167,7 +167,7 @@ def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path:
     path = report(rows, config)
     assert path == tmp_path / "regime.md"
     text = path.read_text()
-    assert "Regenerate with `s2camp-bench robustness --preset regime`." in text
+    assert f"Regenerate with `s2camp-bench robustness --preset regime --output-dir {tmp_path}`." in text
     assert "| regime-wide | sfm | s2camp | 2 | 1.50 | 0.1 / 0 / 0 / 0.2 | 0.3 [0.3, 0.3] |" in text
     assert "20.8" in text  # the unaligned PSNR of s2camp (21 - 0.25)
     assert "### Camera path: regime-wide, sfm start, s2camp, seed 1" in text
