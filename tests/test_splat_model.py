@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -138,3 +139,39 @@ def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
     assert all(math.isfinite(v) for v in errors.values())
     print(f"s2camp-splat, 40 CPU steps: {elapsed:.1f} s, {seeds} -> {model.num_points} Gaussians, {errors}")
     assert elapsed < 90
+
+
+def test_declared_method_entry_points_resolve():
+    """Every method pyproject.toml declares for ``ns-train`` imports as a MethodSpecification (the installed
+    metadata follows pyproject.toml after ``pip install -e .``)."""
+    import importlib
+
+    from nerfstudio.plugins.types import MethodSpecification
+
+    text = (Path(__file__).parents[1] / "pyproject.toml").read_text()
+    section = text.split('[project.entry-points."nerfstudio.method_configs"]')[1].split("\n[")[0]
+    methods = dict(re.findall(r'^(\S+) = "(\S+)"$', section, flags=re.MULTILINE))
+    assert methods["s2camp-splat"] == "s2camp_ns.method_config:s2camp_splat_method"
+    for name, target in methods.items():
+        module, attribute = target.split(":")
+        specification = getattr(importlib.import_module(module), attribute)
+        assert isinstance(specification, MethodSpecification), name
+        assert specification.config.method_name == name
+
+
+def test_splat_baseline_differs_only_in_the_camera_optimizer():
+    from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+
+    from s2camp_ns.method_config import s2camp_splat_method, s2camp_splat_so3xr3_method
+
+    splat, baseline = s2camp_splat_method.config, s2camp_splat_so3xr3_method.config
+    assert splat.pipeline.model.camera_optimizer.parameters == "pose+intrinsics"
+    assert type(baseline.pipeline.model.camera_optimizer) is CameraOptimizerConfig
+    assert baseline.pipeline.model.camera_optimizer.mode == "SO3xR3"
+    assert baseline.optimizers["camera_opt"]["optimizer"].lr == 1e-4  # splatfacto's own camera schedule
+    replaced = copy.deepcopy(baseline.pipeline.model)
+    replaced.camera_optimizer = splat.pipeline.model.camera_optimizer
+    assert replaced == splat.pipeline.model
+    assert {k: v for k, v in baseline.optimizers.items() if k != "camera_opt"} == {
+        k: v for k, v in splat.optimizers.items() if k != "camera_opt"
+    }
