@@ -175,3 +175,11 @@ def test_splat_baseline_differs_only_in_the_camera_optimizer():
     assert {k: v for k, v in baseline.optimizers.items() if k != "camera_opt"} == {
         k: v for k, v in splat.optimizers.items() if k != "camera_opt"
     }
+
+
+def test_held_out_alignment_refuses_splatfacto_models_by_name():
+    from s2camp_ns.nerfstudio.test_time_alignment import evaluate_held_out_views
+
+    pipeline = SimpleNamespace(model=object.__new__(S2CampSplatModel))
+    with pytest.raises(ValueError, match="S2CampSplatModel .*does not support yet: use ns-eval"):
+        evaluate_held_out_views(pipeline)

@@ -58,11 +58,12 @@ class S2CampPipeline(VanillaPipeline):
         # uses the world size only for the number of image-loading workers.
         super().__init__(config, device, test_mode, 1, local_rank, grad_scaler)
         assert self.datamanager.train_dataset is not None
-        if hasattr(type(self.datamanager), "cached_train"):
+        cameras = self.datamanager.train_dataset.cameras
+        distorted = cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
+        if distorted and hasattr(type(self.datamanager), "cached_train"):
             # A full-image data manager (splatfacto's) undistorts the images when it first caches them and writes
             # the undistorted K into the training cameras; the camera optimizer must start from those.
             _ = self.datamanager.cached_train
-        cameras = self.datamanager.train_dataset.cameras
         # The dataparser's sparse points (normalized world, as the cameras) choose the proxy range per camera.
         points = (getattr(self.datamanager.train_dataset, "metadata", None) or {}).get("points3D_xyz")
         if hasattr(self.model, "set_train_cameras"):
