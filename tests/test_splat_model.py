@@ -137,6 +137,13 @@ def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
     errors = model.update_camera_errors()
     assert {"camera_errors/rot_err_mean", "camera_errors/pos_err_mean", "camera_errors/focal_err_mean"} <= set(errors)
     assert all(math.isfinite(v) for v in errors.values())
+    # The export path of s2camp-export-cameras: the refined cameras of the splatting run, refined intrinsics included.
+    from s2camp_ns.nerfstudio.export_cameras import refined_training_cameras
+
+    exported = refined_training_cameras(trainer.pipeline)
+    torch.testing.assert_close(
+        exported.fx.reshape(-1).double(), optimizer.refined_intrinsics().fx.detach().cpu(), rtol=1e-6, atol=1e-4
+    )
     print(f"s2camp-splat, 40 CPU steps: {elapsed:.1f} s, {seeds} -> {model.num_points} Gaussians, {errors}")
     assert elapsed < 90
 
