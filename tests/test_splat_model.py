@@ -128,7 +128,8 @@ def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
     trainer.train()
     elapsed = time.perf_counter() - start
     optimizer = model.camera_optimizer
-    assert model.num_points != seeds, "the densification strategy must have split, duplicated or pruned Gaussians"
+    # Growth (split / duplicate) needs the projected means' accumulated gradients above splatfacto's threshold.
+    assert model.num_points > seeds, "the densification strategy must have grown Gaussians from means2d gradients"
     assert int(optimizer.num_refreshes) >= 2  # the initial P and the scheduled refresh at step 20
     deltas = optimizer.camera_deltas().detach()
     assert float(deltas[:, :6].abs().amax()) > 0, "the pose must be refined"
