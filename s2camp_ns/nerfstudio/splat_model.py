@@ -182,7 +182,9 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         refined = optimizer.refined_intrinsics(deltas, cameras=cameras)
         refined_k = intrinsics_matrix(refined.fx, refined.fy, refined.cx, refined.cy, refined.skew)
         base_k = camera.get_intrinsics_matrices().reshape(1, 3, 3).to(refined_k)
-        viewmat = corrected_viewmat(world_to_camera(c2w), intrinsics_correction(base_k, refined_k))
+        # Both are pinhole matrices built here: no value check (it would synchronize with the GPU every step).
+        correction = intrinsics_correction(base_k, refined_k, check=False)
+        viewmat = corrected_viewmat(world_to_camera(c2w), correction)
         return viewmat.to(device=camera.camera_to_worlds.device, dtype=camera.camera_to_worlds.dtype)
 
     def rasterize(self, means: Tensor, **kwargs):

@@ -36,14 +36,16 @@ def intrinsics_matrix(
 
 
 def intrinsics_correction(
-    base_k: Float[Tensor, "n 3 3"], refined_k: Float[Tensor, "n 3 3"]
+    base_k: Float[Tensor, "n 3 3"], refined_k: Float[Tensor, "n 3 3"], check: bool = True
 ) -> Float[Tensor, "n 3 3"]:
     """A = K^-1 K' (docs/SPLAT.md eq. S3), upper triangular with third row (0, 0, 1), in closed form (no general
     inverse: K is triangular), differentiable in K'. ValueError if K or K' is not a pinhole matrix with positive
-    focal lengths."""
-    for name, k in (("base_k", base_k), ("refined_k", refined_k)):
-        if k.shape[-2:] != (3, 3):
-            raise ValueError(f"{name} must have shape [n, 3, 3], got {tuple(k.shape)}")
+    focal lengths; ``check=False`` skips that test (it reads the values back, a device synchronization per call on
+    CUDA) where the caller builds both matrices itself."""
+    if base_k.shape[-2:] != (3, 3) or refined_k.shape[-2:] != (3, 3):
+        raise ValueError(f"base_k and refined_k must have shape [n, 3, 3], got {tuple(base_k.shape)}, "
+                         f"{tuple(refined_k.shape)}")  # fmt: skip
+    for name, k in (("base_k", base_k), ("refined_k", refined_k)) if check else ():
         lower = torch.stack([k[..., 1, 0], k[..., 2, 0], k[..., 2, 1], k[..., 2, 2] - 1], dim=-1)
         if bool((lower.detach().abs() > 1e-6).any()):
             raise ValueError(f"{name} must be a pinhole intrinsics matrix (upper triangular, K[2] = (0, 0, 1))")
