@@ -60,6 +60,19 @@ class RobustnessScene:
     perturbation_seed: int
     varies: str
     """What the scene stands for among the others (the report's scene table)."""
+    downscale: int = 1
+    """Train on ``images_{downscale}`` (SfM runs on the full-size images, as a user's COLMAP does)."""
+
+    @property
+    def training_pixels(self) -> int:
+        """Pixels of the training images: every image but each ``EVAL_INTERVAL``-th (the data parser's split)."""
+        s = self.scene
+        held_out = -(-s.num_cameras // EVAL_INTERVAL)
+        return (s.num_cameras - held_out) * (s.width // self.downscale) * (s.height // self.downscale)
+
+
+EVAL_INTERVAL = 8
+"""The data parser's default held-out interval (every 8th image, the mip-NeRF 360 protocol)."""
 
 
 def _scene(num_cameras: int, width: int, height: int, fov: float, ring_radius: float, seed: int) -> MakeSceneConfig:
@@ -90,20 +103,52 @@ SCENES: dict[str, RobustnessScene] = {
         2,
         "96x72 px, 70 deg, 12 images, cameras 2.6 units out: objects 1 unit away, background 40: deepest range",
     ),
+    "regime-wide": RobustnessScene(
+        _scene(56, 320, 240, 70.0, 4.0, seed=3),
+        70.0,
+        3,
+        "the real-training regime: 49 training images trained at 160x120 (SfM on 320x240), 70 deg; 3000 steps x "
+        "512 rays see each training pixel 1.6 times (a nerfacto run about once)",
+        downscale=2,
+    ),
 }
 """The background sphere has radius 40 (``s2camp_ns.scene.procedural``); the foreground objects lie within 1.8 of
 the centre, so the ring radius sets the depth range each camera sees. The cameras sit on a full ring, so the number
 of images times the field of view is how often the background is covered: the narrow scene gets the most images
 (with 8 images of 40 degrees a held-out view sees background no training view saw, and its PSNR stayed at 14.7 dB
 from 20 to 200 iterations while the training PSNR rose to 29.5), the wide one the fewest."""
-STARTS = ("accurate", "perturbed")
-VARIANTS = ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp")
-METHODS = {"off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp"}
-VARIANT_ARGUMENTS = {"off": ["--pipeline.model.camera-optimizer.mode", "off"]}
-"""Method options per variant beyond the CPU-sized run: only "off" has one (camera refinement disabled)."""
-METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim")
+STARTS = ("accurate", "perturbed", "sfm", "phone")
+"""accurate: the true cameras; perturbed: CamP's perturbation; sfm: pycolmap SfM on the full-size images with an
+EXIF-like focal prior (``benchmarks/sfm.py``); phone: ``PHONE_PROFILE`` without SfM tracks (module docstring)."""
+DEFAULT_STARTS = ("accurate", "perturbed")
+RECOVERY_STARTS = ("perturbed", "phone")
+"""Starts that refinement must correct (the report gives the fraction of the start error removed); the others
+(accurate, sfm) it must not make worse."""
+VARIANTS = ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-track-prior")
+METHODS = {
+    "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
+    "s2camp-track-prior": "s2camp",
+}  # fmt: skip
+VARIANT_ARGUMENTS = {
+    "off": ["--pipeline.model.camera-optimizer.mode", "off"],
+    "s2camp-track-prior": ["--pipeline.model.camera-optimizer.track-prior", "True"],
+}
+"""Method options per variant beyond the CPU-sized run: "off" disables camera refinement; "s2camp-track-prior" is
+s2camp without its track prior (the default before it, kept to measure what the prior changes)."""
+PHONE_PROFILE = {"sigma_position": 0.02, "sigma_look_at": 0.02, "sigma_dolly_z": 0.02, "sigma_focal_length": 0.0}
+"""The phone-pose start, in CamP's protocol (normalized units: the camera centres fill [-1, 1]^3). Assumed sizes of
+visual-inertial poses and factory intrinsics as Polycam / Record3D exports carry them, not measured here: centres off
+by 2% of the scene's half-size (centimetres in a room), optical axes by about 1.1 degrees (0.02 at unit distance),
+one focal length for every image (a single phone camera) 2% off through the shared dolly zoom, no per-image focal
+error. Four times CamP's pose sigmas. These exports carry no SfM tracks, so this start trains without them
+(``s2camp-data --tracks False``)."""
+SFM_FOCAL_PRIOR = 1.05
+"""The sfm start's focal prior (the EXIF focal of a real capture; ``benchmarks/sfm.py``)."""
+METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim", "psnr_unaligned")
 ERRORS = ("rot_err", "pos_err", "focal_err", "drift_px")
 QUICK = {"iterations": 20, "seeds": 1, "variants": ("off", "s2camp")}
+REGIME = {"scenes": ("regime-wide",), "starts": STARTS, "iterations": 3000, "variants": VARIANTS[:4]}
+"""``--preset regime``: the regime real runs train in (the scene's ``varies``); passes per pixel in every row."""
 """``--quick``: the first scene only, both starts, these settings, 10 test-time alignment steps of 64 rays."""
 
 
@@ -111,10 +156,10 @@ QUICK = {"iterations": 20, "seeds": 1, "variants": ("off", "s2camp")}
 class RobustnessConfig:
     """Camera refinement with default options from accurate and perturbed cameras (module docstring)."""
 
-    scenes: tuple[str, ...] = tuple(SCENES)
-    """Scenes (``SCENES``)."""
-    starts: tuple[str, ...] = STARTS
-    variants: tuple[str, ...] = VARIANTS
+    scenes: tuple[str, ...] = ("small-narrow-far", "large-wide", "near-deep")
+    """Scenes (``SCENES``); ``--preset regime`` picks the real-training regime."""
+    starts: tuple[str, ...] = DEFAULT_STARTS
+    variants: tuple[str, ...] = ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp")
     seeds: int = 3
     """Runs per scene, start and variant, ``--machine.seed`` 0 .. seeds - 1."""
     iterations: int = 200
@@ -135,8 +180,15 @@ class RobustnessConfig:
     output_dir: Path = DEFAULT_OUTPUT_DIR
     write: bool = True
     json: bool = False
+    trace_every: int = 0
+    """Keep a checkpoint every this many steps and record the cameras' path (``trace_run``): the mechanism of
+    drift. 0: none."""
+    preset: str = ""
+    """"regime": the real-training regime (``REGIME``): scene regime-wide, all four starts, 3000 steps."""
 
     def effective(self) -> RobustnessConfig:
+        if self.preset == "regime":
+            return replace(self, **REGIME)
         if not self.quick:
             return self
         alignment = replace(self.alignment, steps=10, rays=64)
@@ -151,6 +203,9 @@ class RobustnessConfig:
                 check_choice(name, value, allowed)
         for name in ("seeds", "iterations", "rays_per_batch", "workers"):
             check_positive_int(name, getattr(self, name))
+        if self.trace_every < 0:
+            raise ValueError(f"trace_every must be >= 0 steps (0: no trace), got {self.trace_every}")
+        check_choice("preset", self.preset, ("", "regime"))
         self.alignment.validate()
 
     def command(self) -> str:
@@ -159,10 +214,13 @@ class RobustnessConfig:
         if self.quick:
             return " ".join([*parts, "--quick"])
         default = RobustnessConfig()
+        if self.preset:
+            parts.append(f"--preset {self.preset}")
+            default = RobustnessConfig(preset=self.preset).effective()
         for name in ("scenes", "starts", "variants"):
             if getattr(self, name) != getattr(default, name):
                 parts.append(f"--{name} " + " ".join(getattr(self, name)))
-        for name in ("seeds", "iterations", "rays_per_batch", "workers"):
+        for name in ("seeds", "iterations", "rays_per_batch", "workers", "trace_every"):
             if getattr(self, name) != getattr(default, name):
                 parts.append(f"--{name.replace('_', '-')} {getattr(self, name)}")
         return " ".join(parts)
@@ -197,23 +255,36 @@ def run_specs(config: RobustnessConfig) -> list[RunSpec]:
     ]
 
 
-def train_command(spec: RunSpec, scene_dir: Path, runs: Path, config: RobustnessConfig) -> list[str]:
-    """``ns-train`` of one run: the method's defaults plus the CPU-sized run (module docstring)."""
+def train_command(
+    spec: RunSpec, scene_dir: Path, runs: Path, config: RobustnessConfig, truth: Path | None = None
+) -> list[str]:
+    """``ns-train`` of one run: the method's defaults plus the CPU-sized run (module docstring). ``truth``: the
+    generated scene, the reference cameras of an sfm start (``scene_dir`` is then SfM's)."""
+    save_every = config.trace_every or config.iterations
     command = [
         *ns_train_arguments(
             METHODS[spec.variant], scene_dir, runs, spec.experiment, spec.timestamp, config.iterations,
-            config.iterations, config.rays_per_batch,
+            save_every, config.rays_per_batch,
         ),
         "--machine.device-type", "cpu",
         "--machine.seed", str(spec.seed),
         "--vis", "tensorboard",
         "--pipeline.model.camera-error-every", "0",
+        *(["--save-only-latest-checkpoint", "False"] if config.trace_every else []),
         *VARIANT_ARGUMENTS.get(spec.variant, []),
     ]  # fmt: skip
-    if spec.start == "perturbed":
-        seed = SCENES[spec.scene].perturbation_seed
-        command += [DATAPARSER_SUBCOMMAND, "--perturbation.enabled", "True", "--perturbation.seed", str(seed)]
-    return command
+    preset = SCENES[spec.scene]
+    dataparser = [DATAPARSER_SUBCOMMAND, "--downscale-factor", str(preset.downscale)]
+    if spec.start in ("perturbed", "phone"):
+        dataparser += ["--perturbation.enabled", "True", "--perturbation.seed", str(preset.perturbation_seed)]
+    if spec.start == "phone":
+        for key, value in PHONE_PROFILE.items():
+            dataparser += [f"--perturbation.{key.replace('_', '-')}", str(value)]
+        dataparser += ["--tracks", "False"]
+    if spec.start == "sfm":
+        assert truth is not None, "an sfm start measures against the generated scene's cameras"
+        dataparser += ["--reference-model", str(truth / "sparse" / "0")]
+    return command + dataparser
 
 
 def run_folder(spec: RunSpec, runs: Path) -> Path:
@@ -302,15 +373,18 @@ def _single_thread() -> None:
 
 
 # ------------------------------------------------------------------------------------------------------------ run
-def _train(spec: RunSpec, scene_dir: Path, runs: Path, logs: Path, config: RobustnessConfig) -> float:
+def _train(
+    spec: RunSpec, scene_dir: Path, runs: Path, logs: Path, config: RobustnessConfig, truth: Path | None
+) -> float:
     """Train one run; return its wall-clock seconds (start-up included)."""
     log_path = logs / f"{spec.experiment}-{spec.timestamp}.log"
     environment = training_environment() | {"OMP_NUM_THREADS": "1"}
     began = time.perf_counter()
     with open(log_path, "w", encoding="utf8") as output:
         result = subprocess.run(
-            train_command(spec, scene_dir, runs, config), stdout=output, stderr=subprocess.STDOUT, env=environment
-        )
+            train_command(spec, scene_dir, runs, config, truth), stdout=output, stderr=subprocess.STDOUT,
+            env=environment,
+        )  # fmt: skip
     if result.returncode != 0:
         tail = "\n".join(log_path.read_text(encoding="utf8", errors="replace").splitlines()[-30:])
         raise RuntimeError(f"ns-train {spec} failed with status {result.returncode}; log {log_path}:\n{tail}")
@@ -332,11 +406,19 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfi
     from .recovery_photometric import seconds_per_iteration
 
     runs, logs = root / "runs", root / "logs"
-    train_seconds = _train(spec, scene_dir, runs, logs, config)
+    truth = None
+    if spec.start == "sfm":
+        truth, scene_dir = scene_dir, _sfm_scene(spec.scene, scene_dir, root)
+    train_seconds = _train(spec, scene_dir, runs, logs, config, truth)
     folder = run_folder(spec, runs)
     result = pool.submit(evaluate_run, folder, config.alignment).result()
+    if config.trace_every:
+        from .regime_trace import trace_run
+
+        result["trace"] = pool.submit(trace_run, folder).result()
     row = {"scene": spec.scene, "start": spec.start, "variant": spec.variant, "seed": spec.seed}
-    row |= {key: result[key] for key in (*METRICS, "psnr_unaligned", "drift_behind")}
+    row["passes"] = config.iterations * config.rays_per_batch / SCENES[spec.scene].training_pixels
+    row |= {key: result[key] for key in (*METRICS, "drift_behind")}
     row |= {f"start_{key}": result[f"start_{key}"] for key in (*ERRORS, "drift_behind")}
     row |= {
         "iterations": config.iterations,
@@ -345,6 +427,8 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfi
         "eval_seconds": result["eval_seconds"],
         "sec_per_iter": seconds_per_iteration(folder),
     }
+    if "trace" in result:
+        row["trace"] = result["trace"]
     for checkpoints in ("nerfstudio_models", "nerfstudio_models.partial"):  # the trainer's atomic-save folder too
         shutil.rmtree(folder / checkpoints, ignore_errors=True)
     with _ROWS_LOCK, open(root / ROWS_FILE, "a", encoding="utf8") as rows_file:
@@ -356,6 +440,28 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfi
         f"{row['start_drift_px']:.3f}; {train_seconds:.0f} s + {row['eval_seconds']:.0f} s)"
     )
     return row
+
+
+_SFM_LOCK = threading.Lock()
+
+
+def _sfm_scene(name: str, truth: Path, root: Path) -> Path:
+    """SfM of the generated scene ``truth`` (once per scene, shared by its runs): pycolmap on the full-size images
+    with ``SFM_FOCAL_PRIOR``; a reconstruction that fails ``benchmarks/sfm.py``'s checks stops the benchmark."""
+    from .sfm import run_sfm
+
+    output = root / "sfm" / name
+    with _SFM_LOCK:
+        if not (output / "sparse" / "0" / "images.bin").exists():
+            result = run_sfm(truth, output, focal_prior=SFM_FOCAL_PRIOR)
+            log(
+                f"robustness {name}: SfM registered {result.registered}/{result.images} images, rot "
+                f"{result.rot_err_mean:.2e} rad, centre {result.centre_err_mean:.2e}, focal {result.focal:.1f} px "
+                f"(true {result.true_focal:.1f})" + (f"; FAILED: {result.failure}" if result.failure else "")
+            )
+            if result.failure:
+                raise RuntimeError(f"SfM of scene {name} failed: {result.failure}")
+    return output
 
 
 def run(config: RobustnessConfig) -> list[dict]:
@@ -420,13 +526,14 @@ def summarize(rows: list[dict]) -> list[dict]:
     summary = []
     for (scene, start, variant), chosen in groups.items():
         entry = {"scene": scene, "start": start, "variant": variant, "seeds": len(chosen)}
+        entry["passes"] = statistics.fmean(row.get("passes", math.nan) for row in chosen)
         for key in METRICS:
             entry[key] = Spread.of([row[key] for row in chosen])
         for key in ERRORS:
             entry[f"start_{key}"] = statistics.fmean(row[f"start_{key}"] for row in chosen)
             start_value = entry[f"start_{key}"]
             entry[f"removed_{key}"] = (
-                1.0 - entry[key].mean / start_value if start == "perturbed" and start_value > 0 else math.nan
+                1.0 - entry[key].mean / start_value if start in RECOVERY_STARTS and start_value > 0 else math.nan
             )
         summary.append(entry)
     for entry in summary:
@@ -525,9 +632,14 @@ def _summary_rows(summary: list[dict]) -> list[dict]:
         row = {key: entry[key] for key in ("scene", "start", "variant", "seeds")}
         row |= {key: entry[key].cell() for key in METRICS}
         row["psnr_vs_off"] = entry["psnr_vs_off_label"]
+        row["passes"] = f"{entry['passes']:.2f}"
+        row["start_errors"] = (
+            f"{entry['start_rot_err']:.3g} / {entry['start_pos_err']:.3g} / {entry['start_focal_err']:.3g} / "
+            f"{entry['start_drift_px']:.3g}"
+        )
         row["removed"] = (
             ", ".join(f"{key.replace('_err', '').replace('_px', '')} {entry[f'removed_{key}']:.0%}" for key in ERRORS)
-            if entry["start"] == "perturbed"
+            if entry["start"] in RECOVERY_STARTS
             else ""
         )
         table.append(row)
@@ -539,7 +651,7 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
     summary = summarize(rows)
     iterations = ", ".join(str(value) for value in sorted({row["iterations"] for row in rows}))
     seeds = ", ".join(str(value) for value in sorted({row["seed"] for row in rows}))
-    plot(summary, config.output_dir / "robustness.png")
+    plot(summary, config.output_dir / f"{config.preset or 'robustness'}.png")
     a = config.alignment
     setup = (
         f"Every run: `ns-train <method>` from scratch with the method's default options (camera learning rate and "
@@ -548,18 +660,21 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         f"`--max-num-iterations {iterations}`, {config.rays_per_batch} rays per step, no evaluation or "
         f"camera-error logging during training; `--machine.seed` {seeds}. 'off' is `ns-train s2camp "
         f"--pipeline.model.camera-optimizer.mode off`. 'perturbed' is the data parser's CamP perturbation "
-        f"(CamP's sigmas, the scene's perturbation seed), 'accurate' the true cameras. Errors of the final "
+        f"(CamP's sigmas, the scene's perturbation seed), 'accurate' the true cameras, 'sfm' pycolmap SfM on the "
+        f"full-size images (focal prior {SFM_FOCAL_PRIOR} x the true focal), 'phone' `PHONE_PROFILE` without SfM "
+        f"tracks (`benchmarks/robustness.py`). Errors of the final "
         f"checkpoint after a similarity alignment to the true cameras: rotation in degrees, position in normalized "
         f"scene units (the cameras fit in [-1, 1]^3), focal in px; drift = RMS pixel displacement of the scene's 3D "
         f"points between the true and the aligned refined cameras (`s2camp_ns.core.drift`). PSNR / SSIM: held-out "
         f"views (every 8th image) after {a.steps} test-time alignment steps of {a.rays} rays. Cells: mean "
         f"[min, max] over seeds. 'PSNR vs off': difference of the means, 'no difference' when smaller than the "
-        f"larger seed range of the two. 'removed': 1 - final / start error for perturbed starts."
+        f"larger seed range of the two. 'removed': 1 - final / start error for perturbed and phone starts."
     )
-    columns = ["scene", "start", "variant", "seeds", *METRICS, "psnr_vs_off", "removed"]
+    columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]
     headers = [
-        "scene", "start", "variant", "seeds", "rot err (deg)", "pos err", "focal err (px)", "drift (px)", "PSNR",
-        "SSIM", "PSNR vs off", "start error removed",
+        "scene", "start", "variant", "seeds", "passes", "start rot / pos / focal / drift", "rot err (deg)",
+        "pos err", "focal err (px)", "drift (px)", "PSNR", "SSIM", "PSNR unaligned", "PSNR vs off",
+        "start error removed",
     ]  # fmt: skip
 
     def average(key: str) -> float:
@@ -578,18 +693,41 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         timing += ")" if seed_count >= config.seeds else stopped + ")"
     elif minutes is not None:
         timing += f"; wall time of this run {minutes:.1f} minutes"
+    name = config.preset or "robustness"
     sections = [
         "Does camera refinement with each method's default options help or hurt, from accurate and from perturbed "
-        "cameras? Protocol and metrics: `benchmarks/robustness.py`.",
+        "cameras? Protocol and metrics: `benchmarks/robustness.py`. passes = steps x rays / training pixels.",
         "## Scenes",
         _scene_table(config, summary),
         "## Results",
         setup,
         markdown_table(_summary_rows(summary), columns, headers),
-        "![PSNR and drift per variant](robustness.png)",
+        f"![PSNR and drift per variant]({name}.png)",
         timing + ".",
+        *trace_sections(rows),
     ]
     return write_report(
-        config.output_dir, "robustness", "Robustness: default camera refinement from accurate and perturbed cameras",
+        config.output_dir, name, "Robustness: default camera refinement from accurate and perturbed cameras",
         config.command(), sections,
     )  # fmt: skip
+
+
+TRACE_COLUMNS = (
+    "step", "train_loss", "rot_err", "moved_rot", "moved_pos", "moved_focal", "gauge_scale", "gauge_rot",
+    "forward_shift", "focal_forward_corr", "pose_consistency", "intrinsics_consistency",
+)  # fmt: skip
+
+
+def trace_sections(rows: list[dict]) -> list[str]:
+    """One table per traced run: the cameras' path through training (``benchmarks/regime_trace.py``)."""
+    sections = []
+    for row in rows:
+        trace = row.get("trace")
+        if not trace:
+            continue
+        title = f"### Camera path: {row['scene']}, {row['start']} start, {row['variant']}, seed {row['seed']}"
+        cells = [{key: f"{point[key]:.4g}" for key in TRACE_COLUMNS} for point in trace]
+        sections += [title, markdown_table(cells, list(TRACE_COLUMNS), list(TRACE_COLUMNS))]
+    if sections:
+        sections.insert(0, "## The mechanism: camera paths (`--trace-every`; columns: `benchmarks/regime_trace.py`)")
+    return sections

@@ -115,6 +115,13 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     """L2 penalty on the raw translation delta (scene units); 0 = none, as in the paper."""
     rot_l2_penalty: float = 0.0
     """L2 penalty on the raw rotation delta (radians); 0 = none, as in the paper."""
+    track_prior: bool = False
+    """Anchor each camera to its given value with a Gaussian prior in the whitened space whose scale is the camera's
+    reprojection error against the scene's SfM tracks (``apply_track_prior``): a camera that agrees with its tracks
+    to a fraction of a pixel moves about that far at most, however long the field pulls; a camera without tracks
+    (transforms.json, phone poses) has no prior. Needs the data parser's ``track_rms_px`` (COLMAP scenes with
+    points). Off by default until the real-regime benchmark (``s2camp-bench robustness --preset regime``, variant
+    s2camp-track-prior) has decided it (docs/benchmarks/regime.md)."""
 
     def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
         return ParameterLayout.from_preset(self.parameters, camera_model)
@@ -280,8 +287,12 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.register_buffer("last_refresh_step", torch.tensor(-1, dtype=torch.long, device=device))
         self.register_buffer("num_refreshes", torch.tensor(0, dtype=torch.long, device=device))
         # Base cameras come from the dataparser on every run, so they are not saved.
-        self.register_buffer("base_c2w_cv", torch.zeros(num_cameras, 3, 4, dtype=torch.float64), persistent=False)
-        self.register_buffer("base_intrinsics", torch.zeros(num_cameras, 13, dtype=torch.float64), persistent=False)
+        self.register_buffer(
+            "base_c2w_cv", torch.zeros(num_cameras, 3, 4, dtype=torch.float64, device=device), persistent=False
+        )
+        self.register_buffer(
+            "base_intrinsics", torch.zeros(num_cameras, 13, dtype=torch.float64, device=device), persistent=False
+        )
         self.projection = "perspective"
         # The base intrinsics of the run that computed P, saved with P: a checkpoint loaded onto other base cameras
         # is detected and P recomputed (``_check_base_cameras``) instead of silently reused. P depends on
@@ -304,6 +315,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
         # step (``recompute_stale_preconditioner``), once Adam's moments are loaded too.
         self._stale_preconditioner: str | None = None
+        # Track prior radius per image in whitened units (RMS px / max(W, H)); NaN = no prior (``set_track_prior``).
+        no_prior = torch.full((num_cameras,), float("nan"), dtype=torch.float64, device=device)
+        self.register_buffer("prior_radius", no_prior, persistent=False)
 
     # ----------------------------------------------------------------------------------------------------- setup
     @property
@@ -355,6 +369,57 @@ class S2CampCameraOptimizer(CameraOptimizer):
             self.refresh(step=0)
         else:  # a checkpoint was loaded before the cameras were known
             self._check_base_cameras()
+
+    def set_track_prior(self, track_rms_px: Float[Tensor, " n"] | None) -> None:
+        """The track prior's scale per training image: its reprojection error against the SfM tracks in pixels
+        (``core.tracks``; NaN or None: no prior), stored in whitened units (divided by max(W, H), the Gram matrix's
+        pixel unit, docs/EQUATIONS.md eq. 5). Call after ``set_train_cameras``; ``track_prior=False`` ignores it."""
+        self._require_cameras()
+        radius = torch.full((self.num_cameras,), float("nan"), dtype=torch.float64, device=self.precond.device)
+        if track_rms_px is not None and self.config.track_prior:
+            rms = torch.as_tensor(track_rms_px, dtype=torch.float64).reshape(-1).to(self.precond.device)
+            if rms.shape[0] != self.num_cameras:
+                raise ValueError(
+                    f"track_rms_px must hold {self.num_cameras} values (one per training image), got {rms.shape[0]}"
+                )
+            if bool((rms < 0).any()):
+                raise ValueError(f"track_rms_px must be >= 0 (pixels), got minimum {float(rms.min())}")
+            radius = rms / self.base_intrinsics_struct().image_scale()
+        self.prior_radius = radius
+
+    @torch.no_grad()
+    def apply_track_prior(self, lr: float) -> None:
+        """One proximal step of the track prior after the optimizer's step of learning rate ``lr``.
+
+        The prior is a Gaussian on the whitened latent phi_hat, whose norm is the RMS displacement of the camera's
+        proxy points in units of max(W, H) (paper eqs. 5 and 20; damping only adds to it). Its proximal map with
+        Adam's step size, phi_hat <- phi_hat / (1 + lr / r) (decoupled weight decay, as AdamW), balances Adam's step
+        lr m / sqrt(v) where each coordinate is |phi_hat_j| = r |m_j / sqrt(v_j)| <= r: evidence of constant sign
+        (|m / sqrt(v)| near 1) moves a whitened coordinate at most r, the camera's reprojection error against its
+        tracks; gradient noise (|m / sqrt(v)| near 0.23 for Adam's beta1 0.9) about a quarter of that. Once the field
+        stops pulling, the camera relaxes back towards its given value within about r / lr steps instead of staying
+        where early field errors pushed it. Cameras whose tracks say they are off by several pixels (changed after
+        SfM) may move that far; images without tracks are untouched. Shared intrinsics take the RMS of their
+        images' radii.
+        """
+        if not self.enabled or not bool(torch.isfinite(self.prior_radius).any()) or lr <= 0:
+            return
+        radius = self.prior_radius.clamp(min=1e-12)
+        self._shrink(self.whitened_delta, radius, lr)
+        if self.shared:
+            groups = torch.zeros(self.num_physical_cameras, dtype=torch.float64, device=radius.device)
+            counts = torch.zeros_like(groups)
+            finite = torch.isfinite(radius)
+            groups.index_add_(0, self.camera_of_image[finite], radius[finite].square())
+            counts.index_add_(0, self.camera_of_image[finite], torch.ones_like(radius[finite]))
+            shared = torch.where(counts > 0, (groups / counts.clamp(min=1.0)).sqrt(), torch.nan)
+            self._shrink(self.whitened_intrinsics, shared, lr)
+
+    @staticmethod
+    def _shrink(latent: nn.Parameter, radius: Tensor, lr: float) -> None:
+        factor = 1.0 / (1.0 + lr / radius)
+        factor = torch.where(torch.isfinite(radius), factor, torch.ones_like(factor))
+        latent.mul_(factor.to(latent.dtype)[:, None])
 
     def choose_proxy_range(self, cameras: Cameras, points: Tensor | None) -> Float[Tensor, "n 2"]:
         """Contracted [t_near, t_far] per training image: chosen per physical camera from the points it sees

@@ -82,15 +82,3 @@ def tiny_model_config(
         camera_optimizer=camera_optimizer,
         **fields,
     )
-
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Tests marked ``cuda`` need a real CUDA device; without one they are skipped with the reason."""
-    import torch
-
-    if torch.cuda.is_available():
-        return
-    skip = pytest.mark.skip(reason="needs a real CUDA device (torch.cuda.is_available() is False); run make gpu-check")
-    for item in items:
-        if "cuda" in item.keywords:
-            item.add_marker(skip)

@@ -723,6 +723,7 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "precond_base_intrinsics",
         "proxy_range",
         "precond_proxy_range",
+        "prior_radius",  # the track prior's scale, from the data parser on every run (not saved)
     }
 
 

@@ -221,6 +221,37 @@ def test_cli_main_writes_a_readable_model(scene: Path, tmp_path: Path, monkeypat
         export.main(ExportCamerasConfig(load_config=tmp_path / "missing.yml", output_dir=tmp_path / "x"))
 
 
+@pytest.mark.parametrize("optimizer_config", ["off", "pose", "so3xr3"])
+def test_unrefined_intrinsics_export_one_camera_per_physical_camera(scene: Path, tmp_path: Path, monkeypatch,
+                                                                    optimizer_config: str):  # fmt: skip
+    """Refinement off, pose only, or nerfstudio's pose optimizer keep the scene's single shared camera: one COLMAP
+    camera, as the refined export writes; per-image focal lengths (CamP's perturbation) give one per image."""
+    import nerfstudio.utils.eval_utils as eval_utils
+
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+
+    for perturbed, expected in ((False, 1), (True, None)):
+        config = S2CampDataParserConfig(data=scene, downscale_factor=2)
+        config.perturbation.enabled = perturbed
+        out = config.setup().get_dataparser_outputs("train")
+        n = len(out.image_filenames)
+        if optimizer_config == "so3xr3":
+            optimizer = CameraOptimizerConfig(mode="SO3xR3").setup(num_cameras=n, device="cpu")
+        else:
+            mode, parameters = ("off", "all") if optimizer_config == "off" else ("SE3", "pose")
+            optimizer = S2CampCameraOptimizerConfig(mode=mode, parameters=parameters).setup(num_cameras=n, device="cpu")
+            optimizer.set_train_cameras(out.cameras)
+        pipeline = stub_pipeline(out, optimizer)
+        monkeypatch.setattr(eval_utils, "eval_setup", lambda *a, p=pipeline, **k: (None, p, None, 0))
+        config_file = tmp_path / "config.yml"
+        config_file.write_text("stub")
+        folder = tmp_path / f"{optimizer_config}-{perturbed}"
+        export.main(ExportCamerasConfig(load_config=config_file, output_dir=folder))
+        loaded = pycolmap.Reconstruction(str(folder))
+        assert loaded.num_images() == n
+        assert loaded.num_cameras() == (n if expected is None else expected)
+
+
 MODEL_PARAMS = {
     "OPENCV": [50.0, 51.0, 20.0, 15.0, -0.03, 0.005, 1e-3, -2e-3],
     "FULL_OPENCV": [50.0, 51.0, 20.0, 15.0, -0.03, 0.005, 1e-3, -2e-3, 4e-4, 0.0, 0.0, 0.0],

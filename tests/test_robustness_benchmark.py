@@ -10,6 +10,7 @@ import pytest
 
 from s2camp_ns.benchmarks.robustness import (
     SCENES,
+    STARTS,
     VARIANTS,
     RobustnessConfig,
     RunSpec,
@@ -24,41 +25,78 @@ def _option(command: list[str], name: str) -> str:
     return command[command.index(name) + 1]
 
 
-@pytest.mark.parametrize("start", ["accurate", "perturbed"])
+@pytest.mark.parametrize("start", ["accurate", "perturbed", "phone"])
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
     command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
-    assert command[1] == ("s2camp" if variant == "off" else variant)
+    assert command[1] == ("s2camp" if variant in ("off", "s2camp-track-prior") else variant)
     assert _option(command, "--max-num-iterations") == "123"
     assert _option(command, "--machine.seed") == "2"
     assert _option(command, "--machine.device-type") == "cpu"
     # No camera learning rate, schedule or sampling option: the method's defaults.
     assert not [arg for arg in command if arg.startswith("--optimizers.")]
     camera_options = [arg for arg in command if arg.startswith("--pipeline.model.camera-optimizer.")]
-    assert camera_options == (["--pipeline.model.camera-optimizer.mode"] if variant == "off" else [])
+    expected_options = {
+        "off": ["--pipeline.model.camera-optimizer.mode"],
+        "s2camp-track-prior": ["--pipeline.model.camera-optimizer.track-prior"],
+    }
+    assert camera_options == expected_options.get(variant, [])
     if variant == "off":
         assert _option(command, "--pipeline.model.camera-optimizer.mode") == "off"
-    if start == "perturbed":
-        assert command[command.index("s2camp-data") :] == [
-            "s2camp-data", "--perturbation.enabled", "True", "--perturbation.seed",
-            str(SCENES["near-deep"].perturbation_seed),
+    if variant == "s2camp-track-prior":
+        assert _option(command, "--pipeline.model.camera-optimizer.track-prior") == "True"
+    tail = command[command.index("s2camp-data") :]
+    seed = str(SCENES["near-deep"].perturbation_seed)
+    if start == "accurate":
+        assert tail == ["s2camp-data", "--downscale-factor", "1"]
+    elif start == "perturbed":
+        assert tail == ["s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True",
+                        "--perturbation.seed", seed]  # fmt: skip
+    else:  # phone: four times CamP's pose sigmas, a shared 2% focal error through the dolly, no tracks
+        assert tail == [
+            "s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True", "--perturbation.seed", seed,
+            "--perturbation.sigma-position", "0.02", "--perturbation.sigma-look-at", "0.02",
+            "--perturbation.sigma-dolly-z", "0.02", "--perturbation.sigma-focal-length", "0.0", "--tracks", "False",
         ]  # fmt: skip
-    else:
-        assert "s2camp-data" not in command
+    assert "--save-only-latest-checkpoint" not in command
+
+
+def test_sfm_start_trains_on_the_sfm_scene_against_the_generated_cameras() -> None:
+    config = RobustnessConfig(iterations=3000, trace_every=250)
+    spec = RunSpec("regime-wide", "sfm", "s2camp", 0)
+    command = train_command(spec, Path("sfm-scene"), Path("runs"), config, truth=Path("truth"))
+    assert _option(command, "--data") == "sfm-scene"
+    assert command[command.index("s2camp-data") :] == [
+        "s2camp-data", "--downscale-factor", "2", "--reference-model", str(Path("truth") / "sparse" / "0"),
+    ]  # fmt: skip
+    # The trace keeps a checkpoint every 250 steps.
+    assert _option(command, "--steps-per-save") == "250"
+    assert _option(command, "--save-only-latest-checkpoint") == "False"
+
+
+def test_regime_scene_sees_each_training_pixel_one_and_a_half_times() -> None:
+    preset = SCENES["regime-wide"]
+    # 56 images, every 8th held out (7): 49 training images of 160 x 120 (trained at half of 320 x 240).
+    assert preset.training_pixels == 49 * 160 * 120
+    config = RobustnessConfig(preset="regime").effective()
+    assert (config.scenes, config.starts, config.iterations) == (("regime-wide",), STARTS, 3000)
+    assert config.iterations * config.rays_per_batch / preset.training_pixels == pytest.approx(1536000 / 940800)
+    assert config.variants == ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp")
 
 
 def test_the_scenes_differ_in_resolution_field_of_view_image_count_and_depth() -> None:
-    widths = [preset.scene.width for preset in SCENES.values()]
+    chosen = [SCENES[name] for name in RobustnessConfig().scenes]
+    widths = [preset.scene.width for preset in chosen]
     assert max(widths) == 4 * min(widths)
-    fovs = [preset.fov_degrees for preset in SCENES.values()]
+    fovs = [preset.fov_degrees for preset in chosen]
     assert (min(fovs), max(fovs)) == (40.0, 100.0)
     for preset in SCENES.values():
         # The focal length written into the scene gives the stated field of view.
         fov = 2.0 * math.degrees(math.atan(0.5 * preset.scene.width / preset.scene.focal))
         assert fov == pytest.approx(preset.fov_degrees, abs=1e-9)
-    assert len({preset.scene.num_cameras for preset in SCENES.values()}) == len(SCENES)
-    assert len({preset.scene.ring_radius for preset in SCENES.values()}) == len(SCENES)
+    assert len({preset.scene.num_cameras for preset in chosen}) == len(chosen)
+    assert len({preset.scene.ring_radius for preset in chosen}) == len(chosen)
     assert len({preset.perturbation_seed for preset in SCENES.values()}) == len(SCENES)
 
 
@@ -68,7 +106,7 @@ def test_focal_for_fov_of_a_right_angle_is_half_the_width() -> None:
 
 def test_seeds_are_the_outermost_loop_of_the_runs() -> None:
     specs = run_specs(RobustnessConfig(scenes=("large-wide",), seeds=2))
-    assert len(specs) == 2 * 2 * len(VARIANTS)
+    assert len(specs) == 2 * 2 * 4  # seeds x default starts x default variants
     assert [spec.seed for spec in specs] == [0] * 8 + [1] * 8
 
 
@@ -79,10 +117,15 @@ def test_bad_choices_are_rejected_with_the_parameter_name() -> None:
         RobustnessConfig(seeds=0).validate()
     with pytest.raises(ValueError, match="starts"):
         RobustnessConfig(starts=()).validate()
+    with pytest.raises(ValueError, match=r"trace_every must be >= 0 steps \(0: no trace\), got -1"):
+        RobustnessConfig(trace_every=-1).validate()
+    with pytest.raises(ValueError, match="preset"):
+        RobustnessConfig(preset="fast").validate()
 
 
 def _row(start: str, variant: str, seed: int, psnr: float, rot: float, start_rot: float) -> dict:
     row = {"scene": "s", "start": start, "variant": variant, "seed": seed, "psnr": psnr, "ssim": 0.5}
+    row |= {"psnr_unaligned": psnr - 0.25, "passes": 1.5}
     row |= {"rot_err": rot, "pos_err": 0.0, "focal_err": 0.0, "drift_px": 2.0 * rot}
     row |= {"start_rot_err": start_rot, "start_pos_err": 0.0, "start_focal_err": 0.0, "start_drift_px": 2 * start_rot}
     return row
@@ -108,3 +151,25 @@ def test_summary_spread_difference_against_off_and_removed_start_error() -> None
     assert accurate["psnr_vs_off_label"].startswith("-1.00 dB (beyond")
     assert math.isnan(accurate["removed_rot_err"])
     assert summary[("accurate", "off")]["psnr_vs_off_label"] == ""
+
+
+def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path: Path) -> None:
+    from s2camp_ns.benchmarks.robustness import TRACE_COLUMNS, report
+
+    rows = [
+        _row("sfm", variant, seed, psnr, rot, 0.1) | {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000,
+                                                     "eval_seconds": 1.0, "sec_per_iter": 0.5}  # fmt: skip
+        for variant, psnr, rot in (("off", 20.0, 0.1), ("s2camp", 21.0, 0.3))
+        for seed in (0, 1)
+    ]
+    rows[-1]["trace"] = [dict.fromkeys(TRACE_COLUMNS, 0.5) | {"step": 250}, dict.fromkeys(TRACE_COLUMNS, 0.25)]
+    config = RobustnessConfig(preset="regime", output_dir=tmp_path)
+    path = report(rows, config)
+    assert path == tmp_path / "regime.md"
+    text = path.read_text()
+    assert "Regenerate with `s2camp-bench robustness --preset regime`." in text
+    assert "| regime-wide | sfm | s2camp | 2 | 1.50 | 0.1 / 0 / 0 / 0.2 | 0.3 [0.3, 0.3] |" in text
+    assert "20.8" in text  # the unaligned PSNR of s2camp (21 - 0.25)
+    assert "### Camera path: regime-wide, sfm start, s2camp, seed 1" in text
+    assert "| 250 | 0.5 |" in text and "| 0.25 | 0.25 |" in text
+    assert (tmp_path / "regime.png").exists()

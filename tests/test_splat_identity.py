@@ -175,6 +175,7 @@ def test_float32_path_matches_refined_camera():
 
 
 @pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a real CUDA device (make gpu-check)")
 def test_gsplat_cuda_intrinsics_gradient_through_view_matrix():
     """gsplat's CUDA rasterization through V' = [[A R, A t], [0, 1]] with the base K renders as the reference
     rasterizer with K', and its intrinsics gradient (through the view matrix only: gsplat has none for Ks) matches

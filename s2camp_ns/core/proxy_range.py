@@ -381,4 +381,6 @@ def proxy_ranges(
     fallback = counts < config.min_points
     near, far = clamp_range(near, far, config, t_near, t_far)
     device = c2w.device
-    return ProxyRanges(t_near=near.to(device), t_far=far.to(device), num_points=counts.to(device), fallback=fallback)
+    return ProxyRanges(
+        t_near=near.to(device), t_far=far.to(device), num_points=counts.to(device), fallback=fallback.to(device)
+    )

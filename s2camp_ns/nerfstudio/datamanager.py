@@ -33,7 +33,10 @@ class PixelRayGenerator(RayGenerator):
     def forward(self, ray_indices: Int[Tensor, "num_rays 3"]) -> RayBundle:
         ray_bundle = super().forward(ray_indices)
         rows, cols = ray_indices[:, 1], ray_indices[:, 2]
-        pixels = torch.stack([cols, rows], dim=-1).to(ray_bundle.origins.dtype) + 0.5
+        # The indices come from the pixel sampler, on the cached images' device (nerfstudio keeps images on the CPU);
+        # the pixels go with the rays, on the model's device.
+        origins = ray_bundle.origins
+        pixels = torch.stack([cols, rows], dim=-1).to(device=origins.device, dtype=origins.dtype) + 0.5
         if ray_bundle.metadata is None:
             ray_bundle.metadata = {}
         ray_bundle.metadata[PIXEL_KEY] = pixels

@@ -56,8 +56,10 @@ from s2camp_ns.camera_optimizer import (
 from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics, opengl_to_opencv
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, colmap_to_values
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
+from s2camp_ns.core.tracks import track_reprojection_rms
 from s2camp_ns.core.validation import check_range
 from s2camp_ns.nerfstudio.colmap_model import ColmapModelError, model_file, read_model_file
+from s2camp_ns.nerfstudio.colmap_tracks import read_colmap_tracks
 
 NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 """nerfstudio's distortion_params order."""
@@ -105,6 +107,11 @@ class S2CampDataParserConfig(DataParserConfig):
     """Every eval_interval-th image is held out with eval_mode interval."""
     load_3D_points: bool = True
     """Load the COLMAP sparse points into metadata (needed by point-initialized models; cheap)."""
+    tracks: bool = True
+    """Measure each training camera's reprojection error against the COLMAP model's tracks, as the cameras are given
+    (after any perturbation): ``metadata["track_rms_px"]``, the scale of the camera optimizer's track prior
+    (``core.tracks``). COLMAP scenes with points only; False measures nothing (no prior), as for a scene without
+    tracks."""
     perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
     """CamP perturbation of the training cameras (evaluation protocol, off by default)."""
     reference_model: Path | None = None
@@ -414,6 +421,8 @@ class S2CampDataParser(DataParser):
             cameras = perturb_nerfstudio_cameras(cameras, self.config.perturbation)
         metadata = dict(outputs.metadata)
         metadata.update(extra)
+        if data_format == "colmap" and self.config.tracks and self.config.load_3D_points and self._has_points(source):
+            metadata["track_rms_px"] = track_rms_of(cameras, source, extra, outputs)
         metadata.update(
             reference_cameras=reference,
             # One id per physical camera: images whose given intrinsics agree (COLMAP's camera_id in practice; the
@@ -532,6 +541,14 @@ class S2CampDataParser(DataParser):
     def _transforms_frames(source: Path) -> list:
         with open(source, encoding="utf8") as f:
             return list(json.load(f).get("frames", []))
+
+
+def track_rms_of(cameras: Cameras, model: Path, extra: dict, outputs: DataparserOutputs) -> torch.Tensor:
+    """Reprojection RMS (px, float64 [N]) of the COLMAP model's tracks under ``cameras`` (normalized, as the data parser
+    returns them), measured in COLMAP's world frame (``core.tracks``)."""
+    tracks = read_colmap_tracks(model, extra["image_names"], extra["downscale_factor"])
+    c2w = c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, float(outputs.dataparser_scale))
+    return track_reprojection_rms(tracks, c2w, intrinsics_from_cameras(cameras))
 
 
 def c2w_to_colmap_world(

@@ -32,7 +32,7 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
-from s2camp_ns.camera_optimizer import projection_of
+from s2camp_ns.camera_optimizer import group_identical_intrinsics, projection_of
 from s2camp_ns.core.colmap_models import colmap_model_for, colmap_to_values, values_to_colmap
 from s2camp_ns.nerfstudio.dataparser import c2w_to_colmap_world
 
@@ -311,6 +311,10 @@ def main(config: ExportCamerasConfig) -> Path:
         xyz, rgb = read_points(Path(model_path))
     optimizer = getattr(pipeline.model, "camera_optimizer", None)
     shared = bool(getattr(optimizer, "shared", False))
+    # One COLMAP camera per physical camera: the shared refinement's groups, else images whose exported intrinsics
+    # agree exactly (refinement off, pose only, or nerfstudio's pose optimizer keep the given shared intrinsics;
+    # per-image refinement gives each image its own).
+    camera_ids = optimizer.camera_of_image.tolist() if shared else group_identical_intrinsics(cameras).tolist()
     reconstruction = export_cameras(
         cameras,
         outputs.dataparser_transform,
@@ -320,7 +324,7 @@ def main(config: ExportCamerasConfig) -> Path:
         xyz,
         rgb,
         config.camera_model,
-        camera_ids=optimizer.camera_of_image.tolist() if shared else None,
+        camera_ids=camera_ids,
     )
     config.output_dir.mkdir(parents=True, exist_ok=True)
     reconstruction.write_binary(str(config.output_dir))

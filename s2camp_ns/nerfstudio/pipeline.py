@@ -65,11 +65,15 @@ class S2CampPipeline(VanillaPipeline):
             # the undistorted K into the training cameras; the camera optimizer must start from those.
             _ = self.datamanager.cached_train
         # The dataparser's sparse points (normalized world, as the cameras) choose the proxy range per camera.
-        points = (getattr(self.datamanager.train_dataset, "metadata", None) or {}).get("points3D_xyz")
+        metadata = getattr(self.datamanager.train_dataset, "metadata", None) or {}
+        points = metadata.get("points3D_xyz")
+        # Each camera's reprojection error against the SfM tracks scales the optimizer's track prior.
+        track_rms = metadata.get("track_rms_px")
         if hasattr(self.model, "set_train_cameras"):
-            self.model.set_train_cameras(cameras, points=points)
+            self.model.set_train_cameras(cameras, points=points, track_rms_px=track_rms)
         elif isinstance(getattr(self.model, "camera_optimizer", None), S2CampCameraOptimizer):
             self.model.camera_optimizer.set_train_cameras(cameras, points=points)
+            self.model.camera_optimizer.set_track_prior(track_rms)
         self.world_size = world_size
         if world_size > 1:
             on_cuda = torch.device(device).type == "cuda"

@@ -80,12 +80,16 @@ class S2CampRefinementMixin:
         """True for S2CamP's camera optimizer, False for nerfstudio's stock one (the s2camp-so3xr3 baseline)."""
         return isinstance(self.camera_optimizer, S2CampCameraOptimizer)
 
-    def set_train_cameras(self, cameras: Cameras, points: Tensor | None = None) -> None:
+    def set_train_cameras(
+        self, cameras: Cameras, points: Tensor | None = None, track_rms_px: Tensor | None = None
+    ) -> None:
         """Keep the dataparser's training cameras (called by the pipeline before any checkpoint is loaded); the
-        scene's sparse ``points`` (normalized world) choose the S2CamP optimizer's proxy range."""
+        scene's sparse ``points`` (normalized world) choose the S2CamP optimizer's proxy range, the cameras'
+        reprojection errors against the SfM tracks (``track_rms_px``, px) scale its track prior."""
         self._train_cameras = cameras.to("cpu")
         if self.uses_s2camp_optimizer:
             self.camera_optimizer.set_train_cameras(cameras, points=points)
+            self.camera_optimizer.set_track_prior(track_rms_px)
 
     @torch.no_grad()
     def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:
@@ -137,11 +141,20 @@ class S2CampRefinementMixin:
             torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
             camera_optimizer.recompute_stale_preconditioner(step, torch_optimizer)
 
+        def apply_track_prior(step: int) -> None:
+            # After the optimizers' step: the prior's proximal step with the camera group's step size.
+            torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
+            if torch_optimizer is not None:
+                camera_optimizer.apply_track_prior(float(torch_optimizer.param_groups[0]["lr"]))
+
         if isinstance(camera_optimizer, S2CampCameraOptimizer) and camera_optimizer.enabled:
             callbacks.append(
                 TrainingCallback(
                     where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], func=recompute_stale_preconditioner
                 )
+            )
+            callbacks.append(
+                TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=apply_track_prior)
             )
             callbacks.append(
                 TrainingCallback(

@@ -141,8 +141,10 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
                 self.gauss_params["features_rest"].zero_()
         self.setup_camera_refinement()
 
-    def set_train_cameras(self, cameras: Cameras, points: Tensor | None = None) -> None:
-        super().set_train_cameras(pinhole_cameras(cameras), points=points)
+    def set_train_cameras(
+        self, cameras: Cameras, points: Tensor | None = None, track_rms_px: Tensor | None = None
+    ) -> None:
+        super().set_train_cameras(pinhole_cameras(cameras), points=points, track_rms_px=track_rms_px)
 
     @torch.no_grad()
     def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:

@@ -1,0 +1,132 @@
+"""The path of the training cameras through a run (``s2camp-bench robustness --trace-every N``): what moves first,
+along which direction, and how the camera gradient relates to the field's fit.
+
+For every checkpoint of a finished run (one each ``trace_every`` steps), from the camera optimizer's state:
+
+- ``rot_err`` / ``pos_err`` / ``focal_err``: errors against the true cameras after similarity alignment (degrees,
+  normalized units, px), as the robustness rows;
+- ``moved_rot`` / ``moved_pos`` / ``moved_focal``: how far the refined cameras are from the given ones, without any
+  alignment (degrees, normalized units, px; means over cameras);
+- ``gauge_scale`` / ``gauge_rot`` / ``gauge_shift``: the similarity that best maps the given camera centres onto the
+  refined ones (Umeyama): the part of the motion the photometric loss cannot see (scale - 1, degrees, normalized
+  units);
+- ``forward_shift``: mean move of the centres along their own optical axes (normalized units, + forward), and
+  ``focal_forward_corr``: the correlation over cameras of the relative focal change with the forward move divided by
+  the camera's distance to the scene centre (focal against depth: a camera that zooms in and backs away keeps the
+  centre's image);
+- ``pose_consistency`` / ``intrinsics_consistency``: Adam's |m| / sqrt(v) over the whitened latent, the RMS over
+  coordinates (the bias-corrected moments; about 0.23 for pure noise with beta1 0.9, 1 for a gradient of constant
+  sign);
+- ``train_loss``: nerfstudio's logged training loss at the nearest logged step (the field's fit).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+
+
+def _checkpoints(run: Path) -> list[Path]:
+    return sorted((run / "nerfstudio_models").glob("step-*.ckpt"), key=lambda p: int(p.stem.split("-")[1]))
+
+
+def _train_losses(run: Path) -> dict[int, float]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = sorted(run.glob("events.out.tfevents.*"))
+    if not events:
+        return {}
+    accumulator = EventAccumulator(str(events[-1]), size_guidance={"scalars": 0})
+    accumulator.Reload()
+    if "Train Loss" not in accumulator.Tags().get("scalars", []):
+        return {}
+    return {event.step: event.value for event in accumulator.Scalars("Train Loss")}
+
+
+def _nearest(values: dict[int, float], step: int) -> float:
+    if not values:
+        return math.nan
+    return values[min(values, key=lambda s: abs(s - step))]
+
+
+def _consistency(state: dict, beta1: float, beta2: float) -> float:
+    """RMS over coordinates of Adam's bias-corrected |m| / sqrt(v)."""
+    if not state or "exp_avg" not in state:
+        return math.nan
+    step = float(state["step"])
+    m = state["exp_avg"].double() / (1 - beta1**step)
+    v = state["exp_avg_sq"].double() / (1 - beta2**step)
+    ratio = m.abs() / (v.sqrt() + 1e-30)
+    return float(ratio.square().mean().sqrt())
+
+
+def camera_path_point(optimizer, reference_c2w_gl, reference_fx) -> dict[str, float]:
+    """The trace quantities (module docstring) of an S2CamP camera optimizer's current cameras."""
+    from s2camp_ns.core.alignment import camera_errors, rotation_angle, umeyama
+    from s2camp_ns.core.camera import opengl_to_opencv
+
+    with torch.no_grad():
+        given = optimizer.base_c2w_cv.cpu()
+        refined = optimizer.refined_c2w().cpu()
+        given_fx = optimizer.base_intrinsics[:, 0].cpu()
+        refined_fx = optimizer.refined_intrinsics().fx.detach().cpu()
+    errors = camera_errors(opengl_to_opencv(refined), reference_c2w_gl, refined_fx, reference_fx, align=True)
+    gauge = umeyama(given[:, :, 3], refined[:, :, 3])
+    identity = torch.eye(3, dtype=torch.float64)[None]
+    forward = ((refined[:, :, 3] - given[:, :, 3]) * given[:, :, 2]).sum(dim=-1)
+    distance = given[:, :, 3].norm(dim=-1).clamp(min=1e-9)
+    focal_change = refined_fx / given_fx - 1.0
+    x, y = focal_change - focal_change.mean(), forward / distance
+    y = y - y.mean()
+    corr = float((x * y).sum() / ((x.square().sum() * y.square().sum()).sqrt() + 1e-30))
+    return {
+        "rot_err": math.degrees(errors["rot_err_mean"]),
+        "pos_err": errors["pos_err_mean"],
+        "focal_err": errors["focal_err_mean"],
+        "moved_rot": math.degrees(float(rotation_angle(given[:, :, :3], refined[:, :, :3]).mean())),
+        "moved_pos": float((refined[:, :, 3] - given[:, :, 3]).norm(dim=-1).mean()),
+        "moved_focal": float((refined_fx - given_fx).abs().mean()),
+        "gauge_scale": float(gauge.scale) - 1.0,
+        "gauge_rot": math.degrees(float(rotation_angle(identity, gauge.rotation[None])[0])),
+        "gauge_shift": float(gauge.translation.norm()),
+        "forward_shift": float(forward.mean()),
+        "focal_forward_corr": corr,
+    }
+
+
+def trace_run(run: Path) -> list[dict]:
+    """One row per checkpoint of ``run`` (module docstring); [] for a run without S2CamP's camera optimizer."""
+    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
+
+    from .recovery_photometric import _load_pipeline
+
+    pipeline = _load_pipeline(run)
+    model = pipeline.model
+    if not model.uses_s2camp_optimizer or not model.camera_optimizer.enabled:
+        return []
+    reference = model.reference_cameras()
+    reference = model._train_cameras if reference is None else reference
+    reference_c2w = reference.camera_to_worlds.to(torch.float64).cpu()
+    reference_fx = intrinsics_from_cameras(reference.to("cpu")).fx
+    losses = _train_losses(run)
+    rows = []
+    for path in _checkpoints(run):
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+        step = int(checkpoint["step"])
+        pipeline.load_pipeline(checkpoint["pipeline"], step)
+        optimizer = model.camera_optimizer
+        row = {"step": step, **camera_path_point(optimizer, reference_c2w, reference_fx)}
+        camera_state = checkpoint["optimizers"].get("camera_opt", {})
+        states = camera_state.get("state", {})
+        groups = camera_state.get("param_groups", [{}])
+        beta1, beta2 = groups[0].get("betas", (0.9, 0.999))
+        row["pose_consistency"] = _consistency(states.get(0, {}), beta1, beta2)
+        row["intrinsics_consistency"] = _consistency(states.get(1, {}), beta1, beta2)
+        row["train_loss"] = _nearest(losses, step)
+        rows.append(row)
+    return rows
+
+
+__all__ = ["camera_path_point", "trace_run"]

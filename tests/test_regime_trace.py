@@ -1,0 +1,79 @@
+"""The camera-path quantities of ``s2camp-bench robustness --trace-every`` on hand-made cameras
+(``benchmarks/regime_trace.py``)."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from s2camp_ns.benchmarks.regime_trace import _consistency, camera_path_point
+from s2camp_ns.core.camera import opengl_to_opencv
+
+
+def _ring(n: int = 8, radius: float = 2.0) -> torch.Tensor:
+    """OpenCV c2w of cameras on a ring looking at the origin (z forward = towards the centre)."""
+    poses = []
+    for angle in torch.linspace(0.0, 2.0 * math.pi, n + 1, dtype=torch.float64)[:-1].tolist():
+        centre = torch.tensor([radius * math.cos(angle), radius * math.sin(angle), 0.0], dtype=torch.float64)
+        forward = -centre / centre.norm()
+        down = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+        right = torch.linalg.cross(down, forward)
+        poses.append(torch.cat([torch.stack([right, down, forward], dim=-1), centre[:, None]], dim=-1))
+    return torch.stack(poses)
+
+
+def _optimizer(given: torch.Tensor, refined: torch.Tensor, fx: torch.Tensor, refined_fx: torch.Tensor):
+    intrinsics = torch.zeros(given.shape[0], 13, dtype=torch.float64)
+    intrinsics[:, 0] = fx
+    return SimpleNamespace(
+        base_c2w_cv=given,
+        refined_c2w=lambda: refined,
+        base_intrinsics=intrinsics,
+        refined_intrinsics=lambda: SimpleNamespace(fx=refined_fx),
+    )
+
+
+def test_a_pure_similarity_is_all_gauge_and_no_error() -> None:
+    given = _ring()
+    refined = given.clone()
+    refined[:, :, 3] = 1.1 * given[:, :, 3]  # every centre 10% further out: a scale of the world
+    fx = torch.full((8,), 100.0, dtype=torch.float64)
+    point = camera_path_point(_optimizer(given, refined, fx, fx), opengl_to_opencv(given), fx)
+    assert point["gauge_scale"] == pytest.approx(0.1, abs=1e-9)
+    assert point["gauge_rot"] == pytest.approx(0.0, abs=1e-6)
+    assert point["rot_err"] == pytest.approx(0.0, abs=1e-6)
+    assert point["pos_err"] == pytest.approx(0.0, abs=1e-9)
+    # Each camera moved 0.2 units backwards along its axis; nothing rotated, no focal change.
+    assert point["moved_pos"] == pytest.approx(0.2, rel=1e-9)
+    assert point["forward_shift"] == pytest.approx(-0.2, rel=1e-9)
+    assert point["moved_rot"] == pytest.approx(0.0, abs=1e-6)
+    assert point["moved_focal"] == 0.0
+
+
+def test_zoom_in_while_backing_away_correlates_focal_with_depth() -> None:
+    given = _ring()
+    refined = given.clone()
+    backwards = torch.tensor([0.0, 0.1, 0.0, 0.2, 0.0, 0.1, 0.0, 0.3], dtype=torch.float64)
+    refined[:, :, 3] = given[:, :, 3] - backwards[:, None] * given[:, :, 2]
+    fx = torch.full((8,), 100.0, dtype=torch.float64)
+    refined_fx = fx * (1.0 + 0.5 * backwards)  # keeps the centre's image size: focal grows with distance
+    point = camera_path_point(_optimizer(given, refined, fx, refined_fx), opengl_to_opencv(given), fx)
+    assert point["focal_forward_corr"] == pytest.approx(-1.0, abs=1e-9)
+    assert point["moved_focal"] == pytest.approx(100.0 * 0.5 * float(backwards.mean()), rel=1e-9)
+    assert point["focal_err"] == pytest.approx(point["moved_focal"], rel=1e-9)
+
+
+def test_adam_consistency_is_one_for_a_constant_gradient_and_small_for_noise() -> None:
+    for noise, low, high in ((False, 0.999, 1.001), (True, 0.1, 0.4)):
+        parameter = torch.nn.Parameter(torch.zeros(64, 6))
+        adam = torch.optim.Adam([parameter], lr=1e-3, betas=(0.9, 0.999))
+        generator = torch.Generator().manual_seed(0)
+        for _ in range(500):
+            parameter.grad = torch.randn(64, 6, generator=generator) if noise else torch.ones(64, 6)
+            adam.step()
+        value = _consistency(adam.state[parameter], 0.9, 0.999)
+        assert low < value < high, (noise, value)
+    assert math.isnan(_consistency({}, 0.9, 0.999))

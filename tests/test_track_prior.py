@@ -1,0 +1,184 @@
+"""The track prior: reprojection error of SfM tracks under the given cameras (``core.tracks``), its reading from a
+COLMAP model, the data parser's ``track_rms_px`` and the camera optimizer's proximal step."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pycolmap
+import pytest
+import torch
+from test_camera_optimizer_shared import make_optimizer
+
+from s2camp_ns.core.camera import Intrinsics
+from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
+
+IDENTITY_C2W = torch.cat([torch.eye(3, dtype=torch.float64), torch.zeros(3, 1, dtype=torch.float64)], dim=1)
+
+
+def _pinhole(n: int) -> Intrinsics:
+    return Intrinsics.create(fx=[100.0] * n, fy=[100.0] * n, cx=[50.0] * n, cy=[40.0] * n, width=[100] * n,
+                             height=[80] * n, dtype=torch.float64)  # fmt: skip
+
+
+def test_rms_per_camera_from_hand_projected_points() -> None:
+    # Camera 0 at the origin looking down +z: (0.1, 0, 1) projects to (100 * 0.1 + 50, 40) = (60, 40) and (0, 0.2, 2)
+    # to (50, 100 * 0.1 + 40) = (50, 50). Observed 3-4-5 px and 0 px off: RMS sqrt(25 / 2). Camera 1 is camera 0
+    # moved 1 unit along +x: the first point then lies at x = -0.9, u = -40; observed at u = -40 + 6: RMS 6. Camera 2
+    # observes only a point behind it: left out, NaN.
+    points = torch.tensor([[0.1, 0.0, 1.0], [0.0, 0.2, 2.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
+    tracks = Tracks(
+        points=points,
+        image=torch.tensor([0, 0, 1, 2]),
+        point=torch.tensor([0, 1, 0, 2]),
+        pixels=torch.tensor([[63.0, 44.0], [50.0, 50.0], [-34.0, 40.0], [50.0, 40.0]], dtype=torch.float64),
+    )
+    c2w = IDENTITY_C2W.expand(3, 3, 4).clone()
+    c2w[1, 0, 3] = 1.0
+    rms = track_reprojection_rms(tracks, c2w, _pinhole(3))
+    assert rms[0].item() == pytest.approx(math.sqrt(25.0 / 2.0), rel=1e-12)
+    assert rms[1].item() == pytest.approx(6.0, rel=1e-12)
+    assert math.isnan(rms[2].item())
+
+
+def test_rms_is_unchanged_by_a_similarity_of_points_and_cameras() -> None:
+    generator = torch.Generator().manual_seed(0)
+    points = torch.randn(20, 3, generator=generator, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 3.0])
+    image = torch.arange(40) % 2
+    point = torch.arange(40) % 20
+    c2w = IDENTITY_C2W.expand(2, 3, 4).clone()
+    c2w[1, :, 3] = torch.tensor([0.2, -0.1, 0.1])
+    pixels = torch.rand(40, 2, generator=generator, dtype=torch.float64) * 80.0
+    before = track_reprojection_rms(Tracks(points, image, point, pixels), c2w, _pinhole(2))
+    angle = 0.3
+    rotation = torch.tensor([[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0],
+                             [0.0, 0.0, 1.0]], dtype=torch.float64)  # fmt: skip
+    scale, shift = 2.5, torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    moved_c2w = torch.cat([rotation @ c2w[:, :, :3], (scale * c2w[:, :, 3] @ rotation.T + shift)[:, :, None]], -1)
+    moved_points = scale * points @ rotation.T + shift
+    after = track_reprojection_rms(Tracks(moved_points, image, point, pixels), moved_c2w, _pinhole(2))
+    assert torch.allclose(before, after, rtol=1e-10, atol=0.0)
+    assert bool((before > 1.0).all())  # the observations are random: far from the projections
+
+
+def test_tracks_indexing_out_of_range_is_refused_by_name() -> None:
+    tracks = Tracks(torch.zeros(2, 3), torch.tensor([0, 3]), torch.tensor([0, 1]), torch.zeros(2, 2))
+    with pytest.raises(ValueError, match=r"tracks.image must index the 2 cameras, got values in \[0, 3\]"):
+        track_reprojection_rms(tracks, IDENTITY_C2W.expand(2, 3, 4), _pinhole(2))
+
+
+def _tiny_model(folder, observations: list[tuple[str, list[tuple[float, float, int]]]], points: dict[int, list]):
+    """A COLMAP model with one PINHOLE camera, images named by ``observations`` (pixel x, y, index of the observed
+    point in ``points`` or -1), written the way ``make_scene`` writes its model."""
+    reconstruction = pycolmap.Reconstruction()
+    camera = pycolmap.Camera(model="PINHOLE", width=100, height=80, params=[100, 100, 50, 40], camera_id=1)
+    reconstruction.add_camera_with_trivial_rig(camera)
+    tracks: dict[int, list] = {index: [] for index in points}
+    for image_id, (name, observed) in enumerate(observations, start=1):
+        keypoints = np.array([[x, y] for x, y, _ in observed], dtype=np.float64)
+        image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=1, image_id=image_id)
+        reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d())
+        for keypoint, (_, _, index) in enumerate(observed):
+            if index >= 0:
+                tracks[index].append(pycolmap.TrackElement(image_id, keypoint))
+    for index, xyz in points.items():
+        colour = np.zeros(3, np.uint8)
+        reconstruction.add_point3D(np.array(xyz, dtype=np.float64), pycolmap.Track(tracks[index]), colour)
+    folder.mkdir(parents=True)
+    reconstruction.write_binary(str(folder))
+    for extra in ("rigs.bin", "frames.bin"):
+        (folder / extra).unlink(missing_ok=True)
+    return folder
+
+
+def test_read_colmap_tracks_follows_the_requested_names_and_downscale(tmp_path) -> None:
+    from s2camp_ns.nerfstudio.colmap_tracks import read_colmap_tracks
+
+    model = _tiny_model(
+        tmp_path / "sparse",
+        [("a.png", [(10.0, 20.0, 1), (30.0, 40.0, -1)]), ("b.png", [(50.0, 60.0, 2), (70.0, 8.0, 1)])],
+        {1: [0.0, 0.0, 1.0], 2: [0.1, 0.0, 1.0]},
+    )
+    tracks = read_colmap_tracks(model, ["b.png", "a.png"], downscale_factor=2)
+    assert tracks.image.tolist() == [0, 0, 1]  # b's two tracked points, then a's one (its -1 is not a track)
+    rows = tracks.point.tolist()
+    assert tracks.points[rows].tolist() == [[0.1, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]
+    assert tracks.pixels.tolist() == [[25.0, 30.0], [35.0, 4.0], [5.0, 10.0]]
+    with pytest.raises(ValueError, match=r"holds no image named 'c.png'"):
+        read_colmap_tracks(model, ["c.png"])
+
+
+def test_data_parser_measures_exact_tracks_at_zero_and_perturbed_cameras_above(tiny_scene) -> None:
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+
+    accurate = S2CampDataParserConfig(data=tiny_scene).setup().get_dataparser_outputs("train")
+    rms = accurate.metadata["track_rms_px"]
+    assert rms.shape == (accurate.cameras.shape[0],)
+    # The generated tracks are the exact projections of the generated points (float32 storage of the poses).
+    assert float(rms.max()) < 1e-3
+    config = S2CampDataParserConfig(data=tiny_scene)
+    config.perturbation.enabled = True
+    perturbed = config.setup().get_dataparser_outputs("train")
+    assert float(perturbed.metadata["track_rms_px"].min()) > 0.1
+    off = S2CampDataParserConfig(data=tiny_scene, tracks=False).setup().get_dataparser_outputs("train")
+    assert "track_rms_px" not in off.metadata
+
+
+def test_prior_step_shrinks_each_latent_by_its_radius_and_leaves_untracked_images() -> None:
+    optimizer = make_optimizer(track_prior=True)  # 4 images of width 64, two physical cameras: images 0, 2 and 1, 3
+    with torch.no_grad():
+        optimizer.whitened_delta.fill_(1.0)
+        optimizer.whitened_intrinsics.fill_(1.0)
+    optimizer.set_track_prior(torch.tensor([0.64, 6.4, float("nan"), 1.28]))
+    optimizer.apply_track_prior(lr=1e-3)
+    # Radii in whitened units: 0.01, 0.1, none, 0.02; factor 1 / (1 + lr / r): 1 / 1.1, 1 / 1.01, 1, 1 / 1.05.
+    expected = [1 / 1.1, 1 / 1.01, 1.0, 1 / 1.05]
+    assert optimizer.whitened_delta[:, 0].tolist() == pytest.approx(expected, rel=1e-6)
+    assert bool((optimizer.whitened_delta == optimizer.whitened_delta[:, :1]).all())  # every coordinate alike
+    # Camera A (images 0 and 2): only image 0 has tracks, radius 0.01; camera B: RMS of 0.1 and 0.02.
+    radius_b = math.sqrt((0.1**2 + 0.02**2) / 2)
+    shared = [1 / (1 + 1e-3 / r) for r in (0.01, radius_b)]
+    labels = optimizer.camera_of_image.tolist()
+    assert optimizer.whitened_intrinsics[labels[0], 0].item() == pytest.approx(shared[0], rel=1e-6)
+    assert optimizer.whitened_intrinsics[labels[1], 0].item() == pytest.approx(shared[1], rel=1e-6)
+
+
+def test_prior_off_or_without_tracks_changes_nothing() -> None:
+    # Off by default; on without tracks.
+    for optimizer, rms in ((make_optimizer(), torch.full((4,), 0.5)), (make_optimizer(track_prior=True), None)):
+        with torch.no_grad():
+            optimizer.whitened_delta.fill_(1.0)
+        optimizer.set_track_prior(rms)
+        optimizer.apply_track_prior(lr=1e-2)
+        assert bool((optimizer.whitened_delta == 1.0).all())
+
+
+def test_prior_refuses_wrong_sizes_and_negative_errors() -> None:
+    optimizer = make_optimizer(track_prior=True)
+    with pytest.raises(ValueError, match="track_rms_px must hold 4 values"):
+        optimizer.set_track_prior(torch.ones(3))
+    with pytest.raises(ValueError, match=r"track_rms_px must be >= 0 \(pixels\), got minimum -1"):
+        optimizer.set_track_prior(torch.tensor([1.0, -1.0, 1.0, 1.0]))
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_adam_with_the_prior_settles_within_the_radius(noise: bool) -> None:
+    # A gradient of constant sign: Adam's |m / sqrt(v)| -> 1, every coordinate settles at r. Pure noise of the same
+    # size: a fraction of r (Adam's |m / sqrt(v)| is about 0.23 for beta1 0.9).
+    optimizer = make_optimizer(parameters="pose", track_prior=True)
+    optimizer.set_track_prior(torch.full((4,), 3.2))  # 0.05 in whitened units (width 64)
+    adam = torch.optim.Adam([optimizer.whitened_delta], lr=1e-3)
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(3000):
+        adam.zero_grad()
+        gradient = torch.randn(4, 6, generator=generator) if noise else -torch.ones(4, 6)
+        optimizer.whitened_delta.grad = gradient
+        adam.step()
+        optimizer.apply_track_prior(lr=1e-3)
+    latent = optimizer.whitened_delta.detach()
+    if noise:
+        assert float(latent.abs().max()) < 0.5 * 0.05
+        assert float(latent.abs().max()) > 0.02 * 0.05  # noise does move it: the bound above is not vacuous
+    else:
+        assert latent.flatten().tolist() == pytest.approx([0.05] * 24, rel=0.05)
