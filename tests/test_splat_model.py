@@ -191,3 +191,43 @@ def test_held_out_alignment_refuses_splatfacto_models_by_name():
     pipeline = SimpleNamespace(model=object.__new__(S2CampSplatModel))
     with pytest.raises(ValueError, match="S2CampSplatModel .*does not support yet: use ns-eval"):
         evaluate_held_out_views(pipeline)
+
+
+def test_splat_training_step_on_emulated_cuda(tiny_scene: Path):
+    """The s2camp-splat pipeline built on "cuda" (tests/fake_cuda.py: every op's devices checked by CUDA's rules)
+    runs a training step with the reference rasterizer forced (gsplat's kernels need a real GPU): the refined
+    camera's view matrix, the rasterizer, splatfacto's strategy hook, backward and the optimizers' step."""
+    from fake_cuda import fake_cuda, is_fake_cuda, values
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+    from nerfstudio.engine.optimizers import Optimizers
+
+    from s2camp_ns.method_config import s2camp_splat_method
+    from s2camp_ns.nerfstudio.trainer import with_run_length
+
+    config = copy.deepcopy(s2camp_splat_method.config)
+    config.pipeline.datamanager.data = tiny_scene
+    config.pipeline.datamanager.dataparser.data = tiny_scene
+    config.pipeline.datamanager.dataparser.perturbation.enabled = True
+    config.pipeline.model.rasterizer = "reference"
+    config.pipeline.model.camera_error_every = 1
+    with fake_cuda():
+        pipeline = config.pipeline.setup(device="cuda", test_mode="val")
+        model = pipeline.model
+        optimizers = Optimizers(with_run_length(config.optimizers, 100), pipeline.get_param_groups())
+        callbacks = model.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, None))
+        for callback in callbacks:  # splatfacto's step_cb (before the iteration) hands the strategy the optimizers
+            if callback.where_to_run[0].name == "BEFORE_TRAIN_ITERATION":
+                callback.run_callback_at_location(1, callback.where_to_run[0])
+        camera, batch = pipeline.datamanager.next_train(1)
+        outputs = model(camera)
+        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+        optimizers.zero_grad_all()
+        sum(loss_dict.values()).backward()
+        grad = model.camera_optimizer.whitened_intrinsics.grad
+        means2d_grad = model.info["means2d"].grad
+        latent_before = values(model.camera_optimizer.whitened_intrinsics).clone()
+        optimizers.optimizer_step_all()
+    assert is_fake_cuda(outputs["rgb"]) and is_fake_cuda(grad) and is_fake_cuda(means2d_grad)
+    assert float(values(grad).abs().sum()) > 0, "the intrinsics get a gradient through the view matrix"
+    assert float(values(means2d_grad).abs().sum()) > 0, "the strategy reads the projected means' gradient"
+    assert not torch.equal(values(model.camera_optimizer.whitened_intrinsics), latent_before)

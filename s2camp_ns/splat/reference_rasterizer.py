@@ -170,7 +170,7 @@ def project_gaussians(
     means2d = (k2 @ tangents[..., None])[..., 0] + principal
     # The clamp gets its own copy of the projected means: ``means2d`` is returned for its gradient, which (as
     # gsplat's) must hold the compositing's part only (the densification strategy accumulates it).
-    size = means2d.new_tensor([float(width), float(height)])
+    size = torch.tensor([float(width), float(height)], dtype=means2d.dtype, device=means2d.device)
     margin = 0.5 * CLAMP_MARGIN * size
     unclamped = (k2 @ tangents[..., None])[..., 0] + principal
     clamped = torch.minimum(torch.maximum(unclamped, -margin), size + margin)
@@ -240,14 +240,16 @@ def composite_tile(
     sigma = 0.5 * (conics[:, 0] * dx * dx + conics[:, 2] * dy * dy) + conics[:, 1] * dx * dy
     alpha = torch.clamp_max(opacities * torch.exp(-sigma), ALPHA_MAX)
     alpha = torch.where((sigma >= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
-    one_minus = 1.0 - alpha
-    after = torch.cumprod(one_minus, dim=1)
-    before = torch.cat([torch.ones_like(after[:, :1]), after[:, :-1]], dim=1)
+    # Transmittance after each Gaussian, prod (1 - alpha_j) over j <= i, as exp of a cumulative sum (alpha <= 0.999
+    # keeps the logarithm finite; cumsum's backward pass is simpler than cumprod's, which divides by the factors).
+    log_after = torch.cumsum(torch.log1p(-alpha), dim=1)
+    after = torch.exp(log_after)
+    before = torch.exp(log_after - torch.log1p(-alpha))
     # Transmittance only decreases, so "stop before the first Gaussian that takes T to <= 1e-4" keeps exactly the
     # Gaussians whose T after them is still above it (skipped ones keep T unchanged and contribute nothing).
     keep = (after > TRANSMITTANCE_MIN).to(alpha.dtype)
     weights = alpha * before * keep
-    transmittance = torch.prod(1.0 - alpha * keep, dim=1)
+    transmittance = torch.exp(torch.log1p(-alpha * keep).sum(dim=1))
     return weights @ features, transmittance
 
 
@@ -327,7 +329,7 @@ def rasterization(
             order = order[radii[camera][order] > 0]
             centre = means2d[order].detach() / tile_size
             extent = (radius[order] / tile_size)[:, None]
-            upper = torch.tensor([tiles_x, tiles_y], dtype=centre.dtype)
+            upper = torch.tensor([tiles_x, tiles_y], dtype=centre.dtype, device=centre.device)
             tile_min = torch.minimum(torch.floor(centre - extent).clamp_min(0), upper)
             tile_max = torch.minimum(torch.ceil(centre + extent).clamp_min(0), upper)
         image = means2d.new_zeros(height, width, dim)
@@ -344,8 +346,8 @@ def rasterization(
                 if ids.numel() == 0:
                     continue
                 ys, xs = torch.meshgrid(
-                    torch.arange(y0, y1, dtype=means2d.dtype),
-                    torch.arange(x0, x1, dtype=means2d.dtype),
+                    torch.arange(y0, y1, dtype=means2d.dtype, device=means2d.device),
+                    torch.arange(x0, x1, dtype=means2d.dtype, device=means2d.device),
                     indexing="ij",
                 )
                 pixels = torch.stack([xs + 0.5, ys + 0.5], dim=-1).reshape(-1, 2)
