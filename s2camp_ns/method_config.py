@@ -19,6 +19,7 @@ from __future__ import annotations
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
@@ -29,14 +30,15 @@ from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 from s2camp_ns.nerfstudio.model import S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
 from s2camp_ns.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig, RunLengthScheduleConfig
+from s2camp_ns.nerfstudio.splat_model import S2CampSplatModelConfig
 from s2camp_ns.nerfstudio.trainer import S2CampTrainerConfig
 
 DEFAULT_DEVICE_TYPE = "cuda" if torch.cuda.is_available() else "cpu"
 """nerfstudio's Trainer takes the device from the config and asserts CUDA; fall back to the CPU here instead."""
 
 
-def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfig) -> S2CampTrainerConfig:
-    """Nerfacto's trainer settings with the S2CamP pipeline; only ``camera_optimizer`` differs between methods."""
+def camera_schedule_for(camera_optimizer: CameraOptimizerConfig) -> dict:
+    """The "camera_opt" optimizer and schedule of a method: S2CamP's in whitened units, nerfacto's otherwise."""
     if isinstance(camera_optimizer, S2CampCameraOptimizerConfig):
         # Whitened units: a unit step of the latent moves the proxy projections by max(W, H) pixels RMS (Gram matrix
         # normalized by the image size, docs/EQUATIONS.md eq. 5), so the rates are fractions of the image size and
@@ -52,6 +54,12 @@ def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfi
             "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
             "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
         }
+    return camera_schedule
+
+
+def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfig) -> S2CampTrainerConfig:
+    """Nerfacto's trainer settings with the S2CamP pipeline; only ``camera_optimizer`` differs between methods."""
+    camera_schedule = camera_schedule_for(camera_optimizer)
     return S2CampTrainerConfig(
         method_name=method_name,
         steps_per_eval_batch=500,
@@ -112,4 +120,71 @@ s2camp_camp_method = MethodSpecification(
 s2camp_so3xr3_method = MethodSpecification(
     config=make_trainer_config("s2camp-so3xr3", CameraOptimizerConfig(mode="SO3xR3")),
     description="nerfacto baseline: nerfstudio's stock SO3xR3 pose optimizer in the S2CamP pipeline (no intrinsics).",
+)
+
+
+def make_splat_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfig) -> S2CampTrainerConfig:
+    """splatfacto's trainer settings (nerfstudio 1.1.5's, float learning rates) with the S2CamP pipeline and data
+    parser. S2CamP's camera schedule is the nerfacto methods' (``camera_schedule_for``); nerfstudio's stock
+    optimizer gets splatfacto's own (1e-4 after a 1000-step warm-up, decaying to 5e-7)."""
+    if isinstance(camera_optimizer, S2CampCameraOptimizerConfig):
+        camera_schedule = camera_schedule_for(camera_optimizer)
+    else:
+        camera_schedule = {
+            "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
+            "scheduler": FloatExponentialDecaySchedulerConfig(
+                lr_final=5e-7, max_steps=30000, warmup_steps=1000, lr_pre_warmup=0
+            ),
+        }
+
+    def adam(lr: float) -> dict:
+        return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": None}
+
+    return S2CampTrainerConfig(
+        method_name=method_name,
+        steps_per_eval_image=100,
+        steps_per_eval_batch=0,
+        steps_per_save=2000,
+        steps_per_eval_all_images=1000,
+        max_num_iterations=30000,
+        mixed_precision=False,
+        machine=MachineConfig(device_type=DEFAULT_DEVICE_TYPE),
+        pipeline=S2CampPipelineConfig(
+            datamanager=FullImageDatamanagerConfig(dataparser=S2CampDataParserConfig(), cache_images_type="uint8"),
+            model=S2CampSplatModelConfig(camera_optimizer=camera_optimizer),
+        ),
+        optimizers={
+            "means": {
+                "optimizer": AdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
+                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=30000),
+            },
+            "features_dc": adam(0.0025),
+            "features_rest": adam(0.0025 / 20),
+            "opacities": adam(0.05),
+            "scales": adam(0.005),
+            "quats": adam(0.001),
+            "camera_opt": camera_schedule,
+            "bilateral_grid": {
+                "optimizer": AdamOptimizerConfig(lr=2e-3, eps=1e-15),
+                "scheduler": FloatExponentialDecaySchedulerConfig(
+                    lr_final=1e-4, max_steps=30000, warmup_steps=1000, lr_pre_warmup=0
+                ),
+            },
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        vis="viewer",
+    )
+
+
+s2camp_splat_method = MethodSpecification(
+    config=make_splat_trainer_config("s2camp-splat", S2CampCameraOptimizerConfig(parameters="pose+intrinsics")),
+    description=(
+        "S2CamP for 3D Gaussian Splatting: splatfacto + preconditioned pose, focal, principal point and skew "
+        "refinement through gsplat's view matrix (distortion fixed: images are undistorted)."
+    ),
+)
+
+s2camp_splat_so3xr3_method = MethodSpecification(
+    config=make_splat_trainer_config("s2camp-splat-so3xr3", CameraOptimizerConfig(mode="SO3xR3")),
+    description="splatfacto baseline: nerfstudio's stock SO3xR3 pose optimizer in the S2CamP pipeline (no intrinsics).",
 )

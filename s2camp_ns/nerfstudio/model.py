@@ -1,52 +1,22 @@
 """Nerfacto with the S2CamP camera optimizer, offline-safe LPIPS and camera-error logging.
 
-Everything but the camera handling is nerfstudio's nerfacto (proposal sampling, field, losses, renderers).
-
-With several processes (DDP, docs/SCALING.md) every rank refreshes P at the same steps: scheduled refreshes fall on
-the same step numbers everywhere, and a refresh requested from the viewer (which runs on rank 0 only) is agreed on
-by an 8-byte all-reduce every ``refresh_request_every`` steps, so all ranks re-express their latent at one step.
-Camera errors are computed on rank 0 only (nerfstudio's writer drops the other ranks' scalars anyway).
+Everything but the camera handling is nerfstudio's nerfacto (proposal sampling, field, losses, renderers); the
+camera refinement shared with ``s2camp-splat`` (refresh of P, camera errors, viewer panel, several processes) is
+``s2camp_ns.nerfstudio.refinement.S2CampRefinementMixin``.
 """
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 
 import torch
-from jaxtyping import Float
 from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
-from nerfstudio.utils import comms
-from nerfstudio.utils.rich_utils import CONSOLE
-from torch import Tensor
 
-from s2camp_ns.camera_optimizer import (
-    TRAIN_CAMERA_KEY,
-    S2CampCameraOptimizer,
-    S2CampCameraOptimizerConfig,
-    intrinsics_from_cameras,
-)
-from s2camp_ns.core.camera import opengl_to_opencv, vertical_field_of_view
-from s2camp_ns.core.validation import check_positive_int
-from s2camp_ns.nerfstudio.distributed import any_rank, world_size
-from s2camp_ns.nerfstudio.viewer_panel import CameraFrusta, FrustumSet, RefinementStatus, S2CampViewerPanel
-
-_LPIPS_WARNED = False
-
-
-def _warn_lpips_unavailable(error: BaseException) -> None:
-    global _LPIPS_WARNED
-    if not _LPIPS_WARNED:
-        CONSOLE.print(
-            "[bold yellow]LPIPS unavailable: weights not cached and could not be downloaded "
-            f"({type(error).__name__}: {error}). PSNR and SSIM are still computed; lpips is omitted from the "
-            "metrics. Cache the AlexNet weights (torch hub) to enable it."
-        )
-        _LPIPS_WARNED = True
+from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.nerfstudio.refinement import S2CampRefinementMixin, warn_lpips_unavailable
 
 
 @dataclass
@@ -73,239 +43,26 @@ class S2CampModelConfig(NerfactoModelConfig):
     next step and communicates nothing."""
 
 
-class S2CampModel(NerfactoModel):
+class S2CampModel(S2CampRefinementMixin, NerfactoModel):
     """Nerfacto whose training rays go through the refined cameras (pose and intrinsics)."""
 
     config: S2CampModelConfig
     camera_optimizer: CameraOptimizer
 
     def populate_modules(self):
-        check_positive_int("refresh_request_every", self.config.refresh_request_every)
         try:
             super().populate_modules()
         except (OSError, RuntimeError) as error:
             # Nerfacto builds LPIPS last, right after PSNR; anything failing earlier is a real error.
             if not hasattr(self, "psnr") or hasattr(self, "lpips"):
                 raise
-            _warn_lpips_unavailable(error)
+            warn_lpips_unavailable(error)
             self.lpips = None
             self.step = 0
         if not self.config.stratified_samples:
             self.proposal_sampler.initial_sampler.train_stratified = False
             self.proposal_sampler.pdf_sampler.train_stratified = False
-        self._camera_errors: dict[str, float] = {}
-        self._refresh_requested = False
-        self._train_cameras: Cameras | None = None
-        # Physical cameras of the training images (the dataparser's camera_ids), known before DDP wraps the model
-        # and before the optimizers are built: they size the shared-intrinsics latent.
-        metadata = self.kwargs.get("metadata") or {}
-        camera_ids = metadata.get("camera_ids")
-        if self.uses_s2camp_optimizer and camera_ids is not None and len(camera_ids) == self.num_train_data:
-            self.camera_optimizer.set_camera_groups(camera_ids)
-        # Likewise the camera model, whose distortion coefficients set the layout's K.
-        if self.uses_s2camp_optimizer and metadata.get("camera_model") is not None:
-            self.camera_optimizer.set_camera_model(metadata["camera_model"])
-        # --- S2CamP viewer panel (viewer_panel.py); inert unless nerfstudio's viewer installs it. The attribute name
-        # is the panel's folder label in the viewer.
-        if self.config.viewer_update_period >= 0 and self.uses_s2camp_optimizer:
-            self.S2CamP = S2CampViewerPanel(self, update_period=self.config.viewer_update_period)
-        # --- end viewer panel
-
-    @property
-    def lpips_available(self) -> bool:
-        return self.lpips is not None
-
-    @property
-    def uses_s2camp_optimizer(self) -> bool:
-        """True for S2CamP's camera optimizer, False for nerfstudio's stock one (the s2camp-so3xr3 baseline)."""
-        return isinstance(self.camera_optimizer, S2CampCameraOptimizer)
-
-    def set_train_cameras(
-        self, cameras: Cameras, points: Tensor | None = None, track_rms_px: Tensor | None = None
-    ) -> None:
-        """Keep the dataparser's training cameras (called by the pipeline before any checkpoint is loaded); the
-        scene's sparse ``points`` (normalized world) choose the S2CamP optimizer's proxy range, the cameras'
-        reprojection errors against the SfM tracks (``track_rms_px``, px) scale its track prior."""
-        self._train_cameras = cameras.to("cpu")
-        if self.uses_s2camp_optimizer:
-            self.camera_optimizer.set_train_cameras(cameras, points=points)
-            self.camera_optimizer.set_track_prior(track_rms_px)
-
-    @torch.no_grad()
-    def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:
-        """OpenGL c2w and fx of the training cameras as the model currently sees them (float64, CPU).
-
-        S2CamP's optimizer refines pose and intrinsics (c2w' = c2w exp(xi)). nerfstudio's stock optimizer moves the
-        rays in the world frame, origins + t and R_adj @ directions, i.e. c2w' = [R_adj R | t + t_adj] (its
-        ``apply_to_camera``); it leaves the intrinsics alone.
-        """
-        if self.uses_s2camp_optimizer:
-            optimizer = self.camera_optimizer
-            return optimizer.refined_c2w(opengl=True).cpu(), optimizer.refined_intrinsics().fx.cpu()
-        if self._train_cameras is None:
-            raise RuntimeError("set_train_cameras must be called before refined_train_cameras (the pipeline does)")
-        cameras = self._train_cameras
-        c2w = cameras.camera_to_worlds.to(torch.float64)
-        if self.camera_optimizer.config.mode != "off":
-            indices = torch.arange(c2w.shape[0], device=self.device)
-            adjustment = self.camera_optimizer(indices).to(device="cpu", dtype=torch.float64)
-            c2w = torch.cat([adjustment[:, :, :3] @ c2w[:, :, :3], c2w[:, :, 3:] + adjustment[:, :, 3:]], dim=-1)
-        return c2w, cameras.fx.reshape(-1).to(torch.float64)
-
-    # ------------------------------------------------------------------------------------------------- training
-    def get_training_callbacks(
-        self, training_callback_attributes: TrainingCallbackAttributes
-    ) -> list[TrainingCallback]:
-        callbacks = super().get_training_callbacks(training_callback_attributes)
-        optimizers = training_callback_attributes.optimizers
-        camera_optimizer = self.camera_optimizer
-
-        def refresh_preconditioner(step: int) -> None:
-            # Scheduled refreshes and those requested (the viewer's button) happen here, in the training thread.
-            # Both are decided identically on every rank: the schedule by the step number, a request by agreement.
-            if self.agreed_refresh_request(step) or camera_optimizer.should_refresh(step):
-                torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
-                camera_optimizer.refresh(step, torch_optimizer)
-
-        def recompute_stale_preconditioner(step: int) -> None:
-            # A checkpoint loaded onto other base cameras carries a P computed for those; nerfstudio loads Adam's
-            # moments after the pipeline, so P is recomputed here, before the first step (a no-op otherwise).
-            torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
-            camera_optimizer.recompute_stale_preconditioner(step, torch_optimizer)
-
-        def apply_track_prior(step: int) -> None:
-            # After the optimizers' step: the prior's proximal step with the camera group's step size.
-            torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
-            if torch_optimizer is not None:
-                camera_optimizer.apply_track_prior(float(torch_optimizer.param_groups[0]["lr"]))
-
-        if isinstance(camera_optimizer, S2CampCameraOptimizer) and camera_optimizer.enabled:
-            callbacks.append(
-                TrainingCallback(
-                    where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], func=recompute_stale_preconditioner
-                )
-            )
-            callbacks.append(
-                TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=apply_track_prior)
-            )
-            callbacks.append(
-                TrainingCallback(
-                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=refresh_preconditioner
-                )
-            )
-        if self.config.camera_error_every > 0 and self.reference_cameras() is not None and comms.is_main_process():
-            callbacks.append(
-                TrainingCallback(
-                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
-                    update_every_num_iters=self.config.camera_error_every,
-                    func=lambda step: self.update_camera_errors(),
-                )
-            )
-        # --- S2CamP viewer panel: its callback exists only when the viewer installed the panel
-        panel = getattr(self, "S2CamP", None)
-        if panel is not None:
-            callbacks.extend(panel.training_callbacks(training_callback_attributes))
-        # --- end viewer panel
-        return callbacks
-
-    # ------------------------------------------------------------------ viewer panel (CameraRefinementSource)
-    def refinement_status(self) -> RefinementStatus | None:
-        optimizer = self.camera_optimizer
-        if not self.uses_s2camp_optimizer or not optimizer.has_cameras:
-            return None
-        preconditioned = optimizer.enabled and optimizer.config.precondition
-        computed = preconditioned and bool(optimizer.gram.abs().amax() > 0)
-        return RefinementStatus(
-            num_cameras=optimizer.num_cameras,
-            refinement_enabled=optimizer.enabled,
-            preconditioned=preconditioned,
-            last_refresh_step=int(optimizer.last_refresh_step),
-            refresh_every=optimizer.config.refresh_every,
-            gram=optimizer.gram if computed else None,
-            precond_inverse=optimizer.precond_inv if computed else None,
-        )
-
-    def camera_errors(self) -> dict[str, float]:
-        return self.update_camera_errors() if self.reference_cameras() is not None else {}
-
-    @torch.no_grad()
-    def camera_frusta(self, which: FrustumSet) -> CameraFrusta | None:
-        optimizer = self.camera_optimizer
-        if not self.uses_s2camp_optimizer or not optimizer.has_cameras:
-            return None
-        base = optimizer.base_intrinsics_struct()
-        if which == "refined":
-            deltas = optimizer.camera_deltas()
-            refined = optimizer.refined_intrinsics(deltas)
-            fov = vertical_field_of_view(refined)
-            return CameraFrusta(optimizer.refined_c2w(deltas), fov, refined.width, refined.height)
-        if which == "initial":
-            return CameraFrusta(optimizer.base_c2w_cv, vertical_field_of_view(base), base.width, base.height)
-        reference = self.reference_cameras()
-        if reference is None:
-            return None
-        c2w = opengl_to_opencv(reference.camera_to_worlds.to(torch.float64)).cpu()
-        fov = vertical_field_of_view(intrinsics_from_cameras(reference.to("cpu"))).cpu()
-        same_poses = torch.allclose(c2w, optimizer.base_c2w_cv.cpu(), atol=1e-6)
-        if same_poses and torch.allclose(fov, vertical_field_of_view(base).cpu()):
-            return None
-        return CameraFrusta(
-            c2w, fov, reference.width.reshape(-1).to(torch.float64), reference.height.reshape(-1).to(torch.float64)
-        )
-
-    def request_refresh(self) -> None:
-        self._refresh_requested = True
-
-    def agreed_refresh_request(self, step: int) -> bool:
-        """Whether every rank applies a requested refresh of P after training step ``step`` (same answer on all).
-
-        One process: a pending request, at once. Several: at multiples of ``refresh_request_every`` only, all ranks
-        take part in one all-reduce (MAX) of their pending flags, so a request made on rank 0 alone is applied by
-        every rank at the same step and no rank's P and latent get out of step with the others'.
-        """
-        if world_size() > 1 and step % self.config.refresh_request_every != 0:
-            return False
-        requested, self._refresh_requested = self._refresh_requested, False
-        return any_rank(requested, self.device)
-
-    # ---------------------------------------------------------------------------------------------- camera errors
-    def reference_cameras(self) -> Cameras | None:
-        """Unperturbed training cameras from the dataparser (metadata["reference_cameras"]), if any."""
-        metadata = self.kwargs.get("metadata") or {}
-        reference = metadata.get("reference_cameras")
-        if reference is None or reference.shape[0] != self.num_train_data:
-            return None
-        return reference
-
-    @torch.no_grad()
-    def update_camera_errors(self) -> dict[str, float]:
-        """Rotation (rad), position (scene units) and focal (px) errors after similarity alignment."""
-        reference = self.reference_cameras()
-        if reference is None:
-            return {}
-        from s2camp_ns.core.alignment import camera_errors
-
-        try:
-            estimated_c2w, estimated_fx = self.refined_train_cameras()
-        except RuntimeError:  # no training cameras handed over yet
-            return {}
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            errors = camera_errors(
-                estimated_c2w,
-                reference.camera_to_worlds.to(torch.float64).cpu(),
-                estimated_fx,
-                reference.fx.reshape(-1).to(torch.float64).cpu(),
-                align=True,
-            )
-        self._camera_errors = {f"camera_errors/{k}": float(v) for k, v in errors.items()}
-        return self._camera_errors
-
-    def get_metrics_dict(self, outputs, batch):
-        metrics_dict = super().get_metrics_dict(outputs, batch)
-        if self.training:
-            metrics_dict.update(self._camera_errors)
-        return metrics_dict
+        self.setup_camera_refinement()
 
     # ------------------------------------------------------------------------------------------------ rendering
     @torch.no_grad()
@@ -321,17 +78,3 @@ class S2CampModel(NerfactoModel):
             ray_bundle = self.camera_optimizer.train_camera_raybundle(index)
             return self.get_outputs_for_camera_ray_bundle(ray_bundle)
         return super().get_outputs_for_camera(camera, obb_box)
-
-    def get_image_metrics_and_images(
-        self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]
-    ) -> tuple[dict[str, float], dict[str, torch.Tensor]]:
-        if self.lpips_available:
-            return super().get_image_metrics_and_images(outputs, batch)
-        # Nerfacto always calls self.lpips; give it a stand-in and drop the key (LPIPS is reported unavailable).
-        self.lpips = lambda *args: torch.tensor(float("nan"))
-        try:
-            metrics_dict, images_dict = super().get_image_metrics_and_images(outputs, batch)
-        finally:
-            self.lpips = None
-        metrics_dict.pop("lpips", None)
-        return metrics_dict, images_dict

@@ -97,6 +97,11 @@ class S2CampPipeline(VanillaPipeline):
         super().__init__(config, device, test_mode, 1, local_rank, grad_scaler)
         assert self.datamanager.train_dataset is not None
         cameras = self.datamanager.train_dataset.cameras
+        distorted = cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
+        if distorted and hasattr(type(self.datamanager), "cached_train"):
+            # A full-image data manager (splatfacto's) undistorts the images when it first caches them and writes
+            # the undistorted K into the training cameras; the camera optimizer must start from those.
+            _ = self.datamanager.cached_train
         # The dataparser's sparse points (normalized world, as the cameras) choose the proxy range per camera.
         metadata = getattr(self.datamanager.train_dataset, "metadata", None) or {}
         points = metadata.get("points3D_xyz")

@@ -277,9 +277,16 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
     The evaluation cameras are the evaluation split's reference cameras where the dataparser provides them (the
     true cameras of ``--reference-model``), else the evaluation cameras.
     """
+    from nerfstudio.models.splatfacto import SplatfactoModel
+
     from s2camp_ns.camera_optimizer import intrinsics_from_cameras
 
     model = pipeline.model
+    if isinstance(model, SplatfactoModel):
+        raise ValueError(
+            f"s2camp-eval's test-time camera alignment renders rays (nerfacto models); the model of this run is "
+            f"{type(model).__name__} (a splatfacto model), which it does not support yet: use ns-eval"
+        )
     refined_c2w, refined_fx = model.refined_train_cameras()
     reference = model.reference_cameras()
     base = reference if reference is not None else model._train_cameras

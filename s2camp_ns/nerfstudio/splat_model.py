@@ -1,0 +1,263 @@
+"""splatfacto with the S2CamP camera optimizer (``ns-train s2camp-splat``): pose, focal, principal point and skew.
+
+nerfstudio 1.1.5's splatfacto (its Gaussians, densification strategy, losses and schedules) whose training views
+are rendered through the refined cameras. gsplat has no gradient for the intrinsics, so the refined intrinsics K'
+enter as the view matrix [[A R, A t], [0, 1]] with A = K^-1 K' and the camera's own K (docs/SPLAT.md: exact for the
+pinhole projection, the EWA covariance, the blur, the antialiasing compensation and the field-of-view clamp). The
+densification strategy reads the projected means' gradients, which are those of the refined camera.
+
+- Distortion stays fixed: splatfacto trains on images its data manager has undistorted, so the cameras are pinhole
+  (their distortion parameters are dropped before the optimizer sees them) and ``parameters all`` is refused.
+- Rasterizer: gsplat's ``rasterization`` on CUDA, the pure-torch ``s2camp_ns.splat.reference_rasterizer`` elsewhere
+  (``rasterizer`` picks one explicitly).
+- The camera refinement shared with ``s2camp`` (P, refresh, schedule, shared intrinsics, camera errors, viewer
+  panel) is ``S2CampRefinementMixin``; nerfstudio's stock optimizer (``s2camp-splat-so3xr3``) also works.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+from jaxtyping import Float
+from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig, get_viewmat
+from torch import Tensor
+
+from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.nerfstudio.refinement import S2CampRefinementMixin, warn_lpips_unavailable
+from s2camp_ns.splat.intrinsics_view import corrected_viewmat, intrinsics_correction, intrinsics_matrix
+from s2camp_ns.splat.reference_rasterizer import rasterization as reference_rasterization
+
+REFUSED_PRESETS = {
+    "all": "splatfacto trains on undistorted images, so the distortion stays fixed; use parameters pose+intrinsics"
+}
+"""Camera-optimizer presets s2camp-splat refuses, and why."""
+
+
+@dataclass
+class S2CampSplatModelConfig(SplatfactoModelConfig):
+    """splatfacto with preconditioned pose + intrinsics refinement (S2CamP)."""
+
+    _target: type = field(default_factory=lambda: S2CampSplatModel)
+    camera_optimizer: CameraOptimizerConfig = field(
+        default_factory=lambda: S2CampCameraOptimizerConfig(parameters="pose+intrinsics")
+    )
+    """The S2CamP camera optimizer (``parameters`` pose, pose+focal or pose+intrinsics; distortion stays fixed).
+    nerfstudio's own CameraOptimizerConfig (pose only) also works: the ``s2camp-splat-so3xr3`` baseline."""
+    camera_error_every: int = 100
+    """Compute camera errors against the dataparser's reference cameras every this many steps (0 = never)."""
+    viewer_update_period: float = 1.0
+    """Seconds between updates of the viewer's S2CamP panel (0 = every step; negative = no panel)."""
+    refresh_request_every: int = 10
+    """With several processes, the steps at which a refresh of P requested from the viewer is agreed on."""
+    rasterizer: Literal["auto", "gsplat", "reference"] = "auto"
+    """"auto": gsplat's CUDA rasterization on CUDA, the pure-torch reference rasterization on the CPU."""
+
+
+@contextlib.contextmanager
+def _lpips_or_none() -> Iterator[None]:
+    """splatfacto builds LPIPS in the middle of ``populate_modules``; offline (no cached AlexNet weights) build None
+    instead of failing, with one warning (the metrics then omit lpips)."""
+    import torchmetrics.image.lpip as lpip_module
+
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+
+    def build(*args, **kwargs):
+        try:
+            return original(*args, **kwargs)
+        except (OSError, RuntimeError) as error:
+            warn_lpips_unavailable(error)
+            return None
+
+    lpip_module.LearnedPerceptualImagePatchSimilarity = build
+    try:
+        yield
+    finally:
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+
+
+def pinhole_cameras(cameras: Cameras) -> Cameras:
+    """The cameras with their distortion dropped: what splatfacto renders (its data manager undistorts the images
+    and writes the new pinhole K into the cameras, but keeps their distortion parameters)."""
+    if cameras.distortion_params is None:
+        return cameras
+    return Cameras(
+        camera_to_worlds=cameras.camera_to_worlds,
+        fx=cameras.fx,
+        fy=cameras.fy,
+        cx=cameras.cx,
+        cy=cameras.cy,
+        width=cameras.width,
+        height=cameras.height,
+        distortion_params=None,
+        camera_type=cameras.camera_type,
+        times=cameras.times,
+        metadata=cameras.metadata,
+    )
+
+
+def world_to_camera(c2w: Float[Tensor, "n 3 4"]) -> Float[Tensor, "n 4 4"]:
+    """The 4 x 4 world-to-camera matrix of an OpenCV camera-to-world matrix (the rasterizer's view matrix)."""
+    rotation = c2w[:, :, :3].transpose(-1, -2)
+    translation = -(rotation @ c2w[:, :, 3:])
+    bottom = torch.zeros_like(c2w[:, :1, :])
+    bottom[:, 0, 3] = 1.0
+    return torch.cat([torch.cat([rotation, translation], dim=-1), bottom], dim=-2)
+
+
+class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
+    """splatfacto whose training views are rendered through the refined cameras (pose and intrinsics)."""
+
+    config: S2CampSplatModelConfig
+    camera_optimizer: CameraOptimizer
+
+    def populate_modules(self):
+        optimizer_config = self.config.camera_optimizer
+        if isinstance(optimizer_config, S2CampCameraOptimizerConfig) and optimizer_config.parameters in REFUSED_PRESETS:
+            raise ValueError(
+                f"camera-optimizer parameters {optimizer_config.parameters!r} is not supported by s2camp-splat: "
+                f"{REFUSED_PRESETS[optimizer_config.parameters]} (allowed: pose, pose+focal, pose+intrinsics)"
+            )
+        seed_colours = None
+        if self.seed_points is not None and not self.config.random_init and not torch.cuda.is_available():
+            # splatfacto moves the seed colours to CUDA while building its SH coefficients: hand it the points
+            # alone and set the colours below, as it would.
+            points, seed_colours = self.seed_points
+            self.seed_points = (points, seed_colours[:0])
+        with _lpips_or_none():
+            super().populate_modules()
+        if seed_colours is not None and seed_colours.shape[0] > 0:
+            colours = seed_colours.to(torch.float32) / 255
+            with torch.no_grad():
+                if self.config.sh_degree > 0:
+                    self.gauss_params["features_dc"].copy_(RGB2SH(colours))
+                else:
+                    self.gauss_params["features_dc"].copy_(torch.logit(colours, eps=1e-10))
+                self.gauss_params["features_rest"].zero_()
+        self.setup_camera_refinement()
+
+    def set_train_cameras(
+        self, cameras: Cameras, points: Tensor | None = None, track_rms_px: Tensor | None = None
+    ) -> None:
+        super().set_train_cameras(pinhole_cameras(cameras), points=points, track_rms_px=track_rms_px)
+
+    @torch.no_grad()
+    def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:
+        """OpenGL c2w and fx of the training cameras as rendered. nerfstudio's stock optimizer right-multiplies its
+        correction onto the camera in splatfacto (``apply_to_camera``: c2w' = c2w [D; 0 0 0 1])."""
+        if self.uses_s2camp_optimizer or self.camera_optimizer.config.mode == "off":
+            return super().refined_train_cameras()
+        if self._train_cameras is None:
+            raise RuntimeError("set_train_cameras must be called before refined_train_cameras (the pipeline does)")
+        cameras = self._train_cameras
+        c2w = cameras.camera_to_worlds.to(torch.float64)
+        indices = torch.arange(c2w.shape[0], device=self.device)
+        correction = self.camera_optimizer(indices).to(device="cpu", dtype=torch.float64)
+        rotation = c2w[:, :, :3] @ correction[:, :, :3]
+        translation = c2w[:, :, 3:] + c2w[:, :, :3] @ correction[:, :, 3:]
+        return torch.cat([rotation, translation], dim=-1), cameras.fx.reshape(-1).to(torch.float64)
+
+    # ------------------------------------------------------------------------------------------------ rendering
+    def view_matrix(self, camera: Cameras) -> Float[Tensor, "1 4 4"]:
+        """The rasterizer's world-to-camera matrix for ``camera`` (to be rendered with the camera's own K).
+
+        Training cameras (``cam_idx`` while training, or marked with TRAIN_CAMERA_KEY) are refined: with S2CamP's
+        optimizer [[A R', A t'], [0, 1]] from the refined pose and A = K^-1 K' (docs/SPLAT.md eq. S4), in float64
+        until the rasterizer's dtype; with nerfstudio's stock optimizer its pose correction. Other cameras render as
+        given.
+        """
+        metadata = camera.metadata or {}
+        index = metadata.get(TRAIN_CAMERA_KEY, metadata.get("cam_idx") if self.training else None)
+        if index is None:
+            return get_viewmat(camera.camera_to_worlds)
+        if not self.uses_s2camp_optimizer:
+            return get_viewmat(self.camera_optimizer.apply_to_camera(camera))
+        optimizer = self.camera_optimizer
+        cameras = torch.tensor([int(index)], dtype=torch.long)
+        deltas = optimizer.camera_deltas(cameras)
+        c2w = optimizer.refined_c2w(deltas, cameras=cameras)
+        refined = optimizer.refined_intrinsics(deltas, cameras=cameras)
+        refined_k = intrinsics_matrix(refined.fx, refined.fy, refined.cx, refined.cy, refined.skew)
+        base_k = camera.get_intrinsics_matrices().reshape(1, 3, 3).to(refined_k)
+        # Both are pinhole matrices built here: no value check (it would synchronize with the GPU every step).
+        correction = intrinsics_correction(base_k, refined_k, check=False)
+        viewmat = corrected_viewmat(world_to_camera(c2w), correction)
+        return viewmat.to(device=camera.camera_to_worlds.device, dtype=camera.camera_to_worlds.dtype)
+
+    def rasterize(self, means: Tensor, **kwargs):
+        """gsplat's rasterization on CUDA, the reference rasterization elsewhere (``rasterizer`` overrides)."""
+        choice = self.config.rasterizer
+        if choice == "gsplat" or (choice == "auto" and means.is_cuda):
+            from gsplat.rendering import rasterization
+
+            return rasterization(means=means, **kwargs)
+        return reference_rasterization(means=means, **kwargs)
+
+    def get_outputs(self, camera: Cameras) -> dict[str, Tensor | list]:
+        """splatfacto's outputs (rgb, depth, accumulation, background) of one camera, rendered through
+        ``view_matrix``; the densification strategy gets the rasterizer's info as in splatfacto."""
+        if not isinstance(camera, Cameras):
+            raise TypeError(f"get_outputs takes a Cameras object, got {type(camera).__name__}")
+        if self.training and camera.shape[0] != 1:
+            raise ValueError(f"training renders one camera at a time, got {camera.shape[0]}")
+        params = {name: self.gauss_params[name] for name in self.gauss_params}
+        if self.crop_box is not None and not self.training:
+            crop = self.crop_box.within(params["means"]).squeeze()
+            if int(crop.sum()) == 0:
+                width, height = int(camera.width.item()), int(camera.height.item())
+                return self.get_empty_outputs(width, height, self.background_color)
+            params = {name: value[crop] for name, value in params.items()}
+        colors = torch.cat([params["features_dc"][:, None, :], params["features_rest"]], dim=1)
+        viewmat = self.view_matrix(camera)
+        scale = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale)
+        ks = camera.get_intrinsics_matrices().to(self.device)
+        width, height = int(camera.width.item()), int(camera.height.item())
+        self.last_size = (height, width)
+        camera.rescale_output_resolution(scale)
+        if self.config.rasterize_mode not in ("antialiased", "classic"):
+            raise ValueError(f"rasterize_mode must be 'antialiased' or 'classic', got {self.config.rasterize_mode!r}")
+        render_mode = "RGB+ED" if self.config.output_depth_during_training or not self.training else "RGB"
+        if self.config.sh_degree > 0:
+            sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        else:
+            colors = torch.sigmoid(colors).squeeze(1)
+            sh_degree = None
+        render, alpha, self.info = self.rasterize(
+            means=params["means"],
+            quats=params["quats"],
+            scales=torch.exp(params["scales"]),
+            opacities=torch.sigmoid(params["opacities"]).squeeze(-1),
+            colors=colors,
+            viewmats=viewmat.to(self.device),
+            Ks=ks,
+            width=width,
+            height=height,
+            packed=False,
+            near_plane=0.01,
+            far_plane=1e10,
+            render_mode=render_mode,
+            sh_degree=sh_degree,
+            sparse_grad=False,
+            absgrad=self.strategy.absgrad,
+            rasterize_mode=self.config.rasterize_mode,
+        )
+        if self.training:
+            strategy_args = (self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+            self.strategy.step_pre_backward(*strategy_args)
+        background = self._get_background_color()
+        rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        if self.config.use_bilateral_grid and self.training and "cam_idx" in (camera.metadata or {}):
+            rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], height, width)
+        depth = None
+        if render_mode == "RGB+ED":
+            depth = render[..., 3:4]
+            depth = torch.where(alpha > 0, depth, depth.detach().max()).squeeze(0)
+        if background.shape[0] == 3 and not self.training:
+            background = background.expand(height, width, 3)
+        return {"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background}

@@ -1,0 +1,233 @@
+"""``s2camp-splat``: splatfacto with the S2CamP camera optimizer (s2camp_ns/nerfstudio/splat_model.py).
+
+The view matrix of a refined training camera is checked against the core's projection of the refined camera
+(``core.camera.project_with_delta``: pose and intrinsics deltas, no splatting code); the end-to-end test trains the
+method on the CPU (reference rasterizer) on the tiny generated scene through nerfstudio's Trainer.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.models.splatfacto import get_viewmat
+
+from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+from s2camp_ns.core.camera import opengl_to_opencv, project_with_delta
+from s2camp_ns.core.preconditioner import SamplingConfig
+from s2camp_ns.nerfstudio.splat_model import S2CampSplatModel, S2CampSplatModelConfig, world_to_camera
+
+WIDTH, HEIGHT = 64, 48
+
+
+def look_at_c2w(position: torch.Tensor) -> torch.Tensor:
+    """OpenGL c2w (nerfstudio convention) looking from ``position`` at the origin."""
+    backward = position / position.norm()
+    right = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), backward)
+    right = right / right.norm()
+    up = torch.linalg.cross(backward, right)
+    return torch.cat([torch.stack([right, up, backward], dim=-1), position[:, None]], dim=-1)
+
+
+def two_cameras() -> Cameras:
+    positions = torch.tensor([[2.0, 0.3, 0.5], [-0.4, 2.1, 0.6]])
+    return Cameras(
+        camera_to_worlds=torch.stack([look_at_c2w(p) for p in positions]),
+        fx=torch.tensor([[60.0], [61.0]]),
+        fy=torch.tensor([[59.0], [62.0]]),
+        cx=torch.tensor([[32.0], [31.0]]),
+        cy=torch.tensor([[24.0], [24.5]]),
+        width=WIDTH,
+        height=HEIGHT,
+        camera_type=CameraType.PERSPECTIVE,
+    )
+
+
+def test_world_to_camera_is_splatfactos_view_matrix_without_refinement():
+    c2w = two_cameras().camera_to_worlds
+    torch.testing.assert_close(world_to_camera(opengl_to_opencv(c2w.double())).float(), get_viewmat(c2w))
+
+
+def test_view_matrix_projects_like_the_refined_camera():
+    """K [A R' | A t'] X / z (what the rasterizer computes) = the refined camera's pixels from the core."""
+    cameras = two_cameras()
+    config = S2CampCameraOptimizerConfig(
+        parameters="pose+intrinsics", intrinsics="per-image", sampling=SamplingConfig(num_points=64)
+    )
+    optimizer = config.setup(num_cameras=2, device="cpu")
+    optimizer.set_train_cameras(cameras)
+    with torch.no_grad():
+        optimizer.whitened_delta.copy_(torch.randn(optimizer.whitened_delta.shape, generator=torch.manual_seed(0)))
+        optimizer.whitened_delta.mul_(3e-3)
+    deltas = optimizer.camera_deltas().detach()
+    assert float(deltas[:, 6:10].abs().min()) > 0.05, "focal, principal point and skew must all be refined"
+    model = SimpleNamespace(training=True, uses_s2camp_optimizer=True, camera_optimizer=optimizer)
+    world = torch.randn(30, 3, dtype=torch.float64, generator=torch.manual_seed(1)) * 0.4
+    for i in range(2):
+        camera = cameras[i : i + 1]
+        camera.metadata = {"cam_idx": i}
+        viewmat = S2CampSplatModel.view_matrix(model, camera).double()
+        y = (viewmat[0, :3, :3] @ world.T).T + viewmat[0, :3, 3]
+        k = camera.get_intrinsics_matrices()[0].double()
+        pixels = (k @ y.T).T
+        pixels = pixels[:, :2] / pixels[:, 2:]
+        base_w2c = world_to_camera(opengl_to_opencv(camera.camera_to_worlds.double()))[0]
+        points_cam = (base_w2c[:3, :3] @ world.T).T + base_w2c[:3, 3]
+        base = optimizer.base_intrinsics_struct()
+        expected = project_with_delta(points_cam[None], base.to(dtype=torch.float64)[i : i + 1], deltas[i : i + 1])[0]
+        torch.testing.assert_close(pixels, expected, rtol=1e-6, atol=1e-4)
+        # A held-out or viewer camera (no cam_idx) renders as given.
+        camera.metadata = None
+        torch.testing.assert_close(S2CampSplatModel.view_matrix(model, camera), get_viewmat(camera.camera_to_worlds))
+
+
+def test_distortion_refinement_is_refused_by_name():
+    config = S2CampSplatModelConfig(camera_optimizer=S2CampCameraOptimizerConfig(parameters="all"))
+    with pytest.raises(ValueError, match="parameters 'all' is not supported by s2camp-splat.*undistorted"):
+        config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2, metadata={})
+
+
+@pytest.mark.slow
+def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
+    """The method's own config, on the CPU, from CamP-perturbed cameras: training runs, splatfacto's densification
+    acts on the refined cameras' projected-mean gradients, and pose and intrinsics move."""
+    from s2camp_ns.method_config import s2camp_splat_method
+
+    config = copy.deepcopy(s2camp_splat_method.config)
+    config.data = tiny_scene
+    config.pipeline.datamanager.data = tiny_scene
+    config.pipeline.datamanager.dataparser.perturbation.enabled = True
+    config.output_dir = tmp_path
+    config.machine.device_type = "cpu"
+    config.max_num_iterations = 40
+    config.vis = "tensorboard"
+    config.steps_per_eval_image = 1000
+    config.steps_per_eval_all_images = 1000
+    config.steps_per_save = 1000
+    model_config = config.pipeline.model
+    model_config.warmup_length = 10
+    model_config.refine_every = 10
+    model_config.camera_error_every = 10
+    model_config.camera_optimizer.refresh_every = 20
+    start = time.perf_counter()
+    config.set_timestamp()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    model = trainer.pipeline.model
+    assert isinstance(model, S2CampSplatModel)
+    seeds = model.num_points
+    base_fx = model.camera_optimizer.refined_intrinsics().fx.detach().clone()
+    trainer.train()
+    elapsed = time.perf_counter() - start
+    optimizer = model.camera_optimizer
+    # Growth (split / duplicate) needs the projected means' accumulated gradients above splatfacto's threshold.
+    assert model.num_points > seeds, "the densification strategy must have grown Gaussians from means2d gradients"
+    assert int(optimizer.num_refreshes) >= 2  # the initial P and the scheduled refresh at step 20
+    deltas = optimizer.camera_deltas().detach()
+    assert float(deltas[:, :6].abs().amax()) > 0, "the pose must be refined"
+    assert float((optimizer.refined_intrinsics().fx.detach() - base_fx).abs().amax()) > 1e-3
+    assert float(deltas[:, 7:10].abs().amax()) > 0, "principal point and skew must be refined"
+    errors = model.update_camera_errors()
+    assert {"camera_errors/rot_err_mean", "camera_errors/pos_err_mean", "camera_errors/focal_err_mean"} <= set(errors)
+    assert all(math.isfinite(v) for v in errors.values())
+    # The export path of s2camp-export-cameras: the refined cameras of the splatting run, refined intrinsics included.
+    from s2camp_ns.nerfstudio.export_cameras import refined_training_cameras
+
+    exported = refined_training_cameras(trainer.pipeline)
+    torch.testing.assert_close(
+        exported.fx.reshape(-1).double(), optimizer.refined_intrinsics().fx.detach().cpu(), rtol=1e-6, atol=1e-4
+    )
+    print(f"s2camp-splat, 40 CPU steps: {elapsed:.1f} s, {seeds} -> {model.num_points} Gaussians, {errors}")
+    assert elapsed < 90
+
+
+def test_declared_method_entry_points_resolve():
+    """Every method pyproject.toml declares for ``ns-train`` imports as a MethodSpecification (the installed
+    metadata follows pyproject.toml after ``pip install -e .``)."""
+    import importlib
+
+    from nerfstudio.plugins.types import MethodSpecification
+
+    text = (Path(__file__).parents[1] / "pyproject.toml").read_text()
+    section = text.split('[project.entry-points."nerfstudio.method_configs"]')[1].split("\n[")[0]
+    methods = dict(re.findall(r'^(\S+) = "(\S+)"$', section, flags=re.MULTILINE))
+    assert methods["s2camp-splat"] == "s2camp_ns.method_config:s2camp_splat_method"
+    for name, target in methods.items():
+        module, attribute = target.split(":")
+        specification = getattr(importlib.import_module(module), attribute)
+        assert isinstance(specification, MethodSpecification), name
+        assert specification.config.method_name == name
+
+
+def test_splat_baseline_differs_only_in_the_camera_optimizer():
+    from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+
+    from s2camp_ns.method_config import s2camp_splat_method, s2camp_splat_so3xr3_method
+
+    splat, baseline = s2camp_splat_method.config, s2camp_splat_so3xr3_method.config
+    assert splat.pipeline.model.camera_optimizer.parameters == "pose+intrinsics"
+    assert type(baseline.pipeline.model.camera_optimizer) is CameraOptimizerConfig
+    assert baseline.pipeline.model.camera_optimizer.mode == "SO3xR3"
+    assert baseline.optimizers["camera_opt"]["optimizer"].lr == 1e-4  # splatfacto's own camera schedule
+    replaced = copy.deepcopy(baseline.pipeline.model)
+    replaced.camera_optimizer = splat.pipeline.model.camera_optimizer
+    assert replaced == splat.pipeline.model
+    assert {k: v for k, v in baseline.optimizers.items() if k != "camera_opt"} == {
+        k: v for k, v in splat.optimizers.items() if k != "camera_opt"
+    }
+
+
+def test_held_out_alignment_refuses_splatfacto_models_by_name():
+    from s2camp_ns.nerfstudio.test_time_alignment import evaluate_held_out_views
+
+    pipeline = SimpleNamespace(model=object.__new__(S2CampSplatModel))
+    with pytest.raises(ValueError, match="S2CampSplatModel .*does not support yet: use ns-eval"):
+        evaluate_held_out_views(pipeline)
+
+
+def test_splat_training_step_on_emulated_cuda(tiny_scene: Path):
+    """The s2camp-splat pipeline built on "cuda" (tests/fake_cuda.py: every op's devices checked by CUDA's rules)
+    runs a training step with the reference rasterizer forced (gsplat's kernels need a real GPU): the refined
+    camera's view matrix, the rasterizer, splatfacto's strategy hook, backward and the optimizers' step."""
+    from fake_cuda import fake_cuda, is_fake_cuda, values
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+    from nerfstudio.engine.optimizers import Optimizers
+
+    from s2camp_ns.method_config import s2camp_splat_method
+    from s2camp_ns.nerfstudio.trainer import with_run_length
+
+    config = copy.deepcopy(s2camp_splat_method.config)
+    config.pipeline.datamanager.data = tiny_scene
+    config.pipeline.datamanager.dataparser.data = tiny_scene
+    config.pipeline.datamanager.dataparser.perturbation.enabled = True
+    config.pipeline.model.rasterizer = "reference"
+    config.pipeline.model.camera_error_every = 1
+    with fake_cuda():
+        pipeline = config.pipeline.setup(device="cuda", test_mode="val")
+        model = pipeline.model
+        optimizers = Optimizers(with_run_length(config.optimizers, 100), pipeline.get_param_groups())
+        callbacks = model.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, None))
+        for callback in callbacks:  # splatfacto's step_cb (before the iteration) hands the strategy the optimizers
+            if callback.where_to_run[0].name == "BEFORE_TRAIN_ITERATION":
+                callback.run_callback_at_location(1, callback.where_to_run[0])
+        camera, batch = pipeline.datamanager.next_train(1)
+        outputs = model(camera)
+        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+        optimizers.zero_grad_all()
+        sum(loss_dict.values()).backward()
+        grad = model.camera_optimizer.whitened_intrinsics.grad
+        means2d_grad = model.info["means2d"].grad
+        latent_before = values(model.camera_optimizer.whitened_intrinsics).clone()
+        optimizers.optimizer_step_all()
+    assert is_fake_cuda(outputs["rgb"]) and is_fake_cuda(grad) and is_fake_cuda(means2d_grad)
+    assert float(values(grad).abs().sum()) > 0, "the intrinsics get a gradient through the view matrix"
+    assert float(values(means2d_grad).abs().sum()) > 0, "the strategy reads the projected means' gradient"
+    assert not torch.equal(values(model.camera_optimizer.whitened_intrinsics), latent_before)
