@@ -100,6 +100,8 @@ def test_entry_points_registered():
     assert names["s2camp"] == "s2camp_ns.method_config:s2camp_method"
     assert names["s2camp-camp"] == "s2camp_ns.method_config:s2camp_camp_method"
     assert names["s2camp-so3xr3"] == "s2camp_ns.method_config:s2camp_so3xr3_method"
+    assert names["s2camp-splat"] == "s2camp_ns.method_config:s2camp_splat_method"
+    assert names["s2camp-splat-so3xr3"] == "s2camp_ns.method_config:s2camp_splat_so3xr3_method"
 
 
 def test_so3xr3_baseline_differs_only_in_the_camera_optimizer():
