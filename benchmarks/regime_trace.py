@@ -13,7 +13,9 @@ For every checkpoint of a finished run (one each ``trace_every`` steps), from th
 - ``forward_shift``: mean move of the centres along their own optical axes (normalized units, + forward), and
   ``focal_forward_corr``: the correlation over cameras of the relative focal change with the forward move divided by
   the camera's distance to the scene centre (focal against depth: a camera that zooms in and backs away keeps the
-  centre's image);
+  centre's image). With one focal length shared by all images (one physical camera) the focal change has no
+  spread over cameras and the correlation is 0: compare ``moved_focal`` with ``gauge_scale`` instead (all centres
+  moving in together is the depth change of every camera at once);
 - ``pose_consistency`` / ``intrinsics_consistency``: Adam's |m| / sqrt(v) over the whitened latent, the RMS over
   coordinates (the bias-corrected moments; about 0.23 for pure noise with beta1 0.9, 1 for a gradient of constant
   sign);
