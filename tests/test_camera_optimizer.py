@@ -1381,8 +1381,10 @@ def test_loading_still_reports_unexpected_keys_and_wrong_shapes():
     state = make_optimizer().state_dict()
     with pytest.raises(RuntimeError, match=r'Unexpected key\(s\) in state_dict: "bogus"'):
         make_optimizer().load_state_dict({**state, "bogus": torch.zeros(1)})
-    wrong = {**state, "precond": torch.zeros(2, 12, 12, dtype=torch.float64)}
-    with pytest.raises(RuntimeError, match=r"size mismatch for precond: copying a param with shape torch.Size\(\[2, "):
+    # A wrong parameter count (the camera count is right: another scene's is refused by its own message).
+    wrong = {**state, "precond": torch.zeros(3, 11, 11, dtype=torch.float64)}
+    message = r"size mismatch for precond: copying a param with shape torch.Size\(\[3, 11"
+    with pytest.raises(RuntimeError, match=message):
         make_optimizer().load_state_dict(wrong)
 
 
