@@ -311,7 +311,8 @@ class _ValidatingColmapDataParser(ColmapDataParser):
         return super()._load_3D_points(colmap_path, transform_matrix, scale_factor)
 
 
-def _replace_cameras(cameras: Cameras, **fields) -> Cameras:
+def replace_cameras(cameras: Cameras, **fields) -> Cameras:
+    """A copy of ``cameras`` with the given fields replaced (nerfstudio's Cameras has no such method)."""
     values = dict(
         camera_to_worlds=cameras.camera_to_worlds,
         fx=cameras.fx,
@@ -362,7 +363,7 @@ def _fit_intrinsics_to_images(
         sx, sy = w / (full_w / k), h / (full_h / k)
         fx[i], cx[i], fy[i], cy[i] = fx[i] * sx, cx[i] * sx, fy[i] * sy, cy[i] * sy
         width[i], height[i] = w, h
-    return _replace_cameras(cameras, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
+    return replace_cameras(cameras, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
 
 
 def transforms_declared_sizes(source: Path, k: int) -> dict[str, tuple[int, int]]:
@@ -398,7 +399,7 @@ def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> 
     distortion = cameras.distortion_params
     if config.zero_distortion and distortion is not None:
         distortion = torch.zeros_like(distortion)
-    return _replace_cameras(
+    return replace_cameras(
         cameras,
         camera_to_worlds=opengl_to_opencv(out.c2w).to(dtype),
         fx=out.fx[:, None].to(cameras.fx.dtype),
@@ -534,7 +535,7 @@ class S2CampDataParser(DataParser):
         declared = [(*parser.full_sizes[name], parser.size_source[name]) for name in full_names]
         cameras = _fit_intrinsics_to_images(outputs.cameras, outputs.image_filenames, declared, k)
         distortion = torch.tensor([parser.distortion[name] for name in full_names], dtype=torch.float32)
-        cameras = _replace_cameras(cameras, distortion_params=distortion)
+        cameras = replace_cameras(cameras, distortion_params=distortion)
         outputs = DataparserOutputs(
             image_filenames=outputs.image_filenames,
             cameras=cameras,
@@ -721,7 +722,7 @@ def reference_from_model(
         pinhole[i] = torch.tensor([values["fx"] * sx, values["fy"] * sy, values["cx"] * sx, values["cy"] * sy])
         distortion[i] = torch.tensor(distortion_of(camera))
     dtype = cameras.fx.dtype
-    return _replace_cameras(
+    return replace_cameras(
         cameras,
         camera_to_worlds=c2w.to(cameras.camera_to_worlds.dtype),
         fx=pinhole[:, 0:1].to(dtype),

@@ -29,6 +29,7 @@ from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoMode
 from torch import Tensor
 
 from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.nerfstudio.dataparser import replace_cameras
 from s2camp_ns.nerfstudio.refinement import S2CampRefinementMixin, warn_lpips_unavailable
 from s2camp_ns.splat.intrinsics_view import corrected_viewmat, intrinsics_correction, intrinsics_matrix
 from s2camp_ns.splat.reference_rasterizer import rasterization as reference_rasterization
@@ -86,19 +87,7 @@ def pinhole_cameras(cameras: Cameras) -> Cameras:
     and writes the new pinhole K into the cameras, but keeps their distortion parameters)."""
     if cameras.distortion_params is None:
         return cameras
-    return Cameras(
-        camera_to_worlds=cameras.camera_to_worlds,
-        fx=cameras.fx,
-        fy=cameras.fy,
-        cx=cameras.cx,
-        cy=cameras.cy,
-        width=cameras.width,
-        height=cameras.height,
-        distortion_params=None,
-        camera_type=cameras.camera_type,
-        times=cameras.times,
-        metadata=cameras.metadata,
-    )
+    return replace_cameras(cameras, distortion_params=None)
 
 
 def world_to_camera(c2w: Float[Tensor, "n 3 4"]) -> Float[Tensor, "n 4 4"]:
