@@ -144,21 +144,29 @@ def generate_scene(config: GpuCheckConfig) -> StageResult:
 
 
 # --------------------------------------------------------------------------------------------------- training
+def _run_arguments(config: GpuCheckConfig, scene: Path, timestamp: str, iterations: int) -> list[str]:
+    """What every run of the check shares: its output place, length (one checkpoint, at the end), no evaluation
+    during training, tensorboard instead of the viewer."""
+    return [
+        "--data", str(scene),
+        "--output-dir", str(config.runs_dir),
+        "--experiment-name", EXPERIMENT,
+        "--timestamp", timestamp,
+        "--max-num-iterations", str(iterations),
+        "--steps-per-save", str(iterations),
+        "--steps-per-eval-batch", "0",
+        "--steps-per-eval-image", "0",
+        "--steps-per-eval-all-images", "0",
+        "--vis", "tensorboard",
+    ]  # fmt: skip
+
+
 def train_arguments(config: GpuCheckConfig, method: str, scene: Path) -> list[str]:
     """``ns-train`` arguments of one method: its defaults, the run length and batch, no evaluation during training,
     tensorboard instead of the viewer, s2camp's refresh interval, CamP's perturbation of the training cameras."""
     arguments = [
         method,
-        "--data", str(scene),
-        "--output-dir", str(config.runs_dir),
-        "--experiment-name", EXPERIMENT,
-        "--timestamp", method,
-        "--max-num-iterations", str(config.iterations),
-        "--steps-per-save", str(config.iterations),
-        "--steps-per-eval-batch", "0",
-        "--steps-per-eval-image", "0",
-        "--steps-per-eval-all-images", "0",
-        "--vis", "tensorboard",
+        *_run_arguments(config, scene, method, config.iterations),
         "--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch),
     ]  # fmt: skip
     if method == "s2camp":
@@ -221,16 +229,7 @@ def nccl_arguments(config: GpuCheckConfig, scene: Path) -> list[str]:
     """``ns-train s2camp`` on two GPUs with nerfstudio's own launcher (one process per GPU, NCCL)."""
     return [
         ns_train_executable(), "s2camp",
-        "--data", str(scene),
-        "--output-dir", str(config.runs_dir),
-        "--experiment-name", EXPERIMENT,
-        "--timestamp", NCCL_TIMESTAMP,
-        "--max-num-iterations", str(config.nccl_iterations),
-        "--steps-per-save", str(config.nccl_iterations),
-        "--steps-per-eval-batch", "0",
-        "--steps-per-eval-image", "0",
-        "--steps-per-eval-all-images", "0",
-        "--vis", "tensorboard",
+        *_run_arguments(config, scene, NCCL_TIMESTAMP, config.nccl_iterations),
         "--machine.num-devices", "2",
         "--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch),
         "--pipeline.model.camera-optimizer.refresh-every", str(NCCL_REFRESH_EVERY),
