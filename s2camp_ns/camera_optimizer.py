@@ -315,9 +315,12 @@ class S2CampCameraOptimizer(CameraOptimizer):
         # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
         # step (``recompute_stale_preconditioner``), once Adam's moments are loaded too.
         self._stale_preconditioner: str | None = None
-        # Track prior radius per image in whitened units (RMS px / max(W, H)); NaN = no prior (``set_track_prior``).
+        # Track prior radius per image in whitened units (RMS px / max(W, H)); NaN = no prior (``set_track_prior``),
+        # and per physical camera for the shared intrinsics latent (the RMS of its images' radii).
         no_prior = torch.full((num_cameras,), float("nan"), dtype=torch.float64, device=device)
         self.register_buffer("prior_radius", no_prior, persistent=False)
+        self.register_buffer("prior_radius_intrinsics", no_prior.clone(), persistent=False)
+        self.has_track_prior = False
 
     # ----------------------------------------------------------------------------------------------------- setup
     @property
@@ -386,6 +389,14 @@ class S2CampCameraOptimizer(CameraOptimizer):
                 raise ValueError(f"track_rms_px must be >= 0 (pixels), got minimum {float(rms.min())}")
             radius = rms / self.base_intrinsics_struct().image_scale()
         self.prior_radius = radius
+        self.has_track_prior = bool(torch.isfinite(radius).any())
+        if self.shared:  # groups are known by now: set_train_cameras fixed them
+            pooled = torch.zeros(self.num_physical_cameras, dtype=torch.float64, device=radius.device)
+            counts = torch.zeros_like(pooled)
+            finite = torch.isfinite(radius)
+            pooled.index_add_(0, self.camera_of_image[finite], radius[finite].square())
+            counts.index_add_(0, self.camera_of_image[finite], torch.ones_like(radius[finite]))
+            self.prior_radius_intrinsics = torch.where(counts > 0, (pooled / counts.clamp(min=1.0)).sqrt(), torch.nan)
 
     @torch.no_grad()
     def apply_track_prior(self, lr: float) -> None:
@@ -402,22 +413,16 @@ class S2CampCameraOptimizer(CameraOptimizer):
         SfM) may move that far; images without tracks are untouched. Shared intrinsics take the RMS of their
         images' radii.
         """
-        if not self.enabled or not bool(torch.isfinite(self.prior_radius).any()) or lr <= 0:
+        # A Python flag, not a look at the radii: no device synchronisation on the training step's path.
+        if not self.enabled or not self.has_track_prior or lr <= 0:
             return
-        radius = self.prior_radius.clamp(min=1e-12)
-        self._shrink(self.whitened_delta, radius, lr)
+        self._shrink(self.whitened_delta, self.prior_radius, lr)
         if self.shared:
-            groups = torch.zeros(self.num_physical_cameras, dtype=torch.float64, device=radius.device)
-            counts = torch.zeros_like(groups)
-            finite = torch.isfinite(radius)
-            groups.index_add_(0, self.camera_of_image[finite], radius[finite].square())
-            counts.index_add_(0, self.camera_of_image[finite], torch.ones_like(radius[finite]))
-            shared = torch.where(counts > 0, (groups / counts.clamp(min=1.0)).sqrt(), torch.nan)
-            self._shrink(self.whitened_intrinsics, shared, lr)
+            self._shrink(self.whitened_intrinsics, self.prior_radius_intrinsics, lr)
 
     @staticmethod
     def _shrink(latent: nn.Parameter, radius: Tensor, lr: float) -> None:
-        factor = 1.0 / (1.0 + lr / radius)
+        factor = 1.0 / (1.0 + lr / radius.clamp(min=1e-12))
         factor = torch.where(torch.isfinite(radius), factor, torch.ones_like(factor))
         latent.mul_(factor.to(latent.dtype)[:, None])
 
