@@ -161,7 +161,9 @@ class RobustnessConfig:
     starts: tuple[str, ...] = DEFAULT_STARTS
     variants: tuple[str, ...] = ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp")
     seeds: int = 3
-    """Runs per scene, start and variant, ``--machine.seed`` 0 .. seeds - 1."""
+    """Runs per scene, start and variant, ``--machine.seed`` first_seed .. first_seed + seeds - 1."""
+    first_seed: int = 0
+    """The first seed: a grid that spans sessions adds seeds 1 and 2 later without re-running seed 0."""
     iterations: int = 200
     """``--max-num-iterations`` of every run."""
     rays_per_batch: int = 512
@@ -204,6 +206,8 @@ class RobustnessConfig:
                 check_choice(name, value, allowed)
         for name in ("seeds", "iterations", "rays_per_batch", "workers"):
             check_positive_int(name, getattr(self, name))
+        if self.first_seed < 0:
+            raise ValueError(f"first_seed must be >= 0, got {self.first_seed}")
         if self.trace_every < 0:
             raise ValueError(f"trace_every must be >= 0 steps (0: no trace), got {self.trace_every}")
         check_choice("preset", self.preset, ("", "regime"))
@@ -221,7 +225,7 @@ class RobustnessConfig:
         for name in ("scenes", "starts", "variants"):
             if getattr(self, name) != getattr(default, name):
                 parts.append(f"--{name} " + " ".join(getattr(self, name)))
-        for name in ("seeds", "iterations", "rays_per_batch", "workers", "trace_every"):
+        for name in ("seeds", "first_seed", "iterations", "rays_per_batch", "workers", "trace_every"):
             if getattr(self, name) != getattr(default, name):
                 parts.append(f"--{name.replace('_', '-')} {getattr(self, name)}")
         return " ".join(parts)
@@ -249,7 +253,7 @@ def run_specs(config: RobustnessConfig) -> list[RunSpec]:
     """Every run, seeds outermost: a run cut short still leaves whole seeds of every scene, start and variant."""
     return [
         RunSpec(scene, start, variant, seed)
-        for seed in range(config.seeds)
+        for seed in range(config.first_seed, config.first_seed + config.seeds)
         for scene in config.scenes
         for start in config.starts
         for variant in config.variants

@@ -110,6 +110,14 @@ def test_seeds_are_the_outermost_loop_of_the_runs() -> None:
     assert [spec.seed for spec in specs] == [0] * 8 + [1] * 8
 
 
+def test_a_later_session_adds_seeds_from_first_seed() -> None:
+    config = RobustnessConfig(scenes=("large-wide",), starts=("sfm",), variants=("s2camp",), seeds=2, first_seed=1)
+    assert [spec.seed for spec in run_specs(config)] == [1, 2]
+    assert "--first-seed 1" in config.command()
+    with pytest.raises(ValueError, match="first_seed must be >= 0, got -1"):
+        RobustnessConfig(first_seed=-1).validate()
+
+
 def test_bad_choices_are_rejected_with_the_parameter_name() -> None:
     with pytest.raises(ValueError, match="variants"):
         RobustnessConfig(variants=("s2camp", "nope")).validate()
