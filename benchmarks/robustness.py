@@ -190,8 +190,10 @@ class RobustnessConfig:
     """"regime": the real-training regime (``REGIME``): scene regime-wide, all four starts, 3000 steps."""
 
     def effective(self) -> RobustnessConfig:
-        if self.preset == "regime":
-            return replace(self, **REGIME)
+        if self.preset == "regime":  # the preset's values where the command line left the defaults
+            default = RobustnessConfig()
+            chosen = {key: value for key, value in REGIME.items() if getattr(self, key) == getattr(default, key)}
+            return replace(self, **chosen)
         if not self.quick:
             return self
         alignment = replace(self.alignment, steps=10, rays=64)

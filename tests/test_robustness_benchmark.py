@@ -85,6 +85,13 @@ def test_regime_scene_sees_each_training_pixel_one_and_a_half_times() -> None:
     assert config.variants == ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp")
 
 
+def test_the_regime_preset_keeps_the_starts_and_variants_the_command_line_chose() -> None:
+    config = RobustnessConfig(preset="regime", starts=("sfm",), variants=("off",), seeds=1).effective()
+    assert (config.starts, config.variants, config.seeds) == (("sfm",), ("off",), 1)
+    assert (config.scenes, config.iterations) == (("regime-wide",), 3000)
+    assert config.command() == "s2camp-bench robustness --preset regime --starts sfm --variants off --seeds 1"
+
+
 def test_the_scenes_differ_in_resolution_field_of_view_image_count_and_depth() -> None:
     chosen = [SCENES[name] for name in RobustnessConfig().scenes]
     widths = [preset.scene.width for preset in chosen]
