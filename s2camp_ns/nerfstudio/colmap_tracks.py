@@ -23,6 +23,14 @@ def read_colmap_tracks(model: Path, names: list[str], downscale_factor: int = 1)
     images_file = model_file(model, "images")
     images = {image.name: image for image in read_model_file(images_file, "images").values()}
     points3d = read_model_file(model_file(model, "points3D"), "points3D")
+    return tracks_of_images(images, points3d, names, downscale_factor, images_file)
+
+
+def tracks_of_images(
+    images: dict, points3d: dict, names: list[str], downscale_factor: int, images_file: Path
+) -> Tracks:
+    """``read_colmap_tracks`` on a model already read: ``images`` by name, ``points3d`` by id (``images_file`` names
+    the source in errors)."""
     ids = np.fromiter(points3d.keys(), dtype=np.int64, count=len(points3d))
     xyz = np.stack([points3d[int(i)].xyz for i in ids]) if len(ids) else np.zeros((0, 3))
     row_of = {int(point_id): row for row, point_id in enumerate(ids)}
@@ -43,4 +51,4 @@ def read_colmap_tracks(model: Path, names: list[str], downscale_factor: int = 1)
     )
 
 
-__all__ = ["read_colmap_tracks"]
+__all__ = ["read_colmap_tracks", "tracks_of_images"]

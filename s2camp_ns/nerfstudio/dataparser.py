@@ -48,6 +48,8 @@ from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, Colm
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat
 from PIL import Image
+from rich.console import Console
+from rich.markup import escape
 
 from s2camp_ns.camera_optimizer import (
     SUPPORTED_CAMERA_TYPES,
@@ -63,6 +65,7 @@ from s2camp_ns.core.tracks import track_reprojection_rms
 from s2camp_ns.core.validation import check_range
 from s2camp_ns.nerfstudio.colmap_model import ColmapModelError, model_file, read_model_file
 from s2camp_ns.nerfstudio.colmap_tracks import read_colmap_tracks
+from s2camp_ns.nerfstudio.transforms_tracks import colmap_model_of_transforms, transforms_track_rms
 
 NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 """nerfstudio's distortion_params order."""
@@ -462,6 +465,10 @@ class S2CampDataParser(DataParser):
         metadata.update(extra)
         if data_format == "colmap" and self.config.tracks and self.config.load_3D_points and self._has_points(source):
             metadata["track_rms_px"] = track_rms_of(cameras, source, extra, outputs)
+        elif data_format == "nerfstudio" and self.config.tracks:
+            rms = self._transforms_track_rms(source, cameras, outputs, extra)
+            if rms is not None:
+                metadata["track_rms_px"] = rms
         metadata.update(
             reference_cameras=reference,
             # One id per physical camera: images whose given intrinsics agree (COLMAP's camera_id in practice; the
@@ -588,10 +595,48 @@ class S2CampDataParser(DataParser):
         )
         return outputs, dict(image_names=[Path(p).name for p in outputs.image_filenames], downscale_factor=k)
 
+    def _transforms_track_rms(
+        self, source: Path, cameras: Cameras, outputs: DataparserOutputs, extra: dict
+    ) -> torch.Tensor | None:
+        """``track_rms_px`` of a transforms.json scene from the COLMAP model ns-process-data left beside it
+        (``transforms_tracks``); None, with the reason shown once, when there are none."""
+        model = colmap_model_of_transforms(source, self.config.colmap_path)
+        k = extra["downscale_factor"]
+        sizes = transforms_declared_sizes(source, k)
+        scale = float(outputs.dataparser_scale)
+        result = transforms_track_rms(
+            source,
+            model,
+            outputs.image_filenames,
+            [sizes[os.path.normpath(p)] for p in outputs.image_filenames],
+            k,
+            self.config.images_path,
+            c2w_given=c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, scale),
+            c2w_reference=c2w_to_colmap_world(outputs.cameras.camera_to_worlds, outputs.dataparser_transform, scale),
+            intrinsics=intrinsics_from_cameras(cameras),
+        )
+        if result.rms is None:
+            # A transforms.json that disagrees with its COLMAP model is a warning; a scene without one is normal.
+            style = "bold yellow" if result.cause == "disagree" else "dim"
+            _show_once((source.resolve(), result.cause), f"[{style}]No track prior: {escape(result.reason)}")
+        return result.rms
+
     @staticmethod
     def _transforms_frames(source: Path) -> list:
         with open(source, encoding="utf8") as f:
             return list(json.load(f).get("frames", []))
+
+
+LOG = Console(stderr=True, width=120)
+"""Notes of the data parser (why a scene has no track prior): on stderr, as the camera optimizer's."""
+_SHOWN: set[tuple] = set()
+"""Keys of the notes already shown: the data parser runs once per split, and once is enough."""
+
+
+def _show_once(key: tuple, message: str) -> None:
+    if key not in _SHOWN:
+        _SHOWN.add(key)
+        LOG.print(message)
 
 
 def track_rms_of(cameras: Cameras, model: Path, extra: dict, outputs: DataparserOutputs) -> torch.Tensor:

@@ -1,0 +1,207 @@
+"""The SfM tracks of an ``ns-process-data`` scene: a transforms.json beside the COLMAP model it was written from.
+
+``ns-process-data`` runs COLMAP on ``<dir>/images`` and converts ``<dir>/colmap/sparse/0`` into
+``<dir>/transforms.json`` (nerfstudio's ``colmap_to_json``). The model stays there, with its tracks; this module
+finds it, matches its images to the scene's frames by name and checks that the transforms.json cameras are the
+model's before the data parser measures each camera's track reprojection error (``core.tracks``) for the camera
+optimizer's track prior.
+
+Where the model is: ``<folder of the transforms.json>/colmap/sparse/0`` (``COLMAP_MODEL_OF_TRANSFORMS``), where
+``ns-process-data`` writes it and where nerfstudio's own transforms.json parser looks for it (its ``colmap_path``);
+the data parser's ``colmap_path`` option, relative to that folder, overrides it. It must hold cameras, images and
+points3D (binary or text).
+
+Frames. ``colmap_to_json`` writes each camera as ``A @ c2w`` with ``c2w`` COLMAP's camera-to-world, its camera axes
+flipped to OpenGL (y and z columns negated), and ``A = applied_transform`` (rows x, z, -y of COLMAP's world: z up),
+stored in the json. nerfstudio's transforms.json parser composes ``A`` into its normalization: its
+``dataparser_transform`` is ``transform_matrix @ A``, so inverting the normalization (``dataparser_transform`` and
+``dataparser_scale``, ``dataparser.c2w_to_colmap_world``) gives COLMAP's world directly. Without ``applied_transform``
+(``--keep-original-world-coordinate``, a hand-made json) the same inversion gives the json's own world, which is
+COLMAP's only if the json kept it: the centre check below decides, and otherwise there are no tracks.
+
+Images are matched by name: a frame's image relative to the image folder (``images/frame_00001.png`` ->
+``frame_00001.png``, COLMAP's image name; with a downscale factor nerfstudio reads ``images_k/<file name>``, which is
+mapped back to its frame). A frame that COLMAP did not register gets NaN (no prior for that camera).
+
+The check (``CENTRE_TOLERANCE``): every matched camera's centre as given, before any perturbation, mapped to
+COLMAP's world, must lie within 1% of the spread of COLMAP's camera centres (their RMS distance to their centroid,
+over every registered image) of the centre COLMAP has for that image, and the COLMAP camera's size must be the
+frame's declared ``w`` x ``h``. The json round trip (float64 text, float32 in nerfstudio) keeps centres within about
+1e-6 of the spread; a transforms.json that was edited (a camera moved) or belongs to another reconstruction misses
+by far more. Then the scene gets no tracks, with a reason naming both files: a prior measured against the wrong
+cameras would pin them to the wrong place.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from jaxtyping import Float
+from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat
+from torch import Tensor
+
+from s2camp_ns.core.camera import Intrinsics
+from s2camp_ns.core.tracks import track_reprojection_rms
+from s2camp_ns.nerfstudio.colmap_model import model_file, read_model_file
+from s2camp_ns.nerfstudio.colmap_tracks import tracks_of_images
+
+COLMAP_MODEL_OF_TRANSFORMS = Path("colmap/sparse/0")
+"""Where ``ns-process-data`` writes the COLMAP model, relative to the transforms.json's folder."""
+
+CENTRE_TOLERANCE = 0.01
+"""Largest distance between a camera's centre as given and COLMAP's, as a fraction of the RMS distance of COLMAP's
+camera centres to their centroid."""
+
+
+@dataclass(frozen=True)
+class TransformsTracks:
+    """Result of ``transforms_track_rms``: the per-camera RMS (px, float64 [N], NaN for unregistered images), or
+    None and why there are no tracks (``cause``: one word per kind of reason, ``reason``: the message)."""
+
+    rms: Float[Tensor, " n"] | None
+    cause: str | None = None
+    reason: str | None = None
+
+
+def colmap_model_of_transforms(source: Path, colmap_path: Path | None = None) -> Path:
+    """The COLMAP model folder that belongs to the transforms.json ``source`` (module docstring; may not exist)."""
+    return source.parent / (colmap_path if colmap_path is not None else COLMAP_MODEL_OF_TRANSFORMS)
+
+
+def _has_model(folder: Path) -> bool:
+    return all(model_file(folder, kind).exists() for kind in ("cameras", "images", "points3D"))
+
+
+def frame_names(
+    source: Path, image_filenames: list[Path], downscale_factor: int, images_path: Path
+) -> list[str | None]:
+    """The COLMAP image name of each image nerfstudio read from ``source`` (its frame's image relative to the data
+    folder's ``images_path``, else its file name); None for an image no frame lists."""
+    with open(source, encoding="utf8") as f:
+        frames = json.load(f).get("frames", [])
+    data_dir = source.parent
+    image_folder = os.path.normpath(data_dir / images_path)
+    name_of = {}
+    for frame in frames:
+        file_path = Path(frame["file_path"])
+        full = os.path.normpath(data_dir / file_path)
+        downscaled = data_dir / f"images_{downscale_factor}" / file_path.name
+        read = full if downscale_factor == 1 else os.path.normpath(downscaled)
+        relative = os.path.relpath(full, image_folder)
+        name_of[read] = file_path.name if relative.startswith("..") else Path(relative).as_posix()
+    return [name_of.get(os.path.normpath(path)) for path in image_filenames]
+
+
+def _colmap_centres(images: dict) -> dict[str, Tensor]:
+    """COLMAP's camera centre -R^T t (float64 [3]) of every image, by name."""
+    centres = {}
+    for image in images.values():
+        rotation = torch.tensor(qvec2rotmat(image.qvec), dtype=torch.float64)
+        centres[image.name] = -rotation.T @ torch.tensor(image.tvec, dtype=torch.float64)
+    return centres
+
+
+def _disagreement(
+    names: list[str],
+    given_centres: Tensor,
+    colmap_centres: dict[str, Tensor],
+    sizes: list[tuple[int, int]],
+    colmap_sizes: list[tuple[int, int]],
+) -> str | None:
+    """What makes the given cameras not COLMAP's (module docstring, the check), or None when they agree."""
+    for name, size, colmap_size in zip(names, sizes, colmap_sizes, strict=True):
+        if tuple(size) != tuple(colmap_size):
+            return (
+                f"image '{name}' is declared {size[0]}x{size[1]} but its COLMAP camera is "
+                f"{colmap_size[0]}x{colmap_size[1]}"
+            )
+    every = torch.stack(list(colmap_centres.values()))
+    spread = float((every - every.mean(dim=0)).square().sum(dim=-1).mean().sqrt())
+    tolerance = CENTRE_TOLERANCE * spread
+    distance = torch.linalg.norm(given_centres - torch.stack([colmap_centres[name] for name in names]), dim=-1)
+    far = distance > tolerance
+    if not bool(far.any()):
+        return None
+    worst = int(distance.argmax())
+    return (
+        f"{int(far.sum())} of {len(names)} cameras are not where COLMAP has them; the farthest, '{names[worst]}', is "
+        f"{float(distance[worst]):.4g} from COLMAP's centre (tolerance {tolerance:.4g}: {CENTRE_TOLERANCE:g} of the "
+        f"camera centres' spread {spread:.4g}, in COLMAP's units)"
+    )
+
+
+def transforms_track_rms(
+    source: Path,
+    model: Path,
+    image_filenames: list[Path],
+    declared_sizes: list[tuple[int, int]],
+    downscale_factor: int,
+    images_path: Path,
+    c2w_given: Float[Tensor, "n 3 4"],
+    c2w_reference: Float[Tensor, "n 3 4"],
+    intrinsics: Intrinsics,
+) -> TransformsTracks:
+    """Each camera's track reprojection RMS for the transforms.json ``source`` against the COLMAP model ``model``.
+
+    ``c2w_given`` are the cameras to measure (after any perturbation) and ``c2w_reference`` the same cameras as the
+    json gives them, both OpenCV camera-to-world in the world nerfstudio's normalization came from
+    (``dataparser.c2w_to_colmap_world``); ``declared_sizes`` are the frames' full-size ``w``, ``h``. No tracks
+    (``rms`` None, with the reason) when the model or its points are missing, the json has no ``applied_transform``
+    and its cameras are not COLMAP's, or the cameras disagree with the model (module docstring).
+    """
+    if not _has_model(model):
+        return TransformsTracks(None, "no-model", f"no COLMAP model with points (cameras, images, points3D) in {model}")
+    with open(source, encoding="utf8") as f:
+        meta = json.load(f)
+    if "applied_scale" in meta:
+        reason = f"{source} has an applied_scale, which COLMAP's frame does not undo"
+        return TransformsTracks(None, "applied-scale", reason)
+    images_file = model_file(model, "images")
+    images = {image.name: image for image in read_model_file(images_file, "images").values()}
+    cameras = read_model_file(model_file(model, "cameras"), "cameras")
+    names = frame_names(source, image_filenames, downscale_factor, images_path)
+    matched = [i for i, name in enumerate(names) if name in images]
+    if not matched:
+        return TransformsTracks(None, "unregistered", f"none of the images of {source} is registered in {images_file}")
+    matched_names = [names[i] for i in matched]
+    index = torch.tensor(matched, dtype=torch.long)
+    problem = _disagreement(
+        matched_names,
+        c2w_reference.to(torch.float64)[index, :, 3],
+        _colmap_centres(images),
+        [declared_sizes[i] for i in matched],
+        [(cameras[images[name].camera_id].width, cameras[images[name].camera_id].height) for name in matched_names],
+    )
+    if problem is not None:
+        if "applied_transform" not in meta:
+            return TransformsTracks(
+                None,
+                "unknown-frame",
+                f"{source} has no applied_transform and its cameras are not in the frame of {images_file} "
+                f"({problem}): the frame is unknown",
+            )
+        return TransformsTracks(
+            None,
+            "disagree",
+            f"the cameras of {source} disagree with {images_file}: {problem}; the transforms.json was edited or "
+            "belongs to another reconstruction",
+        )
+    points3d = read_model_file(model_file(model, "points3D"), "points3D")
+    tracks = tracks_of_images(images, points3d, matched_names, downscale_factor, images_file)
+    rms = torch.full((len(names),), float("nan"), dtype=torch.float64)
+    rms[index] = track_reprojection_rms(tracks, c2w_given.to(torch.float64)[index], intrinsics[index])
+    return TransformsTracks(rms)
+
+
+__all__ = [
+    "CENTRE_TOLERANCE",
+    "COLMAP_MODEL_OF_TRANSFORMS",
+    "TransformsTracks",
+    "colmap_model_of_transforms",
+    "frame_names",
+    "transforms_track_rms",
+]

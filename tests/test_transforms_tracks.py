@@ -1,0 +1,146 @@
+"""The track prior's scale for ``ns-process-data`` scenes: a transforms.json beside ``colmap/sparse/0``
+(``s2camp_ns.nerfstudio.transforms_tracks``). Each scene is laid out from the session's generated scene by
+nerfstudio's own ``colmap_to_json``, as ``ns-process-data`` writes it."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+
+
+def _ns_process_data_layout(scene: Path, data: Path, keep_original_world_coordinate: bool = False) -> Path:
+    """``data/{images, images_2, colmap/sparse/0, transforms.json}`` of the generated ``scene``; the json's path."""
+    from nerfstudio.process_data.colmap_utils import colmap_to_json
+
+    for folder in ("images", "images_2"):
+        shutil.copytree(scene / folder, data / folder)
+    model = data / "colmap" / "sparse" / "0"
+    shutil.copytree(scene / "sparse" / "0", model)
+    colmap_to_json(model, data, keep_original_world_coordinate=keep_original_world_coordinate)
+    return data / "transforms.json"
+
+
+def _parse(data: Path, split: str = "train", **options):
+    perturbed = options.pop("perturbed", False)
+    config = S2CampDataParserConfig(data=data, **options)
+    config.perturbation.enabled = perturbed
+    return config.setup().get_dataparser_outputs(split)
+
+
+def _rms_by_name(outputs) -> dict[str, float]:
+    return dict(zip(outputs.metadata["image_names"], outputs.metadata["track_rms_px"].tolist(), strict=True))
+
+
+def _stderr(capsys: pytest.CaptureFixture) -> str:
+    return " ".join(capsys.readouterr().err.split())
+
+
+@pytest.mark.parametrize(("downscale_factor", "perturbed"), [(1, False), (1, True), (2, True)])
+def test_ns_process_data_tracks_equal_the_colmap_scene_s(
+    tiny_scene: Path, tmp_path: Path, downscale_factor: int, perturbed: bool
+) -> None:
+    source = _ns_process_data_layout(tiny_scene, tmp_path / "ns")
+    colmap = _parse(tiny_scene, downscale_factor=downscale_factor, perturbed=perturbed)
+    transforms = _parse(source, downscale_factor=downscale_factor, perturbed=perturbed)
+    assert transforms.metadata["source_format"] == "nerfstudio"
+    assert transforms.metadata["image_names"] == colmap.metadata["image_names"]
+    # The same cameras, perturbed alike: both formats normalize the same COLMAP world the same way.
+    torch.testing.assert_close(
+        transforms.cameras.camera_to_worlds, colmap.cameras.camera_to_worlds, atol=1e-6, rtol=0.0
+    )
+    torch.testing.assert_close(transforms.cameras.fx, colmap.cameras.fx, atol=1e-4, rtol=0.0)
+    rms = transforms.metadata["track_rms_px"]
+    torch.testing.assert_close(rms, colmap.metadata["track_rms_px"], atol=1e-6, rtol=0.0)
+    if perturbed:
+        # The CamP perturbation moves the 64x48 cameras' tracks by 0.66-1.10 px at full size, half that at half size.
+        assert float(rms.min()) > 0.5 / downscale_factor and float(rms.max()) < 3.0
+    else:
+        # The generator's observations are exact projections: only float32 storage of the poses remains.
+        assert float(rms.max()) < 1e-3
+
+
+def test_unregistered_image_gets_no_prior_and_the_others_keep_theirs(tiny_scene: Path, tmp_path: Path) -> None:
+    source = _ns_process_data_layout(tiny_scene, tmp_path / "ns")
+    meta = json.loads(source.read_text())
+    # An image COLMAP never saw: frame_00003.png renamed (file and frame) to a name the model does not hold.
+    for frame in meta["frames"]:
+        if frame["file_path"] == "images/frame_00003.png":
+            frame["file_path"] = "images/zz_00003.png"
+    source.write_text(json.dumps(meta))
+    (tmp_path / "ns" / "images" / "frame_00003.png").rename(tmp_path / "ns" / "images" / "zz_00003.png")
+    # Every image in the training split, so that both scenes hold the same cameras whatever their order.
+    expected = _rms_by_name(_parse(tiny_scene, downscale_factor=1, eval_mode="all"))
+    got = _rms_by_name(_parse(source, downscale_factor=1, eval_mode="all"))
+    assert math.isnan(got.pop("zz_00003.png"))
+    del expected["frame_00003.png"]
+    assert got.keys() == expected.keys() and len(got) == 11
+    # Exact observations: float32 noise only (the centring sums the poses in another order: not bit-identical).
+    assert max(got.values()) < 1e-4 and max(expected.values()) < 1e-4
+    # Perturbed (the draws follow the frame order, which the rename changed): every tracked camera measured, the
+    # unregistered one still NaN.
+    perturbed = _rms_by_name(_parse(source, downscale_factor=1, eval_mode="all", perturbed=True))
+    assert math.isnan(perturbed.pop("zz_00003.png"))
+    assert min(perturbed.values()) > 0.3
+
+
+def test_transforms_json_without_applied_transform(tiny_scene: Path, tmp_path: Path, capsys) -> None:
+    # Written with --keep-original-world-coordinate: no applied_transform, but the cameras are COLMAP's, so the
+    # tracks are used: exact for the cameras as given, about a pixel once perturbed.
+    kept = _ns_process_data_layout(tiny_scene, tmp_path / "kept", keep_original_world_coordinate=True)
+    assert "applied_transform" not in json.loads(kept.read_text())
+    assert float(_parse(kept, downscale_factor=1).metadata["track_rms_px"].max()) < 1e-3
+    assert float(_parse(kept, downscale_factor=1, perturbed=True).metadata["track_rms_px"].min()) > 0.3
+    # applied_transform removed from a json whose cameras it had rotated: the frame is unknown, no tracks, said once.
+    source = _ns_process_data_layout(tiny_scene, tmp_path / "ns")
+    meta = json.loads(source.read_text())
+    del meta["applied_transform"]
+    source.write_text(json.dumps(meta))
+    capsys.readouterr()
+    assert "track_rms_px" not in _parse(source).metadata
+    assert "track_rms_px" not in _parse(source, split="val").metadata
+    err = _stderr(capsys)
+    assert err.count("No track prior:") == 1
+    assert f"No track prior: {source} has no applied_transform and its cameras are not in the frame of" in err
+    assert "colmap/sparse/0/images.bin" in err and "the frame is unknown" in err
+
+
+def test_no_model_no_points_or_tracks_off_give_no_prior(tiny_scene: Path, tmp_path: Path, capsys) -> None:
+    source = _ns_process_data_layout(tiny_scene, tmp_path / "ns")
+    assert "track_rms_px" not in _parse(source, tracks=False).metadata
+    model = tmp_path / "ns" / "colmap" / "sparse" / "0"
+    (model / "points3D.bin").unlink()
+    assert "track_rms_px" not in _parse(source).metadata
+    assert f"No track prior: no COLMAP model with points (cameras, images, points3D) in {model}" in _stderr(capsys)
+    shutil.rmtree(tmp_path / "ns" / "colmap")
+    assert "track_rms_px" not in _parse(source).metadata
+
+
+def _move_camera(source: Path, file_path: str, dx: float) -> None:
+    """Move one frame's camera by ``dx`` along the transforms.json's x axis (a rotation of COLMAP's: same length)."""
+    meta = json.loads(source.read_text())
+    (frame,) = [frame for frame in meta["frames"] if frame["file_path"] == file_path]
+    frame["transform_matrix"][0][3] += dx
+    source.write_text(json.dumps(meta))
+
+
+def test_a_moved_camera_is_detected_and_named(tiny_scene: Path, tmp_path: Path, capsys) -> None:
+    # The generated ring's camera centres spread 4 units about their centroid: the tolerance is 0.04.
+    source = _ns_process_data_layout(tiny_scene, tmp_path / "ns")
+    _move_camera(source, "images/frame_00005.png", 0.02)  # within the tolerance: measured, off by a fraction of a px
+    rms = _rms_by_name(_parse(source, downscale_factor=1, eval_mode="all"))
+    assert rms.pop("frame_00005.png") > 0.05 and max(rms.values()) < 1e-3
+    _move_camera(source, "images/frame_00005.png", 0.98)
+    capsys.readouterr()
+    assert "track_rms_px" not in _parse(source).metadata
+    err = _stderr(capsys)
+    assert f"No track prior: the cameras of {source} disagree with {tmp_path}/ns/colmap/sparse/0/images.bin" in err
+    assert "1 of 10 cameras are not where COLMAP has them; the farthest, 'frame_00005.png', is 1 from" in err
+    assert "(tolerance 0.04: 0.01 of the camera centres' spread 4, in COLMAP's units)" in err
+    assert "the transforms.json was edited or belongs to another reconstruction" in err
