@@ -107,8 +107,22 @@ def test_transforms_json_without_applied_transform(tiny_scene: Path, tmp_path: P
     assert "track_rms_px" not in _parse(source, split="val").metadata
     err = _stderr(capsys)
     assert err.count("No track prior:") == 1
-    assert f"No track prior: {source} has no applied_transform and its cameras are not in the frame of" in err
-    assert "colmap/sparse/0/images.bin" in err and "the frame is unknown" in err
+    assert f"No track prior: {source} has no applied_transform and its cameras are in neither COLMAP's frame of" in err
+    assert "colmap/sparse/0/images.bin (10 of 10 cameras are not where COLMAP has them" in err
+    assert "nor nerfstudio's legacy one: the frame is unknown" in err
+    # Written by ns-process-data before applied_transform was recorded: x and y swapped, z negated (the frame that
+    # nerfstudio's parser assumes for such files), written out here from the json's applied_transform.
+    legacy = _ns_process_data_layout(tiny_scene, tmp_path / "legacy")
+    meta = json.loads(legacy.read_text())
+    to_colmap = torch.eye(4, dtype=torch.float64)
+    to_colmap[:3] = torch.tensor(meta.pop("applied_transform"), dtype=torch.float64)
+    old_world = torch.tensor([[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]], dtype=torch.float64)
+    for frame in meta["frames"]:
+        saved = torch.tensor(frame["transform_matrix"], dtype=torch.float64)
+        frame["transform_matrix"] = (old_world @ torch.linalg.inv(to_colmap) @ saved).tolist()
+    legacy.write_text(json.dumps(meta))
+    assert float(_parse(legacy, downscale_factor=1).metadata["track_rms_px"].max()) < 1e-3
+    assert float(_parse(legacy, downscale_factor=1, perturbed=True).metadata["track_rms_px"].min()) > 0.3
 
 
 def test_no_model_no_points_or_tracks_off_give_no_prior(tiny_scene: Path, tmp_path: Path, capsys) -> None:

@@ -15,9 +15,13 @@ Frames. ``colmap_to_json`` writes each camera as ``A @ c2w`` with ``c2w`` COLMAP
 flipped to OpenGL (y and z columns negated), and ``A = applied_transform`` (rows x, z, -y of COLMAP's world: z up),
 stored in the json. nerfstudio's transforms.json parser composes ``A`` into its normalization: its
 ``dataparser_transform`` is ``transform_matrix @ A``, so inverting the normalization (``dataparser_transform`` and
-``dataparser_scale``, ``dataparser.c2w_to_colmap_world``) gives COLMAP's world directly. Without ``applied_transform``
-(``--keep-original-world-coordinate``, a hand-made json) the same inversion gives the json's own world, which is
-COLMAP's only if the json kept it: the centre check below decides, and otherwise there are no tracks.
+``dataparser_scale``, ``dataparser.c2w_to_colmap_world``) gives COLMAP's world directly (the S2CamP data parser
+hands nerfstudio the json file itself, so nerfstudio's guess for a json without ``applied_transform``, which it makes
+only when ``colmap/sparse/0`` lies under the path it was given, never applies). Without ``applied_transform`` the
+same inversion gives the json's own world. Two worlds are known for such files: COLMAP's own
+(``--keep-original-world-coordinate``) and ``LEGACY_APPLIED_ROTATION`` times it (ns-process-data before it recorded
+``applied_transform``); the first that passes the centre check below is used, and if neither does (a hand-made json)
+the frame is unknown and there are no tracks.
 
 Images are matched by name: a frame's image relative to the image folder (``images/frame_00001.png`` ->
 ``frame_00001.png``, COLMAP's image name; with a downscale factor nerfstudio reads ``images_k/<file name>``, which is
@@ -51,6 +55,10 @@ from s2camp_ns.nerfstudio.colmap_tracks import tracks_of_images
 
 COLMAP_MODEL_OF_TRANSFORMS = Path("colmap/sparse/0")
 """Where ``ns-process-data`` writes the COLMAP model, relative to the transforms.json's folder."""
+
+LEGACY_APPLIED_ROTATION = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
+"""The world rotation of transforms.json files written by ns-process-data before it recorded ``applied_transform``
+(nerfstudio's transforms.json parser assumes it for such files when ``colmap/sparse/0`` exists)."""
 
 CENTRE_TOLERANCE = 0.01
 """Largest distance between a camera's centre as given and COLMAP's, as a fraction of the RMS distance of COLMAP's
@@ -94,6 +102,12 @@ def frame_names(
         relative = os.path.relpath(full, image_folder)
         name_of[read] = file_path.name if relative.startswith("..") else Path(relative).as_posix()
     return [name_of.get(os.path.normpath(path)) for path in image_filenames]
+
+
+def _world_from_json(c2w: Float[Tensor, "n 3 4"], rotation: Float[Tensor, "3 3"]) -> Float[Tensor, "n 3 4"]:
+    """Camera-to-world [n, 3, 4] (float64) in COLMAP's world of cameras given in a world that is ``rotation`` times
+    COLMAP's (json world = rotation @ COLMAP world)."""
+    return rotation.T @ c2w.to(torch.float64)
 
 
 def _colmap_centres(images: dict) -> dict[str, Tensor]:
@@ -169,31 +183,39 @@ def transforms_track_rms(
         return TransformsTracks(None, "unregistered", f"none of the images of {source} is registered in {images_file}")
     matched_names = [names[i] for i in matched]
     index = torch.tensor(matched, dtype=torch.long)
-    problem = _disagreement(
-        matched_names,
-        c2w_reference.to(torch.float64)[index, :, 3],
-        _colmap_centres(images),
-        [declared_sizes[i] for i in matched],
-        [(cameras[images[name].camera_id].width, cameras[images[name].camera_id].height) for name in matched_names],
-    )
-    if problem is not None:
+    colmap_centres = _colmap_centres(images)
+    sizes = [declared_sizes[i] for i in matched]
+    colmap_sizes = [(cameras[images[name].camera_id].width, cameras[images[name].camera_id].height)
+                    for name in matched_names]  # fmt: skip
+    if "applied_transform" in meta:
+        frames = {"applied_transform": torch.eye(3, dtype=torch.float64)}  # already undone by nerfstudio
+    else:
+        frames = {"colmap": torch.eye(3, dtype=torch.float64), "legacy": LEGACY_APPLIED_ROTATION}
+    problems = {}
+    for frame, rotation in frames.items():
+        reference = _world_from_json(c2w_reference[index], rotation)
+        problems[frame] = _disagreement(matched_names, reference[:, :, 3], colmap_centres, sizes, colmap_sizes)
+        if problems[frame] is None:
+            break
+    else:
         if "applied_transform" not in meta:
             return TransformsTracks(
                 None,
                 "unknown-frame",
-                f"{source} has no applied_transform and its cameras are not in the frame of {images_file} "
-                f"({problem}): the frame is unknown",
+                f"{source} has no applied_transform and its cameras are in neither COLMAP's frame of {images_file} "
+                f"({problems['colmap']}) nor nerfstudio's legacy one: the frame is unknown",
             )
         return TransformsTracks(
             None,
             "disagree",
-            f"the cameras of {source} disagree with {images_file}: {problem}; the transforms.json was edited or "
-            "belongs to another reconstruction",
+            f"the cameras of {source} disagree with {images_file}: {problems['applied_transform']}; the "
+            "transforms.json was edited or belongs to another reconstruction",
         )
     points3d = read_model_file(model_file(model, "points3D"), "points3D")
     tracks = tracks_of_images(images, points3d, matched_names, downscale_factor, images_file)
     rms = torch.full((len(names),), float("nan"), dtype=torch.float64)
-    rms[index] = track_reprojection_rms(tracks, c2w_given.to(torch.float64)[index], intrinsics[index])
+    given = _world_from_json(c2w_given[index], rotation)
+    rms[index] = track_reprojection_rms(tracks, given, intrinsics[index])
     return TransformsTracks(rms)
 
 
