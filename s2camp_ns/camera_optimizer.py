@@ -119,9 +119,10 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     """Anchor each camera to its given value with a Gaussian prior in the whitened space whose scale is the camera's
     reprojection error against the scene's SfM tracks (``apply_track_prior``): a camera that agrees with its tracks
     to a fraction of a pixel moves about that far at most, however long the field pulls; a camera without tracks
-    (transforms.json, phone poses) has no prior. Needs the data parser's ``track_rms_px`` (COLMAP scenes with
-    points). Off by default until the real-regime benchmark (``s2camp-bench robustness --preset regime``, variant
-    s2camp-track-prior) has decided it (docs/benchmarks/regime.md)."""
+    (phone poses, a hand-made transforms.json) has no prior. Needs the data parser's ``track_rms_px`` (COLMAP scenes
+    with points, ns-process-data transforms.json with their ``colmap/sparse/0``). Off by default until the
+    real-regime benchmark (``s2camp-bench robustness --preset regime``, variant s2camp-track-prior) has decided it
+    (docs/benchmarks/regime.md)."""
 
     def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
         return ParameterLayout.from_preset(self.parameters, camera_model)

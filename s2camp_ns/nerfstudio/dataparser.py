@@ -92,7 +92,8 @@ class S2CampDataParserConfig(DataParserConfig):
     downscale_factor: int | None = None
     """Use the pre-downscaled images_{k} folder; None picks images_4 when present, else the full-size images."""
     colmap_path: Path | None = None
-    """COLMAP model folder relative to data; None tries sparse/0, colmap/sparse/0, sparse."""
+    """COLMAP model folder relative to data; None tries sparse/0, colmap/sparse/0, sparse. For a transforms.json
+    scene, the model of its tracks, relative to the json's folder (None: colmap/sparse/0)."""
     images_path: Path = Path("images")
     """Full-size image folder relative to data (the downscaled ones are its siblings with suffix _k)."""
     scale_factor: float = 1.0
@@ -116,8 +117,9 @@ class S2CampDataParserConfig(DataParserConfig):
     tracks: bool = True
     """Measure each training camera's reprojection error against the COLMAP model's tracks, as the cameras are given
     (after any perturbation): ``metadata["track_rms_px"]``, the scale of the camera optimizer's track prior
-    (``core.tracks``). COLMAP scenes with points only; False measures nothing (no prior), as for a scene without
-    tracks."""
+    (``core.tracks``). COLMAP scenes with points, and transforms.json scenes with the model ns-process-data leaves
+    beside them (``colmap/sparse/0``, cameras checked against it, ``transforms_tracks``); images the model does not
+    hold get NaN. False measures nothing (no prior), as for a scene without tracks."""
     perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
     """CamP perturbation of the training cameras (evaluation protocol, off by default)."""
     reference_model: Path | None = None
