@@ -66,28 +66,37 @@ def test_ns_process_data_tracks_equal_the_colmap_scene_s(
         assert float(rms.max()) < 1e-3
 
 
+def _rename_frame(source: Path, old: str, new: str, keep_colmap_id: bool) -> None:
+    """Rename a frame's image (file and json), keeping or dropping the frame's ``colmap_im_id``."""
+    meta = json.loads(source.read_text())
+    (frame,) = [frame for frame in meta["frames"] if frame["file_path"] == f"images/{old}"]
+    frame["file_path"] = f"images/{new}"
+    if not keep_colmap_id:
+        del frame["colmap_im_id"]
+    source.write_text(json.dumps(meta))
+    (source.parent / "images" / old).rename(source.parent / "images" / new)
+
+
 def test_unregistered_image_gets_no_prior_and_the_others_keep_theirs(tiny_scene: Path, tmp_path: Path) -> None:
     source = _ns_process_data_layout(tiny_scene, tmp_path / "ns")
-    meta = json.loads(source.read_text())
-    # An image COLMAP never saw: frame_00003.png renamed (file and frame) to a name the model does not hold.
-    for frame in meta["frames"]:
-        if frame["file_path"] == "images/frame_00003.png":
-            frame["file_path"] = "images/zz_00003.png"
-    source.write_text(json.dumps(meta))
-    (tmp_path / "ns" / "images" / "frame_00003.png").rename(tmp_path / "ns" / "images" / "zz_00003.png")
+    # Names the model does not hold: one frame still has the colmap_im_id ns-process-data wrote (found by it), the
+    # other has none (an image COLMAP never registered).
+    _rename_frame(source, "frame_00003.png", "zz_00003.png", keep_colmap_id=True)
+    _rename_frame(source, "frame_00004.png", "zz_00004.png", keep_colmap_id=False)
     # Every image in the training split, so that both scenes hold the same cameras whatever their order.
     expected = _rms_by_name(_parse(tiny_scene, downscale_factor=1, eval_mode="all"))
     got = _rms_by_name(_parse(source, downscale_factor=1, eval_mode="all"))
-    assert math.isnan(got.pop("zz_00003.png"))
-    del expected["frame_00003.png"]
+    assert math.isnan(got.pop("zz_00004.png"))
+    got["frame_00003.png"] = got.pop("zz_00003.png")
+    del expected["frame_00004.png"]
     assert got.keys() == expected.keys() and len(got) == 11
     # Exact observations: float32 noise only (the centring sums the poses in another order: not bit-identical).
-    assert max(got.values()) < 1e-4 and max(expected.values()) < 1e-4
-    # Perturbed (the draws follow the frame order, which the rename changed): every tracked camera measured, the
-    # unregistered one still NaN.
+    assert all(value < 1e-4 for value in (*got.values(), *expected.values()))
+    # Perturbed (the draws follow the frame order, which the renames changed): every registered camera measured,
+    # the unregistered one still NaN.
     perturbed = _rms_by_name(_parse(source, downscale_factor=1, eval_mode="all", perturbed=True))
-    assert math.isnan(perturbed.pop("zz_00003.png"))
-    assert min(perturbed.values()) > 0.3
+    assert math.isnan(perturbed.pop("zz_00004.png"))
+    assert all(value > 0.3 for value in perturbed.values())
 
 
 def test_transforms_json_without_applied_transform(tiny_scene: Path, tmp_path: Path, capsys) -> None:
@@ -149,7 +158,7 @@ def test_a_moved_camera_is_detected_and_named(tiny_scene: Path, tmp_path: Path, 
     source = _ns_process_data_layout(tiny_scene, tmp_path / "ns")
     _move_camera(source, "images/frame_00005.png", 0.02)  # within the tolerance: measured, off by a fraction of a px
     rms = _rms_by_name(_parse(source, downscale_factor=1, eval_mode="all"))
-    assert rms.pop("frame_00005.png") > 0.05 and max(rms.values()) < 1e-3
+    assert rms.pop("frame_00005.png") > 0.05 and all(value < 1e-3 for value in rms.values())
     _move_camera(source, "images/frame_00005.png", 0.98)
     capsys.readouterr()
     assert "track_rms_px" not in _parse(source).metadata

@@ -25,7 +25,9 @@ the frame is unknown and there are no tracks.
 
 Images are matched by name: a frame's image relative to the image folder (``images/frame_00001.png`` ->
 ``frame_00001.png``, COLMAP's image name; with a downscale factor nerfstudio reads ``images_k/<file name>``, which is
-mapped back to its frame). A frame that COLMAP did not register gets NaN (no prior for that camera).
+mapped back to its frame), else by the frame's ``colmap_im_id`` (``colmap_to_json`` writes it; ns-process-data
+renames the frames when it reuses a model made on the original file names). A frame that COLMAP did not register
+gets NaN (no prior for that camera). The centre check below guards both against a json of another model.
 
 The check (``CENTRE_TOLERANCE``): every matched camera's centre as given, before any perturbation, mapped to
 COLMAP's world, must lie within 1% of the spread of COLMAP's camera centres (their RMS distance to their centroid,
@@ -86,9 +88,10 @@ def _has_model(folder: Path) -> bool:
 
 def frame_names(
     source: Path, image_filenames: list[Path], downscale_factor: int, images_path: Path
-) -> list[str | None]:
-    """The COLMAP image name of each image nerfstudio read from ``source`` (its frame's image relative to the data
-    folder's ``images_path``, else its file name); None for an image no frame lists."""
+) -> list[tuple[str, int | None] | None]:
+    """For each image nerfstudio read from ``source``: its COLMAP image name (the frame's image relative to the data
+    folder's ``images_path``, else its file name) and the frame's ``colmap_im_id`` (None if absent); None for an
+    image no frame lists."""
     with open(source, encoding="utf8") as f:
         frames = json.load(f).get("frames", [])
     data_dir = source.parent
@@ -99,9 +102,22 @@ def frame_names(
         full = os.path.normpath(data_dir / file_path)
         downscaled = data_dir / f"images_{downscale_factor}" / file_path.name
         read = full if downscale_factor == 1 else os.path.normpath(downscaled)
-        relative = os.path.relpath(full, image_folder)
-        name_of[read] = file_path.name if relative.startswith("..") else Path(relative).as_posix()
+        relative = Path(os.path.relpath(full, image_folder))
+        name = file_path.name if relative.parts[0] == ".." else relative.as_posix()
+        image_id = frame.get("colmap_im_id")
+        name_of[read] = (name, int(image_id) if isinstance(image_id, int) else None)
     return [name_of.get(os.path.normpath(path)) for path in image_filenames]
+
+
+def _registered_name(frame: tuple[str, int | None] | None, images_by_id: dict, names: set[str]) -> str | None:
+    """The COLMAP image of a frame: by name, else by the ``colmap_im_id`` that ns-process-data writes (its frames
+    are renamed when it reuses a model, ``--skip-colmap``); None when the model has neither."""
+    if frame is None:
+        return None
+    name, image_id = frame
+    if name in names:
+        return name
+    return images_by_id[image_id].name if image_id in images_by_id else None
 
 
 def _world_from_json(c2w: Float[Tensor, "n 3 4"], rotation: Float[Tensor, "3 3"]) -> Float[Tensor, "n 3 4"]:
@@ -175,10 +191,13 @@ def transforms_track_rms(
         reason = f"{source} has an applied_scale, which COLMAP's frame does not undo"
         return TransformsTracks(None, "applied-scale", reason)
     images_file = model_file(model, "images")
-    images = {image.name: image for image in read_model_file(images_file, "images").values()}
+    images_by_id = read_model_file(images_file, "images")
+    images = {image.name: image for image in images_by_id.values()}
     cameras = read_model_file(model_file(model, "cameras"), "cameras")
-    names = frame_names(source, image_filenames, downscale_factor, images_path)
-    matched = [i for i, name in enumerate(names) if name in images]
+    frames = frame_names(source, image_filenames, downscale_factor, images_path)
+    registered = set(images)
+    names = [_registered_name(frame, images_by_id, registered) for frame in frames]
+    matched = [i for i, name in enumerate(names) if name is not None]
     if not matched:
         return TransformsTracks(None, "unregistered", f"none of the images of {source} is registered in {images_file}")
     matched_names = [names[i] for i in matched]
