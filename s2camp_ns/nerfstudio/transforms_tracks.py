@@ -206,15 +206,16 @@ def transforms_track_rms(
     sizes = [declared_sizes[i] for i in matched]
     colmap_sizes = [(cameras[images[name].camera_id].width, cameras[images[name].camera_id].height)
                     for name in matched_names]  # fmt: skip
+    # The candidate worlds of the json, as rotations of COLMAP's (module docstring, "Frames").
     if "applied_transform" in meta:
-        frames = {"applied_transform": torch.eye(3, dtype=torch.float64)}  # already undone by nerfstudio
+        worlds = {"applied_transform": torch.eye(3, dtype=torch.float64)}  # already undone by nerfstudio
     else:
-        frames = {"colmap": torch.eye(3, dtype=torch.float64), "legacy": LEGACY_APPLIED_ROTATION}
+        worlds = {"colmap": torch.eye(3, dtype=torch.float64), "legacy": LEGACY_APPLIED_ROTATION}
     problems = {}
-    for frame, rotation in frames.items():
+    for world, rotation in worlds.items():
         reference = _world_from_json(c2w_reference[index], rotation)
-        problems[frame] = _disagreement(matched_names, reference[:, :, 3], colmap_centres, sizes, colmap_sizes)
-        if problems[frame] is None:
+        problems[world] = _disagreement(matched_names, reference[:, :, 3], colmap_centres, sizes, colmap_sizes)
+        if problems[world] is None:
             break
     else:
         if "applied_transform" not in meta:
