@@ -167,3 +167,16 @@ def test_a_moved_camera_is_detected_and_named(tiny_scene: Path, tmp_path: Path, 
     assert "1 of 10 cameras are not where COLMAP has them; the farthest, 'frame_00005.png', is 1 from" in err
     assert "(tolerance 0.04: 0.01 of the camera centres' spread 4, in COLMAP's units)" in err
     assert "the transforms.json was edited or belongs to another reconstruction" in err
+
+
+def test_a_colmap_camera_of_another_size_is_named(tiny_scene: Path, tmp_path: Path, capsys) -> None:
+    import pycolmap
+
+    source = _ns_process_data_layout(tiny_scene, tmp_path / "ns")
+    model = tmp_path / "ns" / "colmap" / "sparse" / "0"
+    reconstruction = pycolmap.Reconstruction(str(model))
+    reconstruction.cameras[1].width = 128  # the json and its images say 64x48: COLMAP's pixels are not theirs
+    reconstruction.write_binary(str(model))
+    capsys.readouterr()
+    assert "track_rms_px" not in _parse(source).metadata
+    assert "image 'frame_00001.png' is declared 64x48 but its COLMAP camera is 128x48" in _stderr(capsys)
