@@ -273,19 +273,25 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
     """
     model = pipeline.model
     renderer = renderer_for(model, config)  # refuses a model it cannot render before any work
+    splat = not isinstance(renderer, RayRenderer)
     refined_c2w, refined_fx = model.refined_train_cameras()
     reference = model.reference_cameras()
     base = reference if reference is not None else model._train_cameras
     reference_c2w = base.camera_to_worlds.to(torch.float64).cpu()
     reference_fx = base.fx.reshape(-1).to(torch.float64).cpu()
+    if splat and reference is not None:
+        from s2camp_ns.nerfstudio.splat_alignment import undistortion_magnification
+
+        # The splat model refines the undistorted training cameras: the reference focal lengths in the same units.
+        reference_fx = reference_fx * undistortion_magnification(pipeline.datamanager)
     similarity = frame_similarity(reference_c2w, refined_c2w)
     focal_ratio = float(torch.median(refined_fx / reference_fx))
-    if isinstance(renderer, RayRenderer):
-        held_out = _ray_held_out_views(pipeline.datamanager.eval_dataset)
-    else:
+    if splat:
         from s2camp_ns.nerfstudio.splat_alignment import splat_held_out_views
 
         held_out = splat_held_out_views(pipeline.datamanager)
+    else:
+        held_out = _ray_held_out_views(pipeline.datamanager.eval_dataset)
     views = [
         HeldOutView(image, map_camera(similarity, c2w), scale_focal(intrinsics, focal_ratio), index)
         for index, (image, c2w, intrinsics) in enumerate(held_out)
