@@ -25,7 +25,7 @@ view is rendered through (twist, log focal) differs:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import torch
@@ -59,7 +59,8 @@ class AlignmentConfig:
     chunk: int = 4096
     """Rays per forward pass when rendering the full image (ray models)."""
     views_per_batch: int = 8
-    """Held-out views optimised together, their rays in one forward pass per step (bounds the batch's memory)."""
+    """Held-out views optimised together (bounds the batch's memory); ray models render their rays in one forward
+    pass per step, splat models one view after the other."""
 
     def validate(self) -> None:
         check_range("steps", self.steps, low=0)
@@ -83,7 +84,7 @@ class AlignedView:
     psnr_unaligned: float
     """PSNR through the similarity-mapped camera, before the camera-only steps."""
     final_loss: float
-    twist: tuple[float, ...] = field(default=(0.0,) * 6)
+    twist: tuple[float, ...] = (0.0,) * 6
     """The twist (rho, omega) found: the aligned camera is c2w exp(twist) (OpenCV frame) of the mapped one."""
     focal_scale: float = 1.0
     """exp(log focal) found: the aligned focal lengths over the mapped camera's."""
