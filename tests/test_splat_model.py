@@ -219,12 +219,14 @@ def test_held_out_alignment_refuses_foreign_splatfacto_models_by_name_and_takes_
 def test_splat_training_step_on_emulated_cuda(tiny_scene: Path):
     """The s2camp-splat pipeline built on "cuda" (tests/fake_cuda.py: every op's devices checked by CUDA's rules)
     runs a training step with the reference rasterizer forced (gsplat's kernels need a real GPU): the refined
-    camera's view matrix, the rasterizer, splatfacto's strategy hook, backward and the optimizers' step."""
+    camera's view matrix, the rasterizer, splatfacto's strategy hook, backward and the optimizers' step; then the
+    held-out views of s2camp-eval (mapped, rendered and measured; no alignment steps)."""
     from fake_cuda import fake_cuda, is_fake_cuda, values
     from nerfstudio.engine.callbacks import TrainingCallbackAttributes
     from nerfstudio.engine.optimizers import Optimizers
 
     from s2camp_ns.method_config import s2camp_splat_method
+    from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_held_out_views
     from s2camp_ns.nerfstudio.trainer import with_run_length
 
     config = copy.deepcopy(s2camp_splat_method.config)
@@ -250,7 +252,13 @@ def test_splat_training_step_on_emulated_cuda(tiny_scene: Path):
         means2d_grad = model.info["means2d"].grad
         latent_before = values(model.camera_optimizer.whitened_intrinsics).clone()
         optimizers.optimizer_step_all()
+        # s2camp-eval's view construction, renders and metrics on "cuda"; steps=0: the emulation cannot run the
+        # backward pass of the reference rasterizer's chained per-tile index_put (autograd's C++ zeros carry the
+        # fake tensors' CPU options), which real CUDA does; the CUDA gradients are checked with gsplat in
+        # tests/test_splat_alignment.py (marked cuda).
+        aligned = evaluate_held_out_views(pipeline, AlignmentConfig(steps=0))
     assert is_fake_cuda(outputs["rgb"]) and is_fake_cuda(grad) and is_fake_cuda(means2d_grad)
     assert float(values(grad).abs().sum()) > 0, "the intrinsics get a gradient through the view matrix"
     assert float(values(means2d_grad).abs().sum()) > 0, "the strategy reads the projected means' gradient"
     assert not torch.equal(values(model.camera_optimizer.whitened_intrinsics), latent_before)
+    assert len(aligned) == len(pipeline.datamanager.eval_dataset) and all(math.isfinite(v.psnr) for v in aligned)
