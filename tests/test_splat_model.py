@@ -8,6 +8,7 @@ method on the CPU (reference rasterizer) on the tiny generated scene through ner
 from __future__ import annotations
 
 import copy
+import json
 import math
 import re
 import time
@@ -147,6 +148,24 @@ def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
     )
     print(f"s2camp-splat, 40 CPU steps: {elapsed:.1f} s, {seeds} -> {model.num_points} Gaussians, {errors}")
     assert elapsed < 90
+    # s2camp-eval on the run's config.yml and final checkpoint: test-time alignment of the held-out views.
+    from s2camp_ns.nerfstudio.eval_aligned import EvalAlignedConfig
+    from s2camp_ns.nerfstudio.eval_aligned import main as eval_aligned
+    from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
+
+    config.save_config()  # what ns-train writes before training
+    output = tmp_path / "aligned.json"
+    start = time.perf_counter()
+    result = eval_aligned(
+        EvalAlignedConfig(trainer.base_dir / "config.yml", output, alignment=AlignmentConfig(steps=5))
+    )
+    payload = json.loads(output.read_text())
+    held_out = len(range(0, 12, 8))  # the tiny scene's 12 images, every 8th held out
+    assert result["step"] == 39 and len(payload["views"]) == held_out and payload["alignment"]["steps"] == 5
+    for view in payload["views"]:
+        assert 5.0 < view["psnr"] < 60.0 and 0.0 < view["ssim"] <= 1.0
+        assert view["focal_scale"] != 1.0 and any(value != 0.0 for value in view["twist"]), "the camera must move"
+    print(f"s2camp-eval of the splat run, 5 steps: {time.perf_counter() - start:.1f} s, {payload['mean']}")
 
 
 def test_declared_method_entry_points_resolve():
@@ -185,23 +204,29 @@ def test_splat_baseline_differs_only_in_the_camera_optimizer():
     }
 
 
-def test_held_out_alignment_refuses_splatfacto_models_by_name():
-    from s2camp_ns.nerfstudio.test_time_alignment import evaluate_held_out_views
+def test_held_out_alignment_refuses_foreign_splatfacto_models_by_name_and_takes_ours():
+    from nerfstudio.models.splatfacto import SplatfactoModel
 
-    pipeline = SimpleNamespace(model=object.__new__(S2CampSplatModel))
-    with pytest.raises(ValueError, match="S2CampSplatModel .*does not support yet: use ns-eval"):
+    from s2camp_ns.nerfstudio.splat_alignment import SplatRenderer
+    from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_held_out_views, renderer_for
+
+    pipeline = SimpleNamespace(model=object.__new__(SplatfactoModel))
+    with pytest.raises(ValueError, match="is SplatfactoModel, a splatfacto model it does not support: use ns-eval"):
         evaluate_held_out_views(pipeline)
+    assert isinstance(renderer_for(object.__new__(S2CampSplatModel), AlignmentConfig()), SplatRenderer)
 
 
 def test_splat_training_step_on_emulated_cuda(tiny_scene: Path):
     """The s2camp-splat pipeline built on "cuda" (tests/fake_cuda.py: every op's devices checked by CUDA's rules)
     runs a training step with the reference rasterizer forced (gsplat's kernels need a real GPU): the refined
-    camera's view matrix, the rasterizer, splatfacto's strategy hook, backward and the optimizers' step."""
+    camera's view matrix, the rasterizer, splatfacto's strategy hook, backward and the optimizers' step; then the
+    held-out views of s2camp-eval (mapped, rendered and measured; no alignment steps)."""
     from fake_cuda import fake_cuda, is_fake_cuda, values
     from nerfstudio.engine.callbacks import TrainingCallbackAttributes
     from nerfstudio.engine.optimizers import Optimizers
 
     from s2camp_ns.method_config import s2camp_splat_method
+    from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_held_out_views
     from s2camp_ns.nerfstudio.trainer import with_run_length
 
     config = copy.deepcopy(s2camp_splat_method.config)
@@ -227,7 +252,13 @@ def test_splat_training_step_on_emulated_cuda(tiny_scene: Path):
         means2d_grad = model.info["means2d"].grad
         latent_before = values(model.camera_optimizer.whitened_intrinsics).clone()
         optimizers.optimizer_step_all()
+        # s2camp-eval's view construction, renders and metrics on "cuda"; steps=0: the emulation cannot run the
+        # backward pass of the reference rasterizer's chained per-tile index_put (autograd's C++ zeros carry the
+        # fake tensors' CPU options), which real CUDA does; the CUDA gradients are checked with gsplat in
+        # tests/test_splat_alignment.py (marked cuda).
+        aligned = evaluate_held_out_views(pipeline, AlignmentConfig(steps=0))
     assert is_fake_cuda(outputs["rgb"]) and is_fake_cuda(grad) and is_fake_cuda(means2d_grad)
     assert float(values(grad).abs().sum()) > 0, "the intrinsics get a gradient through the view matrix"
     assert float(values(means2d_grad).abs().sum()) > 0, "the strategy reads the projected means' gradient"
     assert not torch.equal(values(model.camera_optimizer.whitened_intrinsics), latent_before)
+    assert len(aligned) == len(pipeline.datamanager.eval_dataset) and all(math.isfinite(v.psnr) for v in aligned)

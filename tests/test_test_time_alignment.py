@@ -12,12 +12,12 @@ from torch import nn
 
 from s2camp_ns.core.alignment import Similarity
 from s2camp_ns.core.camera import Intrinsics, se3_exp
+from s2camp_ns.nerfstudio.ray_alignment import camera_rays
 from s2camp_ns.nerfstudio.test_time_alignment import (
     AlignmentConfig,
     HeldOutView,
     align_and_evaluate,
     align_and_evaluate_views,
-    camera_rays,
     frame_similarity,
     map_camera,
 )

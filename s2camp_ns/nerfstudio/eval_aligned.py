@@ -4,7 +4,9 @@
 frame that differs from the given cameras' by a similarity and by what the field absorbed, so ``ns-eval`` measures
 the frame difference as much as the reconstruction. This command aligns every held-out camera first (similarity
 from the training cameras, then camera-only steps against the frozen field; see ``test_time_alignment``) and
-reports the metrics before and after. It loads any run of ``s2camp``, ``s2camp-camp`` or ``s2camp-so3xr3``.
+reports the metrics before and after. It loads any run of ``s2camp``, ``s2camp-camp``, ``s2camp-so3xr3``,
+``s2camp-splat`` or ``s2camp-splat-so3xr3`` (splat models: whole-image alignment through the view matrix,
+``splat_alignment``).
 
     s2camp-eval --load-config outputs/room/s2camp/<timestamp>/config.yml --output-path aligned.json
 """
@@ -56,7 +58,10 @@ def main(config: EvalAlignedConfig) -> dict:
 
         _, pipeline, checkpoint, step = eval_setup(config.load_config, test_mode="test")
     if not hasattr(pipeline.model, "refined_train_cameras"):
-        raise ValueError(f"{config.load_config} is not an s2camp, s2camp-camp or s2camp-so3xr3 run")
+        raise ValueError(
+            f"{config.load_config} is not a run of s2camp, s2camp-camp, s2camp-so3xr3, s2camp-splat or "
+            "s2camp-splat-so3xr3 (its model has no refined training cameras)"
+        )
     views = evaluate_held_out_views(pipeline, config.alignment)
     table = Table(title=f"held-out views of {config.load_config.parent} (step {step})", title_justify="left")
     for column in ("view", "PSNR before", "PSNR", "SSIM", "LPIPS"):

@@ -189,26 +189,39 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
 
     def get_outputs(self, camera: Cameras) -> dict[str, Tensor | list]:
         """splatfacto's outputs (rgb, depth, accumulation, background) of one camera, rendered through
-        ``view_matrix``; the densification strategy gets the rasterizer's info as in splatfacto."""
+        ``view_matrix`` at splatfacto's current resolution; the densification strategy gets the rasterizer's info as
+        in splatfacto."""
         if not isinstance(camera, Cameras):
             raise TypeError(f"get_outputs takes a Cameras object, got {type(camera).__name__}")
         if self.training and camera.shape[0] != 1:
             raise ValueError(f"training renders one camera at a time, got {camera.shape[0]}")
+        viewmat = self.view_matrix(camera)
+        scale = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale)
+        ks = camera.get_intrinsics_matrices()
+        width, height = int(camera.width.item()), int(camera.height.item())
+        camera.rescale_output_resolution(scale)
+        return self.render_view(viewmat, ks, width, height, cam_idx=(camera.metadata or {}).get("cam_idx"))
+
+    def render_view(
+        self,
+        viewmat: Float[Tensor, "1 4 4"],
+        ks: Float[Tensor, "1 3 3"],
+        width: int,
+        height: int,
+        cam_idx: int | None = None,
+    ) -> dict[str, Tensor | list]:
+        """The outputs of ``get_outputs`` for an explicit world-to-camera matrix and pinhole K: no camera optimizer
+        is involved (test-time alignment renders held-out cameras through its own view matrix). ``viewmat`` and
+        ``ks`` are cast to the Gaussians' dtype; ``cam_idx`` selects the bilateral grid while training."""
         params = {name: self.gauss_params[name] for name in self.gauss_params}
         if self.crop_box is not None and not self.training:
             crop = self.crop_box.within(params["means"]).squeeze()
             if int(crop.sum()) == 0:
-                width, height = int(camera.width.item()), int(camera.height.item())
                 return self.get_empty_outputs(width, height, self.background_color)
             params = {name: value[crop] for name, value in params.items()}
         colors = torch.cat([params["features_dc"][:, None, :], params["features_rest"]], dim=1)
-        viewmat = self.view_matrix(camera)
-        scale = self._get_downscale_factor()
-        camera.rescale_output_resolution(1 / scale)
-        ks = camera.get_intrinsics_matrices().to(self.device)
-        width, height = int(camera.width.item()), int(camera.height.item())
         self.last_size = (height, width)
-        camera.rescale_output_resolution(scale)
         if self.config.rasterize_mode not in ("antialiased", "classic"):
             raise ValueError(f"rasterize_mode must be 'antialiased' or 'classic', got {self.config.rasterize_mode!r}")
         render_mode = "RGB+ED" if self.config.output_depth_during_training or not self.training else "RGB"
@@ -217,14 +230,15 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         else:
             colors = torch.sigmoid(colors).squeeze(1)
             sh_degree = None
+        means = params["means"]
         render, alpha, self.info = self.rasterize(
-            means=params["means"],
+            means=means,
             quats=params["quats"],
             scales=torch.exp(params["scales"]),
             opacities=torch.sigmoid(params["opacities"]).squeeze(-1),
             colors=colors,
-            viewmats=viewmat.to(self.device),
-            Ks=ks,
+            viewmats=viewmat.to(device=self.device, dtype=means.dtype),
+            Ks=ks.to(device=self.device, dtype=means.dtype),
             width=width,
             height=height,
             packed=False,
@@ -241,8 +255,8 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
             self.strategy.step_pre_backward(*strategy_args)
         background = self._get_background_color()
         rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
-        if self.config.use_bilateral_grid and self.training and "cam_idx" in (camera.metadata or {}):
-            rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], height, width)
+        if self.config.use_bilateral_grid and self.training and cam_idx is not None:
+            rgb = self._apply_bilateral_grid(rgb, cam_idx, height, width)
         depth = None
         if render_mode == "RGB+ED":
             depth = render[..., 3:4]

@@ -9,25 +9,34 @@ for every variant alike) is to align each test camera with a short camera-only o
    onto the refined ones (Umeyama), and scale its focal length by the median refined / reference focal ratio of
    the training cameras (the shared dolly-zoom component);
 2. ``steps`` Adam steps on a local se(3) twist (c2w' = c2w exp(xi), as the S2CamP camera model) and a log focal
-   scale, minimising the photometric MSE on ``rays`` random pixels of the test image per step (seeded);
-3. render the full image through the aligned camera and compute the metrics.
+   scale, minimising the photometric MSE of the test image (seeded);
+3. render the full image through the aligned camera and compute the metrics (and the PSNR before step 2).
 
-Works with any nerfacto-derived model whose ``get_outputs`` renders a RayBundle (S2CamP's and the stock optimizer's).
+The protocol (this module: frame mapping, Adam loop and schedule, metrics) is the same for every model; only how a
+view is rendered through (twist, log focal) differs:
+
+- ray models (nerfacto-derived, S2CamP's and the stock optimizer's): ``ray_alignment``, ``rays`` random pixels per
+  step, rays differentiable in both variables;
+- S2CamP's splat model (``s2camp-splat``, ``s2camp-splat-so3xr3``): ``splat_alignment``, the whole image per step,
+  the focal scale through the view matrix as in training (docs/SPLAT.md); the held-out images and cameras are
+  splatfacto's undistorted ones. Other splatfacto models are refused by name (use ns-eval).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from jaxtyping import Float
-from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
 
 from s2camp_ns.core.alignment import Similarity, umeyama
-from s2camp_ns.core.camera import Intrinsics, opengl_to_opencv, pixel_to_ray_direction, se3_exp
+from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.core.validation import check_positive_int, check_range
+from s2camp_ns.nerfstudio.alignment_camera import HeldOutView, scale_focal
+from s2camp_ns.nerfstudio.ray_alignment import RayRenderer
 
 
 @dataclass(frozen=True)
@@ -37,8 +46,8 @@ class AlignmentConfig:
     steps: int = 100
     """Adam steps per test camera (CamP: 100); 0 evaluates the similarity-mapped camera as is."""
     rays: int = 256
-    """Random pixels of the test image per step (on a 96x72 recovery-benchmark run, 512 changed the held-out PSNR by
-    0.06 dB or less and took 1.6x as long)."""
+    """Random pixels of the test image per step, ray models (on a 96x72 recovery-benchmark run, 512 changed the
+    held-out PSNR by 0.06 dB or less and took 1.6x as long); splat models take every pixel (``splat_alignment``)."""
     lr: float = 1e-3
     """Initial Adam learning rate of the twist (rad, scene units) and of the log focal scale."""
     lr_final: float = 1e-4
@@ -48,9 +57,10 @@ class AlignmentConfig:
     seed: int = 0
     """Seed of the pixel sampling."""
     chunk: int = 4096
-    """Rays per forward pass when rendering the full image."""
+    """Rays per forward pass when rendering the full image (ray models)."""
     views_per_batch: int = 8
-    """Held-out views optimised together, their rays in one forward pass per step (bounds the batch's memory)."""
+    """Held-out views optimised together (bounds the batch's memory); ray models render their rays in one forward
+    pass per step, splat models one view after the other."""
 
     def validate(self) -> None:
         check_range("steps", self.steps, low=0)
@@ -74,6 +84,10 @@ class AlignedView:
     psnr_unaligned: float
     """PSNR through the similarity-mapped camera, before the camera-only steps."""
     final_loss: float
+    twist: tuple[float, ...] = (0.0,) * 6
+    """The twist (rho, omega) found: the aligned camera is c2w exp(twist) (OpenCV frame) of the mapped one."""
+    focal_scale: float = 1.0
+    """exp(log focal) found: the aligned focal lengths over the mapped camera's."""
 
 
 def frame_similarity(reference_c2w: Float[Tensor, "n 3 4"], refined_c2w: Float[Tensor, "n 3 4"]) -> Similarity:
@@ -87,55 +101,6 @@ def map_camera(similarity: Similarity, c2w: Float[Tensor, "3 4"]) -> Float[Tenso
     rotation = similarity.rotation.to(c2w) @ c2w[:, :3]
     centre = similarity.scale * similarity.rotation.to(c2w) @ c2w[:, 3] + similarity.translation.to(c2w)
     return torch.cat([rotation, centre[:, None]], dim=-1)
-
-
-def scale_focal(intrinsics: Intrinsics, factor: float | Tensor) -> Intrinsics:
-    """The same camera with fx and fy multiplied by ``factor`` (differentiable in a tensor factor)."""
-    return replace(intrinsics, fx=intrinsics.fx * factor, fy=intrinsics.fy * factor)
-
-
-def camera_rays(
-    c2w_gl: Float[Tensor, "3 4"],
-    intrinsics: Intrinsics,
-    pixels: Float[Tensor, "r 2"],
-    twist: Float[Tensor, 6],
-    log_focal: Float[Tensor, ""],
-    device: torch.device | str,
-) -> RayBundle:
-    """Rays through ``pixels`` of the camera c2w exp(twist) with focal lengths scaled by exp(log_focal), in float32.
-
-    Differentiable in ``twist`` and ``log_focal``; distortion is the camera's (iterative undistortion, core.camera).
-    """
-    scaled = scale_focal(intrinsics.to(dtype=torch.float64), torch.exp(log_focal))
-    directions_cam = pixel_to_ray_direction(pixels.double()[None], scaled)[0]
-    c2w_cv = opengl_to_opencv(c2w_gl.double())
-    delta = se3_exp(twist.double())
-    rotation = c2w_cv[:, :3] @ delta[:, :3]
-    origin = c2w_cv[:, 3] + c2w_cv[:, :3] @ delta[:, 3]
-    directions = directions_cam @ rotation.T
-    count = pixels.shape[0]
-    # nerfstudio's directions_norm: |(a, b, 1)| = 1 / d_z for perspective cameras, 1 for fisheye ones (unit rays).
-    norm = torch.ones_like(directions_cam[:, 2:3]) if scaled.is_fisheye else 1.0 / directions_cam[:, 2:3]
-    return RayBundle(
-        origins=origin.expand(count, 3).to(device=device, dtype=torch.float32),
-        directions=directions.to(device=device, dtype=torch.float32),
-        pixel_area=(1.0 / (scaled.fx * scaled.fy)).detach().expand(count, 1).to(device=device, dtype=torch.float32),
-        camera_indices=torch.zeros(count, 1, dtype=torch.long, device=device),
-        metadata={"directions_norm": norm.to(device=device, dtype=torch.float32)},
-    )
-
-
-def _pixel_grid(width: int, height: int) -> Float[Tensor, "hw 2"]:
-    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
-    return torch.stack([xs, ys], dim=-1).reshape(-1, 2).double() + 0.5
-
-
-def _render(model, c2w, intrinsics, pixels, twist, log_focal, chunk: int) -> Tensor:
-    colours = []
-    for start in range(0, pixels.shape[0], chunk):
-        rays = camera_rays(c2w, intrinsics, pixels[start : start + chunk], twist, log_focal, model.device)
-        colours.append(model(rays)["rgb"].float())
-    return torch.cat(colours, dim=0)
 
 
 def _image_metrics(model, predicted: Tensor, target: Tensor) -> tuple[float, float, float]:
@@ -157,47 +122,82 @@ def _image_metrics(model, predicted: Tensor, target: Tensor) -> tuple[float, flo
     return psnr, ssim, lpips
 
 
-@dataclass
-class HeldOutView:
-    """A held-out image and its camera in the field's frame (the start of the alignment)."""
+class ViewRenderer(Protocol):
+    """How a model renders a held-out view through (twist, log focal): the part of the protocol that differs
+    between ray models (``ray_alignment.RayRenderer``) and splat models (``splat_alignment.SplatRenderer``)."""
 
-    image: Float[Tensor, "h w c"]
-    c2w_gl: Float[Tensor, "3 4"]
-    intrinsics: Intrinsics
-    index: int = 0
+    def step_colours(
+        self,
+        views: list[HeldOutView],
+        targets: list[Float[Tensor, "h w 3"]],
+        twists: list[Tensor],
+        log_focals: list[Tensor],
+        generators: list[torch.Generator],
+    ) -> list[tuple[Tensor, Tensor]]:
+        """(predicted, target) colours [k, 3] of each view for one Adam step, differentiable in the variables."""
+        ...
+
+    def image(self, view: HeldOutView, width: int, height: int, twist: Tensor, log_focal: Tensor) -> Tensor:
+        """The full image [height, width, 3] (float32, CPU) through the view's camera moved by the variables."""
+        ...
+
+
+def renderer_for(model, config: AlignmentConfig) -> ViewRenderer:
+    """The splat renderer for S2CamP's splat model, the ray renderer for any other (nerfacto-derived) model;
+    ValueError for a splatfacto model that is not S2CamP's (no ``render_view``: use ns-eval)."""
+    from nerfstudio.models.splatfacto import SplatfactoModel
+
+    from s2camp_ns.nerfstudio.splat_model import S2CampSplatModel
+
+    if isinstance(model, S2CampSplatModel):
+        from s2camp_ns.nerfstudio.splat_alignment import SplatRenderer
+
+        return SplatRenderer(model)
+    if isinstance(model, SplatfactoModel):
+        raise ValueError(
+            f"s2camp-eval's test-time camera alignment supports S2CamP's splat model (s2camp-splat, "
+            f"s2camp-splat-so3xr3) and nerfacto models; the model of this run is {type(model).__name__}, a "
+            "splatfacto model it does not support: use ns-eval"
+        )
+    return RayRenderer(model, rays=config.rays, chunk=config.chunk)
 
 
 def align_and_evaluate_views(model, views: list[HeldOutView], config: AlignmentConfig) -> list[AlignedView]:
     """Align held-out cameras to the frozen ``model`` and evaluate them (module docstring).
 
-    Up to ``config.views_per_batch`` views are optimised in one loop: each step renders every view's ``rays``
-    pixels in one batch and minimises the sum of the per-view MSEs. Each view has its own twist, focal scale and
-    pixel stream, and Adam is elementwise, so every view follows exactly the steps it would follow alone; batching
-    only saves the fixed cost of a forward / backward pass per step.
+    Up to ``config.views_per_batch`` views are optimised in one loop: each step renders every view's sample (ray
+    models: ``rays`` pixels in one batch) and minimises the sum of the per-view MSEs. Each view has its own twist,
+    focal scale and pixel stream, and Adam is elementwise, so every view follows exactly the steps it would follow
+    alone; batching only saves the fixed cost of a forward / backward pass per step.
     """
     config.validate()
+    renderer = renderer_for(model, config)
     step = config.views_per_batch
     return [
         aligned
         for start in range(0, len(views), step)
-        for aligned in _align_batch(model, views[start : start + step], config)
+        for aligned in _align_batch(model, renderer, views[start : start + step], config)
     ]
 
 
-def _align_batch(model, views: list[HeldOutView], config: AlignmentConfig) -> list[AlignedView]:
+def _target_image(image: Tensor) -> Float[Tensor, "h w 3"]:
+    """The RGB channels in [0, 1] (float32, CPU) of a held-out image (float, or uint8 as splatfacto caches them)."""
+    rgb = image[..., :3].cpu()
+    return rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb.float()
+
+
+def _align_batch(model, renderer: ViewRenderer, views: list[HeldOutView], config: AlignmentConfig) -> list[AlignedView]:
     """:func:`align_and_evaluate_views` for one batch of (validated) views."""
-    targets = [view.image[..., :3].float().cpu() for view in views]
-    pixels = [_pixel_grid(target.shape[1], target.shape[0]) for target in targets]
+    targets = [_target_image(view.image) for view in views]
     twists = [torch.zeros(6, dtype=torch.float64, requires_grad=True) for _ in views]
     log_focals = [torch.zeros((), dtype=torch.float64, requires_grad=config.refine_focal) for _ in views]
     generators = [torch.Generator().manual_seed(config.seed + 7919 * view.index) for view in views]
 
     def render_all() -> list[Tensor]:
-        with torch.no_grad():
-            return [
-                _render(model, view.c2w_gl, view.intrinsics, grid, twist, log_focal, config.chunk).cpu()
-                for view, grid, twist, log_focal in zip(views, pixels, twists, log_focals, strict=True)
-            ]
+        return [
+            renderer.image(view, target.shape[1], target.shape[0], twist, log_focal)
+            for view, target, twist, log_focal in zip(views, targets, twists, log_focals, strict=True)
+        ]
 
     was_training = model.training
     model.eval()
@@ -212,19 +212,8 @@ def _align_batch(model, views: list[HeldOutView], config: AlignmentConfig) -> li
         schedule = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=decay)
         losses = [math.nan] * len(views)
         for _ in range(config.steps):
-            chosen = [
-                torch.randint(0, grid.shape[0], (config.rays,), generator=generator)
-                for grid, generator in zip(pixels, generators, strict=True)
-            ]
-            bundles = [
-                camera_rays(view.c2w_gl, view.intrinsics, grid[pick], twist, log_focal, model.device)
-                for view, grid, pick, twist, log_focal in zip(views, pixels, chosen, twists, log_focals, strict=True)
-            ]
-            predicted = model(_concatenate(bundles))["rgb"].float().cpu().split(config.rays)
-            per_view = [
-                torch.mean((colours - target.reshape(-1, 3)[pick]) ** 2)
-                for colours, target, pick in zip(predicted, targets, chosen, strict=True)
-            ]
+            pairs = renderer.step_colours(views, targets, twists, log_focals, generators)
+            per_view = [torch.mean((predicted - target) ** 2) for predicted, target in pairs]
             optimizer.zero_grad(set_to_none=True)
             torch.stack(per_view).sum().backward()
             optimizer.step()
@@ -236,25 +225,15 @@ def _align_batch(model, views: list[HeldOutView], config: AlignmentConfig) -> li
             parameter.requires_grad_(True)
         model.train(was_training)
     results = []
-    for view, target, before, after, loss in zip(views, targets, unaligned, aligned, losses, strict=True):
-        height, width = target.shape[:2]
-        psnr_unaligned = _image_metrics(model, before.reshape(height, width, 3), target)[0]
-        psnr, ssim, lpips = _image_metrics(model, after.reshape(height, width, 3), target)
-        results.append(AlignedView(view.index, psnr, ssim, lpips, psnr_unaligned, loss))
+    for view, target, before, after, loss, twist, log_focal in zip(
+        views, targets, unaligned, aligned, losses, twists, log_focals, strict=True
+    ):
+        psnr_unaligned = _image_metrics(model, before, target)[0]
+        psnr, ssim, lpips = _image_metrics(model, after, target)
+        found = tuple(float(value) for value in twist.detach())
+        scale = float(torch.exp(log_focal.detach()))
+        results.append(AlignedView(view.index, psnr, ssim, lpips, psnr_unaligned, loss, found, scale))
     return results
-
-
-def _concatenate(bundles: list[RayBundle]) -> RayBundle:
-    """One RayBundle of the rays of several cameras (origins, directions, pixel areas, metadata)."""
-    if len(bundles) == 1:
-        return bundles[0]
-    return RayBundle(
-        origins=torch.cat([b.origins for b in bundles]),
-        directions=torch.cat([b.directions for b in bundles]),
-        pixel_area=torch.cat([b.pixel_area for b in bundles]),
-        camera_indices=torch.cat([b.camera_indices for b in bundles]),
-        metadata={key: torch.cat([b.metadata[key] for b in bundles]) for key in bundles[0].metadata},
-    )
 
 
 def align_and_evaluate(
@@ -269,44 +248,53 @@ def align_and_evaluate(
     return align_and_evaluate_views(model, [HeldOutView(image, c2w_gl, intrinsics, index)], config)[0]
 
 
+def _ray_held_out_views(dataset) -> list[tuple[Tensor, Float[Tensor, "3 4"], Intrinsics]]:
+    """(image, OpenGL c2w, intrinsics) of every evaluation image for a ray model, in the reference cameras' frame:
+    the evaluation split's reference cameras where the dataparser provides them (the true cameras of
+    ``--reference-model``), else the evaluation cameras as given; images and distortion as in the dataset."""
+    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
+
+    cameras = (getattr(dataset, "metadata", None) or {}).get("reference_cameras")
+    if cameras is None or cameras.shape[0] != len(dataset):
+        cameras = dataset.cameras
+    return [
+        (dataset[i]["image"], cameras.camera_to_worlds[i].cpu(), intrinsics_from_cameras(cameras[i : i + 1]))
+        for i in range(len(dataset))
+    ]
+
+
 def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig()) -> list[AlignedView]:
-    """Align and evaluate every evaluation image of a nerfstudio pipeline with an S2CamP model.
+    """Align and evaluate every evaluation image of a nerfstudio pipeline with an S2CamP model (a nerfacto model, or
+    S2CamP's splat model: module docstring).
 
     The reference training cameras (``metadata["reference_cameras"]``, present when the dataparser perturbed the
     training cameras) define the frame of the evaluation cameras; without them the training cameras as given do.
     The evaluation cameras are the evaluation split's reference cameras where the dataparser provides them (the
-    true cameras of ``--reference-model``), else the evaluation cameras.
+    true cameras of ``--reference-model``), else the evaluation cameras (splat models: ``splat_held_out_views``).
     """
-    from nerfstudio.models.splatfacto import SplatfactoModel
-
-    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
-
     model = pipeline.model
-    if isinstance(model, SplatfactoModel):
-        raise ValueError(
-            f"s2camp-eval's test-time camera alignment renders rays (nerfacto models); the model of this run is "
-            f"{type(model).__name__} (a splatfacto model), which it does not support yet: use ns-eval"
-        )
+    renderer = renderer_for(model, config)  # refuses a model it cannot render before any work
+    splat = not isinstance(renderer, RayRenderer)
     refined_c2w, refined_fx = model.refined_train_cameras()
     reference = model.reference_cameras()
     base = reference if reference is not None else model._train_cameras
     reference_c2w = base.camera_to_worlds.to(torch.float64).cpu()
     reference_fx = base.fx.reshape(-1).to(torch.float64).cpu()
+    if splat and reference is not None:
+        from s2camp_ns.nerfstudio.splat_alignment import undistortion_magnification
+
+        # The splat model refines the undistorted training cameras: the reference focal lengths in the same units.
+        reference_fx = reference_fx * undistortion_magnification(pipeline.datamanager)
     similarity = frame_similarity(reference_c2w, refined_c2w)
     focal_ratio = float(torch.median(refined_fx / reference_fx))
-    dataset = pipeline.datamanager.eval_dataset
-    # Held-out cameras in the same frame as the reference training cameras: the dataparser's reference for the
-    # evaluation split (the true cameras with ``reference_model``), else the evaluation cameras as given.
-    cameras = (getattr(dataset, "metadata", None) or {}).get("reference_cameras")
-    if cameras is None or cameras.shape[0] != len(dataset):
-        cameras = dataset.cameras
+    if splat:
+        from s2camp_ns.nerfstudio.splat_alignment import splat_held_out_views
+
+        held_out = splat_held_out_views(pipeline.datamanager)
+    else:
+        held_out = _ray_held_out_views(pipeline.datamanager.eval_dataset)
     views = [
-        HeldOutView(
-            image=dataset[index]["image"],
-            c2w_gl=map_camera(similarity, cameras.camera_to_worlds[index].cpu()),
-            intrinsics=scale_focal(intrinsics_from_cameras(cameras[index : index + 1]), focal_ratio),
-            index=index,
-        )
-        for index in range(len(dataset))
+        HeldOutView(image, map_camera(similarity, c2w), scale_focal(intrinsics, focal_ratio), index)
+        for index, (image, c2w, intrinsics) in enumerate(held_out)
     ]
     return align_and_evaluate_views(model, views, config)
