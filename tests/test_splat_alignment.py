@@ -200,7 +200,7 @@ def test_held_out_splat_views_are_splatfactos_images_through_the_reference_camer
     train = _cameras(train_c2w, [36.0] * 3, width, height)
     undistorted = _cameras(train_c2w, [36.72] * 3, width, height)
     model.refined_train_cameras = lambda: (train_c2w.double(), undistorted.fx.reshape(-1).double())
-    model.reference_cameras = lambda: train
+    model.reference_cameras = lambda: undistorted  # the model's reference in undistorted units (set_undistortion_scale)
     reference_c2w = torch.stack([c2w_looking_down_z(3.0), c2w_looking_down_z(3.4)])
     reference_c2w[1, 0, 3] = -0.2
     given_c2w = reference_c2w.clone()

@@ -102,6 +102,9 @@ class S2CampPipeline(VanillaPipeline):
             # A full-image data manager (splatfacto's) undistorts the images when it first caches them and writes
             # the undistorted K into the training cameras; the camera optimizer must start from those.
             _ = self.datamanager.cached_train
+            if hasattr(self.model, "set_undistortion_scale"):
+                given = self.datamanager.train_dataparser_outputs.cameras
+                self.model.set_undistortion_scale(cameras.fx / given.fx, cameras.fy / given.fy)
         # The dataparser's sparse points (normalized world, as the cameras) choose the proxy range per camera.
         metadata = getattr(self.datamanager.train_dataset, "metadata", None) or {}
         points = metadata.get("points3D_xyz")

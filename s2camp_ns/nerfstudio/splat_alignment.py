@@ -128,12 +128,3 @@ def splat_held_out_views(datamanager) -> list[tuple[Tensor, Float[Tensor, "3 4"]
         )
         views.append((image, reference.camera_to_worlds[index].cpu(), intrinsics))
     return views
-
-
-def undistortion_magnification(datamanager) -> Float[Tensor, " n"]:
-    """fx of each training camera as the splat model sees it over the dataparser's (float64, CPU): the data
-    manager's undistortion rewrites the K of distorted images (and ``camera_res_scale_factor`` scales it); 1 for an
-    image left alone. The reference training cameras' focal lengths times this are in the refined cameras' units."""
-    seen = datamanager.train_dataset.cameras.fx.reshape(-1).to(torch.float64).cpu()
-    given = datamanager.train_dataparser_outputs.cameras.fx.reshape(-1).to(torch.float64).cpu()
-    return seen / given

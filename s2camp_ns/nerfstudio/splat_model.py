@@ -135,6 +135,24 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
     ) -> None:
         super().set_train_cameras(pinhole_cameras(cameras), points=points, track_rms_px=track_rms_px)
 
+    def set_undistortion_scale(self, fx_scale: Tensor, fy_scale: Tensor) -> None:
+        """Per training image, the data manager's undistorted focal lengths over the dataparser's (1 where an image
+        was left alone): the reference cameras are given with the distorted K, the model refines the undistorted one,
+        so ``reference_cameras`` scales the reference focal lengths into the refined cameras' units."""
+        self._undistortion_scale = (fx_scale.reshape(-1).to(torch.float64), fy_scale.reshape(-1).to(torch.float64))
+
+    def reference_cameras(self) -> Cameras | None:
+        """The dataparser's reference training cameras as this model sees them: pinhole, with the focal lengths of
+        the undistorted images (``set_undistortion_scale``), so camera errors, the viewer's reference frusta and
+        s2camp-eval's focal ratio compare like with like."""
+        reference = super().reference_cameras()
+        scale = getattr(self, "_undistortion_scale", None)
+        if reference is None or scale is None:
+            return reference
+        fx_scale, fy_scale = (value.to(reference.fx)[:, None] for value in scale)
+        fx, fy = reference.fx * fx_scale, reference.fy * fy_scale
+        return replace_cameras(reference, fx=fx, fy=fy, distortion_params=None)
+
     @torch.no_grad()
     def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:
         """OpenGL c2w and fx of the training cameras as rendered. nerfstudio's stock optimizer right-multiplies its

@@ -280,11 +280,7 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
     base = reference if reference is not None else model._train_cameras
     reference_c2w = base.camera_to_worlds.to(torch.float64).cpu()
     reference_fx = base.fx.reshape(-1).to(torch.float64).cpu()
-    if splat and reference is not None:
-        from s2camp_ns.nerfstudio.splat_alignment import undistortion_magnification
-
-        # The splat model refines the undistorted training cameras: the reference focal lengths in the same units.
-        reference_fx = reference_fx * undistortion_magnification(pipeline.datamanager)
+    # A splat model's reference cameras carry the undistorted images' focal lengths (``set_undistortion_scale``).
     similarity = frame_similarity(reference_c2w, refined_c2w)
     focal_ratio = float(torch.median(refined_fx / reference_fx))
     if splat:
