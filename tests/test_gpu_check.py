@@ -49,9 +49,13 @@ CUDA_TESTS = [
     "tests/test_device_audit.py::test_camera_optimizer_on_real_cuda[FULL_OPENCV-per-camera-camp-random]",
     "tests/test_device_audit.py::test_camera_optimizer_on_real_cuda[OPENCV_FISHEYE-per-image-frolov]",
     "tests/test_mixed_precision.py::test_camera_gradients_under_cuda_autocast_are_close_to_float32",
+    "tests/test_splat_alignment.py::test_gsplat_cuda_alignment_gradients_match_the_reference",
     "tests/test_splat_identity.py::test_gsplat_cuda_intrinsics_gradient_through_view_matrix",
 ]
-CUDA_MODULES = ["test_cuda.py", "test_device_audit.py", "test_mixed_precision.py", "test_splat_identity.py"]
+CUDA_MODULES = [
+    "test_cuda.py", "test_device_audit.py", "test_mixed_precision.py", "test_splat_alignment.py",
+    "test_splat_identity.py",
+]
 """The test modules that use the ``cuda`` marker."""
 NO_GPU = Environment(
     cuda_available=False, device_names=(), torch_version="2.14.1", torch_cuda="13.0", tinycudann=False, nvcc=None,

@@ -125,11 +125,6 @@ def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
     model = trainer.pipeline.model
     assert isinstance(model, S2CampSplatModel)
     seeds = model.num_points
-    # The tiny scene is RADIAL: splatfacto's data manager undistorted the images and rewrote their K; the reference
-    # cameras the errors are measured against are scaled into those units (set_undistortion_scale).
-    given_reference = trainer.pipeline.datamanager.train_dataparser_outputs.metadata["reference_cameras"]
-    scale = model.reference_cameras().fx / given_reference.fx
-    assert float((scale - 1.0).abs().min()) > 1e-4 and model.reference_cameras().distortion_params is None
     base_fx = model.camera_optimizer.refined_intrinsics().fx.detach().clone()
     trainer.train()
     elapsed = time.perf_counter() - start
@@ -291,3 +286,16 @@ def test_camera_errors_of_undistorted_training_cameras_use_the_undistorted_refer
     reference = model.reference_cameras()
     assert reference.distortion_params is None and torch.allclose(reference.fx, torch.full((2, 1), 36.72))
     assert model.update_camera_errors()["camera_errors/focal_err_mean"] == pytest.approx(0.0, abs=1e-4)
+
+
+def test_undistortion_scale_is_the_data_managers_focal_over_the_dataparsers():
+    from s2camp_ns.nerfstudio.pipeline import undistortion_scale
+
+    given = SimpleNamespace(fx=torch.tensor([[36.0], [36.0]]), fy=torch.tensor([[30.0], [30.0]]))
+    seen = SimpleNamespace(fx=torch.tensor([[36.72], [36.0]]), fy=torch.tensor([[30.3], [30.0]]))
+    datamanager = SimpleNamespace(
+        train_dataset=SimpleNamespace(cameras=seen), train_dataparser_outputs=SimpleNamespace(cameras=given)
+    )
+    fx_scale, fy_scale = undistortion_scale(datamanager)
+    torch.testing.assert_close(fx_scale, torch.tensor([[1.02], [1.0]]))
+    torch.testing.assert_close(fy_scale, torch.tensor([[1.01], [1.0]]))

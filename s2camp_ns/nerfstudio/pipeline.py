@@ -25,9 +25,11 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
+from jaxtyping import Float
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
 from torch.cuda.amp.grad_scaler import GradScaler
 from torch.nn.parallel import DistributedDataParallel
 
@@ -70,6 +72,14 @@ def check_checkpoint_cameras(state: Mapping[str, Any], num_train_cameras: int, d
     )
 
 
+
+def undistortion_scale(datamanager) -> tuple[Float[Tensor, "n 1"], Float[Tensor, "n 1"]]:
+    """fx and fy of each training camera after a full-image data manager undistorted its image, over the
+    dataparser's (1 where an image was left alone): the argument of ``S2CampSplatModel.set_undistortion_scale``."""
+    seen, given = datamanager.train_dataset.cameras, datamanager.train_dataparser_outputs.cameras
+    return seen.fx / given.fx, seen.fy / given.fy
+
+
 @dataclass
 class S2CampPipelineConfig(VanillaPipelineConfig):
     """VanillaPipeline that gives the S2CamP camera optimizer its training cameras."""
@@ -103,8 +113,7 @@ class S2CampPipeline(VanillaPipeline):
             # the undistorted K into the training cameras; the camera optimizer must start from those.
             _ = self.datamanager.cached_train
             if hasattr(self.model, "set_undistortion_scale"):
-                given = self.datamanager.train_dataparser_outputs.cameras
-                self.model.set_undistortion_scale(cameras.fx / given.fx, cameras.fy / given.fy)
+                self.model.set_undistortion_scale(*undistortion_scale(self.datamanager))
         # The dataparser's sparse points (normalized world, as the cameras) choose the proxy range per camera.
         metadata = getattr(self.datamanager.train_dataset, "metadata", None) or {}
         points = metadata.get("points3D_xyz")
