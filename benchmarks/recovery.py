@@ -30,6 +30,14 @@ SCENES = {
 QUICK_SCENE_SIZE = {"num_cameras": 8, "width": 64, "height": 48}
 
 
+QUICK_PHOTOMETRIC_VARIANTS = ("none", "so3xr3", "s2camp")
+"""``--quick`` (CI) trains these in tier 2: no refinement, the baseline of the time ratios and S2CamP. Each ns-train
+start costs about 10 s of CI's CPU; every variant's ns-train command is checked without training
+(tests/test_recovery_seeds.py)."""
+QUICK_SFM_VARIANTS = ("none", "s2camp-per-camera")
+"""``--quick`` trains these from the SfM start in tier 3 (the SfM reconstruction and its checks run in full)."""
+
+
 @dataclass
 class RecoveryConfig:
     """Camera recovery from CamP-perturbed cameras, every variant on the same scenes and start."""
@@ -45,8 +53,9 @@ class RecoveryConfig:
     sfm: SfmRecoveryConfig = field(default_factory=SfmRecoveryConfig)
     """Tier 3: its scenes, variants, SfM camera model and checks, training as tier 2."""
     quick: bool = False
-    """Small run for CI: tier 1 with 100 iterations, tiers 2 and 3 with a few iterations on a small scene, one CamP
-    seed; asserts only that every variant runs."""
+    """Small run for CI: tier 1 with 100 iterations (every variant), tiers 2 and 3 with a few iterations on a small
+    scene, one CamP seed, training ``QUICK_PHOTOMETRIC_VARIANTS`` and ``QUICK_SFM_VARIANTS``; asserts only that they
+    run."""
     scene_dir: Path | None = None
     """Where the scenes are generated (a temporary folder by default)."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
@@ -58,7 +67,14 @@ class RecoveryConfig:
         if not self.quick:
             return self
         geometric = replace(self.geometric, iterations=100, camp_seeds=(0,), log_every=10)
-        return replace(self, geometric=geometric)
+        sfm = replace(self.sfm, variants=QUICK_SFM_VARIANTS)
+        return replace(self, geometric=geometric, sfm=sfm)
+
+    def photometric_variants(self) -> tuple[str, ...]:
+        """Tier 2's trained variants: all of them, or ``QUICK_PHOTOMETRIC_VARIANTS`` for ``--quick``."""
+        if not self.quick:
+            return self.variants
+        return tuple(variant for variant in self.variants if variant in QUICK_PHOTOMETRIC_VARIANTS)
 
 
 def _s2camp_range(sampling) -> str:
@@ -141,7 +157,7 @@ def _run(config: RecoveryConfig, root: Path) -> list[dict]:
     if 2 in config.tiers:
         began = time.perf_counter()
         tier2_rows, tier2_histories = run_photometric(
-            config.scenes, config.variants, config.photometric, root / "tier2", config.quick
+            config.scenes, config.photometric_variants(), config.photometric, root / "tier2", config.quick
         )
         rows.extend(tier2_rows)
         run.photometric_histories = tier2_histories  # type: ignore[attr-defined]

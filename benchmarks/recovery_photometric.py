@@ -237,6 +237,25 @@ def train_from_warm_start(
 ) -> Path:
     """One ``ns-train <method>`` run of ``config.iterations`` from the warm start (every variant's camera schedule);
     ``dataparser_arguments`` start with the dataparser subcommand. Returns the run folder."""
+    command = variant_command(
+        scene, work, scene_name, warm, method, timestamp, method_arguments, dataparser_arguments, config
+    )
+    _run_ns_train(command, work / f"{scene_name}-{timestamp}.log", f"{scene_name} {timestamp}")
+    return work / scene_name / method / timestamp
+
+
+def variant_command(
+    scene: Path,
+    work: Path,
+    scene_name: str,
+    warm: Path | None,
+    method: str,
+    timestamp: str,
+    method_arguments: list[str],
+    dataparser_arguments: list[str],
+    config: PhotometricConfig,
+) -> list[str]:
+    """The ``ns-train`` command line of ``train_from_warm_start``."""
     command = [
         *_arguments(
             method, scene, work, scene_name, timestamp, config.iterations, config.checkpoint_every,
@@ -247,9 +266,7 @@ def train_from_warm_start(
     ]  # fmt: skip
     if warm is not None:
         command += ["--load-dir", str(warm), "--load-scheduler", "False"]
-    command += dataparser_arguments
-    _run_ns_train(command, work / f"{scene_name}-{timestamp}.log", f"{scene_name} {timestamp}")
-    return work / scene_name / method / timestamp
+    return command + list(dataparser_arguments)
 
 
 def seconds_per_iteration(run: Path) -> float:

@@ -120,9 +120,9 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     reprojection error against the scene's SfM tracks (``apply_track_prior``): a camera that agrees with its tracks
     to a fraction of a pixel moves about that far at most, however long the field pulls; a camera without tracks
     (phone poses, a hand-made transforms.json) has no prior. Needs the data parser's ``track_rms_px`` (COLMAP scenes
-    with points, ns-process-data transforms.json with their ``colmap/sparse/0``). Off by default until the
-    real-regime benchmark (``s2camp-bench robustness --preset regime``, variant s2camp-track-prior) has decided it
-    (docs/benchmarks/regime.md)."""
+    with points, ns-process-data transforms.json with their ``colmap/sparse/0``). Off by default: in the
+    real-training regime (``s2camp-bench robustness --preset regime``, docs/benchmarks/regime.md) it keeps good SfM
+    cameras in place but removes less of a CamP perturbation than the default does (docs/DESIGN-NOTES.md sec. 12)."""
 
     def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
         return ParameterLayout.from_preset(self.parameters, camera_model)

@@ -78,9 +78,10 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
     report = tmp_path / REPORTS[name]
     assert report.exists() and "Regenerate with" in report.read_text()
     if name == "recovery":
-        expected = {"none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once", "s2camp-per-camera"}
-        for tier in (1, 2):
-            assert {row["variant"] for row in rows if row["tier"] == tier} == expected, f"tier {tier}"
+        # --quick trains a subset in tiers 2 and 3; every variant's command is checked in test_recovery_seeds.py.
+        everything = {"none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once", "s2camp-per-camera"}
+        assert {row["variant"] for row in rows if row["tier"] == 1} == everything
+        assert {row["variant"] for row in rows if row["tier"] == 2} == {"none", "so3xr3", "s2camp"}
         for row in rows:
             if row["tier"] == 2:
                 assert 0.0 < row["psnr"] < 100.0 and 0.0 < row["ssim"] <= 1.0, row
@@ -89,12 +90,9 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
         from s2camp_ns.benchmarks.recovery_sfm import intrinsics_option_available
 
         tier3 = {row["variant"]: row for row in rows if row["tier"] == 3}
-        expected = {"start", "none", "so3xr3", "camp", "s2camp-per-image"}
-        if intrinsics_option_available():
-            expected.add("s2camp-per-camera")
-        assert set(tier3) == expected
-        intrinsics = {"start": "per-camera", "none": "per-image", "so3xr3": "per-image", "camp": "per-image"}
-        intrinsics |= {"s2camp-per-image": "per-image", "s2camp-per-camera": "per-camera"}
+        assert intrinsics_option_available()
+        assert set(tier3) == {"start", "none", "s2camp-per-camera"}
+        intrinsics = {"start": "per-camera", "none": "per-image", "s2camp-per-camera": "per-camera"}
         for variant, row in tier3.items():
             assert row["intrinsics"] == intrinsics[variant], row
             if variant != "start":
@@ -108,7 +106,7 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
         _check_robustness_rows(rows, tmp_path)
     if name == "train-time":
         summary = {row["method"]: row for row in rows if row["kind"] == "summary"}
-        assert set(summary) == {"s2camp-so3xr3", "s2camp", "s2camp-camp"}
+        assert set(summary) == {"s2camp-so3xr3", "s2camp"}  # --quick: the baseline and s2camp
         assert all(row["sec_per_iter"] > 0.0 for row in rows)
         # Every ratio is that method's median over the baseline's (nerfstudio's SO3xR3) median, from the timed runs;
         # the per-round ratios pair each run with the baseline's run of the same round.

@@ -108,3 +108,86 @@ def test_the_sfm_report_lists_the_range_of_repeated_variants_and_not_the_start()
     text = "\n".join(_tier3_section([start, row], [], config))
     assert "| sfm-wide | s2camp-per-camera | 3 | 0.01 - 0.03 | 0.01 - 0.03 | 0.3 - 0.9 |" in text
     assert "| sfm-wide | start | 1 |" not in text
+
+
+# What each variant's ns-train run is, checked by parsing its command line with nerfstudio's own CLI (``--quick``
+# trains only some of them): method, camera-optimizer settings, run length and the perturbed start.
+TIER2_EXPECTED = {
+    "none": ("s2camp", {"mode": "off"}),
+    "so3xr3": ("s2camp-so3xr3", {"mode": "SO3xR3"}),
+    "raw": ("s2camp", {"precondition": False, "refresh_every": 0, "intrinsics": "per-image"}),
+    "camp": ("s2camp-camp", {"refresh_every": 0, "intrinsics": "per-image"}),
+    "s2camp": ("s2camp", {"precondition": True, "refresh_every": 7, "intrinsics": "per-image"}),
+    "s2camp-once": ("s2camp", {"precondition": True, "refresh_every": 0, "intrinsics": "per-image"}),
+    "s2camp-per-camera": ("s2camp", {"precondition": True, "refresh_every": 7, "intrinsics": "per-camera"}),
+}
+TIER3_EXPECTED = {
+    "none": ("s2camp", {"mode": "off"}),
+    "so3xr3": ("s2camp-so3xr3", {"mode": "SO3xR3"}),
+    "camp": ("s2camp-camp", {"refresh_every": 0, "intrinsics": "per-image"}),
+    "s2camp-per-image": ("s2camp", {"refresh_every": 7, "intrinsics": "per-image"}),
+    "s2camp-per-camera": ("s2camp", {"refresh_every": 7, "intrinsics": "per-camera"}),
+}
+
+
+def _parsed(command: list[str]):
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    return tyro.cli(AnnotatedBaseConfigUnion, args=command[1:])
+
+
+def _check_run(config, method: str, camera: dict, warm: Path) -> None:
+    assert config.method_name == method
+    assert config.max_num_iterations == 5 and config.load_dir == warm
+    optimizer = config.pipeline.model.camera_optimizer
+    for key, value in camera.items():
+        assert getattr(optimizer, key) == value, (method, key)
+
+
+def test_every_tier2_variant_parses_to_its_camera_optimizer_settings() -> None:
+    from s2camp_ns.benchmarks.recovery_geometric import VARIANTS
+    from s2camp_ns.benchmarks.recovery_photometric import (
+        METHODS,
+        _variant_arguments,
+        perturbation_arguments,
+        variant_command,
+    )
+
+    assert set(TIER2_EXPECTED) == set(VARIANTS)
+    config = PhotometricConfig(iterations=5, refresh_every=7)
+    warm = Path("/tmp/warm")
+    for variant, (method, camera) in TIER2_EXPECTED.items():
+        command = variant_command(
+            Path("/tmp/scene"), Path("/tmp/work"), "s", warm, METHODS[variant], "ts",
+            _variant_arguments(variant, 0, config), perturbation_arguments(config), config,
+        )  # fmt: skip
+        parsed = _parsed(command)
+        _check_run(parsed, method, camera, warm)
+        assert parsed.pipeline.datamanager.dataparser.perturbation.enabled, variant
+
+
+def test_every_tier3_variant_parses_to_its_camera_optimizer_settings() -> None:
+    from s2camp_ns.benchmarks.recovery_photometric import variant_command
+    from s2camp_ns.benchmarks.recovery_sfm import METHODS, SFM_VARIANTS, dataparser_arguments
+
+    assert set(TIER3_EXPECTED) == set(SFM_VARIANTS)
+    config = PhotometricConfig(iterations=5, refresh_every=7)
+    warm = Path("/tmp/warm")
+    for variant, (method, camera) in TIER3_EXPECTED.items():
+        command = variant_command(
+            Path("/tmp/sfm"), Path("/tmp/work"), "s", warm, METHODS[variant], "ts",
+            variant_arguments(variant, 0, config), dataparser_arguments(Path("/tmp/truth")), config,
+        )  # fmt: skip
+        parsed = _parsed(command)
+        _check_run(parsed, method, camera, warm)
+        reference = parsed.pipeline.datamanager.dataparser.reference_model
+        assert reference == Path("/tmp/truth/sparse/0"), variant
+
+
+def test_quick_trains_a_subset_and_every_variant_of_tier_1() -> None:
+    config = RecoveryConfig(quick=True).effective()
+    assert config.photometric_variants() == ("none", "so3xr3", "s2camp")
+    assert config.sfm.variants == ("none", "s2camp-per-camera")
+    assert len(config.variants) == 7  # tier 1 (geometric, no ns-train) runs every variant
+    assert RecoveryConfig().photometric_variants() == config.variants
