@@ -218,28 +218,16 @@ def warm_start(
 def train_variant(
     scene: Path, work: Path, scene_name: str, warm: Path | None, variant: str, seed: int, config: PhotometricConfig
 ) -> Path:
-    return train_from_warm_start(
-        scene, work, scene_name, warm, METHODS[variant], run_timestamp(variant, seed, config),
-        _variant_arguments(variant, seed, config), perturbation_arguments(config), config,
-    )  # fmt: skip
-
-
-def train_from_warm_start(
-    scene: Path,
-    work: Path,
-    scene_name: str,
-    warm: Path | None,
-    method: str,
-    timestamp: str,
-    method_arguments: list[str],
-    dataparser_arguments: list[str],
-    config: PhotometricConfig,
-) -> Path:
-    """One ``ns-train <method>`` run of ``config.iterations`` from the warm start (every variant's camera schedule);
-    ``dataparser_arguments`` start with the dataparser subcommand. Returns the run folder."""
+    method, timestamp = METHODS[variant], run_timestamp(variant, seed, config)
     command = variant_command(
-        scene, work, scene_name, warm, method, timestamp, method_arguments, dataparser_arguments, config
-    )
+        scene, work, scene_name, warm, method, timestamp, _variant_arguments(variant, seed, config),
+        perturbation_arguments(config), config,
+    )  # fmt: skip
+    return train_from_warm_start(command, work, scene_name, method, timestamp)
+
+
+def train_from_warm_start(command: list[str], work: Path, scene_name: str, method: str, timestamp: str) -> Path:
+    """Run one ``variant_command``; returns the run folder."""
     _run_ns_train(command, work / f"{scene_name}-{timestamp}.log", f"{scene_name} {timestamp}")
     return work / scene_name / method / timestamp
 
@@ -255,7 +243,8 @@ def variant_command(
     dataparser_arguments: list[str],
     config: PhotometricConfig,
 ) -> list[str]:
-    """The ``ns-train`` command line of ``train_from_warm_start``."""
+    """One ``ns-train <method>`` run of ``config.iterations`` from the warm start (every variant's camera schedule);
+    ``dataparser_arguments`` start with the dataparser subcommand."""
     command = [
         *_arguments(
             method, scene, work, scene_name, timestamp, config.iterations, config.checkpoint_every,

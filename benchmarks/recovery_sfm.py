@@ -42,6 +42,7 @@ from .recovery_photometric import (
     seed_arguments,
     summarize_scene,
     train_from_warm_start,
+    variant_command,
     warm_start,
 )
 from .sfm import SfmCheck, SfmResult, local_refinement_check, run_sfm
@@ -153,10 +154,11 @@ def train_sfm_scene(
     runs = []
     for variant in variants:
         for seed in run_seeds(variant, config):
-            path = train_from_warm_start(
-                sfm, work, name, warm, METHODS[variant], run_timestamp(variant, seed, config),
-                variant_arguments(variant, seed, config), arguments, config,
-            )  # fmt: skip
+            method, timestamp = METHODS[variant], run_timestamp(variant, seed, config)
+            command = variant_command(
+                sfm, work, name, warm, method, timestamp, variant_arguments(variant, seed, config), arguments, config
+            )
+            path = train_from_warm_start(command, work, name, method, timestamp)
             runs.append(TrainedRun(name, variant, path))
     return runs
 
