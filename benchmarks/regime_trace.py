@@ -16,6 +16,9 @@ For every checkpoint of a finished run (one each ``trace_every`` steps), from th
   centre's image). With one focal length shared by all images (one physical camera) the focal change has no
   spread over cameras and the correlation is 0: compare ``moved_focal`` with ``gauge_scale`` instead (all centres
   moving in together is the depth change of every camera at once);
+- ``rot_err_pitch`` / ``rot_err_yaw`` / ``rot_err_roll``, ``rot_err_common``, ``pitch_y_corr`` / ``yaw_x_corr``:
+  where the aligned rotation error lies (``error_structure``): per camera axis, shared by all cameras, and along the
+  rotation-translation ambiguity (correlations near +1 / -1);
 - ``pose_consistency`` / ``intrinsics_consistency``: Adam's |m| / sqrt(v) over the whitened latent, the RMS over
   coordinates (the bias-corrected moments; about 0.23 for pure noise with beta1 0.9, 1 for a gradient of constant
   sign);
@@ -64,9 +67,51 @@ def _consistency(state: dict, beta1: float, beta2: float) -> float:
     return float(ratio.square().mean().sqrt())
 
 
+def _rotation_vector(rotation: torch.Tensor) -> torch.Tensor:
+    """Axis-angle vectors (radians) of rotation matrices [n, 3, 3] (angles below pi)."""
+    trace = rotation.diagonal(dim1=-2, dim2=-1).sum(-1)
+    angle = torch.acos(((trace - 1.0) / 2.0).clamp(-1.0, 1.0))
+    skew = torch.stack(
+        [
+            rotation[:, 2, 1] - rotation[:, 1, 2],
+            rotation[:, 0, 2] - rotation[:, 2, 0],
+            rotation[:, 1, 0] - rotation[:, 0, 1],
+        ],
+        dim=-1,
+    )
+    scale = torch.where(angle > 1e-12, angle / (2.0 * torch.sin(angle).clamp(min=1e-300)), torch.full_like(angle, 0.5))
+    return skew * scale[:, None]
+
+
+def _correlation(x: torch.Tensor, y: torch.Tensor) -> float:
+    x, y = x - x.mean(), y - y.mean()
+    return float((x * y).sum() / ((x.square().sum() * y.square().sum()).sqrt() + 1e-300))
+
+
+def error_structure(aligned_cv: torch.Tensor, reference_cv: torch.Tensor) -> dict[str, float]:
+    """Where the aligned cameras' errors lie, each in its own reference camera's frame (OpenCV: x right, y down, z
+    forward): the RMS rotation error about each axis (pitch about x, yaw about y, roll about z; degrees), the norm
+    of the mean rotation error (the part every camera shares; degrees), and the correlation over cameras of the
+    pitch error with the y position error and of the yaw error with the x position error. A rotation and a
+    translation whose image shifts cancel for content at depth D (pitch theta with y = +D theta, yaw theta with
+    x = -D theta) give +1 and -1: the rotation-translation ambiguity, which the photometric loss sees only through
+    the parallax between depths."""
+    error = _rotation_vector(reference_cv[:, :, :3].transpose(1, 2) @ aligned_cv[:, :, :3])
+    offset = ((aligned_cv[:, :, 3] - reference_cv[:, :, 3])[:, None, :] @ reference_cv[:, :, :3])[:, 0]
+    rms = torch.rad2deg(error.square().mean(dim=0).sqrt())
+    return {
+        "rot_err_pitch": float(rms[0]),
+        "rot_err_yaw": float(rms[1]),
+        "rot_err_roll": float(rms[2]),
+        "rot_err_common": math.degrees(float(error.mean(dim=0).norm())),
+        "pitch_y_corr": _correlation(error[:, 0], offset[:, 1]),
+        "yaw_x_corr": _correlation(error[:, 1], offset[:, 0]),
+    }
+
+
 def camera_path_point(optimizer, reference_c2w_gl, reference_fx) -> dict[str, float]:
     """The trace quantities (module docstring) of an S2CamP camera optimizer's current cameras."""
-    from s2camp_ns.core.alignment import camera_errors, rotation_angle, umeyama
+    from s2camp_ns.core.alignment import align_cameras, camera_errors, rotation_angle, umeyama
     from s2camp_ns.core.camera import opengl_to_opencv
 
     with torch.no_grad():
@@ -75,6 +120,8 @@ def camera_path_point(optimizer, reference_c2w_gl, reference_fx) -> dict[str, fl
         given_fx = optimizer.base_intrinsics[:, 0].cpu()
         refined_fx = optimizer.refined_intrinsics().fx.detach().cpu()
     errors = camera_errors(opengl_to_opencv(refined), reference_c2w_gl, refined_fx, reference_fx, align=True)
+    reference_cv = opengl_to_opencv(reference_c2w_gl.to(torch.float64))
+    structure = error_structure(align_cameras(refined, reference_cv).apply_to_poses(refined), reference_cv)
     gauge = umeyama(given[:, :, 3], refined[:, :, 3])
     identity = torch.eye(3, dtype=torch.float64)[None]
     forward = ((refined[:, :, 3] - given[:, :, 3]) * given[:, :, 2]).sum(dim=-1)
@@ -95,6 +142,7 @@ def camera_path_point(optimizer, reference_c2w_gl, reference_fx) -> dict[str, fl
         "gauge_shift": float(gauge.translation.norm()),
         "forward_shift": float(forward.mean()),
         "focal_forward_corr": corr,
+        **structure,
     }
 
 
@@ -131,4 +179,4 @@ def trace_run(run: Path) -> list[dict]:
     return rows
 
 
-__all__ = ["camera_path_point", "trace_run"]
+__all__ = ["camera_path_point", "error_structure", "trace_run"]

@@ -124,17 +124,26 @@ DEFAULT_STARTS = ("accurate", "perturbed")
 RECOVERY_STARTS = ("perturbed", "phone")
 """Starts that refinement must correct (the report gives the fraction of the start error removed); the others
 (accurate, sfm) it must not make worse."""
-VARIANTS = ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-track-prior")
+VARIANTS = (
+    "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-track-prior", "s2camp-damped", "s2camp-damped-gauge",
+)  # fmt: skip
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
-    "s2camp-track-prior": "s2camp",
+    "s2camp-track-prior": "s2camp", "s2camp-damped": "s2camp", "s2camp-damped-gauge": "s2camp",
 }  # fmt: skip
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
     "s2camp-track-prior": ["--pipeline.model.camera-optimizer.track-prior", "True"],
-}
+    "s2camp-damped": ["--pipeline.model.camera-optimizer.damping.damping-rel", "1.0"],
+    "s2camp-damped-gauge": [
+        "--pipeline.model.camera-optimizer.damping.damping-rel", "1.0",
+        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
+    ],
+}  # fmt: skip
 """Method options per variant beyond the CPU-sized run: "off" disables camera refinement; "s2camp-track-prior" is
-s2camp without its track prior (the default before it, kept to measure what the prior changes)."""
+s2camp with its track prior; "s2camp-damped" s2camp with ten times CamP's relative damping of Sigma (1.0 of its
+diagonal), a candidate that limits how far a unit whitened step moves the weakly observed rotation-translation
+combinations (docs/DESIGN-NOTES.md sec. 13); "s2camp-damped-gauge" that plus ``fix_common_rotation``."""
 PHONE_PROFILE = {"sigma_position": 0.02, "sigma_look_at": 0.02, "sigma_dolly_z": 0.02, "sigma_focal_length": 0.0}
 """The phone-pose start, in CamP's protocol (normalized units: the camera centres fill [-1, 1]^3). Assumed sizes of
 visual-inertial poses and factory intrinsics as Polycam / Record3D exports carry them, not measured here: centres off
@@ -728,7 +737,8 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
 
 TRACE_COLUMNS = (
     "step", "train_loss", "rot_err", "moved_rot", "moved_pos", "moved_focal", "gauge_scale", "gauge_rot",
-    "forward_shift", "focal_forward_corr", "pose_consistency", "intrinsics_consistency",
+    "forward_shift", "focal_forward_corr", "rot_err_common", "pitch_y_corr", "yaw_x_corr", "pose_consistency",
+    "intrinsics_consistency",
 )  # fmt: skip
 
 
@@ -740,7 +750,7 @@ def trace_sections(rows: list[dict]) -> list[str]:
         if not trace:
             continue
         title = f"### Camera path: {row['scene']}, {row['start']} start, {row['variant']}, seed {row['seed']}"
-        cells = [{key: f"{point[key]:.4g}" for key in TRACE_COLUMNS} for point in trace]
+        cells = [{key: f"{point.get(key, math.nan):.4g}" for key in TRACE_COLUMNS} for point in trace]
         sections += [title, markdown_table(cells, list(TRACE_COLUMNS), list(TRACE_COLUMNS))]
     if sections:
         sections.insert(0, "## The mechanism: camera paths (`--trace-every`; columns: `benchmarks/regime_trace.py`)")

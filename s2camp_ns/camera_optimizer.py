@@ -124,6 +124,14 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     real-training regime (``s2camp-bench robustness --preset regime``, docs/benchmarks/regime.md) it keeps good SfM
     cameras in place but removes less of a CamP perturbation than the default does (docs/DESIGN-NOTES.md sec. 12)."""
 
+    fix_common_rotation: bool = False
+    """After every step, remove the rotation that all training cameras share (the mean over images of the pose
+    update's rotation, each in its own camera frame; ``remove_common_rotation``). A rotation every camera makes at
+    once is the similarity gauge in disguise: with a rotation-translation pair per camera that shifts the image of
+    content at the scene's depth by nothing, a common pitch of cameras on a ring equals moving all of them up, and a
+    common yaw of forward-facing cameras equals turning the world, neither of which the photometric loss sees
+    (docs/DESIGN-NOTES.md sec. 13). A candidate, off by default until measured on the real-regime grid."""
+
     def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
         return ParameterLayout.from_preset(self.parameters, camera_model)
 
@@ -420,6 +428,26 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self._shrink(self.whitened_delta, self.prior_radius, lr)
         if self.shared:
             self._shrink(self.whitened_intrinsics, self.prior_radius_intrinsics, lr)
+
+    @torch.no_grad()
+    def remove_common_rotation(self) -> None:
+        """Subtract the mean over trainable images of the rotation part omega of the pose deltas phi (each in its own
+        camera frame, ``fix_common_rotation``) from every image's, in the latent: phi_hat += P[:, :, omega] d (paper
+        eq. 15; with shared intrinsics the pose rows of the block-triangular P, so no intrinsics change). The
+        translations and intrinsics stay; a no-op when off, disabled or with fewer than three trainable images."""
+        if not self.enabled or not self.config.fix_common_rotation:
+            return
+        trainable = torch.ones(self.num_cameras, dtype=torch.bool, device=self.precond.device)
+        if self.non_trainable_camera_indices is not None:
+            trainable[self.non_trainable_camera_indices.to(trainable.device)] = False
+        if int(trainable.sum()) < 3:
+            return
+        rotation = self.camera_deltas()[:, 3:NUM_POSE_PARAMS]
+        correction = torch.zeros_like(rotation)
+        correction[trainable] = -rotation[trainable].mean(dim=0)
+        latent = self.whitened_delta
+        rows = self.precond[:, : latent.shape[1], 3:NUM_POSE_PARAMS].to(torch.float64)
+        latent.add_((rows @ correction[..., None])[..., 0].to(latent.dtype))
 
     @staticmethod
     def _shrink(latent: nn.Parameter, radius: Tensor, lr: float) -> None:

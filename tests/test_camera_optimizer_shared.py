@@ -262,3 +262,34 @@ def test_shared_p_uses_the_configured_damping() -> None:
     assert torch.equal(optimizer.precond, expected[optimizer.camera_of_image])
     default = compute_shared_preconditioner(refined, optimizer.layout, sampling, DampingConfig()).matrix
     assert float((expected - default).norm() / default.norm()) > 1e-2
+
+
+@pytest.mark.parametrize("intrinsics", ["per-camera", "per-image"])
+def test_removing_the_common_rotation_keeps_everything_else(intrinsics: str) -> None:
+    """fix_common_rotation: afterwards the rotation deltas omega average to zero over the images, each image's omega
+    changed by the same vector (their differences kept), and translations and intrinsics are untouched."""
+    optimizer = make_optimizer(intrinsics=intrinsics, fix_common_rotation=True)
+    generator = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        optimizer.whitened_delta.copy_(torch.randn(optimizer.whitened_delta.shape, generator=generator) * 1e-2)
+        if optimizer.shared:
+            optimizer.whitened_intrinsics.copy_(
+                torch.randn(optimizer.whitened_intrinsics.shape, generator=generator) * 1e-2
+            )
+    before = optimizer.camera_deltas()
+    assert before[:, 3:6].mean(dim=0).abs().max() > 1e-4  # there is a common rotation to remove
+    optimizer.remove_common_rotation()
+    after = optimizer.camera_deltas()
+    torch.testing.assert_close(after[:, 3:6].mean(dim=0), torch.zeros(3, dtype=torch.float64), atol=1e-8, rtol=0)
+    shift = after[:, 3:6] - before[:, 3:6]
+    torch.testing.assert_close(shift, shift[:1].expand_as(shift), atol=1e-6, rtol=0)
+    # (the float32 latent rounds: a few 1e-8 relative)
+    torch.testing.assert_close(after[:, :3], before[:, :3], atol=1e-9, rtol=1e-6)
+    torch.testing.assert_close(after[:, 6:], before[:, 6:], atol=1e-9, rtol=1e-6)
+    # Off by default: nothing moves.
+    default = make_optimizer(intrinsics=intrinsics)
+    with torch.no_grad():
+        default.whitened_delta.copy_(optimizer.whitened_delta)
+    kept = default.camera_deltas()
+    default.remove_common_rotation()
+    assert torch.equal(default.camera_deltas(), kept)

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from s2camp_ns.benchmarks.regime_trace import _consistency, camera_path_point
+from s2camp_ns.benchmarks.regime_trace import _consistency, camera_path_point, error_structure
 from s2camp_ns.core.camera import opengl_to_opencv
 
 
@@ -77,3 +77,41 @@ def test_adam_consistency_is_one_for_a_constant_gradient_and_small_for_noise() -
         value = _consistency(adam.state[parameter], 0.9, 0.999)
         assert low < value < high, (noise, value)
     assert math.isnan(_consistency({}, 0.9, 0.999))
+
+
+def _about_own_axis(poses: torch.Tensor, axis: int, angles: torch.Tensor) -> torch.Tensor:
+    """Each camera rotated by its angle about its own x (0) or y (1) axis, centre kept."""
+    rotated = poses.clone()
+    for i, angle in enumerate(angles.tolist()):
+        c, s = math.cos(angle), math.sin(angle)
+        local = torch.eye(3, dtype=torch.float64)
+        j, k = (1, 2) if axis == 0 else (2, 0)
+        local[j, j], local[j, k], local[k, j], local[k, k] = c, -s, s, c
+        rotated[i, :, :3] = poses[i, :, :3] @ local
+    return rotated
+
+
+def test_error_structure_finds_the_rotation_translation_ambiguity_by_hand() -> None:
+    """Cameras pitched by theta_i (about their x axis) and moved by +D theta_i along their own y keep the image of
+    the content at depth D (the point D z then sits at y = D sin(theta) - D theta, about 0): pitch against y
+    correlates +1. Yawed by theta_i (about y) and moved by -D theta_i along their own x: yaw against x -1. The per-axis
+    RMS is the RMS of the angles; the common part is their mean."""
+    reference = _ring(n=8, radius=2.0)
+    theta = torch.tensor([1.0, -2.0, 0.5, 3.0, -1.0, 2.0, -0.5, 1.5], dtype=torch.float64) * 1e-3
+    depth = 2.0
+    pitched = _about_own_axis(reference, 0, theta)
+    pitched[:, :, 3] += depth * theta[:, None] * reference[:, :, 1]
+    structure = error_structure(pitched, reference)
+    assert structure["pitch_y_corr"] == pytest.approx(1.0, abs=1e-9)
+    assert structure["rot_err_pitch"] == pytest.approx(math.degrees(float(theta.square().mean().sqrt())), rel=1e-6)
+    assert structure["rot_err_yaw"] == pytest.approx(0.0, abs=1e-9)
+    assert structure["rot_err_common"] == pytest.approx(math.degrees(float(theta.mean())), rel=1e-6)
+    yawed = _about_own_axis(reference, 1, theta)
+    yawed[:, :, 3] -= depth * theta[:, None] * reference[:, :, 0]
+    structure = error_structure(yawed, reference)
+    assert structure["yaw_x_corr"] == pytest.approx(-1.0, abs=1e-9)
+    assert structure["rot_err_roll"] == pytest.approx(0.0, abs=1e-9)
+    # Moved the other way, the image shifts add up instead of cancelling: the correlation flips.
+    wrong = _about_own_axis(reference, 0, theta)
+    wrong[:, :, 3] -= depth * theta[:, None] * reference[:, :, 1]
+    assert error_structure(wrong, reference)["pitch_y_corr"] == pytest.approx(-1.0, abs=1e-9)

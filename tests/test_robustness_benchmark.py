@@ -30,7 +30,7 @@ def _option(command: list[str], name: str) -> str:
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
     command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
-    assert command[1] == ("s2camp" if variant in ("off", "s2camp-track-prior") else variant)
+    assert command[1] == ("s2camp" if variant in ("off", "s2camp-track-prior") or "damped" in variant else variant)
     assert _option(command, "--max-num-iterations") == "123"
     assert _option(command, "--machine.seed") == "2"
     assert _option(command, "--machine.device-type") == "cpu"
@@ -40,12 +40,21 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     expected_options = {
         "off": ["--pipeline.model.camera-optimizer.mode"],
         "s2camp-track-prior": ["--pipeline.model.camera-optimizer.track-prior"],
+        "s2camp-damped": ["--pipeline.model.camera-optimizer.damping.damping-rel"],
+        "s2camp-damped-gauge": [
+            "--pipeline.model.camera-optimizer.damping.damping-rel",
+            "--pipeline.model.camera-optimizer.fix-common-rotation",
+        ],
     }
     assert camera_options == expected_options.get(variant, [])
     if variant == "off":
         assert _option(command, "--pipeline.model.camera-optimizer.mode") == "off"
     if variant == "s2camp-track-prior":
         assert _option(command, "--pipeline.model.camera-optimizer.track-prior") == "True"
+    if "damped" in variant:
+        assert _option(command, "--pipeline.model.camera-optimizer.damping.damping-rel") == "1.0"
+    if variant == "s2camp-damped-gauge":
+        assert _option(command, "--pipeline.model.camera-optimizer.fix-common-rotation") == "True"
     tail = command[command.index("s2camp-data") :]
     seed = str(SCENES["near-deep"].perturbation_seed)
     if start == "accurate":
