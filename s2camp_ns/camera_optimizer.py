@@ -442,11 +442,12 @@ class S2CampCameraOptimizer(CameraOptimizer):
             trainable[self.non_trainable_camera_indices.to(trainable.device)] = False
         if int(trainable.sum()) < 3:
             return
-        rotation = self.camera_deltas()[:, 3:NUM_POSE_PARAMS]
+        omega = slice(3, NUM_POSE_PARAMS)  # the twist's rotation columns (rho_x..rho_z, omega_x..omega_z)
+        rotation = self.camera_deltas()[:, omega]
         correction = torch.zeros_like(rotation)
         correction[trainable] = -rotation[trainable].mean(dim=0)
         latent = self.whitened_delta
-        rows = self.precond[:, : latent.shape[1], 3:NUM_POSE_PARAMS].to(torch.float64)
+        rows = self.precond[:, : latent.shape[1], omega].to(torch.float64)
         latent.add_((rows @ correction[..., None])[..., 0].to(latent.dtype))
 
     @staticmethod

@@ -141,8 +141,9 @@ class S2CampRefinementMixin:
             torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
             camera_optimizer.recompute_stale_preconditioner(step, torch_optimizer)
 
-        def apply_track_prior(step: int) -> None:
-            # After the optimizers' step: the prior's proximal step with the camera group's step size.
+        def after_camera_step(step: int) -> None:
+            # After the optimizers' step: the track prior's proximal step with the camera group's step size, then
+            # the shared rotation removed (each a no-op unless configured).
             torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
             if torch_optimizer is not None:
                 camera_optimizer.apply_track_prior(float(torch_optimizer.param_groups[0]["lr"]))
@@ -155,7 +156,7 @@ class S2CampRefinementMixin:
                 )
             )
             callbacks.append(
-                TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=apply_track_prior)
+                TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=after_camera_step)
             )
             callbacks.append(
                 TrainingCallback(
