@@ -67,25 +67,10 @@ def _consistency(state: dict, beta1: float, beta2: float) -> float:
     return float(ratio.square().mean().sqrt())
 
 
-def _rotation_vector(rotation: torch.Tensor) -> torch.Tensor:
-    """Axis-angle vectors (radians) of rotation matrices [n, 3, 3] (angles below pi)."""
-    trace = rotation.diagonal(dim1=-2, dim2=-1).sum(-1)
-    angle = torch.acos(((trace - 1.0) / 2.0).clamp(-1.0, 1.0))
-    skew = torch.stack(
-        [
-            rotation[:, 2, 1] - rotation[:, 1, 2],
-            rotation[:, 0, 2] - rotation[:, 2, 0],
-            rotation[:, 1, 0] - rotation[:, 0, 1],
-        ],
-        dim=-1,
-    )
-    scale = torch.where(angle > 1e-12, angle / (2.0 * torch.sin(angle).clamp(min=1e-300)), torch.full_like(angle, 0.5))
-    return skew * scale[:, None]
-
-
 def _correlation(x: torch.Tensor, y: torch.Tensor) -> float:
+    """Pearson correlation over cameras; 0 where either has no spread."""
     x, y = x - x.mean(), y - y.mean()
-    return float((x * y).sum() / ((x.square().sum() * y.square().sum()).sqrt() + 1e-300))
+    return float((x * y).sum() / ((x.square().sum() * y.square().sum()).sqrt() + 1e-30))
 
 
 def error_structure(aligned_cv: torch.Tensor, reference_cv: torch.Tensor) -> dict[str, float]:
@@ -96,7 +81,9 @@ def error_structure(aligned_cv: torch.Tensor, reference_cv: torch.Tensor) -> dic
     translation whose image shifts cancel for content at depth D (pitch theta with y = +D theta, yaw theta with
     x = -D theta) give +1 and -1: the rotation-translation ambiguity, which the photometric loss sees only through
     the parallax between depths."""
-    error = _rotation_vector(reference_cv[:, :, :3].transpose(1, 2) @ aligned_cv[:, :, :3])
+    from s2camp_ns.core.alignment import rotation_vector
+
+    error = rotation_vector(reference_cv[:, :, :3], aligned_cv[:, :, :3])
     offset = ((aligned_cv[:, :, 3] - reference_cv[:, :, 3])[:, None, :] @ reference_cv[:, :, :3])[:, 0]
     rms = torch.rad2deg(error.square().mean(dim=0).sqrt())
     return {
@@ -127,9 +114,6 @@ def camera_path_point(optimizer, reference_c2w_gl, reference_fx) -> dict[str, fl
     forward = ((refined[:, :, 3] - given[:, :, 3]) * given[:, :, 2]).sum(dim=-1)
     distance = given[:, :, 3].norm(dim=-1).clamp(min=1e-9)
     focal_change = refined_fx / given_fx - 1.0
-    x, y = focal_change - focal_change.mean(), forward / distance
-    y = y - y.mean()
-    corr = float((x * y).sum() / ((x.square().sum() * y.square().sum()).sqrt() + 1e-30))
     return {
         "rot_err": math.degrees(errors["rot_err_mean"]),
         "pos_err": errors["pos_err_mean"],
@@ -141,7 +125,7 @@ def camera_path_point(optimizer, reference_c2w_gl, reference_fx) -> dict[str, fl
         "gauge_rot": math.degrees(float(rotation_angle(identity, gauge.rotation[None])[0])),
         "gauge_shift": float(gauge.translation.norm()),
         "forward_shift": float(forward.mean()),
-        "focal_forward_corr": corr,
+        "focal_forward_corr": _correlation(focal_change, forward / distance),
         **structure,
     }
 

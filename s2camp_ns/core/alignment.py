@@ -70,8 +70,10 @@ def umeyama(source: Float[Tensor, "n 3"], target: Float[Tensor, "n 3"]) -> Simil
     return Similarity(scale, rotation, translation)
 
 
-def rotation_angle(r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]) -> Float[Tensor, " n"]:
-    """Geodesic angle (rad, in [0, pi]) between rotations, atan2 form: accurate for tiny and near-pi angles."""
+def _relative_skew_and_angle(
+    r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]
+) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"]]:
+    """Of R = r_a^T r_b: the vector of R - R^T (2 sin(angle) times the axis) and the angle, atan2 form."""
     relative = r_a.transpose(-1, -2) @ r_b
     trace = relative.diagonal(dim1=-2, dim2=-1).sum(dim=-1)
     skew = torch.stack(
@@ -82,7 +84,20 @@ def rotation_angle(r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]) -> 
         ],
         dim=-1,
     )
-    return torch.atan2(0.5 * torch.linalg.norm(skew, dim=-1), 0.5 * (trace - 1.0))
+    return skew, torch.atan2(0.5 * torch.linalg.norm(skew, dim=-1), 0.5 * (trace - 1.0))
+
+
+def rotation_angle(r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]) -> Float[Tensor, " n"]:
+    """Geodesic angle (rad, in [0, pi]) between rotations, atan2 form: accurate for tiny and near-pi angles."""
+    return _relative_skew_and_angle(r_a, r_b)[1]
+
+
+def rotation_vector(r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]) -> Float[Tensor, "n 3"]:
+    """Axis-angle vector (rad) of r_a^T r_b, the rotation from r_a to r_b in r_a's own frame, for angles below pi
+    (at pi the axis is not defined by R - R^T); zero for identical rotations."""
+    skew, angle = _relative_skew_and_angle(r_a, r_b)
+    norm = torch.linalg.norm(skew, dim=-1, keepdim=True)
+    return torch.where(norm > 0, skew * (angle[:, None] / norm.clamp(min=torch.finfo(skew.dtype).tiny)), 0.0)
 
 
 def align_cameras(est_c2w: Float[Tensor, "n 3 4"], ref_c2w: Float[Tensor, "n 3 4"]) -> Similarity:
