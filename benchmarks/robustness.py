@@ -126,10 +126,12 @@ RECOVERY_STARTS = ("perturbed", "phone")
 (accurate, sfm) it must not make worse."""
 VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-track-prior", "s2camp-damped", "s2camp-damped-gauge",
+    "s2camp-damped-gauge-prior",
 )  # fmt: skip
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "s2camp-track-prior": "s2camp", "s2camp-damped": "s2camp", "s2camp-damped-gauge": "s2camp",
+    "s2camp-damped-gauge-prior": "s2camp",
 }  # fmt: skip
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
@@ -139,11 +141,17 @@ VARIANT_ARGUMENTS = {
         "--pipeline.model.camera-optimizer.damping.damping-rel", "1.0",
         "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
     ],
+    "s2camp-damped-gauge-prior": [
+        "--pipeline.model.camera-optimizer.damping.damping-rel", "1.0",
+        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
+        "--pipeline.model.camera-optimizer.track-prior", "True",
+    ],
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run: "off" disables camera refinement; "s2camp-track-prior" is
 s2camp with its track prior; "s2camp-damped" s2camp with ten times CamP's relative damping of Sigma (1.0 of its
 diagonal), a candidate that limits how far a unit whitened step moves the weakly observed rotation-translation
-combinations (docs/DESIGN-NOTES.md sec. 13); "s2camp-damped-gauge" that plus ``fix_common_rotation``."""
+combinations (docs/DESIGN-NOTES.md sec. 13); "s2camp-damped-gauge" that plus ``fix_common_rotation``;
+"s2camp-damped-gauge-prior" that plus the track prior (a no-op where the start has no tracks: the phone start)."""
 PHONE_PROFILE = {"sigma_position": 0.02, "sigma_look_at": 0.02, "sigma_dolly_z": 0.02, "sigma_focal_length": 0.0}
 """The phone-pose start, in CamP's protocol (normalized units: the camera centres fill [-1, 1]^3). Assumed sizes of
 visual-inertial poses and factory intrinsics as Polycam / Record3D exports carry them, not measured here: centres off
