@@ -14,7 +14,13 @@ s2camp-splat} x seeds. Every run is one ``ns-train`` FROM SCRATCH with the metho
   degree interval, the means' and SO3xR3's learning-rate schedules) scaled by ``iterations`` / 30000, so that the
   run goes through the phases of a 30k-step splatfacto run. S2CamP's camera schedule is stated in fractions of the
   run already (``method_config.camera_schedule_for``); SO3xR3's is splatfacto's absolute one (1000-step warm-up,
-  decay over 30k) and is scaled with the rest. ``--compress-schedule False`` keeps every default.
+  decay over 30k) and is scaled with the rest. ``--compress-schedule False`` keeps every default;
+- densification off unless ``--densify True`` (``--pipeline.model.stop-split-at 0``: gsplat's strategy then neither
+  grows, prunes nor resets opacities): the Gaussians are those of the start's sparse points, trained in position,
+  shape, colour and opacity. Measured with it on (this scene, 1000 steps, refinement every 3 steps from step 17):
+  at splatfacto's initial 1/4 resolution (16x12 px) nearly every Gaussian passed the gradient threshold at every
+  refinement and their number doubled each time, 1.2k to 88k in 18 steps, at which the reference rasterizer's
+  step cost went from 0.05 s to 0.28 s and rising: beyond a CPU run. The same for every variant.
 
 Variants: "splat-off" is ``ns-train s2camp-splat --pipeline.model.camera-optimizer.mode off``; the others are the
 ``ns-train`` methods of those names. Starts: robustness's (``benchmarks/robustness.py``): "accurate" the generated
@@ -70,18 +76,20 @@ from .robustness import (
 SCENES: dict[str, RobustnessScene] = {
     "splat-ring": RobustnessScene(
         MakeSceneConfig(
-            num_cameras=24, width=128, height=96, focal=focal_for_fov(128, 70.0), ring_radius=4.0, k1=0.0, k2=0.0,
+            num_cameras=24, width=256, height=192, focal=focal_for_fov(256, 70.0), ring_radius=4.0, k1=0.0, k2=0.0,
             points_per_image=100, seed=4,
         ),
         70.0,
         4,
-        "24 images (21 training, every 8th held out) trained at 64x48 (SfM on 128x96), 70 deg, pinhole, cameras 4 "
-        "units from the centre; splatfacto starts from the scene's SfM points",
-        downscale=2,
+        "24 images (21 training, every 8th held out) trained at 64x48 (SfM on 256x192), 70 deg, pinhole, cameras 4 "
+        "units from the centre; splatfacto starts from the start's sparse points (about 2.4k; SfM's own for sfm)",
+        downscale=4,
     ),
 }  # fmt: skip
 """The benchmark's scenes (``RobustnessScene``: generated, pinhole, SfM on the full-size images). Small enough for
-the reference rasterizer on one CPU thread."""
+the reference rasterizer on one CPU thread: 64x48 training images (``images_4``, ``add_quarter_images``). SfM needs
+the larger full-size images: on this scene at 128x96 pycolmap registered 3 of 24 images, at 256x192 all 24
+(rotation 0.53 deg, focal 184.3 px against the true 182.8)."""
 STARTS = ("accurate", "perturbed", "sfm")
 RECOVERY_STARTS = ("perturbed",)
 """Starts that refinement must correct (the report gives the fraction of the start error removed); from the others
@@ -136,7 +144,7 @@ class SplatBenchConfig:
     """Scale splatfacto's step-counted schedule to ``iterations`` (module docstring); False: the defaults."""
     densify: bool = False
     """splatfacto's densification (gsplat's DefaultStrategy: growth, pruning, opacity resets). Off by default: the
-    Gaussians stay those of the start's SfM points (``DENSIFY_NOTE``)."""
+    Gaussians stay those of the start's sparse points (module docstring)."""
     workers: int = 2
     """Runs training (then evaluating) side by side, one CPU thread each."""
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
@@ -272,13 +280,61 @@ def run_folder(spec: SplatRunSpec, runs: Path) -> Path:
 
 
 # ------------------------------------------------------------------------------------------------------------ run
+def add_quarter_images(scene: Path) -> Path:
+    """Write ``scene/images_4`` as the exact 2x2 box downsample of ``images_2`` (``make_scene`` writes ``images`` and
+    ``images_2`` only); the data parser's ``--downscale-factor 4`` reads it."""
+    import numpy as np
+    from PIL import Image
+
+    source, target = scene / "images_2", scene / "images_4"
+    target.mkdir(exist_ok=True)
+    for path in sorted(source.iterdir()):
+        pixels = np.asarray(Image.open(path).convert("RGB"), dtype=np.float64)
+        height, width = pixels.shape[0] // 2 * 2, pixels.shape[1] // 2 * 2
+        if (height, width) != pixels.shape[:2]:
+            raise ValueError(f"{path} is {pixels.shape[1]}x{pixels.shape[0]} px: images_2 must have even sizes")
+        blocks = pixels.reshape(height // 2, 2, width // 2, 2, 3).mean(axis=(1, 3))
+        Image.fromarray(np.clip(np.rint(blocks), 0, 255).astype(np.uint8)).save(target / path.name)
+    return scene
+
+
+def _scene_dir(name: str, root: Path) -> Path:
+    """The generated scene ``name`` under ``root``, with the images_{k} folder its training resolution needs."""
+    preset = SCENES[name]
+    scene = make_scene(replace(preset.scene, output_dir=root / "scenes" / name))
+    if preset.downscale == 4:
+        add_quarter_images(scene)
+    elif preset.downscale not in (1, 2):
+        message = f"scene {name}: downscale must be 1, 2 or 4 (images, images_2, images_4), got {preset.downscale}"
+        raise ValueError(message)
+    return scene
+
+
+_SFM_FOLDER_LOCK = threading.Lock()
+
+
+def _sfm_start(name: str, truth: Path, root: Path) -> Path:
+    """robustness's SfM of the scene (once, shared by its runs), with the true scene's images_4 linked in."""
+    output = _sfm_scene(name, truth, root)
+    with _SFM_FOLDER_LOCK:
+        link = output / "images_4"
+        if (truth / "images_4").is_dir() and not link.exists():
+            link.symlink_to((truth / "images_4").resolve(), target_is_directory=True)
+    return output
+
+
 def evaluate_splat_run(run: Path, alignment: AlignmentConfig) -> dict:
     """Robustness's evaluation of a finished run, plus its number of Gaussians."""
+    import contextlib
+    import sys
+
     from .recovery_photometric import _load_pipeline
 
     began = time.perf_counter()
     pipeline = _load_pipeline(run)
-    result = evaluate_pipeline(pipeline, alignment)
+    # splatfacto's data manager caches the held-out images on first use and says so on stdout: keep --json's clean.
+    with contextlib.redirect_stdout(sys.stderr):
+        result = evaluate_pipeline(pipeline, alignment)
     result["gaussians"] = int(pipeline.model.num_points)
     result["eval_seconds"] = time.perf_counter() - began
     return result
@@ -312,7 +368,7 @@ def _run_one(
 
     truth = None
     if spec.start == "sfm":
-        truth, scene_dir = scene_dir, _sfm_scene(spec.scene, scene_dir, root)
+        truth, scene_dir = scene_dir, _sfm_start(spec.scene, scene_dir, root)
     train_seconds = _train(spec, scene_dir, root, config, truth)
     folder = run_folder(spec, root / "runs")
     result = pool.submit(evaluate_splat_run, folder, config.alignment).result()
@@ -324,6 +380,7 @@ def _run_one(
         "iterations": config.iterations,
         "compress_schedule": config.compress_schedule,
         "densify": config.densify,
+        "workers": config.workers,
         "eval_views": result["eval_views"],
         "train_seconds": train_seconds,
         "eval_seconds": result["eval_seconds"],
@@ -355,9 +412,7 @@ def _run(config: SplatBenchConfig, root: Path) -> list[dict]:
     began = time.perf_counter()
     (root / "logs").mkdir(parents=True, exist_ok=True)
     (root / ROWS_FILE).unlink(missing_ok=True)
-    scene_dirs = {
-        name: make_scene(replace(SCENES[name].scene, output_dir=root / "scenes" / name)) for name in config.scenes
-    }
+    scene_dirs = {name: _scene_dir(name, root) for name in config.scenes}
     specs = run_specs(config)
     log(
         f"splat: {len(specs)} runs of {config.iterations} iterations ({passes(config.iterations, config.scenes[0]):.0f}"
@@ -418,17 +473,25 @@ def _errors_cell(entry: dict) -> str:
     return ", ".join(f"{key.split('_')[0]} {entry[f'change_{key}']:+.3g}" for key in ERRORS)
 
 
+def _signed(value: float) -> str:
+    return "-" if math.isnan(value) else f"{value:+.2f}"
+
+
 def _summary_rows(summary: list[dict]) -> list[dict]:
     table = []
     for entry in summary:
         row = {key: entry[key] for key in ("scene", "start", "variant", "seeds")}
-        row |= {key: entry[key].cell() for key in (*METRICS, "gaussians")}
+        row |= {key: entry[key].cell() for key in METRICS}
+        gaussians = entry["gaussians"]
+        row["gaussians"] = f"{gaussians.mean:.0f}" + (
+            f" [{gaussians.low:.0f}, {gaussians.high:.0f}]" if gaussians.count > 1 else ""
+        )
         row["sec_per_iter"] = entry["sec_per_iter"].cell(2)
         row["passes"] = f"{entry['passes']:.1f}"
         row["start_errors"] = " / ".join(f"{entry[f'start_{key}']:.3g}" for key in ERRORS)
         row["against_start"] = _errors_cell(entry)
-        row["psnr_vs"] = f"{entry['psnr_vs_so3xr3']:+.2f} / {entry['psnr_vs_off']:+.2f}"
-        row["time_ratio"] = f"{entry['time_ratio']:.2f}"
+        row["psnr_vs"] = " / ".join(_signed(entry[f"psnr_vs_{label}"]) for label in ("so3xr3", "off"))
+        row["time_ratio"] = "" if math.isnan(entry["time_ratio"]) else f"{entry['time_ratio']:.2f}"
         table.append(row)
     return table
 
@@ -440,6 +503,8 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
     run_passes = ", ".join(f"{value:.1f}" for value in sorted({row["passes"] for row in rows}))
     seeds = ", ".join(str(value) for value in sorted({row["seed"] for row in rows}))
     compressed = sorted({row.get("compress_schedule", True) for row in rows})
+    densified = sorted({row.get("densify", False) for row in rows})
+    workers = ", ".join(str(value) for value in sorted({row.get("workers", config.workers) for row in rows}))
     plot(summary, config.output_dir / "splat.png")
     scene_rows = [
         {
@@ -454,6 +519,8 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         f"**Regime: {iterations} steps = {run_passes} passes over each training pixel** (one whole training image per "
         f"step; a 30k-step splatfacto run over ~300 images makes ~100). splatfacto's step-counted schedule "
         + ("scaled to the run length (`SCHEDULE_STEPS`)" if compressed == [True] else "as in a 30k-step run")
+        + "; densification "
+        + {(False,): "off (the start's sparse points only)", (True,): "on"}.get(tuple(densified), "mixed")
         + "."
     )
     setup = (
@@ -467,9 +534,11 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         f"of the scene's points between the true and the aligned refined cameras. PSNR / SSIM: held-out views "
         f"(every 8th image) after {config.alignment.steps} test-time alignment steps (docs/SPLAT.md sec. 5); "
         f"'unaligned' before them. Cells: mean [min, max] over seeds. 'against start': for the perturbed start the "
-        f"fraction of each start error removed (1 - final / start), for the others final - start (rot / pos / "
-        f"focal / drift; positive = worse). 'PSNR vs' : difference of the mean PSNR against s2camp-splat-so3xr3 / "
-        f"splat-off. 'time ratio': mean seconds per iteration over s2camp-splat-so3xr3's from the same start."
+        f"fraction of each start error removed (1 - final / start; negative: the error grew), for the others "
+        f"final - start (rot / pos / focal / drift; positive: worse). 'PSNR vs': difference of the mean PSNR "
+        f"against s2camp-splat-so3xr3 / splat-off ('-': no such run). 'time ratio': mean seconds per iteration "
+        f"over s2camp-splat-so3xr3's from the same start (runs that trained side by side share the CPU: compare "
+        f"ratios only between runs of the same `--workers`; `--workers 1` on an idle machine times cleanest)."
     )
     columns = [
         "start", "variant", "seeds", "passes", "start_errors", *METRICS, "against_start", "psnr_vs", "gaussians",
@@ -486,7 +555,7 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
 
     timing = (
         f"{len(rows)} runs; per run on average: training {average('train_seconds'):.0f} s (start-up included), "
-        f"evaluation {average('eval_seconds'):.0f} s; {config.workers} runs side by side, one thread each"
+        f"evaluation {average('eval_seconds'):.0f} s; {workers} run(s) side by side, one thread each"
     )
     minutes = getattr(run, "minutes", None)
     if config.rows_from is not None:

@@ -17,6 +17,7 @@ from s2camp_ns.benchmarks.splat_bench import (
     VARIANTS,
     SplatBenchConfig,
     SplatRunSpec,
+    add_quarter_images,
     passes,
     run_specs,
     summarize,
@@ -66,7 +67,7 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     else:  # S2CamP's schedule is stated in fractions of the run already
         assert camera_schedule == []
     tail = command[command.index("s2camp-data") :]
-    assert _option(tail, "--downscale-factor") == "2"
+    assert _option(tail, "--downscale-factor") == "4"  # images_4: 64x48
     assert ("--perturbation.enabled" in tail) == (start == "perturbed")
     if start == "perturbed":
         assert _option(tail, "--perturbation.seed") == str(SCENES["splat-ring"].perturbation_seed)
@@ -103,6 +104,25 @@ def test_nerfacto_commands_keep_their_batch_and_model_size() -> None:
         *SMALL_MODEL,
     ]  # fmt: skip
     assert "--pipeline.model.log2-hashmap-size" in nerfacto
+
+
+def test_quarter_images_are_the_2x2_box_average_of_the_half_size_ones(tmp_path: Path) -> None:
+    import numpy as np
+    from PIL import Image
+
+    (tmp_path / "images_2").mkdir()
+    pixels = np.zeros((4, 6, 3), dtype=np.uint8)
+    pixels[:2, :2] = [[[10, 20, 30], [20, 20, 30]], [[30, 20, 31], [40, 20, 30]]]  # block means 25, 20, 30.25
+    pixels[2:, 4:] = 255
+    Image.fromarray(pixels).save(tmp_path / "images_2" / "frame_00000.png")
+    add_quarter_images(tmp_path)
+    quarter = np.asarray(Image.open(tmp_path / "images_4" / "frame_00000.png"))
+    assert quarter.shape == (2, 3, 3)
+    assert quarter[0, 0].tolist() == [25, 20, 30] and quarter[1, 2].tolist() == [255, 255, 255]
+    assert int(quarter.sum()) == 25 + 20 + 30 + 3 * 255
+    Image.fromarray(np.zeros((3, 4, 3), dtype=np.uint8)).save(tmp_path / "images_2" / "frame_00001.png")
+    with pytest.raises(ValueError, match="frame_00001.png is 4x3 px"):
+        add_quarter_images(tmp_path)
 
 
 def test_passes_count_whole_training_images_per_step() -> None:
