@@ -20,6 +20,7 @@ from .robustness import RobustnessConfig
 from .scaling import ScalingConfig
 from .shared_intrinsics import SharedIntrinsicsConfig
 from .speed import SpeedConfig
+from .splat_bench import SplatBenchConfig
 from .train_time import TrainTimeConfig
 
 MODULES = {
@@ -32,6 +33,7 @@ MODULES = {
     SharedIntrinsicsConfig: "shared_intrinsics",
     ProxyRangeBenchConfig: "proxy_range",
     RobustnessConfig: "robustness",
+    SplatBenchConfig: "splat_bench",
 }
 """The benchmarks ``s2camp-bench all`` runs."""
 TOOLS = {LatticeSearchConfig: "lattice_search"}
@@ -57,6 +59,7 @@ Command = Union[
     Annotated[SharedIntrinsicsConfig, tyro.conf.subcommand("shared-intrinsics")],
     Annotated[ProxyRangeBenchConfig, tyro.conf.subcommand("proxy-range")],
     Annotated[RobustnessConfig, tyro.conf.subcommand("robustness")],
+    Annotated[SplatBenchConfig, tyro.conf.subcommand("splat")],
     Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]

@@ -31,18 +31,12 @@ def ns_train_executable() -> str:
     return str(ns_train) if ns_train.exists() else "ns-train"
 
 
-def ns_train_arguments(
-    method: str,
-    scene: Path,
-    output_dir: Path,
-    experiment: str,
-    timestamp: str,
-    iterations: int,
-    steps_per_save: int,
-    rays_per_batch: int,
+def ns_train_base_arguments(
+    method: str, scene: Path, output_dir: Path, experiment: str, timestamp: str, iterations: int, steps_per_save: int
 ) -> list[str]:
-    """``ns-train <method>`` with what every CPU-sized run here shares (demo, e2e tests, benchmarks): no evaluation
-    during training, logs every 10 steps, the batch size and ``SMALL_MODEL``."""
+    """``ns-train <method>`` with what every CPU-sized run here shares, whatever the model: the data and output
+    folders, the run length, no evaluation during training, logs every 10 steps. Splatting runs
+    (``s2camp-bench splat``) take only these; nerfacto runs add ``ns_train_arguments``'s ray batch and model size."""
     return [
         ns_train_executable(), method,
         "--data", str(scene),
@@ -55,6 +49,23 @@ def ns_train_arguments(
         "--steps-per-eval-image", "0",
         "--steps-per-eval-all-images", "0",
         "--logging.steps-per-log", "10",
+    ]  # fmt: skip
+
+
+def ns_train_arguments(
+    method: str,
+    scene: Path,
+    output_dir: Path,
+    experiment: str,
+    timestamp: str,
+    iterations: int,
+    steps_per_save: int,
+    rays_per_batch: int,
+) -> list[str]:
+    """``ns-train <method>`` of a nerfacto method with what every CPU-sized run here shares (demo, e2e tests,
+    benchmarks): ``ns_train_base_arguments``, the batch size and ``SMALL_MODEL``."""
+    return [
+        *ns_train_base_arguments(method, scene, output_dir, experiment, timestamp, iterations, steps_per_save),
         "--pipeline.datamanager.train-num-rays-per-batch", str(rays_per_batch),
         *SMALL_MODEL,
     ]  # fmt: skip
