@@ -13,7 +13,8 @@ s2camp-splat} x seeds. Every run is one ``ns-train`` FROM SCRATCH with the metho
   step-counted schedule (``SCHEDULE_STEPS``: warm-up, densification interval and stop, resolution doubling, SH
   degree interval, the means' and SO3xR3's learning-rate schedules) scaled by ``iterations`` / 30000, so that the
   run goes through the phases of a 30k-step splatfacto run. S2CamP's camera schedule is stated in fractions of the
-  run already (``method_config.camera_schedule_for``); SO3xR3's is splatfacto's absolute one (1000-step warm-up,
+  run already (``method_config.camera_schedule_for``) except its 2500-step warm-up floor, scaled likewise
+  (``S2CAMP_SCHEDULE_STEPS``); SO3xR3's is splatfacto's absolute one (1000-step warm-up,
   decay over 30k) and is scaled with the rest. ``--compress-schedule False`` keeps every default;
 - densification off unless ``--densify True`` (``--pipeline.model.stop-split-at 0``: gsplat's strategy then neither
   grows, prunes nor resets opacities): the Gaussians are those of the start's sparse points, trained in position,
@@ -119,6 +120,10 @@ SO3XR3_SCHEDULE_STEPS = {
     "--optimizers.camera-opt.scheduler.max-steps": 30000,
 }
 """The SO3xR3 baseline's camera schedule (splatfacto's own, ``method_config.make_splat_trainer_config``)."""
+S2CAMP_SCHEDULE_STEPS = {"--optimizers.camera-opt.scheduler.min-warmup-steps": 2500}
+"""S2CamP's camera schedule is in fractions of the run except its warm-up floor (``RunLengthScheduleConfig``), 2500
+steps whatever the run length: uncompressed, a 1000-step run would stay inside the warm-up, at about a third of the
+camera learning rate at its last step."""
 DEFAULT_ITERATIONS = 1000
 """1000 steps over the default scene's 21 training images: 48 passes (a 30k-step splatfacto run over ~300 images
 makes ~100)."""
@@ -242,6 +247,8 @@ def schedule_arguments(variant: str, iterations: int, densify: bool) -> list[str
     steps = {option: max(1, round(value * scale)) for option, value in SCHEDULE_STEPS.items()}
     if METHODS[variant] == "s2camp-splat-so3xr3":
         steps |= {option: max(1, round(value * scale)) for option, value in SO3XR3_SCHEDULE_STEPS.items()}
+    elif VARIANT_ARGUMENTS.get(variant) is None:  # S2CamP refines the cameras (not splat-off)
+        steps |= {option: max(1, round(value * scale)) for option, value in S2CAMP_SCHEDULE_STEPS.items()}
     if not densify:
         steps["--pipeline.model.stop-split-at"] = 0
     return [part for option, value in steps.items() for part in (option, str(value))]

@@ -64,7 +64,10 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     if variant == "s2camp-splat-so3xr3":  # splatfacto's absolute camera schedule, compressed like the rest
         assert _option(command, "--optimizers.camera-opt.scheduler.warmup-steps") == "30"  # 1000 x 0.03
         assert _option(command, "--optimizers.camera-opt.scheduler.max-steps") == "900"
-    else:  # S2CamP's schedule is stated in fractions of the run already
+    elif variant == "s2camp-splat":  # fractions of the run already, except the 2500-step warm-up floor
+        assert camera_schedule == ["--optimizers.camera-opt.scheduler.min-warmup-steps"]
+        assert _option(command, "--optimizers.camera-opt.scheduler.min-warmup-steps") == "75"  # 2500 x 0.03
+    else:  # no camera refinement
         assert camera_schedule == []
     tail = command[command.index("s2camp-data") :]
     assert _option(tail, "--downscale-factor") == "4"  # images_4: 64x48
