@@ -97,9 +97,24 @@ RECOVERY_STARTS = ("perturbed",)
 """Starts that refinement must correct (the report gives the fraction of the start error removed); from the others
 it must do no harm (the report gives final - start)."""
 VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
-METHODS = {"splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat"}
-VARIANT_ARGUMENTS = {"splat-off": ["--pipeline.model.camera-optimizer.mode", "off"]}
-"""Method options per variant: "splat-off" is s2camp-splat without camera refinement."""
+"""The default grid's variants (issue 20's comparison)."""
+CANDIDATE_VARIANTS = ("s2camp-splat-damped-gauge",)
+"""Variants a run may name beyond the default grid: the real-regime issue's candidates (``benchmarks/robustness.py``)
+on splatting."""
+METHODS = {
+    "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
+    "s2camp-splat-damped-gauge": "s2camp-splat",
+}  # fmt: skip
+VARIANT_ARGUMENTS = {
+    "splat-off": ["--pipeline.model.camera-optimizer.mode", "off"],
+    "s2camp-splat-damped-gauge": [
+        "--pipeline.model.camera-optimizer.damping.damping-rel", "1.0",
+        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
+    ],
+}  # fmt: skip
+"""Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat-damped-gauge"
+s2camp-splat with ten times CamP's relative damping and the rotation all cameras share removed after every step
+(robustness's "s2camp-damped-gauge", docs/DESIGN-NOTES.md sec. 13)."""
 BASELINE = "s2camp-splat-so3xr3"
 """The variant whose seconds per iteration the others are compared with."""
 REFERENCE_STEPS = 30000
@@ -175,7 +190,8 @@ class SplatBenchConfig:
         return replace(self, scenes=self.scenes[:1], alignment=alignment, **QUICK)
 
     def validate(self) -> None:
-        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", VARIANTS)):
+        allowed_variants = VARIANTS + CANDIDATE_VARIANTS
+        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", allowed_variants)):
             values = getattr(self, name)
             if not values:
                 raise ValueError(f"{name} must name at least one of {', '.join(allowed)}, got none")
@@ -247,7 +263,7 @@ def schedule_arguments(variant: str, iterations: int, densify: bool) -> list[str
     steps = {option: max(1, round(value * scale)) for option, value in SCHEDULE_STEPS.items()}
     if METHODS[variant] == "s2camp-splat-so3xr3":
         steps |= {option: max(1, round(value * scale)) for option, value in SO3XR3_SCHEDULE_STEPS.items()}
-    elif VARIANT_ARGUMENTS.get(variant) is None:  # S2CamP refines the cameras (not splat-off)
+    elif variant != "splat-off":  # S2CamP refines the cameras
         steps |= {option: max(1, round(value * scale)) for option, value in S2CAMP_SCHEDULE_STEPS.items()}
     if not densify:
         steps["--pipeline.model.stop-split-at"] = 0

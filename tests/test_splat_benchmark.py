@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from s2camp_ns.benchmarks.splat_bench import (
+    CANDIDATE_VARIANTS,
     SCENES,
     STARTS,
     VARIANTS,
@@ -37,10 +38,10 @@ def _command(variant: str, start: str, **config) -> list[str]:
 
 
 @pytest.mark.parametrize("start", STARTS)
-@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("variant", [*VARIANTS, *CANDIDATE_VARIANTS])
 def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_options(variant: str, start: str) -> None:
     command = _command(variant, start, iterations=900)
-    assert command[1] == {"splat-off": "s2camp-splat"}.get(variant, variant)
+    assert command[1] == ("s2camp-splat-so3xr3" if variant == "s2camp-splat-so3xr3" else "s2camp-splat")
     # nerfacto's model size and ray batch: splatfacto has no such options (tyro would refuse them).
     assert not set(SMALL_MODEL[::2]) & set(command)
     assert "--pipeline.model.log2-hashmap-size" not in command
@@ -53,6 +54,13 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     if variant == "splat-off":
         assert camera_options == ["--pipeline.model.camera-optimizer.mode"]
         assert _option(command, "--pipeline.model.camera-optimizer.mode") == "off"
+    elif variant == "s2camp-splat-damped-gauge":  # the real-regime candidate: damping 1.0, common rotation removed
+        assert camera_options == [
+            "--pipeline.model.camera-optimizer.damping.damping-rel",
+            "--pipeline.model.camera-optimizer.fix-common-rotation",
+        ]
+        assert _option(command, "--pipeline.model.camera-optimizer.damping.damping-rel") == "1.0"
+        assert _option(command, "--pipeline.model.camera-optimizer.fix-common-rotation") == "True"
     else:
         assert camera_options == []
     # The compressed schedule: 900 of splatfacto's 30000 steps = 3 %.
@@ -64,7 +72,7 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     if variant == "s2camp-splat-so3xr3":  # splatfacto's absolute camera schedule, compressed like the rest
         assert _option(command, "--optimizers.camera-opt.scheduler.warmup-steps") == "30"  # 1000 x 0.03
         assert _option(command, "--optimizers.camera-opt.scheduler.max-steps") == "900"
-    elif variant == "s2camp-splat":  # fractions of the run already, except the 2500-step warm-up floor
+    elif variant != "splat-off":  # S2CamP: fractions of the run already, except the 2500-step warm-up floor
         assert camera_schedule == ["--optimizers.camera-opt.scheduler.min-warmup-steps"]
         assert _option(command, "--optimizers.camera-opt.scheduler.min-warmup-steps") == "75"  # 2500 x 0.03
     else:  # no camera refinement
