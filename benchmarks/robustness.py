@@ -512,15 +512,22 @@ def _run(config: RobustnessConfig, root: Path) -> list[dict]:
     }
     specs = run_specs(config)
     log(f"robustness: {len(specs)} runs of {config.iterations} iterations, {config.workers} at a time (work: {root})")
-    context = multiprocessing.get_context("spawn")  # a forked torch (threads, OpenMP state) is not safe
-    with (
-        ProcessPoolExecutor(config.workers, mp_context=context, initializer=_single_thread) as pool,
-        ThreadPoolExecutor(config.workers) as threads,
-    ):
-        futures = [threads.submit(_run_one, spec, scene_dirs[spec.scene], root, config, pool) for spec in specs]
-        rows = [future.result() for future in futures]
+    rows = run_side_by_side(specs, lambda spec, pool: _run_one(spec, scene_dirs[spec.scene], root, config, pool),
+                            config.workers)  # fmt: skip
     run.minutes = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
     return rows
+
+
+def run_side_by_side(specs: list, run_one, workers: int) -> list[dict]:
+    """``run_one(spec, pool)`` of every spec, ``workers`` at a time (threads that each wait on their ``ns-train``),
+    with a pool of as many single-threaded spawned processes for the evaluations; the rows in the specs' order."""
+    context = multiprocessing.get_context("spawn")  # a forked torch (threads, OpenMP state) is not safe
+    with (
+        ProcessPoolExecutor(workers, mp_context=context, initializer=_single_thread) as pool,
+        ThreadPoolExecutor(workers) as threads,
+    ):
+        futures = [threads.submit(run_one, spec, pool) for spec in specs]
+        return [future.result() for future in futures]
 
 
 # --------------------------------------------------------------------------------------------------------- report

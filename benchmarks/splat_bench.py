@@ -44,12 +44,11 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing
 import shutil
 import statistics
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -65,13 +64,14 @@ from .robustness import (
     ROWS_FILE,
     SFM_FOCAL_PRIOR,
     RobustnessScene,
+    RunSpec,
     Spread,
     _sfm_scene,
-    _single_thread,
     evaluate_pipeline,
     focal_for_fov,
     plot,
     read_rows,
+    run_side_by_side,
 )
 
 SCENES: dict[str, RobustnessScene] = {
@@ -218,29 +218,11 @@ class SplatBenchConfig:
         return " ".join(parts)
 
 
-@dataclass(frozen=True)
-class SplatRunSpec:
-    """One training run of the protocol."""
-
-    scene: str
-    start: str
-    variant: str
-    seed: int
-
-    @property
-    def experiment(self) -> str:
-        return f"{self.scene}-{self.start}"
-
-    @property
-    def timestamp(self) -> str:
-        return f"{self.variant}-seed{self.seed}"
-
-
-def run_specs(config: SplatBenchConfig) -> list[SplatRunSpec]:
+def run_specs(config: SplatBenchConfig) -> list[RunSpec]:
     """Every run, seeds outermost, the variants of one start next to each other (their timings shared the machine
     alike)."""
     return [
-        SplatRunSpec(scene, start, variant, seed)
+        RunSpec(scene, start, variant, seed)
         for seed in range(config.first_seed, config.first_seed + config.seeds)
         for scene in config.scenes
         for start in config.starts
@@ -271,7 +253,7 @@ def schedule_arguments(variant: str, iterations: int, densify: bool) -> list[str
 
 
 def train_command(
-    spec: SplatRunSpec, scene_dir: Path, runs: Path, config: SplatBenchConfig, truth: Path | None = None
+    spec: RunSpec, scene_dir: Path, runs: Path, config: SplatBenchConfig, truth: Path | None = None
 ) -> list[str]:
     """``ns-train`` of one run (module docstring). ``truth``: the generated scene, the reference cameras of an sfm
     start (``scene_dir`` is then SfM's)."""
@@ -299,7 +281,7 @@ def train_command(
     return command + dataparser
 
 
-def run_folder(spec: SplatRunSpec, runs: Path) -> Path:
+def run_folder(spec: RunSpec, runs: Path) -> Path:
     return runs / spec.experiment / METHODS[spec.variant] / spec.timestamp
 
 
@@ -364,7 +346,7 @@ def evaluate_splat_run(run: Path, alignment: AlignmentConfig) -> dict:
     return result
 
 
-def _train(spec: SplatRunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, truth: Path | None) -> float:
+def _train(spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, truth: Path | None) -> float:
     """Train one run; return its wall-clock seconds (start-up included)."""
     import subprocess
 
@@ -386,7 +368,7 @@ _ROWS_LOCK = threading.Lock()
 
 
 def _run_one(
-    spec: SplatRunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, pool: ProcessPoolExecutor
+    spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, pool: ProcessPoolExecutor
 ) -> dict:
     from .recovery_photometric import seconds_per_iteration
 
@@ -442,13 +424,8 @@ def _run(config: SplatBenchConfig, root: Path) -> list[dict]:
         f"splat: {len(specs)} runs of {config.iterations} iterations ({passes(config.iterations, config.scenes[0]):.0f}"
         f" passes), {config.workers} at a time (work: {root})"
     )
-    context = multiprocessing.get_context("spawn")  # a forked torch (threads, OpenMP state) is not safe
-    with (
-        ProcessPoolExecutor(config.workers, mp_context=context, initializer=_single_thread) as pool,
-        ThreadPoolExecutor(config.workers) as threads,
-    ):
-        futures = [threads.submit(_run_one, spec, scene_dirs[spec.scene], root, config, pool) for spec in specs]
-        rows = [future.result() for future in futures]
+    rows = run_side_by_side(specs, lambda spec, pool: _run_one(spec, scene_dirs[spec.scene], root, config, pool),
+                            config.workers)  # fmt: skip
     run.minutes = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
     return rows
 

@@ -16,8 +16,8 @@ from s2camp_ns.benchmarks.splat_bench import (
     SCENES,
     STARTS,
     VARIANTS,
+    RunSpec,
     SplatBenchConfig,
-    SplatRunSpec,
     add_quarter_images,
     passes,
     run_specs,
@@ -33,7 +33,7 @@ def _option(command: list[str], name: str) -> str:
 
 def _command(variant: str, start: str, **config) -> list[str]:
     truth = Path("truth") if start == "sfm" else None
-    spec = SplatRunSpec("splat-ring", start, variant, 2)
+    spec = RunSpec("splat-ring", start, variant, 2)
     return train_command(spec, Path("scene"), Path("runs"), SplatBenchConfig(**config), truth)
 
 
@@ -101,7 +101,7 @@ def test_schedule_options_follow_densify_and_compress_schedule() -> None:
 
 
 def test_an_sfm_start_without_the_true_scene_is_refused() -> None:
-    spec = SplatRunSpec("splat-ring", "sfm", "s2camp-splat", 0)
+    spec = RunSpec("splat-ring", "sfm", "s2camp-splat", 0)
     with pytest.raises(ValueError, match="sfm start needs the generated scene"):
         train_command(spec, Path("scene"), Path("runs"), SplatBenchConfig())
 
