@@ -460,10 +460,7 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfi
     }
     if "trace" in result:
         row["trace"] = result["trace"]
-    for checkpoints in ("nerfstudio_models", "nerfstudio_models.partial"):  # the trainer's atomic-save folder too
-        shutil.rmtree(folder / checkpoints, ignore_errors=True)
-    with _ROWS_LOCK, open(root / ROWS_FILE, "a", encoding="utf8") as rows_file:
-        rows_file.write(json.dumps(row) + "\n")
+    record_row(row, folder, root)
     log(
         f"robustness {spec.scene} {spec.start:9s} {spec.variant:13s} seed {spec.seed}: rot {row['rot_err']:.3f} deg "
         f"pos {row['pos_err']:.2e} focal {row['focal_err']:.3f} px drift {row['drift_px']:.3f} px "
@@ -471,6 +468,15 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfi
         f"{row['start_drift_px']:.3f}; {train_seconds:.0f} s + {row['eval_seconds']:.0f} s)"
     )
     return row
+
+
+def record_row(row: dict, folder: Path, root: Path) -> None:
+    """A finished run's row appended to ``root``'s ``ROWS_FILE`` (so a grid can span sessions), after its checkpoints
+    are removed (the trainer's atomic-save folder too): the row is all that is kept of an evaluated run."""
+    for checkpoints in ("nerfstudio_models", "nerfstudio_models.partial"):
+        shutil.rmtree(folder / checkpoints, ignore_errors=True)
+    with _ROWS_LOCK, open(root / ROWS_FILE, "a", encoding="utf8") as rows_file:
+        rows_file.write(json.dumps(row) + "\n")
 
 
 _SFM_LOCK = threading.Lock()

@@ -42,9 +42,7 @@ each: the ratio compares runs that shared the machine alike).
 
 from __future__ import annotations
 
-import json
 import math
-import shutil
 import statistics
 import threading
 import time
@@ -71,6 +69,7 @@ from .robustness import (
     focal_for_fov,
     plot,
     read_rows,
+    record_row,
     run_side_by_side,
 )
 
@@ -364,8 +363,6 @@ def _train(spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig,
     return time.perf_counter() - began
 
 
-_ROWS_LOCK = threading.Lock()
-
 
 def _run_one(
     spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, pool: ProcessPoolExecutor
@@ -392,10 +389,7 @@ def _run_one(
         "eval_seconds": result["eval_seconds"],
         "sec_per_iter": seconds_per_iteration(folder),
     }
-    for checkpoints in ("nerfstudio_models", "nerfstudio_models.partial"):  # the trainer's atomic-save folder too
-        shutil.rmtree(folder / checkpoints, ignore_errors=True)
-    with _ROWS_LOCK, open(root / ROWS_FILE, "a", encoding="utf8") as rows_file:
-        rows_file.write(json.dumps(row) + "\n")
+    record_row(row, folder, root)
     log(
         f"splat {spec.scene} {spec.start:9s} {spec.variant:19s} seed {spec.seed}: rot {row['rot_err']:.3f} deg "
         f"pos {row['pos_err']:.2e} focal {row['focal_err']:.3f} px drift {row['drift_px']:.3f} px "
