@@ -97,12 +97,12 @@ RECOVERY_STARTS = ("perturbed",)
 it must do no harm (the report gives final - start)."""
 VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
 """The default grid's variants (issue 20's comparison)."""
-CANDIDATE_VARIANTS = ("s2camp-splat-damped-gauge",)
+CANDIDATE_VARIANTS = ("s2camp-splat-damped-gauge", "s2camp-splat-gauge")
 """Variants a run may name beyond the default grid: the real-regime issue's candidates (``benchmarks/robustness.py``)
 on splatting."""
 METHODS = {
     "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
-    "s2camp-splat-damped-gauge": "s2camp-splat",
+    "s2camp-splat-damped-gauge": "s2camp-splat", "s2camp-splat-gauge": "s2camp-splat",
 }  # fmt: skip
 VARIANT_ARGUMENTS = {
     "splat-off": ["--pipeline.model.camera-optimizer.mode", "off"],
@@ -110,10 +110,12 @@ VARIANT_ARGUMENTS = {
         "--pipeline.model.camera-optimizer.damping.damping-rel", "1.0",
         "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
     ],
+    "s2camp-splat-gauge": ["--pipeline.model.camera-optimizer.fix-common-rotation", "True"],
 }  # fmt: skip
 """Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat-damped-gauge"
 s2camp-splat with ten times CamP's relative damping and the rotation all cameras share removed after every step
-(robustness's "s2camp-damped-gauge", docs/DESIGN-NOTES.md sec. 13)."""
+(robustness's "s2camp-damped-gauge", docs/DESIGN-NOTES.md sec. 13); "s2camp-splat-gauge" the rotation removal alone,
+default damping."""
 BASELINE = "s2camp-splat-so3xr3"
 """The variant whose seconds per iteration the others are compared with."""
 REFERENCE_STEPS = 30000

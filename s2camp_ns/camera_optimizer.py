@@ -66,6 +66,7 @@ from s2camp_ns.core.preconditioner import (
 )
 from s2camp_ns.core.proxy_range import ProxyRanges, proxy_ranges
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS, compute_shared_preconditioner, reexpress_shared_latents
+from s2camp_ns.core.track_fit import TrackEvidence, fit_cameras_to_tracks
 from s2camp_ns.core.validation import check_range
 
 PIXEL_KEY = "s2camp_pixels"
@@ -116,13 +117,15 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     rot_l2_penalty: float = 0.0
     """L2 penalty on the raw rotation delta (radians); 0 = none, as in the paper."""
     track_prior: bool = False
-    """Anchor each camera to its given value with a Gaussian prior in the whitened space whose scale is the camera's
-    reprojection error against the scene's SfM tracks (``apply_track_prior``): a camera that agrees with its tracks
-    to a fraction of a pixel moves about that far at most, however long the field pulls; a camera without tracks
-    (phone poses, a hand-made transforms.json) has no prior. Needs the data parser's ``track_rms_px`` (COLMAP scenes
-    with points, ns-process-data transforms.json with their ``colmap/sparse/0``). Off by default: in the
-    real-training regime (``s2camp-bench robustness --preset regime``, docs/benchmarks/regime.md) it keeps good SfM
-    cameras in place but removes less of a CamP perturbation than the default does (docs/DESIGN-NOTES.md sec. 12)."""
+    """Anchor each camera where the scene's SfM tracks put it, with a Gaussian prior in the whitened space whose scale
+    is the tracks' reprojection error there (``set_track_prior``, ``apply_track_prior``): a camera moves about that
+    far from its anchor at most, however long the field pulls. For cameras straight out of SfM the anchor is the
+    given camera and the scale SfM's own error; cameras changed after SfM are anchored where their tracks say they
+    are (a camera-only bundle adjustment against the fixed points, ``core.track_fit``), so the prior guides them
+    there instead of holding them in place. A camera without tracks (phone poses, a hand-made transforms.json) has
+    no prior. Needs the data parser's ``track_evidence`` (COLMAP scenes with points, ns-process-data transforms.json
+    with their ``colmap/sparse/0``). Off by default until measured on the real-regime grid
+    (``s2camp-bench robustness --preset regime``, docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 12-13)."""
 
     fix_common_rotation: bool = False
     """After every step, remove the rotation that all training cameras share (the mean over images of the pose
@@ -329,6 +332,12 @@ class S2CampCameraOptimizer(CameraOptimizer):
         no_prior = torch.full((num_cameras,), float("nan"), dtype=torch.float64, device=device)
         self.register_buffer("prior_radius", no_prior, persistent=False)
         self.register_buffer("prior_radius_intrinsics", no_prior.clone(), persistent=False)
+        # Its anchor: the deltas phi (the layout's columns) where the tracks put each camera; zero = the given camera.
+        self.register_buffer(
+            "prior_anchor",
+            torch.zeros(num_cameras, k, dtype=torch.float64, device=device),
+            persistent=False,
+        )
         self.has_track_prior = False
 
     # ----------------------------------------------------------------------------------------------------- setup
@@ -382,22 +391,54 @@ class S2CampCameraOptimizer(CameraOptimizer):
         else:  # a checkpoint was loaded before the cameras were known
             self._check_base_cameras()
 
-    def set_track_prior(self, track_rms_px: Float[Tensor, " n"] | None) -> None:
-        """The track prior's scale per training image: its reprojection error against the SfM tracks in pixels
-        (``core.tracks``; NaN or None: no prior), stored in whitened units (divided by max(W, H), the Gram matrix's
-        pixel unit, docs/EQUATIONS.md eq. 5). Call after ``set_train_cameras``; ``track_prior=False`` ignores it."""
+    def set_track_prior(
+        self, track_rms_px: Float[Tensor, " n"] | None, evidence: TrackEvidence | None = None
+    ) -> None:
+        """The track prior's anchor and scale per training image (``track_prior=False`` ignores both).
+
+        With ``evidence`` (the scene's tracks and the given cameras in the tracks' world, from the data parser) the
+        anchor is where the tracks put each camera (``core.track_fit``: a camera-only bundle adjustment of this
+        optimizer's free parameters against the fixed SfM points) and the scale is the reprojection error there,
+        the tracks' own noise. Without it the anchor is the given camera and the scale ``track_rms_px``, its
+        reprojection error against the tracks (``core.tracks``; NaN or None: no prior). Scales are stored in
+        whitened units (divided by max(W, H), the Gram matrix's pixel unit, docs/EQUATIONS.md eq. 5). Call after
+        ``set_train_cameras``."""
         self._require_cameras()
-        radius = torch.full((self.num_cameras,), float("nan"), dtype=torch.float64, device=self.precond.device)
-        if track_rms_px is not None and self.config.track_prior:
-            rms = torch.as_tensor(track_rms_px, dtype=torch.float64).reshape(-1).to(self.precond.device)
+        device = self.precond.device
+        radius = torch.full((self.num_cameras,), float("nan"), dtype=torch.float64, device=device)
+        anchor = torch.zeros(self.num_cameras, self.layout.num_params, dtype=torch.float64, device=device)
+        rms = None
+        if self.config.track_prior and evidence is not None:
+            fit = fit_cameras_to_tracks(
+                evidence.tracks,
+                evidence.c2w,
+                self.base_intrinsics_struct(),
+                free=self.layout.indices,
+                camera_of_image=self.camera_of_image if self.shared else None,
+            )
+            deltas = fit.deltas.clone()
+            deltas[:, :3] = deltas[:, :3] * float(evidence.world_scale)  # tracks' world -> training frame
+            anchor = deltas[:, list(self.layout.indices)].to(device)
+            rms = fit.rms_px.to(device)
+            moved = torch.isfinite(fit.rms_given_px) & torch.isfinite(fit.rms_px)
+            if bool(moved.any()):
+                LOG.print(
+                    f"[dim]Track prior: the cameras' reprojection error against the SfM tracks is "
+                    f"{_span(fit.rms_given_px[moved])} px as given and {_span(fit.rms_px[moved])} px where the tracks "
+                    f"put them (the anchor; {fit.iterations} Levenberg-Marquardt iterations)"
+                )
+        elif track_rms_px is not None and self.config.track_prior:
+            rms = torch.as_tensor(track_rms_px, dtype=torch.float64).reshape(-1).to(device)
             if rms.shape[0] != self.num_cameras:
                 raise ValueError(
                     f"track_rms_px must hold {self.num_cameras} values (one per training image), got {rms.shape[0]}"
                 )
             if bool((rms < 0).any()):
                 raise ValueError(f"track_rms_px must be >= 0 (pixels), got minimum {float(rms.min())}")
+        if rms is not None:
             radius = rms / self.base_intrinsics_struct().image_scale()
         self.prior_radius = radius
+        self.prior_anchor = torch.where(torch.isfinite(radius)[:, None], anchor, torch.zeros_like(anchor))
         self.has_track_prior = bool(torch.isfinite(radius).any())
         if self.shared:  # groups are known by now: set_train_cameras fixed them
             pooled = torch.zeros(self.num_physical_cameras, dtype=torch.float64, device=radius.device)
@@ -407,27 +448,36 @@ class S2CampCameraOptimizer(CameraOptimizer):
             counts.index_add_(0, self.camera_of_image[finite], torch.ones_like(radius[finite]))
             self.prior_radius_intrinsics = torch.where(counts > 0, (pooled / counts.clamp(min=1.0)).sqrt(), torch.nan)
 
+    def prior_anchor_latents(self) -> tuple[Float[Tensor, "n k"], Float[Tensor, "c m"] | None]:
+        """The anchor in the whitened latent under the current P (phi_hat = P phi, paper eq. 15): the pose latent per
+        image and, with shared intrinsics, the intrinsics latent per physical camera (P is block-triangular, so
+        the images of one camera give the same intrinsics latent: their first image's)."""
+        latent = (self.precond @ self.prior_anchor[..., None])[..., 0]
+        if not self.shared:
+            return latent, None
+        return latent[:, :NUM_POSE_PARAMS], latent[self._first_image_of_each_camera(), NUM_POSE_PARAMS:]
+
     @torch.no_grad()
     def apply_track_prior(self, lr: float) -> None:
         """One proximal step of the track prior after the optimizer's step of learning rate ``lr``.
 
-        The prior is a Gaussian on the whitened latent phi_hat, whose norm is the RMS displacement of the camera's
-        proxy points in units of max(W, H) (paper eqs. 5 and 20; damping only adds to it). Its proximal map with
-        Adam's step size, phi_hat <- phi_hat / (1 + lr / r) (decoupled weight decay, as AdamW), balances Adam's step
-        lr m / sqrt(v) where each coordinate is |phi_hat_j| = r |m_j / sqrt(v_j)| <= r: evidence of constant sign
-        (|m / sqrt(v)| near 1) moves a whitened coordinate at most r, the camera's reprojection error against its
-        tracks; gradient noise (|m / sqrt(v)| near 0.23 for Adam's beta1 0.9) about a quarter of that. Once the field
-        stops pulling, the camera relaxes back towards its given value within about r / lr steps instead of staying
-        where early field errors pushed it. Cameras whose tracks say they are off by several pixels (changed after
-        SfM) may move that far; images without tracks are untouched. Shared intrinsics take the RMS of their
-        images' radii.
+        The prior is a Gaussian on the whitened latent phi_hat about its anchor a (``set_track_prior``), whose
+        distance is the RMS displacement of the camera's proxy points in units of max(W, H) (paper eqs. 5 and 20;
+        damping only adds to it). Its proximal map with Adam's step size, phi_hat <- a + (phi_hat - a) / (1 + lr / r)
+        (decoupled weight decay, as AdamW, towards a), balances Adam's step lr m / sqrt(v) where each coordinate is
+        |phi_hat_j - a_j| = r |m_j / sqrt(v_j)| <= r: evidence of constant sign (|m / sqrt(v)| near 1) moves a
+        whitened coordinate at most r from the anchor, the tracks' noise; gradient noise (|m / sqrt(v)| near 0.23 for
+        Adam's beta1 0.9) about a quarter of that. Once the field stops pulling, the camera relaxes back towards the
+        anchor within about r / lr steps instead of staying where early field errors pushed it. Images without
+        tracks are untouched. Shared intrinsics take the RMS of their images' radii.
         """
         # A Python flag, not a look at the radii: no device synchronisation on the training step's path.
         if not self.enabled or not self.has_track_prior or lr <= 0:
             return
-        self._shrink(self.whitened_delta, self.prior_radius, lr)
+        pose_anchor, intrinsics_anchor = self.prior_anchor_latents()
+        self._shrink(self.whitened_delta, pose_anchor, self.prior_radius, lr)
         if self.shared:
-            self._shrink(self.whitened_intrinsics, self.prior_radius_intrinsics, lr)
+            self._shrink(self.whitened_intrinsics, intrinsics_anchor, self.prior_radius_intrinsics, lr)
 
     @torch.no_grad()
     def remove_common_rotation(self) -> None:
@@ -451,10 +501,11 @@ class S2CampCameraOptimizer(CameraOptimizer):
         latent.add_((rows @ correction[..., None])[..., 0].to(latent.dtype))
 
     @staticmethod
-    def _shrink(latent: nn.Parameter, radius: Tensor, lr: float) -> None:
+    def _shrink(latent: nn.Parameter, anchor: Tensor, radius: Tensor, lr: float) -> None:
         factor = 1.0 / (1.0 + lr / radius.clamp(min=1e-12))
-        factor = torch.where(torch.isfinite(radius), factor, torch.ones_like(factor))
-        latent.mul_(factor.to(latent.dtype)[:, None])
+        factor = torch.where(torch.isfinite(radius), factor, torch.ones_like(factor)).to(latent.dtype)[:, None]
+        anchor = anchor.to(latent.dtype)
+        latent.copy_(anchor + (latent - anchor) * factor)
 
     def choose_proxy_range(self, cameras: Cameras, points: Tensor | None) -> Float[Tensor, "n 2"]:
         """Contracted [t_near, t_far] per training image: chosen per physical camera from the points it sees

@@ -61,6 +61,7 @@ from s2camp_ns.camera_optimizer import (
 from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics, opengl_to_opencv
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, colmap_to_values
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
+from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import track_reprojection_rms
 from s2camp_ns.core.validation import check_range
 from s2camp_ns.nerfstudio.colmap_model import ColmapModelError, model_file, read_model_file
@@ -116,10 +117,11 @@ class S2CampDataParserConfig(DataParserConfig):
     """Load the COLMAP sparse points into metadata (needed by point-initialized models; cheap)."""
     tracks: bool = True
     """Measure each training camera's reprojection error against the COLMAP model's tracks, as the cameras are given
-    (after any perturbation): ``metadata["track_rms_px"]``, the scale of the camera optimizer's track prior
-    (``core.tracks``). COLMAP scenes with points, and transforms.json scenes with the model ns-process-data leaves
-    beside them (``colmap/sparse/0``, cameras checked against it, ``transforms_tracks``); images the model does not
-    hold get NaN. False measures nothing (no prior), as for a scene without tracks."""
+    (after any perturbation): ``metadata["track_rms_px"]`` (``core.tracks``), and the tracks with those cameras in
+    the model's world, ``metadata["track_evidence"]``, from which the camera optimizer's track prior takes its anchor
+    and scale (``core.track_fit``). COLMAP scenes with points, and transforms.json scenes with the model
+    ns-process-data leaves beside them (``colmap/sparse/0``, cameras checked against it, ``transforms_tracks``);
+    images the model does not hold get NaN. False measures nothing (no prior), as for a scene without tracks."""
     perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
     """CamP perturbation of the training cameras (evaluation protocol, off by default)."""
     reference_model: Path | None = None
@@ -466,11 +468,12 @@ class S2CampDataParser(DataParser):
         metadata = dict(outputs.metadata)
         metadata.update(extra)
         if data_format == "colmap" and self.config.tracks and self.config.load_3D_points and self._has_points(source):
-            metadata["track_rms_px"] = track_rms_of(cameras, source, extra, outputs)
+            rms, evidence = colmap_track_evidence(cameras, source, extra, outputs)
+            metadata.update(track_rms_px=rms, track_evidence=evidence)
         elif data_format == "nerfstudio" and self.config.tracks:
-            rms = self._transforms_track_rms(source, cameras, outputs, extra)
-            if rms is not None:
-                metadata["track_rms_px"] = rms
+            result = self._transforms_track_rms(source, cameras, outputs, extra)
+            if result is not None:
+                metadata["track_rms_px"], metadata["track_evidence"] = result
         metadata.update(
             reference_cameras=reference,
             # One id per physical camera: images whose given intrinsics agree (COLMAP's camera_id in practice; the
@@ -599,9 +602,9 @@ class S2CampDataParser(DataParser):
 
     def _transforms_track_rms(
         self, source: Path, cameras: Cameras, outputs: DataparserOutputs, extra: dict
-    ) -> torch.Tensor | None:
-        """``track_rms_px`` of a transforms.json scene from the COLMAP model ns-process-data left beside it
-        (``transforms_tracks``); None, with the reason shown once, when there are none."""
+    ) -> tuple[torch.Tensor, TrackEvidence] | None:
+        """``track_rms_px`` and ``track_evidence`` of a transforms.json scene from the COLMAP model ns-process-data
+        left beside it (``transforms_tracks``); None, with the reason shown once, when there are none."""
         model = colmap_model_of_transforms(source, self.config.colmap_path)
         k = extra["downscale_factor"]
         sizes = transforms_declared_sizes(source, k)
@@ -616,12 +619,14 @@ class S2CampDataParser(DataParser):
             c2w_given=c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, scale),
             c2w_reference=c2w_to_colmap_world(outputs.cameras.camera_to_worlds, outputs.dataparser_transform, scale),
             intrinsics=intrinsics_from_cameras(cameras),
+            world_scale=scale,
         )
-        if result.rms is None:
+        if result.rms is None or result.evidence is None:
             # A transforms.json that disagrees with its COLMAP model is a warning; a scene without one is normal.
             style = "bold yellow" if result.cause == "disagree" else "dim"
             _show_once((source.resolve(), result.cause), f"[{style}]No track prior: {escape(result.reason)}")
-        return result.rms
+            return None
+        return result.rms, result.evidence
 
     @staticmethod
     def _transforms_frames(source: Path) -> list:
@@ -641,12 +646,17 @@ def _show_once(key: tuple, message: str) -> None:
         LOG.print(message)
 
 
-def track_rms_of(cameras: Cameras, model: Path, extra: dict, outputs: DataparserOutputs) -> torch.Tensor:
+def colmap_track_evidence(
+    cameras: Cameras, model: Path, extra: dict, outputs: DataparserOutputs
+) -> tuple[torch.Tensor, TrackEvidence]:
     """Reprojection RMS (px, float64 [N]) of the COLMAP model's tracks under ``cameras`` (normalized, as the data parser
-    returns them), measured in COLMAP's world frame (``core.tracks``)."""
+    returns them), measured in COLMAP's world frame (``core.tracks``), and the tracks with the cameras in that world
+    (the track prior's anchor, ``core.track_fit``)."""
     tracks = read_colmap_tracks(model, extra["image_names"], extra["downscale_factor"])
-    c2w = c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, float(outputs.dataparser_scale))
-    return track_reprojection_rms(tracks, c2w, intrinsics_from_cameras(cameras))
+    scale = float(outputs.dataparser_scale)
+    c2w = c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, scale)
+    rms = track_reprojection_rms(tracks, c2w, intrinsics_from_cameras(cameras))
+    return rms, TrackEvidence(tracks, c2w, scale)
 
 
 def c2w_to_colmap_world(

@@ -117,13 +117,13 @@ class S2CampPipeline(VanillaPipeline):
         # The dataparser's sparse points (normalized world, as the cameras) choose the proxy range per camera.
         metadata = getattr(self.datamanager.train_dataset, "metadata", None) or {}
         points = metadata.get("points3D_xyz")
-        # Each camera's reprojection error against the SfM tracks scales the optimizer's track prior.
-        track_rms = metadata.get("track_rms_px")
+        # The SfM tracks give the optimizer's track prior its anchor and scale.
+        tracks = {"track_rms_px": metadata.get("track_rms_px"), "track_evidence": metadata.get("track_evidence")}
         if hasattr(self.model, "set_train_cameras"):
-            self.model.set_train_cameras(cameras, points=points, track_rms_px=track_rms)
+            self.model.set_train_cameras(cameras, points=points, **tracks)
         elif isinstance(getattr(self.model, "camera_optimizer", None), S2CampCameraOptimizer):
             self.model.camera_optimizer.set_train_cameras(cameras, points=points)
-            self.model.camera_optimizer.set_track_prior(track_rms)
+            self.model.camera_optimizer.set_track_prior(tracks["track_rms_px"], tracks["track_evidence"])
         self.world_size = world_size
         if world_size > 1:
             on_cuda = torch.device(device).type == "cuda"

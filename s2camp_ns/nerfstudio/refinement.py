@@ -27,6 +27,7 @@ from torch import Tensor
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer, intrinsics_from_cameras
 from s2camp_ns.core.camera import opengl_to_opencv, vertical_field_of_view
+from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.validation import check_positive_int
 from s2camp_ns.nerfstudio.distributed import any_rank, world_size
 from s2camp_ns.nerfstudio.viewer_panel import CameraFrusta, FrustumSet, RefinementStatus, S2CampViewerPanel
@@ -81,15 +82,20 @@ class S2CampRefinementMixin:
         return isinstance(self.camera_optimizer, S2CampCameraOptimizer)
 
     def set_train_cameras(
-        self, cameras: Cameras, points: Tensor | None = None, track_rms_px: Tensor | None = None
+        self,
+        cameras: Cameras,
+        points: Tensor | None = None,
+        track_rms_px: Tensor | None = None,
+        track_evidence: TrackEvidence | None = None,
     ) -> None:
         """Keep the dataparser's training cameras (called by the pipeline before any checkpoint is loaded); the
-        scene's sparse ``points`` (normalized world) choose the S2CamP optimizer's proxy range, the cameras'
-        reprojection errors against the SfM tracks (``track_rms_px``, px) scale its track prior."""
+        scene's sparse ``points`` (normalized world) choose the S2CamP optimizer's proxy range, the SfM tracks
+        (``track_evidence``; else the cameras' reprojection errors against them, ``track_rms_px``, px) its track
+        prior."""
         self._train_cameras = cameras.to("cpu")
         if self.uses_s2camp_optimizer:
             self.camera_optimizer.set_train_cameras(cameras, points=points)
-            self.camera_optimizer.set_track_prior(track_rms_px)
+            self.camera_optimizer.set_track_prior(track_rms_px, track_evidence)
 
     @torch.no_grad()
     def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:

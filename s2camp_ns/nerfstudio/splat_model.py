@@ -29,6 +29,7 @@ from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoMode
 from torch import Tensor
 
 from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.nerfstudio.dataparser import replace_cameras
 from s2camp_ns.nerfstudio.refinement import S2CampRefinementMixin, warn_lpips_unavailable
 from s2camp_ns.splat.intrinsics_view import corrected_viewmat, intrinsics_correction, intrinsics_matrix
@@ -131,9 +132,18 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         self.setup_camera_refinement()
 
     def set_train_cameras(
-        self, cameras: Cameras, points: Tensor | None = None, track_rms_px: Tensor | None = None
+        self,
+        cameras: Cameras,
+        points: Tensor | None = None,
+        track_rms_px: Tensor | None = None,
+        track_evidence: TrackEvidence | None = None,
     ) -> None:
-        super().set_train_cameras(pinhole_cameras(cameras), points=points, track_rms_px=track_rms_px)
+        pinhole = pinhole_cameras(cameras)
+        # The tracks' pixels are the distorted images'; the model refines the undistorted pinhole camera, which they
+        # do not fit: there the prior keeps its given-camera anchor and the reprojection error as its scale.
+        undistorted = cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
+        evidence = None if undistorted else track_evidence
+        super().set_train_cameras(pinhole, points=points, track_rms_px=track_rms_px, track_evidence=evidence)
 
     def set_undistortion_scale(self, fx_scale: Tensor, fy_scale: Tensor) -> None:
         """Per training image, the data manager's undistorted focal lengths over the dataparser's (1 where an image

@@ -51,7 +51,8 @@ from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat
 from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics
-from s2camp_ns.core.tracks import track_reprojection_rms
+from s2camp_ns.core.track_fit import TrackEvidence
+from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
 from s2camp_ns.nerfstudio.colmap_model import model_file, read_model_file
 from s2camp_ns.nerfstudio.colmap_tracks import tracks_of_images
 
@@ -69,12 +70,14 @@ camera centres to their centroid."""
 
 @dataclass(frozen=True)
 class TransformsTracks:
-    """Result of ``transforms_track_rms``: the per-camera RMS (px, float64 [N], NaN for unregistered images), or
-    None and why there are no tracks (``cause``: one word per kind of reason, ``reason``: the message)."""
+    """Result of ``transforms_track_rms``: the per-camera RMS (px, float64 [N], NaN for unregistered images) and the
+    tracks with the given cameras in the model's world (``evidence``: the track prior's anchor, ``core.track_fit``),
+    or None and why there are no tracks (``cause``: one word per kind of reason, ``reason``: the message)."""
 
     rms: Float[Tensor, " n"] | None
     cause: str | None = None
     reason: str | None = None
+    evidence: TrackEvidence | None = None
 
 
 def colmap_model_of_transforms(source: Path, colmap_path: Path | None = None) -> Path:
@@ -174,12 +177,14 @@ def transforms_track_rms(
     c2w_given: Float[Tensor, "n 3 4"],
     c2w_reference: Float[Tensor, "n 3 4"],
     intrinsics: Intrinsics,
+    world_scale: float = 1.0,
 ) -> TransformsTracks:
     """Each camera's track reprojection RMS for the transforms.json ``source`` against the COLMAP model ``model``.
 
     ``c2w_given`` are the cameras to measure (after any perturbation) and ``c2w_reference`` the same cameras as the
     json gives them, both OpenCV camera-to-world in the world nerfstudio's normalization came from
-    (``dataparser.c2w_to_colmap_world``); ``declared_sizes`` are the frames' full-size ``w``, ``h``. No tracks
+    (``dataparser.c2w_to_colmap_world``); ``declared_sizes`` are the frames' full-size ``w``, ``h``; ``world_scale``
+    the training frame's units per unit of that world (``dataparser_scale``). No tracks
     (``rms`` None, with the reason) when the model or its points are missing, the json has no ``applied_transform``
     and its cameras are not COLMAP's, or the cameras disagree with the model (module docstring).
     """
@@ -234,9 +239,11 @@ def transforms_track_rms(
     points3d = read_model_file(model_file(model, "points3D"), "points3D")
     tracks = tracks_of_images(images, points3d, matched_names, downscale_factor, images_file)
     rms = torch.full((len(names),), float("nan"), dtype=torch.float64)
-    given = _world_from_json(c2w_given[index], rotation)
-    rms[index] = track_reprojection_rms(tracks, given, intrinsics[index])
-    return TransformsTracks(rms)
+    given = _world_from_json(c2w_given, rotation)
+    rms[index] = track_reprojection_rms(tracks, given[index], intrinsics[index])
+    # The same tracks indexed by training image (not by registered image) for the anchor fit.
+    all_images = Tracks(tracks.points, index[tracks.image], tracks.point, tracks.pixels)
+    return TransformsTracks(rms, evidence=TrackEvidence(all_images, given, world_scale))
 
 
 __all__ = [

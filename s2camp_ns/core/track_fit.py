@@ -1,0 +1,226 @@
+"""The cameras that agree best with a scene's SfM tracks: a camera-only bundle adjustment against fixed 3D points.
+
+The track prior (``S2CampCameraOptimizer.apply_track_prior``) anchors each camera where its tracks put it, with the
+tracks' own noise as its scale. For cameras straight out of SfM that is where they already are (SfM's bundle
+adjustment left them there) and the noise is SfM's reprojection error. For cameras changed after SfM (perturbed,
+edited, re-estimated elsewhere) the tracks still say where the camera is: anchoring at the given camera would hold
+a wrong camera in place with the strength of a large reprojection error, which blocks recovery instead of guiding
+it. This module finds the anchor.
+
+Unknowns are the camera optimizer's own deltas (``core.camera.PARAMETER_NAMES``, paper sec. 4): the twist xi of each
+image's pose, c2w' = c2w exp(xi) in its OpenCV camera frame, and the additive intrinsics deltas of each physical
+camera (``camera_of_image``; per-image intrinsics are one camera per image). Only the ``free`` columns move. The
+points stay fixed, so there is no gauge: the problem is a least-squares fit of reprojection residuals (paper eq. 2),
+solved by Levenberg-Marquardt in float64. The normal equations are block-sparse (a 6x6 block per image, an m x m
+block per physical camera and their coupling); eliminating the poses (Schur complement) leaves one m x m system per
+physical camera, so the cost is linear in the number of images. Jacobians are exact (reverse-mode autodiff of the
+projection, two backward passes: each observation depends on its own camera only).
+
+The residuals are in pixels; a camera's translation deltas are in the units of the world the tracks live in. A
+similarity of points and cameras (nerfstudio's normalization) leaves the rotation and intrinsics deltas unchanged and
+scales the translation deltas by the similarity's scale (``TrackEvidence.world_scale``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Bool, Float, Int
+from torch import Tensor
+
+from s2camp_ns.core.camera import NUM_CAMERA_PARAMS, Intrinsics, project, se3_exp
+from s2camp_ns.core.tracks import Tracks
+
+NUM_POSE = 6
+"""Twist columns (rho, omega) at the front of ``PARAMETER_NAMES``."""
+
+
+@dataclass(frozen=True)
+class TrackFit:
+    """Result of ``fit_cameras_to_tracks``."""
+
+    deltas: Float[Tensor, "n 16"]
+    """Deltas (``PARAMETER_NAMES`` columns, float64) that move each given camera to its best agreement with the tracks;
+    zero in the columns that were not free and for images without observations."""
+    rms_px: Float[Tensor, " n"]
+    """Reprojection RMS per image at the fit (pixels; NaN without a valid observation): the tracks' own noise."""
+    rms_given_px: Float[Tensor, " n"]
+    """Reprojection RMS per image of the given cameras, for comparison."""
+    iterations: int
+    """Levenberg-Marquardt iterations taken."""
+
+
+def _residuals(
+    deltas: Float[Tensor, "o 16"],
+    points: Float[Tensor, "o 3"],
+    c2w: Float[Tensor, "o 3 4"],
+    intrinsics: Intrinsics,
+    pixels: Float[Tensor, "o 2"],
+) -> tuple[Float[Tensor, "o 2"], Float[Tensor, " o"]]:
+    """Projected minus observed pixel of each observation under its refined camera, and the validity margin."""
+    motion = se3_exp(deltas[:, :NUM_POSE])
+    rotation = c2w[:, :, :3] @ motion[:, :, :3]
+    centre = c2w[:, :, 3] + (c2w[:, :, :3] @ motion[:, :, 3:])[..., 0]
+    points_cam = (points - centre)[:, None, :] @ rotation  # R'^T (x - c'), row-vector form
+    projected, margin = project(points_cam, intrinsics.with_delta(deltas))
+    return projected[:, 0] - pixels, margin[:, 0]
+
+
+def fit_cameras_to_tracks(
+    tracks: Tracks,
+    c2w: Float[Tensor, "n 3 4"],
+    intrinsics: Intrinsics,
+    free: Bool[Tensor, " 16"] | tuple[int, ...],
+    camera_of_image: Int[Tensor, " n"] | None = None,
+    max_iterations: int = 50,
+) -> TrackFit:
+    """Levenberg-Marquardt fit of the ``free`` deltas of every camera to its tracks (module docstring).
+
+    ``c2w``: OpenCV camera-to-world in the tracks' world; ``free``: a mask over, or the indices of, the 16
+    ``PARAMETER_NAMES`` columns that move (pose columns per image, intrinsics columns per physical camera);
+    ``camera_of_image``: physical camera 0..C-1 of each image (default: one per image). Runs in float64 on the CPU.
+    """
+    n = c2w.shape[0]
+    tracks.validate(n)
+    if intrinsics.num_cameras != n:
+        raise ValueError(f"intrinsics must describe the {n} cameras of c2w, got {intrinsics.num_cameras}")
+    mask = torch.zeros(NUM_CAMERA_PARAMS, dtype=torch.bool)
+    if isinstance(free, tuple):
+        mask[list(free)] = True
+    else:
+        if free.shape != (NUM_CAMERA_PARAMS,):
+            raise ValueError(f"free must mask the {NUM_CAMERA_PARAMS} camera parameters, got shape {tuple(free.shape)}")
+        mask = free.to(device="cpu", dtype=torch.bool)
+    pose_columns = [j for j in range(NUM_POSE) if mask[j]]
+    intrinsics_columns = [j for j in range(NUM_POSE, NUM_CAMERA_PARAMS) if mask[j]]
+    groups = torch.arange(n) if camera_of_image is None else camera_of_image.to("cpu", torch.long)
+    if groups.shape != (n,):
+        raise ValueError(f"camera_of_image must hold one camera per image ({n}), got shape {tuple(groups.shape)}")
+    num_groups = int(groups.max()) + 1 if n else 0
+
+    c2w = c2w.detach().to("cpu", torch.float64)
+    intrinsics = intrinsics.detach().to(device="cpu", dtype=torch.float64)
+    image = tracks.image.to("cpu", torch.long)
+    group = groups[image]
+    points = tracks.points.detach().to("cpu", torch.float64)[tracks.point.to("cpu", torch.long)]
+    pixels = tracks.pixels.detach().to("cpu", torch.float64)
+    c2w_obs, intrinsics_obs = c2w[image], intrinsics[image]
+    p, m = len(pose_columns), len(intrinsics_columns)
+    pose = torch.zeros(n, p, dtype=torch.float64)
+    intr = torch.zeros(num_groups, m, dtype=torch.float64)
+
+    def full(pose_values: Tensor, intr_values: Tensor) -> Tensor:
+        deltas = torch.zeros(image.shape[0], NUM_CAMERA_PARAMS, dtype=torch.float64)
+        deltas[:, pose_columns] = pose_values[image]
+        deltas[:, intrinsics_columns] = intr_values[group]
+        return deltas
+
+    def evaluate(pose_values: Tensor, intr_values: Tensor) -> tuple[Tensor, Tensor]:
+        residual, margin = _residuals(full(pose_values, intr_values), points, c2w_obs, intrinsics_obs, pixels)
+        return residual, (margin > 0).to(torch.float64)
+
+    def per_image_rms(residual: Tensor, weight: Tensor) -> Tensor:
+        squared = torch.zeros(n, dtype=torch.float64).index_add_(0, image, residual.square().sum(-1) * weight)
+        count = torch.zeros(n, dtype=torch.float64).index_add_(0, image, weight)
+        return torch.where(count > 0, (squared / count.clamp(min=1.0)).sqrt(), torch.nan)
+
+    residual, weight = evaluate(pose, intr)
+    rms_given = per_image_rms(residual, weight)
+    cost = float((residual.square().sum(-1) * weight).sum())
+    damping, iterations = 1e-3, 0
+    columns = pose_columns + intrinsics_columns
+    while iterations < max_iterations:
+        iterations += 1
+        # Exact Jacobian: observation o's residual depends on its own row of deltas only, so the gradient of the sum
+        # of the u (then v) residuals with respect to the [O, 16] rows is every observation's Jacobian row.
+        base = full(pose, intr).requires_grad_(True)
+        with torch.enable_grad():
+            projected = _residuals(base, points, c2w_obs, intrinsics_obs, pixels)[0]
+            rows = [torch.autograd.grad(projected[:, a].sum(), base, retain_graph=a == 0)[0] for a in range(2)]
+        jacobian = torch.stack(rows, dim=1)[:, :, columns]
+        jacobian = jacobian * weight[:, None, None]
+        step_pose, step_intr = _solve_normal_equations(
+            jacobian, residual * weight[:, None], image, group, n, num_groups, p, m, damping
+        )
+        trial_pose, trial_intr = pose + step_pose, intr + step_intr
+        trial_residual, trial_weight = evaluate(trial_pose, trial_intr)
+        trial_cost = float((trial_residual.square().sum(-1) * trial_weight).sum())
+        if trial_cost < cost:
+            # Converged: the cost stopped falling, or the RMS is below 1e-10 px (beyond any meaning in pixels).
+            converged = cost - trial_cost <= 1e-10 * cost or trial_cost <= 1e-20 * image.shape[0]
+            pose, intr, residual, weight, cost = trial_pose, trial_intr, trial_residual, trial_weight, trial_cost
+            damping = max(damping / 10.0, 1e-12)
+            if converged:
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e8:
+                break
+    deltas = torch.zeros(n, NUM_CAMERA_PARAMS, dtype=torch.float64)
+    deltas[:, pose_columns] = pose
+    deltas[:, intrinsics_columns] = intr[groups]
+    return TrackFit(deltas, per_image_rms(residual, weight), rms_given, iterations)
+
+
+def _solve_normal_equations(
+    jacobian: Float[Tensor, "o 2 k"],
+    residual: Float[Tensor, "o 2"],
+    image: Int[Tensor, " o"],
+    group: Int[Tensor, " o"],
+    num_images: int,
+    num_groups: int,
+    p: int,
+    m: int,
+    damping: float,
+) -> tuple[Float[Tensor, "n p"], Float[Tensor, "c m"]]:
+    """Levenberg-Marquardt step of the block-sparse normal equations: poses eliminated per image (Schur complement),
+    one m x m system per physical camera. Marquardt's scaling (damping times the diagonal) keeps the pixel, radian and
+    scene units comparable; an image without observations gets a zero step."""
+    j_pose, j_intr = jacobian[..., :p], jacobian[..., p:]
+    a = torch.zeros(num_images, p, p, dtype=torch.float64).index_add_(0, image, j_pose.transpose(1, 2) @ j_pose)
+    b = torch.zeros(num_images, p, m, dtype=torch.float64).index_add_(0, image, j_pose.transpose(1, 2) @ j_intr)
+    d = torch.zeros(num_groups, m, m, dtype=torch.float64).index_add_(0, group, j_intr.transpose(1, 2) @ j_intr)
+    g_pose = torch.zeros(num_images, p, dtype=torch.float64).index_add_(
+        0, image, (j_pose.transpose(1, 2) @ residual[..., None])[..., 0]
+    )
+    g_intr = torch.zeros(num_groups, m, dtype=torch.float64).index_add_(
+        0, group, (j_intr.transpose(1, 2) @ residual[..., None])[..., 0]
+    )
+    eye_p, eye_m = torch.eye(p, dtype=torch.float64), torch.eye(m, dtype=torch.float64)
+    # An unobserved image's block is zero: the identity there gives it a zero step (its gradient is zero).
+    a = a + damping * torch.diag_embed(torch.diagonal(a, dim1=1, dim2=2)) + 1e-12 * eye_p
+    d = d + damping * torch.diag_embed(torch.diagonal(d, dim1=1, dim2=2)) + 1e-12 * eye_m
+    a_inv_b = torch.linalg.solve(a, b)
+    a_inv_g = torch.linalg.solve(a, g_pose[..., None])[..., 0]
+    camera = groups_of_image(image, group, num_images)
+    if m:
+        schur = d - torch.zeros_like(d).index_add_(0, camera, b.transpose(1, 2) @ a_inv_b)
+        rhs = g_intr - torch.zeros_like(g_intr).index_add_(0, camera, (b.transpose(1, 2) @ a_inv_g[..., None])[..., 0])
+        step_intr = -torch.linalg.solve(schur, rhs[..., None])[..., 0]
+    else:
+        step_intr = g_intr.new_zeros(num_groups, 0)
+    # A dp + B dc = -g_pose  =>  dp = -(A^-1 g_pose + A^-1 B dc)
+    step_pose = -(a_inv_g + (a_inv_b @ step_intr[camera][..., None])[..., 0])
+    return step_pose, step_intr
+
+
+def groups_of_image(image: Tensor, group: Tensor, num_images: int) -> Tensor:
+    """Physical camera of each image from the observations' (image, camera) pairs (0 for unobserved images, whose
+    pose block is decoupled anyway)."""
+    return torch.zeros(num_images, dtype=torch.long).index_put_((image,), group)
+
+
+@dataclass(frozen=True)
+class TrackEvidence:
+    """A scene's tracks with the given cameras in the tracks' world: what ``fit_cameras_to_tracks`` needs, and the
+    scale that takes its translation deltas to the training frame."""
+
+    tracks: Tracks
+    c2w: Float[Tensor, "n 3 4"]
+    """The training cameras as given (after any perturbation), OpenCV camera-to-world in the tracks' world."""
+    world_scale: float
+    """Training-frame units per unit of the tracks' world (nerfstudio's ``dataparser_scale``)."""
+
+
+__all__ = ["TrackEvidence", "TrackFit", "fit_cameras_to_tracks"]

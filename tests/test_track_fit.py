@@ -1,0 +1,201 @@
+"""The track prior's anchor: the cameras that agree best with a scene's SfM tracks (``core.track_fit``), from the
+core's fit through the data parser's ``track_evidence`` (COLMAP and ns-process-data layouts) to the camera
+optimizer's anchor latent and proximal step."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from test_transforms_tracks import _ns_process_data_layout, _parse
+
+from s2camp_ns.core.camera import Intrinsics, project, se3_exp
+from s2camp_ns.core.perturbation import look_at_rotation
+from s2camp_ns.core.track_fit import fit_cameras_to_tracks
+from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
+
+WIDTH, HEIGHT = 64, 48
+
+
+def _ring(n: int, radius: float = 3.0) -> torch.Tensor:
+    """OpenCV c2w of ``n`` cameras on a ring looking at the origin."""
+    angle = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
+    eye = torch.stack([radius * angle.cos(), radius * angle.sin(), 0.5 + 0.1 * angle], dim=-1)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(n, 3)
+    return torch.cat([look_at_rotation(eye, torch.zeros_like(eye), up), eye[:, :, None]], dim=-1)
+
+
+def _intrinsics(n: int, fx: float = 60.0) -> Intrinsics:
+    return Intrinsics.create(fx=[fx] * n, fy=[fx] * n, cx=[WIDTH / 2] * n, cy=[HEIGHT / 2] * n, width=[WIDTH] * n,
+                             height=[HEIGHT] * n, k1=[0.01] * n)  # fmt: skip
+
+
+def _observe(points: torch.Tensor, c2w: torch.Tensor, intrinsics: Intrinsics, noise_px: float = 0.0) -> Tracks:
+    """Every point each camera sees inside its image, observed at its projection plus Gaussian noise."""
+    generator = torch.Generator().manual_seed(1)
+    image, point, pixels = [], [], []
+    for i in range(c2w.shape[0]):
+        local = (points - c2w[i, :, 3]) @ c2w[i, :, :3]
+        uv, depth = project(local[None], intrinsics[i : i + 1])
+        uv = uv[0]
+        inside = (depth[0] > 0) & (uv[:, 0] > 0) & (uv[:, 0] < WIDTH) & (uv[:, 1] > 0) & (uv[:, 1] < HEIGHT)
+        seen = inside.nonzero()[:, 0]
+        image.append(torch.full_like(seen, i))
+        point.append(seen)
+        pixels.append(uv[seen] + noise_px * torch.randn(seen.shape[0], 2, generator=generator, dtype=torch.float64))
+    return Tracks(points, torch.cat(image), torch.cat(point), torch.cat(pixels))
+
+
+def _points(count: int = 150) -> torch.Tensor:
+    return (torch.rand(count, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.5) * 1.2
+
+
+def _moved(c2w: torch.Tensor, twist: torch.Tensor) -> torch.Tensor:
+    """c2w exp(xi), the camera optimizer's pose update."""
+    motion = se3_exp(twist)
+    return torch.cat([c2w[:, :, :3] @ motion[:, :, :3], c2w[:, :, 3:] + c2w[:, :, :3] @ motion[:, :, 3:]], dim=-1)
+
+
+def _perturbation(n: int) -> torch.Tensor:
+    scale = torch.tensor([0.03, 0.03, 0.03, 0.01, 0.01, 0.01], dtype=torch.float64)
+    return torch.randn(n, 6, generator=torch.Generator().manual_seed(2), dtype=torch.float64) * scale
+
+
+POSE_AND_INTRINSICS = tuple(range(10))  # pose, focal, principal point, skew
+
+
+def test_exact_tracks_give_back_the_true_cameras_and_shared_intrinsics() -> None:
+    n = 8
+    truth_c2w, truth = _ring(n), _intrinsics(n)
+    tracks = _observe(_points(), truth_c2w, truth)
+    given_c2w = _moved(truth_c2w, _perturbation(n))
+    change = torch.zeros(n, 16, dtype=torch.float64)
+    change[:, 6], change[:, 7], change[:, 8] = 3.0, -1.0, 0.5  # one camera: focal +3 px, principal point (-1, 0.5)
+    given = truth.with_delta(change)
+    assert float(track_reprojection_rms(tracks, given_c2w, given).min()) > 0.5
+    fit = fit_cameras_to_tracks(tracks, given_c2w, given, POSE_AND_INTRINSICS, torch.zeros(n, dtype=torch.long))
+    torch.testing.assert_close(_moved(given_c2w, fit.deltas[:, :6]), truth_c2w, atol=1e-9, rtol=0)
+    expected = torch.tensor([-3.0, 1.0, -0.5, 0.0], dtype=torch.float64).expand(n, 4)
+    torch.testing.assert_close(fit.deltas[:, 6:10], expected, atol=1e-8, rtol=0)
+    assert bool((fit.deltas[:, 10:] == 0).all())  # distortion was not free
+    assert float(fit.rms_px.max()) < 1e-9
+    assert fit.iterations <= 15  # Gauss-Newton's convergence: an approximate Jacobian would crawl
+
+
+def test_noisy_tracks_leave_their_noise_as_the_rms_at_the_fit() -> None:
+    n = 8
+    truth_c2w, truth = _ring(n), _intrinsics(n)
+    tracks = _observe(_points(400), truth_c2w, truth, noise_px=0.5)
+    given = _moved(truth_c2w, 3.0 * _perturbation(n))
+    fit = fit_cameras_to_tracks(tracks, given, truth, tuple(range(6)))
+    # 2D Gaussian noise of 0.5 px per axis: an RMS pixel distance near 0.5 sqrt(2), a little less after the fit.
+    assert float(fit.rms_px.min()) > 0.6 and float(fit.rms_px.max()) < 0.8
+    assert float(fit.rms_given_px.min()) > 1.0
+    fitted_error = (_moved(given, fit.deltas[:, :6]) - truth_c2w).abs().amax(dim=(1, 2))
+    given_error = (given - truth_c2w).abs().amax(dim=(1, 2))
+    assert bool((fitted_error < 0.3 * given_error).all())  # the noise averages out over a few hundred observations
+
+
+def test_only_the_free_parameters_move_and_unobserved_images_stay() -> None:
+    n = 6
+    truth_c2w, truth = _ring(n), _intrinsics(n)
+    tracks = _observe(_points(), truth_c2w, truth)
+    keep = tracks.image != 5  # image 5 loses its observations
+    tracks = Tracks(tracks.points, tracks.image[keep], tracks.point[keep], tracks.pixels[keep])
+    change = torch.zeros(n, 16, dtype=torch.float64)
+    change[:, 6] = 2.0
+    fit = fit_cameras_to_tracks(tracks, _moved(truth_c2w, _perturbation(n)), truth.with_delta(change), tuple(range(6)))
+    assert bool((fit.deltas[:, 6:] == 0).all())  # pose only: the focal error stays and shows in the RMS
+    assert float(fit.rms_px[:5].min()) > 1e-3  # small: moving the camera in (a dolly) absorbs most of it
+    assert bool((fit.deltas[5] == 0).all()) and math.isnan(float(fit.rms_px[5]))
+
+
+def test_a_similarity_of_the_world_scales_only_the_translation_deltas() -> None:
+    n, scale = 6, 2.5
+    truth_c2w, truth = _ring(n), _intrinsics(n)
+    points = _points()
+    tracks = _observe(points, truth_c2w, truth)
+    given = _moved(truth_c2w, _perturbation(n))
+    fit = fit_cameras_to_tracks(tracks, given, truth, tuple(range(6)))
+    # Rotate and scale the world (points and cameras alike).
+    rotation = look_at_rotation(
+        torch.tensor([[0.3, -0.2, 1.0]], dtype=torch.float64),
+        torch.zeros(1, 3, dtype=torch.float64),
+        torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64),
+    )[0]
+    moved_tracks = Tracks(scale * points @ rotation.T, tracks.image, tracks.point, tracks.pixels)
+    moved_given = torch.cat([rotation @ given[:, :, :3], scale * (rotation @ given[:, :, 3:])], dim=-1)
+    moved_fit = fit_cameras_to_tracks(moved_tracks, moved_given, truth, tuple(range(6)))
+    torch.testing.assert_close(moved_fit.deltas[:, 3:6], fit.deltas[:, 3:6], atol=1e-9, rtol=0)
+    torch.testing.assert_close(moved_fit.deltas[:, :3], scale * fit.deltas[:, :3], atol=1e-9, rtol=0)
+
+
+def test_fit_refuses_a_wrong_free_mask_and_camera_count() -> None:
+    n = 3
+    tracks = _observe(_points(), _ring(n), _intrinsics(n))
+    with pytest.raises(ValueError, match=r"free must mask the 16 camera parameters, got shape \(10,\)"):
+        fit_cameras_to_tracks(tracks, _ring(n), _intrinsics(n), torch.ones(10, dtype=torch.bool))
+    with pytest.raises(ValueError, match="camera_of_image must hold one camera per image"):
+        fit_cameras_to_tracks(tracks, _ring(n), _intrinsics(n), (0,), torch.zeros(2, dtype=torch.long))
+
+
+# ------------------------------------------------------------------------------- data parser and camera optimizer
+def _optimizer_from(outputs, **overrides):
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+
+    config = S2CampCameraOptimizerConfig(track_prior=True, **overrides)
+    optimizer = config.setup(num_cameras=outputs.cameras.shape[0], device="cpu")
+    optimizer.set_camera_groups(outputs.metadata["camera_ids"])
+    optimizer.set_train_cameras(outputs.cameras, points=outputs.metadata.get("points3D_xyz"))
+    optimizer.set_track_prior(outputs.metadata["track_rms_px"], outputs.metadata["track_evidence"])
+    return optimizer
+
+
+def _assert_anchor_is_the_truth(outputs, optimizer) -> None:
+    reference = outputs.metadata["reference_cameras"]
+    pose, intrinsics = optimizer.prior_anchor_latents()
+    with torch.no_grad():
+        optimizer.whitened_delta.copy_(pose)
+        if intrinsics is not None:
+            optimizer.whitened_intrinsics.copy_(intrinsics)
+    # The generated tracks are exact: the anchor is the true camera, up to the float32 storage of the cameras.
+    refined = optimizer.refined_c2w(opengl=True)
+    torch.testing.assert_close(refined, reference.camera_to_worlds.to(torch.float64), atol=2e-5, rtol=0)
+    torch.testing.assert_close(optimizer.refined_intrinsics().fx, reference.fx[:, 0].double(), atol=1e-3, rtol=0)
+
+
+def test_colmap_scene_anchor_is_the_true_camera_for_perturbed_cameras(tiny_scene: Path) -> None:
+    outputs = _parse(tiny_scene, perturbed=True)
+    optimizer = _optimizer_from(outputs)
+    assert float(outputs.metadata["track_rms_px"].min()) > 0.1  # the given cameras disagree with their tracks
+    assert float(optimizer.prior_radius.max()) < 1e-6  # the anchor agrees: exact tracks, radius ~0
+    _assert_anchor_is_the_truth(outputs, optimizer)
+
+
+def test_ns_process_data_anchor_is_the_true_camera_too(tiny_scene: Path, tmp_path: Path) -> None:
+    outputs = _parse(_ns_process_data_layout(tiny_scene, tmp_path / "ns"), perturbed=True)
+    assert outputs.metadata["source_format"] == "nerfstudio"
+    _assert_anchor_is_the_truth(outputs, _optimizer_from(outputs))
+
+
+def test_per_image_intrinsics_anchor_and_the_accurate_start_anchor_at_zero(tiny_scene: Path) -> None:
+    perturbed = _parse(tiny_scene, perturbed=True)
+    _assert_anchor_is_the_truth(perturbed, _optimizer_from(perturbed, intrinsics="per-image"))
+    accurate = _parse(tiny_scene)
+    optimizer = _optimizer_from(accurate)
+    assert float(optimizer.prior_anchor.abs().max()) < 1e-5
+
+
+def test_proximal_step_pulls_towards_the_anchor_not_the_given_camera(tiny_scene: Path) -> None:
+    outputs = _parse(tiny_scene, perturbed=True)
+    optimizer = _optimizer_from(outputs)
+    pose, intrinsics = optimizer.prior_anchor_latents()
+    optimizer.prior_radius.fill_(0.01)  # a finite radius: one step closes lr / (r + lr) of the gap
+    optimizer.prior_radius_intrinsics.fill_(0.01)
+    optimizer.apply_track_prior(lr=1e-3)
+    torch.testing.assert_close(optimizer.whitened_delta.double(), pose * (1e-3 / 0.011), rtol=1e-5, atol=1e-9)
+    torch.testing.assert_close(
+        optimizer.whitened_intrinsics.double(), intrinsics * (1e-3 / 0.011), rtol=1e-5, atol=1e-9
+    )
