@@ -126,12 +126,12 @@ RECOVERY_STARTS = ("perturbed", "phone")
 (accurate, sfm) it must not make worse."""
 VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-track-prior", "s2camp-damped", "s2camp-damped-gauge",
-    "s2camp-damped-gauge-prior",
+    "s2camp-damped-gauge-prior", "s2camp-gauge-prior",
 )  # fmt: skip
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "s2camp-track-prior": "s2camp", "s2camp-damped": "s2camp", "s2camp-damped-gauge": "s2camp",
-    "s2camp-damped-gauge-prior": "s2camp",
+    "s2camp-damped-gauge-prior": "s2camp", "s2camp-gauge-prior": "s2camp",
 }  # fmt: skip
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
@@ -146,12 +146,21 @@ VARIANT_ARGUMENTS = {
         "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
         "--pipeline.model.camera-optimizer.track-prior", "True",
     ],
+    "s2camp-gauge-prior": [
+        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
+        "--pipeline.model.camera-optimizer.track-prior", "True",
+    ],
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run: "off" disables camera refinement; "s2camp-track-prior" is
 s2camp with its track prior; "s2camp-damped" s2camp with ten times CamP's relative damping of Sigma (1.0 of its
 diagonal), a candidate that limits how far a unit whitened step moves the weakly observed rotation-translation
 combinations (docs/DESIGN-NOTES.md sec. 13); "s2camp-damped-gauge" that plus ``fix_common_rotation``;
-"s2camp-damped-gauge-prior" that plus the track prior (a no-op where the start has no tracks: the phone start)."""
+"s2camp-damped-gauge-prior" that plus the track prior (a no-op where the start has no tracks: the phone start);
+"s2camp-gauge-prior" the common rotation removed and the track prior, with the default damping. Rows recorded before
+the track prior took its anchor from the tracks (``core.track_fit``) anchored at the given cameras; they carry the
+names "s2camp-track-prior-given" and "s2camp-damped-gauge-prior-given" (``HISTORICAL_VARIANTS``)."""
+HISTORICAL_VARIANTS = ("s2camp-track-prior-given", "s2camp-damped-gauge-prior-given")
+"""Variant names found only in committed rows: the track prior anchored at the given cameras (no longer runnable)."""
 PHONE_PROFILE = {"sigma_position": 0.02, "sigma_look_at": 0.02, "sigma_dolly_z": 0.02, "sigma_focal_length": 0.0}
 """The phone-pose start, in CamP's protocol (normalized units: the camera centres fill [-1, 1]^3). Assumed sizes of
 visual-inertial poses and factory intrinsics as Polycam / Record3D exports carry them, not measured here: centres off
@@ -714,6 +723,12 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         f"[min, max] over seeds. 'PSNR vs off': difference of the means, 'no difference' when smaller than the "
         f"larger seed range of the two. 'removed': 1 - final / start error for perturbed and phone starts."
     )
+    historical = sorted({row["variant"] for row in rows} & set(HISTORICAL_VARIANTS))
+    if historical:
+        setup += (
+            f" Variants {', '.join(historical)}: rows recorded when the track prior was anchored at the given "
+            f"cameras, before it took its anchor from the tracks (`s2camp_ns.core.track_fit`)."
+        )
     columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]
     headers = [
         "scene", "start", "variant", "seeds", "passes", "start rot / pos / focal / drift", "rot err (deg)",

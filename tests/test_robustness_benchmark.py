@@ -30,7 +30,8 @@ def _option(command: list[str], name: str) -> str:
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
     command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
-    assert command[1] == ("s2camp" if variant in ("off", "s2camp-track-prior") or "damped" in variant else variant)
+    candidates = ("off", "s2camp-track-prior", "s2camp-gauge-prior")
+    assert command[1] == ("s2camp" if variant in candidates or "damped" in variant else variant)
     assert _option(command, "--max-num-iterations") == "123"
     assert _option(command, "--machine.seed") == "2"
     assert _option(command, "--machine.device-type") == "cpu"
@@ -47,6 +48,10 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
         ],
         "s2camp-damped-gauge-prior": [
             "--pipeline.model.camera-optimizer.damping.damping-rel",
+            "--pipeline.model.camera-optimizer.fix-common-rotation",
+            "--pipeline.model.camera-optimizer.track-prior",
+        ],
+        "s2camp-gauge-prior": [
             "--pipeline.model.camera-optimizer.fix-common-rotation",
             "--pipeline.model.camera-optimizer.track-prior",
         ],
@@ -202,3 +207,17 @@ def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path:
     assert "### Camera path: regime-wide, sfm start, s2camp, seed 1" in text
     assert "| 250 | 0.5 |" in text and "| 0.25 | 0.25 |" in text
     assert (tmp_path / "regime.png").exists()
+
+
+def test_report_names_rows_of_the_given_camera_anchor_only_when_present(tmp_path: Path) -> None:
+    from s2camp_ns.benchmarks.robustness import report
+
+    extra = {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
+    rows = [_row("sfm", "off", 0, 20.0, 0.1, 0.1) | extra]
+    config = RobustnessConfig(preset="regime", output_dir=tmp_path)
+    assert "anchored at the given cameras" not in report(rows, config).read_text()
+    rows.append(_row("sfm", "s2camp-damped-gauge-prior-given", 0, 20.0, 0.1, 0.1) | extra)
+    text = report(rows, config).read_text()
+    assert "Variants s2camp-damped-gauge-prior-given: rows recorded when the track prior was anchored at the given" in (
+        " ".join(text.split())
+    )
