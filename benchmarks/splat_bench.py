@@ -97,12 +97,13 @@ RECOVERY_STARTS = ("perturbed",)
 it must do no harm (the report gives final - start)."""
 VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
 """The default grid's variants (issue 20's comparison)."""
-CANDIDATE_VARIANTS = ("s2camp-splat-damped-gauge", "s2camp-splat-gauge")
+CANDIDATE_VARIANTS = ("s2camp-splat-damped-gauge", "s2camp-splat-gauge", "s2camp-splat-gauge-prior")
 """Variants a run may name beyond the default grid: the real-regime issue's candidates (``benchmarks/robustness.py``)
 on splatting."""
 METHODS = {
     "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
     "s2camp-splat-damped-gauge": "s2camp-splat", "s2camp-splat-gauge": "s2camp-splat",
+    "s2camp-splat-gauge-prior": "s2camp-splat",
 }  # fmt: skip
 VARIANT_ARGUMENTS = {
     "splat-off": ["--pipeline.model.camera-optimizer.mode", "off"],
@@ -111,11 +112,15 @@ VARIANT_ARGUMENTS = {
         "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
     ],
     "s2camp-splat-gauge": ["--pipeline.model.camera-optimizer.fix-common-rotation", "True"],
+    "s2camp-splat-gauge-prior": [
+        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
+        "--pipeline.model.camera-optimizer.track-prior", "True",
+    ],
 }  # fmt: skip
 """Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat-damped-gauge"
 s2camp-splat with ten times CamP's relative damping and the rotation all cameras share removed after every step
 (robustness's "s2camp-damped-gauge", docs/DESIGN-NOTES.md sec. 13); "s2camp-splat-gauge" the rotation removal alone,
-default damping."""
+default damping; "s2camp-splat-gauge-prior" that plus the track prior (anchored where the tracks put each camera)."""
 BASELINE = "s2camp-splat-so3xr3"
 """The variant whose seconds per iteration the others are compared with."""
 REFERENCE_STEPS = 30000

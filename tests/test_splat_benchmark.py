@@ -61,6 +61,15 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
         ]
         assert _option(command, "--pipeline.model.camera-optimizer.damping.damping-rel") == "1.0"
         assert _option(command, "--pipeline.model.camera-optimizer.fix-common-rotation") == "True"
+    elif variant == "s2camp-splat-gauge":
+        assert camera_options == ["--pipeline.model.camera-optimizer.fix-common-rotation"]
+        assert _option(command, "--pipeline.model.camera-optimizer.fix-common-rotation") == "True"
+    elif variant == "s2camp-splat-gauge-prior":
+        assert camera_options == [
+            "--pipeline.model.camera-optimizer.fix-common-rotation",
+            "--pipeline.model.camera-optimizer.track-prior",
+        ]
+        assert _option(command, "--pipeline.model.camera-optimizer.track-prior") == "True"
     else:
         assert camera_options == []
     # The compressed schedule: 900 of splatfacto's 30000 steps = 3 %.
