@@ -202,7 +202,8 @@ class RobustnessConfig:
     """Small run for CI (``QUICK``, under 5 minutes on 2 CPU cores)."""
     work_dir: Path | None = None
     """Where scenes and runs go (a temporary /tmp/robust-* folder by default, removed afterwards). Each finished
-    run's row is appended to ``rows.jsonl`` there as soon as it is evaluated."""
+    run's row is appended to ``rows.jsonl`` there as soon as it is evaluated; a run whose row is already there is not
+    run again (its row is reused), so a grid continues in its folder across sessions."""
     rows_from: Path | None = None
     """Train nothing: report the rows of a ``rows.jsonl`` written by an earlier (possibly interrupted) run."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
@@ -521,16 +522,29 @@ def run(config: RobustnessConfig) -> list[dict]:
 def _run(config: RobustnessConfig, root: Path) -> list[dict]:
     began = time.perf_counter()
     (root / "logs").mkdir(parents=True, exist_ok=True)
-    (root / ROWS_FILE).unlink(missing_ok=True)
     scene_dirs = {
         name: make_scene(replace(SCENES[name].scene, output_dir=root / "scenes" / name)) for name in config.scenes
     }
-    specs = run_specs(config)
-    log(f"robustness: {len(specs)} runs of {config.iterations} iterations, {config.workers} at a time (work: {root})")
+    done, specs = resume(run_specs(config), root)
+    log(
+        f"robustness: {len(specs)} runs of {config.iterations} iterations, {config.workers} at a time (work: {root})"
+        + (f"; {len(done)} already in {ROWS_FILE}" if done else "")
+    )
     rows = run_side_by_side(specs, lambda spec, pool: _run_one(spec, scene_dirs[spec.scene], root, config, pool),
                             config.workers)  # fmt: skip
     run.minutes = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
-    return rows
+    return done + rows
+
+
+def resume(specs: list[RunSpec], root: Path) -> tuple[list[dict], list[RunSpec]]:
+    """The rows of ``specs`` already in ``root``'s ``ROWS_FILE`` (a grid continued in its work folder, possibly by
+    another session) and the specs still to run. Rows of other runs stay in the file, untouched."""
+    path = root / ROWS_FILE
+    rows = read_rows(path) if path.exists() else []
+    finished = {(row["scene"], row["start"], row["variant"], row["seed"]): row for row in rows}
+    key = lambda spec: (spec.scene, spec.start, spec.variant, spec.seed)  # noqa: E731
+    done = [finished[key(spec)] for spec in specs if key(spec) in finished]
+    return done, [spec for spec in specs if key(spec) not in finished]
 
 
 def run_side_by_side(specs: list, run_one, workers: int) -> list[dict]:

@@ -70,6 +70,7 @@ from .robustness import (
     plot,
     read_rows,
     record_row,
+    resume,
     run_side_by_side,
 )
 
@@ -181,7 +182,8 @@ class SplatBenchConfig:
     """Small run for CI (``QUICK``, about a minute on 2 CPU cores)."""
     work_dir: Path | None = None
     """Where scenes and runs go (a temporary /tmp/splat-* folder by default, removed afterwards). Each finished run's
-    row is appended to ``rows.jsonl`` there as soon as it is evaluated."""
+    row is appended to ``rows.jsonl`` there as soon as it is evaluated; a run whose row is already there is not run
+    again (its row is reused), so a grid continues in its folder across sessions."""
     rows_from: Path | None = None
     """Train nothing: report the rows of a ``rows.jsonl`` written by an earlier (possibly interrupted) run."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
@@ -418,17 +420,17 @@ def run(config: SplatBenchConfig) -> list[dict]:
 def _run(config: SplatBenchConfig, root: Path) -> list[dict]:
     began = time.perf_counter()
     (root / "logs").mkdir(parents=True, exist_ok=True)
-    (root / ROWS_FILE).unlink(missing_ok=True)
     scene_dirs = {name: _scene_dir(name, root) for name in config.scenes}
-    specs = run_specs(config)
+    done, specs = resume(run_specs(config), root)
     log(
         f"splat: {len(specs)} runs of {config.iterations} iterations ({passes(config.iterations, config.scenes[0]):.0f}"
         f" passes), {config.workers} at a time (work: {root})"
+        + (f"; {len(done)} already in {ROWS_FILE}" if done else "")
     )
     rows = run_side_by_side(specs, lambda spec, pool: _run_one(spec, scene_dirs[spec.scene], root, config, pool),
                             config.workers)  # fmt: skip
     run.minutes = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
-    return rows
+    return done + rows
 
 
 # --------------------------------------------------------------------------------------------------------- report

@@ -221,3 +221,17 @@ def test_report_names_rows_of_the_given_camera_anchor_only_when_present(tmp_path
     assert "Variants s2camp-damped-gauge-prior-given: rows recorded when the track prior was anchored at the given" in (
         " ".join(text.split())
     )
+
+
+def test_a_work_folder_keeps_its_rows_and_a_rerun_skips_the_finished_runs(tmp_path: Path) -> None:
+    from s2camp_ns.benchmarks.robustness import ROWS_FILE, record_row, resume
+
+    specs = [RunSpec("s", "sfm", variant, 0) for variant in ("off", "s2camp")]
+    assert resume(specs, tmp_path) == ([], specs)  # a new folder: everything to run
+    other = _row("phone", "s2camp", 3, 20.0, 0.1, 0.1)  # a run of another grid in the same folder
+    finished = _row("sfm", "off", 0, 20.0, 0.1, 0.1)
+    for row in (other, finished):
+        record_row(row, tmp_path / "gone", tmp_path)
+    done, pending = resume(specs, tmp_path)
+    assert done == [finished] and pending == specs[1:]
+    assert (tmp_path / ROWS_FILE).read_text().count("\n") == 2  # nothing removed
