@@ -98,30 +98,26 @@ RECOVERY_STARTS = ("perturbed",)
 it must do no harm (the report gives final - start)."""
 VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
 """The default grid's variants (issue 20's comparison)."""
-CANDIDATE_VARIANTS = ("s2camp-splat-damped-gauge", "s2camp-splat-gauge", "s2camp-splat-gauge-prior")
-"""Variants a run may name beyond the default grid: the real-regime issue's candidates (``benchmarks/robustness.py``)
-on splatting."""
+CANDIDATE_VARIANTS = ("s2camp-splat-gauge", "s2camp-splat-plain", "s2camp-splat-damped-gauge")
+"""Variants a run may name beyond the default grid: s2camp-splat with parts of its default turned off, and the
+real-regime issue's candidate (``benchmarks/robustness.py``) on splatting."""
 METHODS = {
     "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
-    "s2camp-splat-damped-gauge": "s2camp-splat", "s2camp-splat-gauge": "s2camp-splat",
-    "s2camp-splat-gauge-prior": "s2camp-splat",
+    "s2camp-splat-gauge": "s2camp-splat", "s2camp-splat-plain": "s2camp-splat",
+    "s2camp-splat-damped-gauge": "s2camp-splat",
 }  # fmt: skip
+_NO_PRIOR = ["--pipeline.model.camera-optimizer.track-prior", "False"]
 VARIANT_ARGUMENTS = {
     "splat-off": ["--pipeline.model.camera-optimizer.mode", "off"],
-    "s2camp-splat-damped-gauge": [
-        "--pipeline.model.camera-optimizer.damping.damping-rel", "1.0",
-        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
-    ],
-    "s2camp-splat-gauge": ["--pipeline.model.camera-optimizer.fix-common-rotation", "True"],
-    "s2camp-splat-gauge-prior": [
-        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
-        "--pipeline.model.camera-optimizer.track-prior", "True",
-    ],
+    "s2camp-splat-gauge": _NO_PRIOR,
+    "s2camp-splat-plain": ["--pipeline.model.camera-optimizer.fix-common-rotation", "False", *_NO_PRIOR],
+    "s2camp-splat-damped-gauge": ["--pipeline.model.camera-optimizer.damping.damping-rel", "1.0", *_NO_PRIOR],
 }  # fmt: skip
-"""Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat-damped-gauge"
-s2camp-splat with ten times CamP's relative damping and the rotation all cameras share removed after every step
-(robustness's "s2camp-damped-gauge", docs/DESIGN-NOTES.md sec. 13); "s2camp-splat-gauge" the rotation removal alone,
-default damping; "s2camp-splat-gauge-prior" that plus the track prior (anchored where the tracks put each camera)."""
+"""Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat" its defaults
+(common rotation removed, track prior on: ``method_config.SPLAT_CAMERA_OPTIMIZER``); "s2camp-splat-gauge" without
+the track prior (a scene without tracks); "s2camp-splat-plain" without either (s2camp-splat's default before they
+were measured); "s2camp-splat-damped-gauge" without the prior and with ten times CamP's relative damping
+(robustness's "s2camp-damped-gauge", docs/DESIGN-NOTES.md sec. 13)."""
 BASELINE = "s2camp-splat-so3xr3"
 """The variant whose seconds per iteration the others are compared with."""
 REFERENCE_STEPS = 30000

@@ -54,22 +54,22 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     if variant == "splat-off":
         assert camera_options == ["--pipeline.model.camera-optimizer.mode"]
         assert _option(command, "--pipeline.model.camera-optimizer.mode") == "off"
-    elif variant == "s2camp-splat-damped-gauge":  # the real-regime candidate: damping 1.0, common rotation removed
+    elif variant == "s2camp-splat-damped-gauge":  # the real-regime candidate: damping 1.0, no track prior
         assert camera_options == [
             "--pipeline.model.camera-optimizer.damping.damping-rel",
-            "--pipeline.model.camera-optimizer.fix-common-rotation",
+            "--pipeline.model.camera-optimizer.track-prior",
         ]
         assert _option(command, "--pipeline.model.camera-optimizer.damping.damping-rel") == "1.0"
-        assert _option(command, "--pipeline.model.camera-optimizer.fix-common-rotation") == "True"
-    elif variant == "s2camp-splat-gauge":
-        assert camera_options == ["--pipeline.model.camera-optimizer.fix-common-rotation"]
-        assert _option(command, "--pipeline.model.camera-optimizer.fix-common-rotation") == "True"
-    elif variant == "s2camp-splat-gauge-prior":
+        assert _option(command, "--pipeline.model.camera-optimizer.track-prior") == "False"
+    elif variant == "s2camp-splat-gauge":  # the default without its track prior
+        assert camera_options == ["--pipeline.model.camera-optimizer.track-prior"]
+        assert _option(command, "--pipeline.model.camera-optimizer.track-prior") == "False"
+    elif variant == "s2camp-splat-plain":  # neither the rotation fix nor the prior
         assert camera_options == [
             "--pipeline.model.camera-optimizer.fix-common-rotation",
             "--pipeline.model.camera-optimizer.track-prior",
         ]
-        assert _option(command, "--pipeline.model.camera-optimizer.track-prior") == "True"
+        assert _option(command, "--pipeline.model.camera-optimizer.fix-common-rotation") == "False"
     else:
         assert camera_options == []
     # The compressed schedule: 900 of splatfacto's 30000 steps = 3 %.

@@ -192,6 +192,9 @@ def test_splat_baseline_differs_only_in_the_camera_optimizer():
 
     splat, baseline = s2camp_splat_method.config, s2camp_splat_so3xr3_method.config
     assert splat.pipeline.model.camera_optimizer.parameters == "pose+intrinsics"
+    # The measured splat defaults (docs/SPLAT.md sec. 6): the shared rotation removed, the track prior on.
+    assert splat.pipeline.model.camera_optimizer.fix_common_rotation is True
+    assert splat.pipeline.model.camera_optimizer.track_prior is True
     assert type(baseline.pipeline.model.camera_optimizer) is CameraOptimizerConfig
     assert baseline.pipeline.model.camera_optimizer.mode == "SO3xR3"
     assert baseline.optimizers["camera_opt"]["optimizer"].lr == 1e-4  # splatfacto's own camera schedule
