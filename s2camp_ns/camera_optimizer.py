@@ -484,7 +484,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         """Subtract the mean over trainable images of the rotation part omega of the pose deltas phi (each in its own
         camera frame, ``fix_common_rotation``) from every image's, in the latent: phi_hat += P[:, :, omega] d (paper
         eq. 15; with shared intrinsics the pose rows of the block-triangular P, so no intrinsics change). The
-        translations and intrinsics stay; a no-op when off, disabled or with fewer than three trainable images."""
+        translations and intrinsics stay; a no-op when off, disabled or with fewer than three trainable images. With the
+        track prior the rotations are measured from the prior's anchor: the tracks fix the world, so the rotation the
+        anchors share (the mean of the cameras' own corrections) is no gauge and stays."""
         if not self.enabled or not self.config.fix_common_rotation:
             return
         trainable = torch.ones(self.num_cameras, dtype=torch.bool, device=self.precond.device)
@@ -494,6 +496,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
             return
         omega = slice(3, NUM_POSE_PARAMS)  # the twist's rotation columns (rho_x..rho_z, omega_x..omega_z)
         rotation = self.camera_deltas()[:, omega]
+        if self.has_track_prior:
+            rotation = rotation - self.layout.expand(self.prior_anchor)[:, omega]
         correction = torch.zeros_like(rotation)
         correction[trainable] = -rotation[trainable].mean(dim=0)
         latent = self.whitened_delta

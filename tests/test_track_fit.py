@@ -199,3 +199,22 @@ def test_proximal_step_pulls_towards_the_anchor_not_the_given_camera(tiny_scene:
     torch.testing.assert_close(
         optimizer.whitened_intrinsics.double(), intrinsics * (1e-3 / 0.011), rtol=1e-5, atol=1e-9
     )
+
+
+def test_common_rotation_removal_keeps_the_rotation_the_anchors_share(tiny_scene: Path) -> None:
+    # The anchors' own corrections share a rotation (their mean is not zero): with the tracks fixing the world it is
+    # no gauge. At the anchor the removal must change nothing; without the prior it removes that mean.
+    outputs = _parse(tiny_scene, perturbed=True)
+    optimizer = _optimizer_from(outputs, fix_common_rotation=True)
+    pose, intrinsics = optimizer.prior_anchor_latents()
+    with torch.no_grad():
+        optimizer.whitened_delta.copy_(pose)
+        optimizer.whitened_intrinsics.copy_(intrinsics)
+    shared = optimizer.camera_deltas()[:, 3:6].mean(dim=0)
+    assert float(shared.abs().max()) > 1e-4  # the anchors do share a rotation
+    optimizer.remove_common_rotation()
+    reference = outputs.metadata["reference_cameras"].camera_to_worlds.double()
+    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), reference, atol=2e-5, rtol=0)
+    optimizer.has_track_prior = False  # as without tracks: the shared rotation is removed
+    optimizer.remove_common_rotation()
+    assert float(optimizer.camera_deltas()[:, 3:6].mean(dim=0).abs().max()) < 1e-9
