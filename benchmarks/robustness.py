@@ -126,12 +126,13 @@ RECOVERY_STARTS = ("perturbed", "phone")
 (accurate, sfm) it must not make worse."""
 VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-track-prior", "s2camp-damped", "s2camp-damped-gauge",
-    "s2camp-damped-gauge-prior", "s2camp-gauge-prior",
+    "s2camp-damped-gauge-prior", "s2camp-gauge-prior", "s2camp-gauge-dolly-prior",
 )  # fmt: skip
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "s2camp-track-prior": "s2camp", "s2camp-damped": "s2camp", "s2camp-damped-gauge": "s2camp",
     "s2camp-damped-gauge-prior": "s2camp", "s2camp-gauge-prior": "s2camp",
+    "s2camp-gauge-dolly-prior": "s2camp",
 }  # fmt: skip
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
@@ -150,13 +151,19 @@ VARIANT_ARGUMENTS = {
         "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
         "--pipeline.model.camera-optimizer.track-prior", "True",
     ],
+    "s2camp-gauge-dolly-prior": [
+        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
+        "--pipeline.model.camera-optimizer.fix-common-dolly", "True",
+        "--pipeline.model.camera-optimizer.track-prior", "True",
+    ],
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run: "off" disables camera refinement; "s2camp-track-prior" is
 s2camp with its track prior; "s2camp-damped" s2camp with ten times CamP's relative damping of Sigma (1.0 of its
 diagonal), a candidate that limits how far a unit whitened step moves the weakly observed rotation-translation
 combinations (docs/DESIGN-NOTES.md sec. 13); "s2camp-damped-gauge" that plus ``fix_common_rotation``;
 "s2camp-damped-gauge-prior" that plus the track prior (a no-op where the start has no tracks: the phone start);
-"s2camp-gauge-prior" the common rotation removed and the track prior, with the default damping. Rows recorded before
+"s2camp-gauge-prior" the common rotation removed and the track prior, with the default damping;
+"s2camp-gauge-dolly-prior" that plus the common forward motion removed (``fix_common_dolly``). Rows recorded before
 the track prior took its anchor from the tracks (``core.track_fit``) anchored at the given cameras; they carry the
 names "s2camp-track-prior-given" and "s2camp-damped-gauge-prior-given" (``HISTORICAL_VARIANTS``)."""
 HISTORICAL_VARIANTS = ("s2camp-track-prior-given", "s2camp-damped-gauge-prior-given")

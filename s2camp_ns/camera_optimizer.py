@@ -129,11 +129,19 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
 
     fix_common_rotation: bool = False
     """After every step, remove the rotation that all training cameras share (the mean over images of the pose
-    update's rotation, each in its own camera frame; ``remove_common_rotation``). A rotation every camera makes at
+    update's rotation, each in its own camera frame; ``remove_common_motion``). A rotation every camera makes at
     once is the similarity gauge in disguise: with a rotation-translation pair per camera that shifts the image of
     content at the scene's depth by nothing, a common pitch of cameras on a ring equals moving all of them up, and a
     common yaw of forward-facing cameras equals turning the world, neither of which the photometric loss sees
     (docs/DESIGN-NOTES.md sec. 13). A candidate, off by default until measured on the real-regime grid."""
+
+    fix_common_dolly: bool = False
+    """After every step, remove the forward motion that all training cameras share (the mean over images of the pose
+    update's translation along its own optical axis; ``remove_common_motion``). Every camera moving forward at once
+    is the world's scale (cameras on a ring) or its depth offset (forward-facing cameras) in disguise: the field would
+    reproduce it by a similarity, and with the focal length it forms a dolly zoom the images barely see. Without
+    tracks, refinement drifts along it while the field is fitting (docs/DESIGN-NOTES.md sec. 14). A candidate, off
+    by default until measured on the real-regime grid."""
 
     def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
         return ParameterLayout.from_preset(self.parameters, camera_model)
@@ -480,28 +488,31 @@ class S2CampCameraOptimizer(CameraOptimizer):
             self._shrink(self.whitened_intrinsics, intrinsics_anchor, self.prior_radius_intrinsics, lr)
 
     @torch.no_grad()
-    def remove_common_rotation(self) -> None:
-        """Subtract the mean over trainable images of the rotation part omega of the pose deltas phi (each in its own
-        camera frame, ``fix_common_rotation``) from every image's, in the latent: phi_hat += P[:, :, omega] d (paper
-        eq. 15; with shared intrinsics the pose rows of the block-triangular P, so no intrinsics change). The
-        translations and intrinsics stay; a no-op when off, disabled or with fewer than three trainable images. With the
-        track prior the rotations are measured from the prior's anchor: the tracks fix the world, so the rotation the
-        anchors share (the mean of the cameras' own corrections) is no gauge and stays."""
-        if not self.enabled or not self.config.fix_common_rotation:
+    def remove_common_motion(self) -> None:
+        """Subtract the mean over trainable images of the rotation part omega of the pose deltas phi
+        (``fix_common_rotation``) and of their forward translation rho_z (``fix_common_dolly``), each in its own
+        camera frame, from every image's, in the latent: phi_hat += P[:, :, c] d for those columns c (paper eq. 15;
+        with shared intrinsics the pose rows of the block-triangular P, so no intrinsics change). Everything else
+        stays; a no-op when both are off, when disabled or with fewer than three trainable images. With the track
+        prior the motion is measured from the prior's anchor: the tracks fix the world, so the motion the anchors
+        share (the mean of the cameras' own corrections) is no gauge and stays."""
+        columns = [2] if self.config.fix_common_dolly else []
+        columns += [3, 4, 5] if self.config.fix_common_rotation else []
+        if not self.enabled or not columns:
             return
         trainable = torch.ones(self.num_cameras, dtype=torch.bool, device=self.precond.device)
         if self.non_trainable_camera_indices is not None:
             trainable[self.non_trainable_camera_indices.to(trainable.device)] = False
         if int(trainable.sum()) < 3:
             return
-        omega = slice(3, NUM_POSE_PARAMS)  # the twist's rotation columns (rho_x..rho_z, omega_x..omega_z)
-        rotation = self.camera_deltas()[:, omega]
+        # Twist columns: (rho_x, rho_y, rho_z, omega_x, omega_y, omega_z); rho_z is the motion along the optical axis.
+        motion = self.camera_deltas()[:, columns]
         if self.has_track_prior:
-            rotation = rotation - self.layout.expand(self.prior_anchor)[:, omega]
-        correction = torch.zeros_like(rotation)
-        correction[trainable] = -rotation[trainable].mean(dim=0)
+            motion = motion - self.layout.expand(self.prior_anchor)[:, columns]
+        correction = torch.zeros_like(motion)
+        correction[trainable] = -motion[trainable].mean(dim=0)
         latent = self.whitened_delta
-        rows = self.precond[:, : latent.shape[1], omega].to(torch.float64)
+        rows = self.precond[:, : latent.shape[1], columns].to(torch.float64)
         latent.add_((rows @ correction[..., None])[..., 0].to(latent.dtype))
 
     @staticmethod

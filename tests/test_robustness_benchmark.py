@@ -30,7 +30,7 @@ def _option(command: list[str], name: str) -> str:
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
     command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
-    candidates = ("off", "s2camp-track-prior", "s2camp-gauge-prior")
+    candidates = ("off", "s2camp-track-prior", "s2camp-gauge-prior", "s2camp-gauge-dolly-prior")
     assert command[1] == ("s2camp" if variant in candidates or "damped" in variant else variant)
     assert _option(command, "--max-num-iterations") == "123"
     assert _option(command, "--machine.seed") == "2"
@@ -53,6 +53,11 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
         ],
         "s2camp-gauge-prior": [
             "--pipeline.model.camera-optimizer.fix-common-rotation",
+            "--pipeline.model.camera-optimizer.track-prior",
+        ],
+        "s2camp-gauge-dolly-prior": [
+            "--pipeline.model.camera-optimizer.fix-common-rotation",
+            "--pipeline.model.camera-optimizer.fix-common-dolly",
             "--pipeline.model.camera-optimizer.track-prior",
         ],
     }

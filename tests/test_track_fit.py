@@ -212,9 +212,9 @@ def test_common_rotation_removal_keeps_the_rotation_the_anchors_share(tiny_scene
         optimizer.whitened_intrinsics.copy_(intrinsics)
     shared = optimizer.camera_deltas()[:, 3:6].mean(dim=0)
     assert float(shared.abs().max()) > 1e-4  # the anchors do share a rotation
-    optimizer.remove_common_rotation()
+    optimizer.remove_common_motion()
     reference = outputs.metadata["reference_cameras"].camera_to_worlds.double()
     torch.testing.assert_close(optimizer.refined_c2w(opengl=True), reference, atol=2e-5, rtol=0)
     optimizer.has_track_prior = False  # as without tracks: the shared rotation is removed
-    optimizer.remove_common_rotation()
+    optimizer.remove_common_motion()
     assert float(optimizer.camera_deltas()[:, 3:6].mean(dim=0).abs().max()) < 1e-9

@@ -153,7 +153,7 @@ class S2CampRefinementMixin:
             torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
             if torch_optimizer is not None:
                 camera_optimizer.apply_track_prior(float(torch_optimizer.param_groups[0]["lr"]))
-            camera_optimizer.remove_common_rotation()
+            camera_optimizer.remove_common_motion()
 
         if isinstance(camera_optimizer, S2CampCameraOptimizer) and camera_optimizer.enabled:
             callbacks.append(
