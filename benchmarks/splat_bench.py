@@ -540,6 +540,12 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         f"over s2camp-splat-so3xr3's from the same start (runs that trained side by side share the CPU: compare "
         f"ratios only between runs of the same `--workers`; `--workers 1` on an idle machine times cleanest)."
     )
+    rebuilt = [row for row in rows if row.get("reconstructed")]
+    if rebuilt:
+        setup += (
+            f" {len(rebuilt)} row(s) were rebuilt from their run's log line (their `reconstructed` field says why): "
+            f"their unaligned PSNR was not logged, so it is nan and so is every mean that includes it."
+        )
     columns = [
         "start", "variant", "seeds", "passes", "start_errors", *METRICS, "against_start", "psnr_vs", "gaussians",
         "sec_per_iter", "time_ratio",

@@ -232,3 +232,16 @@ def test_quick_splat_benchmark_trains_the_three_variants(tmp_path: Path) -> None
     text = (tmp_path / "splat.md").read_text()
     assert "s2camp-bench splat --quick" in text and "passes over each training pixel" in text
     assert "time ratio vs so3xr3" in text and (tmp_path / "splat.png").exists()
+
+
+def test_report_says_which_rows_were_rebuilt_from_logs(tmp_path: Path) -> None:
+    from s2camp_ns.benchmarks.splat_bench import SplatBenchConfig, report
+
+    timing = {"iterations": 1000, "train_seconds": 1.0, "eval_seconds": 1.0, "compress_schedule": True,
+              "densify": False, "workers": 1}  # fmt: skip
+    rows = [_row("perturbed", variant, 0, **timing) for variant in ("splat-off", "s2camp-splat-so3xr3")]
+    config = SplatBenchConfig(output_dir=tmp_path)
+    assert "rebuilt from their run's log line" not in report(rows, config).read_text()
+    rows.append(_row("perturbed", "s2camp-splat", 0, psnr_unaligned=float("nan"), reconstructed="log", **timing))
+    text = " ".join(report(rows, config).read_text().split())
+    assert "1 row(s) were rebuilt from their run's log line" in text
