@@ -733,6 +733,7 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "proxy_range",
         "precond_proxy_range",
         "prior_radius",  # the track prior's scale, from the data parser on every run (not saved)
+        "prior_anchor",  # and its anchor, fitted to the tracks on every run (not saved)
         "prior_radius_intrinsics",  # and per physical camera
     }
 
