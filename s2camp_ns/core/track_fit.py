@@ -34,6 +34,10 @@ from s2camp_ns.core.tracks import Tracks
 
 NUM_POSE = 6
 """Twist columns (rho, omega) at the front of ``PARAMETER_NAMES``."""
+MIN_OBSERVATIONS = 10
+"""Valid observations an image needs to be fitted: with fewer its six pose parameters are barely determined (three
+points fit any pose exactly), so the RMS at the fit would say nothing of the noise and a prior of that scale would pin
+the camera to an arbitrary pose. Such images keep their given camera and get no RMS (NaN: no prior)."""
 
 
 @dataclass(frozen=True)
@@ -42,9 +46,10 @@ class TrackFit:
 
     deltas: Float[Tensor, "n 16"]
     """Deltas (``PARAMETER_NAMES`` columns, float64) that move each given camera to its best agreement with the tracks;
-    zero in the columns that were not free and for images without observations."""
+    zero in the columns that were not free and in the pose of images with too few observations."""
     rms_px: Float[Tensor, " n"]
-    """Reprojection RMS per image at the fit (pixels; NaN without a valid observation): the tracks' own noise."""
+    """Reprojection RMS per image at the fit (pixels; NaN with fewer than ``MIN_OBSERVATIONS`` valid observations):
+    the tracks' own noise."""
     rms_given_px: Float[Tensor, " n"]
     """Reprojection RMS per image of the given cameras, for comparison."""
     iterations: int
@@ -118,15 +123,19 @@ def fit_cameras_to_tracks(
 
     def evaluate(pose_values: Tensor, intr_values: Tensor) -> tuple[Tensor, Tensor]:
         residual, margin = _residuals(full(pose_values, intr_values), points, c2w_obs, intrinsics_obs, pixels)
-        return residual, (margin > 0).to(torch.float64)
+        return residual, (margin > 0).to(torch.float64) * fitted[image]
 
     def per_image_rms(residual: Tensor, weight: Tensor) -> Tensor:
         squared = torch.zeros(n, dtype=torch.float64).index_add_(0, image, residual.square().sum(-1) * weight)
         count = torch.zeros(n, dtype=torch.float64).index_add_(0, image, weight)
         return torch.where(count > 0, (squared / count.clamp(min=1.0)).sqrt(), torch.nan)
 
+    fitted = torch.ones(n, dtype=torch.float64)
     residual, weight = evaluate(pose, intr)
     rms_given = per_image_rms(residual, weight)
+    valid = torch.zeros(n, dtype=torch.float64).index_add_(0, image, weight)
+    fitted = (valid >= MIN_OBSERVATIONS).to(torch.float64)
+    weight = weight * fitted[image]
     cost = float((residual.square().sum(-1) * weight).sum())
     damping, iterations = 1e-3, 0
     columns = pose_columns + intrinsics_columns
