@@ -30,7 +30,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from s2camp_ns.core.camera import NUM_CAMERA_PARAMS, Intrinsics, project, se3_exp
-from s2camp_ns.core.tracks import Tracks
+from s2camp_ns.core.tracks import Tracks, per_image_rms
 
 NUM_POSE = 6
 """Twist columns (rho, omega) at the front of ``PARAMETER_NAMES``."""
@@ -125,14 +125,12 @@ def fit_cameras_to_tracks(
         residual, margin = _residuals(full(pose_values, intr_values), points, c2w_obs, intrinsics_obs, pixels)
         return residual, (margin > 0).to(torch.float64) * fitted[image]
 
-    def per_image_rms(residual: Tensor, weight: Tensor) -> Tensor:
-        squared = torch.zeros(n, dtype=torch.float64).index_add_(0, image, residual.square().sum(-1) * weight)
-        count = torch.zeros(n, dtype=torch.float64).index_add_(0, image, weight)
-        return torch.where(count > 0, (squared / count.clamp(min=1.0)).sqrt(), torch.nan)
+    def rms_of(residual: Tensor, weight: Tensor) -> Tensor:
+        return per_image_rms(residual.square().sum(-1), weight, image, n)
 
     fitted = torch.ones(n, dtype=torch.float64)
     residual, weight = evaluate(pose, intr)
-    rms_given = per_image_rms(residual, weight)
+    rms_given = rms_of(residual, weight)
     valid = torch.zeros(n, dtype=torch.float64).index_add_(0, image, weight)
     fitted = (valid >= MIN_OBSERVATIONS).to(torch.float64)
     weight = weight * fitted[image]
@@ -169,7 +167,7 @@ def fit_cameras_to_tracks(
     deltas = torch.zeros(n, NUM_CAMERA_PARAMS, dtype=torch.float64)
     deltas[:, pose_columns] = pose
     deltas[:, intrinsics_columns] = intr[groups]
-    return TrackFit(deltas, per_image_rms(residual, weight), rms_given, iterations)
+    return TrackFit(deltas, rms_of(residual, weight), rms_given, iterations)
 
 
 def _solve_normal_equations(

@@ -76,11 +76,18 @@ def track_reprojection_rms(
     points_cam = ((points - centre)[:, None, :] @ rotation)
     pixels, margin = project(points_cam, intrinsics.to(device=device, dtype=torch.float64)[image])
     squared = (pixels[:, 0] - tracks.pixels.to(device=device, dtype=torch.float64)).square().sum(dim=-1)
-    valid = (margin[:, 0] > 0).to(torch.float64)
-    total = torch.zeros(n, dtype=torch.float64, device=device).index_add_(0, image, squared * valid)
-    count = torch.zeros(n, dtype=torch.float64, device=device).index_add_(0, image, valid)
+    return per_image_rms(squared, (margin[:, 0] > 0).to(torch.float64), image, n)
+
+
+def per_image_rms(
+    squared: Float[Tensor, " o"], weight: Float[Tensor, " o"], image: Int[Tensor, " o"], num_images: int
+) -> Float[Tensor, " n"]:
+    """RMS over each image's observations of the squared pixel distances ``squared`` counted with ``weight`` (1: a
+    valid observation, 0: left out); NaN for an image with none."""
+    total = torch.zeros(num_images, dtype=squared.dtype, device=squared.device).index_add_(0, image, squared * weight)
+    count = torch.zeros(num_images, dtype=squared.dtype, device=squared.device).index_add_(0, image, weight)
     rms = (total / count.clamp(min=1.0)).sqrt()
     return torch.where(count > 0, rms, torch.full_like(rms, float("nan")))
 
 
-__all__ = ["Tracks", "track_reprojection_rms"]
+__all__ = ["Tracks", "per_image_rms", "track_reprojection_rms"]
