@@ -29,11 +29,10 @@ import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
-from s2camp_ns.core.camera import NUM_CAMERA_PARAMS, Intrinsics, project, se3_exp
+from s2camp_ns.core.camera import NUM_CAMERA_PARAMS, Intrinsics, apply_pose_delta, project
+from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
 from s2camp_ns.core.tracks import Tracks, per_image_rms
 
-NUM_POSE = 6
-"""Twist columns (rho, omega) at the front of ``PARAMETER_NAMES``."""
 MIN_OBSERVATIONS = 10
 """Valid observations an image needs to be fitted: with fewer its six pose parameters are barely determined (three
 points fit any pose exactly), so the RMS at the fit would say nothing of the noise and a prior of that scale would pin
@@ -58,17 +57,16 @@ class TrackFit:
 
 def _residuals(
     deltas: Float[Tensor, "o 16"],
-    points: Float[Tensor, "o 3"],
-    c2w: Float[Tensor, "o 3 4"],
+    points_cam: Float[Tensor, "o 1 3"],
     intrinsics: Intrinsics,
     pixels: Float[Tensor, "o 2"],
 ) -> tuple[Float[Tensor, "o 2"], Float[Tensor, " o"]]:
-    """Projected minus observed pixel of each observation under its refined camera, and the validity margin."""
-    motion = se3_exp(deltas[:, :NUM_POSE])
-    rotation = c2w[:, :, :3] @ motion[:, :, :3]
-    centre = c2w[:, :, 3] + (c2w[:, :, :3] @ motion[:, :, 3:])[..., 0]
-    points_cam = (points - centre)[:, None, :] @ rotation  # R'^T (x - c'), row-vector form
-    projected, margin = project(points_cam, intrinsics.with_delta(deltas))
+    """Projected minus observed pixel of each observation under its refined camera (``points_cam``: the point in the
+    given camera's frame, moved by c2w' = c2w exp(xi) as in ``core.camera.project_with_delta``), and the validity
+    margin."""
+    projected, margin = project(
+        apply_pose_delta(points_cam, deltas[:, :NUM_POSE_PARAMS]), intrinsics.with_delta(deltas)
+    )
     return projected[:, 0] - pixels, margin[:, 0]
 
 
@@ -97,8 +95,8 @@ def fit_cameras_to_tracks(
         if free.shape != (NUM_CAMERA_PARAMS,):
             raise ValueError(f"free must mask the {NUM_CAMERA_PARAMS} camera parameters, got shape {tuple(free.shape)}")
         mask = free.to(device="cpu", dtype=torch.bool)
-    pose_columns = [j for j in range(NUM_POSE) if mask[j]]
-    intrinsics_columns = [j for j in range(NUM_POSE, NUM_CAMERA_PARAMS) if mask[j]]
+    pose_columns = [j for j in range(NUM_POSE_PARAMS) if mask[j]]
+    intrinsics_columns = [j for j in range(NUM_POSE_PARAMS, NUM_CAMERA_PARAMS) if mask[j]]
     groups = torch.arange(n) if camera_of_image is None else camera_of_image.to("cpu", torch.long)
     if groups.shape != (n,):
         raise ValueError(f"camera_of_image must hold one camera per image ({n}), got shape {tuple(groups.shape)}")
@@ -110,7 +108,9 @@ def fit_cameras_to_tracks(
     group = groups[image]
     points = tracks.points.detach().to("cpu", torch.float64)[tracks.point.to("cpu", torch.long)]
     pixels = tracks.pixels.detach().to("cpu", torch.float64)
-    c2w_obs, intrinsics_obs = c2w[image], intrinsics[image]
+    # Each observed point in its given camera's frame, R^T (x - c): fixed over the iterations.
+    points_cam = (points - c2w[image, :, 3])[:, None, :] @ c2w[image, :, :3]
+    intrinsics_obs = intrinsics[image]
     p, m = len(pose_columns), len(intrinsics_columns)
     pose = torch.zeros(n, p, dtype=torch.float64)
     intr = torch.zeros(num_groups, m, dtype=torch.float64)
@@ -122,7 +122,7 @@ def fit_cameras_to_tracks(
         return deltas
 
     def evaluate(pose_values: Tensor, intr_values: Tensor) -> tuple[Tensor, Tensor]:
-        residual, margin = _residuals(full(pose_values, intr_values), points, c2w_obs, intrinsics_obs, pixels)
+        residual, margin = _residuals(full(pose_values, intr_values), points_cam, intrinsics_obs, pixels)
         return residual, (margin > 0).to(torch.float64) * fitted[image]
 
     def rms_of(residual: Tensor, weight: Tensor) -> Tensor:
@@ -143,12 +143,12 @@ def fit_cameras_to_tracks(
         # of the u (then v) residuals with respect to the [O, 16] rows is every observation's Jacobian row.
         base = full(pose, intr).requires_grad_(True)
         with torch.enable_grad():
-            projected = _residuals(base, points, c2w_obs, intrinsics_obs, pixels)[0]
+            projected = _residuals(base, points_cam, intrinsics_obs, pixels)[0]
             rows = [torch.autograd.grad(projected[:, a].sum(), base, retain_graph=a == 0)[0] for a in range(2)]
         jacobian = torch.stack(rows, dim=1)[:, :, columns]
         jacobian = jacobian * weight[:, None, None]
         step_pose, step_intr = _solve_normal_equations(
-            jacobian, residual * weight[:, None], image, group, n, num_groups, p, m, damping
+            jacobian, residual * weight[:, None], image, group, groups, num_groups, p, m, damping
         )
         trial_pose, trial_intr = pose + step_pose, intr + step_intr
         trial_residual, trial_weight = evaluate(trial_pose, trial_intr)
@@ -175,15 +175,16 @@ def _solve_normal_equations(
     residual: Float[Tensor, "o 2"],
     image: Int[Tensor, " o"],
     group: Int[Tensor, " o"],
-    num_images: int,
+    camera: Int[Tensor, " n"],
     num_groups: int,
     p: int,
     m: int,
     damping: float,
 ) -> tuple[Float[Tensor, "n p"], Float[Tensor, "c m"]]:
     """Levenberg-Marquardt step of the block-sparse normal equations: poses eliminated per image (Schur complement),
-    one m x m system per physical camera. Marquardt's scaling (damping times the diagonal) keeps the pixel, radian and
-    scene units comparable; an image without observations gets a zero step."""
+    one m x m system per physical camera (``camera``: each image's). Marquardt's scaling (damping times the
+    diagonal) keeps the pixel, radian and scene units comparable; an image without observations gets a zero step."""
+    num_images = camera.shape[0]
     j_pose, j_intr = jacobian[..., :p], jacobian[..., p:]
     a = torch.zeros(num_images, p, p, dtype=torch.float64).index_add_(0, image, j_pose.transpose(1, 2) @ j_pose)
     b = torch.zeros(num_images, p, m, dtype=torch.float64).index_add_(0, image, j_pose.transpose(1, 2) @ j_intr)
@@ -200,7 +201,6 @@ def _solve_normal_equations(
     d = d + damping * torch.diag_embed(torch.diagonal(d, dim1=1, dim2=2)) + 1e-12 * eye_m
     a_inv_b = torch.linalg.solve(a, b)
     a_inv_g = torch.linalg.solve(a, g_pose[..., None])[..., 0]
-    camera = groups_of_image(image, group, num_images)
     if m:
         schur = d - torch.zeros_like(d).index_add_(0, camera, b.transpose(1, 2) @ a_inv_b)
         rhs = g_intr - torch.zeros_like(g_intr).index_add_(0, camera, (b.transpose(1, 2) @ a_inv_g[..., None])[..., 0])
@@ -210,12 +210,6 @@ def _solve_normal_equations(
     # A dp + B dc = -g_pose  =>  dp = -(A^-1 g_pose + A^-1 B dc)
     step_pose = -(a_inv_g + (a_inv_b @ step_intr[camera][..., None])[..., 0])
     return step_pose, step_intr
-
-
-def groups_of_image(image: Tensor, group: Tensor, num_images: int) -> Tensor:
-    """Physical camera of each image from the observations' (image, camera) pairs (0 for unobserved images, whose
-    pose block is decoupled anyway)."""
-    return torch.zeros(num_images, dtype=torch.long).index_put_((image,), group)
 
 
 @dataclass(frozen=True)
