@@ -425,17 +425,21 @@ def _train(
     spec: RunSpec, scene_dir: Path, runs: Path, logs: Path, config: RobustnessConfig, truth: Path | None
 ) -> float:
     """Train one run; return its wall-clock seconds (start-up included)."""
-    log_path = logs / f"{spec.experiment}-{spec.timestamp}.log"
+    return train_logged(
+        train_command(spec, scene_dir, runs, config, truth), logs / f"{spec.experiment}-{spec.timestamp}.log", spec
+    )
+
+
+def train_logged(command: list[str], log_path: Path, run: RunSpec) -> float:
+    """Run one ``ns-train`` command on one CPU thread, its output in ``log_path``; return its wall-clock seconds
+    (start-up included). A failed run raises with the log's last 30 lines."""
     environment = training_environment() | {"OMP_NUM_THREADS": "1"}
     began = time.perf_counter()
     with open(log_path, "w", encoding="utf8") as output:
-        result = subprocess.run(
-            train_command(spec, scene_dir, runs, config, truth), stdout=output, stderr=subprocess.STDOUT,
-            env=environment,
-        )  # fmt: skip
+        result = subprocess.run(command, stdout=output, stderr=subprocess.STDOUT, env=environment)
     if result.returncode != 0:
         tail = "\n".join(log_path.read_text(encoding="utf8", errors="replace").splitlines()[-30:])
-        raise RuntimeError(f"ns-train {spec} failed with status {result.returncode}; log {log_path}:\n{tail}")
+        raise RuntimeError(f"ns-train {run} failed with status {result.returncode}; log {log_path}:\n{tail}")
     return time.perf_counter() - began
 
 

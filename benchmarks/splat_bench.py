@@ -52,7 +52,7 @@ from pathlib import Path
 
 from s2camp_ns.core.validation import check_choice, check_positive_int
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
-from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_base_arguments, training_environment
+from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_base_arguments
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
@@ -72,6 +72,7 @@ from .robustness import (
     record_row,
     resume,
     run_side_by_side,
+    train_logged,
 )
 
 SCENES: dict[str, RobustnessScene] = {
@@ -352,26 +353,11 @@ def evaluate_splat_run(run: Path, alignment: AlignmentConfig) -> dict:
 
 def _train(spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, truth: Path | None) -> float:
     """Train one run; return its wall-clock seconds (start-up included)."""
-    import subprocess
-
-    log_path = root / "logs" / f"{spec.experiment}-{spec.timestamp}.log"
-    environment = training_environment() | {"OMP_NUM_THREADS": "1"}
-    began = time.perf_counter()
-    with open(log_path, "w", encoding="utf8") as output:
-        result = subprocess.run(
-            train_command(spec, scene_dir, root / "runs", config, truth), stdout=output, stderr=subprocess.STDOUT,
-            env=environment,
-        )  # fmt: skip
-    if result.returncode != 0:
-        tail = "\n".join(log_path.read_text(encoding="utf8", errors="replace").splitlines()[-30:])
-        raise RuntimeError(f"ns-train {spec} failed with status {result.returncode}; log {log_path}:\n{tail}")
-    return time.perf_counter() - began
+    command = train_command(spec, scene_dir, root / "runs", config, truth)
+    return train_logged(command, root / "logs" / f"{spec.experiment}-{spec.timestamp}.log", spec)
 
 
-
-def _run_one(
-    spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, pool: ProcessPoolExecutor
-) -> dict:
+def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, pool: ProcessPoolExecutor) -> dict:
     from .recovery_photometric import seconds_per_iteration
 
     truth = None
