@@ -45,12 +45,12 @@ from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, MAX_DRAWN_FOV, Dis
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO_ROOT / "docs" / "viewer-screenshot.png"
 UPDATING_SCREENSHOT = os.environ.get("S2CAMP_UPDATE_SCREENSHOT") == "1"
-SCREENSHOT_STEPS = 2000
+SCREENSHOT_STEPS = 1000
 """Training steps before the screenshot written with ``S2CAMP_UPDATE_SCREENSHOT=1``."""
 SCREENSHOT_SCENE = {"num_cameras": 24, "width": 160, "height": 120, "points_per_image": 150, "seed": 0}
 """The screenshot's scene. The test's 64x48 one trains a field that renders as grey-brown fog; 160x120 images and the
-larger field of ``SCREENSHOT_FIELD`` show the spheres and the floor's tiles."""
-SCREENSHOT_FIELD = (
+larger field of ``SCREENSHOT_SETUP`` show the spheres and the floor's tiles."""
+SCREENSHOT_SETUP = (
     "--pipeline.datamanager.train-num-rays-per-batch", "1024",
     "--pipeline.model.hidden-dim", "32",
     "--pipeline.model.hidden-dim-color", "32",
@@ -58,8 +58,15 @@ SCREENSHOT_FIELD = (
     "--pipeline.model.log2-hashmap-size", "15",
     "--pipeline.model.num-nerf-samples-per-ray", "24",
     "--pipeline.model.num-proposal-samples-per-ray", "32", "24",
+    "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
+    "--pipeline.model.camera-optimizer.track-prior", "True",
 )  # fmt: skip
-"""Field options of the screenshot's run (in place of the test's ``TEST_FIELD``)."""
+"""Options of the screenshot's runs, in place of the test's ``TEST_SETUP``: a larger field, and cameras anchored
+where the scene's tracks put them (the `s2camp-splat` defaults), so the field trains on consistent cameras while the
+panel still draws the perturbed initial ones. Tried before: with the method's own defaults the perturbation (focal
+12 px off at 160x120) stays inside the camera warm-up for the 1200 steps a CPU allows, and with the test's camera
+learning rate and no warm-up the focal length ran 19.5 px off in 2000 steps; the field was a blur in both."""
+
 VIEW_MOVED = 20.0
 """Mean change of the view's pixel values (0-255) that a jump of the viewer camera to a training camera exceeds."""
 NUM_CAMERAS, WIDTH, HEIGHT = 4, 32, 24
@@ -381,7 +388,7 @@ def stop_process_group(process: subprocess.Popen, name: str) -> signal.Signals |
     pytest.fail(f"{name} left processes behind in its process group")
 
 
-TEST_FIELD = (
+TEST_SETUP = (
     "--pipeline.datamanager.train-num-rays-per-batch", "256",
     "--pipeline.model.hidden-dim", "16",
     "--pipeline.model.hidden-dim-color", "16",
@@ -389,14 +396,20 @@ TEST_FIELD = (
     "--pipeline.model.log2-hashmap-size", "12",
     "--pipeline.model.num-nerf-samples-per-ray", "8",
     "--pipeline.model.num-proposal-samples-per-ray", "8", "8",
+    "--pipeline.model.camera-optimizer.parameters", "pose+focal",
+    "--pipeline.model.camera-optimizer.sampling.num-points", "64",
+    "--pipeline.model.camera-optimizer.refresh-every", "0",
+    "--optimizers.camera-opt.optimizer.lr", "5e-4",
+    "--optimizers.camera-opt.scheduler.warmup-steps", "0",
 )  # fmt: skip
-"""Field options of the test's run: small enough for a CPU test."""
+"""The test's field (small enough for a CPU test) and cameras (moving from the first step, so the panel's errors
+change within seconds)."""
 
 
 def s2camp_command(
-    scene: Path, output_dir: Path, run_arguments: Sequence[str], field_arguments: Sequence[str]
+    scene: Path, output_dir: Path, run_arguments: Sequence[str], setup_arguments: Sequence[str]
 ) -> list[str]:
-    """``ns-train s2camp`` on ``scene`` from perturbed cameras, with the camera options of this test."""
+    """``ns-train s2camp`` on ``scene`` from perturbed cameras."""
     ns_train = Path(sys.executable).with_name("ns-train")
     return [
         str(ns_train) if ns_train.exists() else "ns-train",
@@ -409,13 +422,8 @@ def s2camp_command(
         "--steps-per-eval-all-images", "0",
         "--mixed-precision", "False",
         "--pipeline.model.implementation", "torch",
-        *field_arguments,
-        "--pipeline.model.camera-optimizer.parameters", "pose+focal",
-        "--pipeline.model.camera-optimizer.sampling.num-points", "64",
-        "--pipeline.model.camera-optimizer.refresh-every", "0",
+        *setup_arguments,
         "--pipeline.model.viewer-update-period", "0.5",
-        "--optimizers.camera-opt.optimizer.lr", "5e-4",
-        "--optimizers.camera-opt.scheduler.warmup-steps", "0",
         "s2camp-data",
         "--perturbation.enabled", "True",
     ]  # fmt: skip
@@ -433,7 +441,7 @@ def train_for_screenshot(scene: Path, output_dir: Path) -> Path:
     )  # fmt: skip
     log_path = output_dir / f"{timestamp}.log"
     with open(log_path, "w") as log:
-        command = s2camp_command(scene, output_dir, run_arguments, SCREENSHOT_FIELD)
+        command = s2camp_command(scene, output_dir, run_arguments, SCREENSHOT_SETUP)
         result = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, cwd=output_dir)
     checkpoints = sorted(output_dir.glob(f"*/s2camp/{timestamp}/nerfstudio_models"))
     assert result.returncode == 0 and checkpoints, f"the screenshot's training run failed: {log_path}"
@@ -446,7 +454,7 @@ def ns_train_with_viewer(
     output_dir: Path,
     port: int,
     log_path: Path,
-    field_arguments: Sequence[str] = TEST_FIELD,
+    setup_arguments: Sequence[str] = TEST_SETUP,
     load_dir: Path | None = None,
 ) -> Iterator[subprocess.Popen]:
     run_arguments = (
@@ -460,7 +468,7 @@ def ns_train_with_viewer(
         "--viewer.quit-on-train-completion", "True",
         "--viewer.camera-frustum-scale", "0.6",
     )  # fmt: skip
-    command = s2camp_command(scene, output_dir, run_arguments, field_arguments)
+    command = s2camp_command(scene, output_dir, run_arguments, setup_arguments)
     environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
     with open(log_path, "w") as log:
         process = subprocess.Popen(
@@ -700,13 +708,13 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
     updating_docs = UPDATING_SCREENSHOT
     errors = ("Rotation °", "Position", "Focal px")
     number_pair = re.compile(r"[0-9.e+-]+ / [0-9.e+-]+")
-    scene, field_arguments, load_dir = tiny_scene, TEST_FIELD, None
+    scene, setup_arguments, load_dir = tiny_scene, TEST_SETUP, None
     if updating_docs:  # a scene, a field and a training run that show the scene in the viewer
         from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
-        scene = make_scene(MakeSceneConfig(output_dir=tmp_path / "screenshot-scene", **SCREENSHOT_SCENE))
-        field_arguments, load_dir = SCREENSHOT_FIELD, train_for_screenshot(scene, tmp_path)
-    with ns_train_with_viewer(scene, tmp_path, port, log_path, field_arguments, load_dir) as process:
+        scene = make_scene(MakeSceneConfig(output_dir=tmp_path / "data" / "screenshot-scene", **SCREENSHOT_SCENE))
+        setup_arguments, load_dir = SCREENSHOT_SETUP, train_for_screenshot(scene, tmp_path)
+    with ns_train_with_viewer(scene, tmp_path, port, log_path, setup_arguments, load_dir) as process:
         wait_for_http(url, process, log_path, timeout=180)
         with headless_chromium(chromium, url, tmp_path / "chromium-profile") as devtools:
             # On a CPU, pick nerfstudio's "Fast" train speed (256 px renders hold the training lock less long) and
@@ -728,10 +736,13 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
             for label in ("Refined (amber)", "Initial (red)", "Reference (green)"):
                 assert first[label] == "true", label
 
-            # The values follow training: a later step, and the camera errors move.
+            # The values follow training: a later step, and the camera errors move (not checked for the screenshot:
+            # its run continues inside the default camera warm-up, where they move less than the panel's digits).
             later = wait_for(
                 devtools,
-                lambda v: panel_step(v) > panel_step(first) and any(v[key] != first[key] for key in errors),
+                lambda v: (
+                    panel_step(v) > panel_step(first) and (updating_docs or any(v[key] != first[key] for key in errors))
+                ),
                 150,
                 "the panel's step and camera errors to change",
             )
