@@ -48,8 +48,9 @@ UPDATING_SCREENSHOT = os.environ.get("S2CAMP_UPDATE_SCREENSHOT") == "1"
 SCREENSHOT_STEPS = 1000
 """Training steps before the screenshot written with ``S2CAMP_UPDATE_SCREENSHOT=1``."""
 SCREENSHOT_SCENE = {"num_cameras": 24, "width": 160, "height": 120, "points_per_image": 150, "seed": 0}
-"""The screenshot's scene. The test's 64x48 one trains a field that renders as grey-brown fog; 160x120 images and the
-larger field of ``SCREENSHOT_SETUP`` show the spheres and the floor's tiles."""
+"""The screenshot's scene: larger images than the test's 64x48 one, whose field renders as grey-brown fog. With
+``SCREENSHOT_SETUP`` the view after the jump to a training camera still renders a blur of terrain and sky, not the
+spheres (docs/viewer-screenshot.png)."""
 SCREENSHOT_SETUP = (
     "--pipeline.datamanager.train-num-rays-per-batch", "1024",
     "--pipeline.model.hidden-dim", "32",
@@ -698,7 +699,7 @@ def go_to_a_training_camera(devtools: DevTools, save_to: Path) -> list[tuple[int
 
 @pytest.mark.slow
 # The timeout includes installing chromium on a fresh machine; the test itself takes 1-2 minutes, the screenshot's
-# training run (``S2CAMP_UPDATE_SCREENSHOT=1``) about half an hour on a busy 2-core CPU.
+# training run (``S2CAMP_UPDATE_SCREENSHOT=1``) 7 to 35 minutes on a 2-core CPU, idle to busy.
 @pytest.mark.timeout(4800 if UPDATING_SCREENSHOT else 1200)
 def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_path: Path):
     port = free_port()
@@ -737,7 +738,7 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
                 assert first[label] == "true", label
 
             # The values follow training: a later step, and the camera errors move (not checked for the screenshot:
-            # its run continues inside the default camera warm-up, where they move less than the panel's digits).
+            # its cameras sit at the track prior's anchor, where they move less than the panel's digits show).
             later = wait_for(
                 devtools,
                 lambda v: (
