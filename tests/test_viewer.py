@@ -706,11 +706,10 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
     log_path = tmp_path / "ns-train.log"
     url = f"http://127.0.0.1:{port}/"
     screenshot = tmp_path / "viewer-screenshot.png"
-    updating_docs = UPDATING_SCREENSHOT
     errors = ("Rotation °", "Position", "Focal px")
     number_pair = re.compile(r"[0-9.e+-]+ / [0-9.e+-]+")
     scene, setup_arguments, load_dir = tiny_scene, TEST_SETUP, None
-    if updating_docs:  # a scene, a field and a training run that show the scene in the viewer
+    if UPDATING_SCREENSHOT:  # a scene, a field and a training run that show the scene in the viewer
         from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
         scene = make_scene(MakeSceneConfig(output_dir=tmp_path / "data" / "screenshot-scene", **SCREENSHOT_SCENE))
@@ -742,7 +741,8 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
             later = wait_for(
                 devtools,
                 lambda v: (
-                    panel_step(v) > panel_step(first) and (updating_docs or any(v[key] != first[key] for key in errors))
+                    panel_step(v) > panel_step(first)
+                    and (UPDATING_SCREENSHOT or any(v[key] != first[key] for key in errors))
                 ),
                 150,
                 "the panel's step and camera errors to change",
@@ -769,7 +769,7 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
             # For the screenshot (not part of what is tested): the view is rendered again only when the camera moves
             # (or every thousand or more steps at "Fast" on a CPU), so it still shows the model of the first steps,
             # a grey fog. Moving to a training camera renders the trained model from a view it has learned.
-            if updating_docs:
+            if UPDATING_SCREENSHOT:
                 clicks = go_to_a_training_camera(devtools, tmp_path / "before-click.png")
                 assert clicks and clicks[-1][2] > VIEW_MOVED, f"no click moved the view to a camera: {clicks}"
                 assert click_button(devtools, "Hide Train Cams")
@@ -779,7 +779,7 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
                 time.sleep(3.0)
                 with contextlib.suppress(pytest.fail.Exception):
                     wait_for(devtools, lambda v: render_width(v) >= 100, 120, "a full-size render")
-            screenshot.write_bytes(wait_for_still_view(devtools, 90 if updating_docs else 20))
+            screenshot.write_bytes(wait_for_still_view(devtools, 90 if UPDATING_SCREENSHOT else 20))
         assert process.poll() is None, "ns-train exited while the viewer was open"
     # Ctrl+C, or else SIGTERM, stopped it and left no process behind (stop_process_group checks). Once a viewer client
     # has been rendered to, ns-train may end with "terminate called without an active exception", exit status -6
@@ -788,6 +788,6 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
     assert process.stopped_by in (signal.SIGINT, signal.SIGTERM), process.stopped_by
     assert screenshot.stat().st_size > 10_000
     print(f"viewer screenshot: {screenshot}")
-    if updating_docs:
+    if UPDATING_SCREENSHOT:
         SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(screenshot, SCREENSHOT)
