@@ -124,8 +124,9 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     are (a camera-only bundle adjustment against the fixed points, ``core.track_fit``), so the prior guides them
     there instead of holding them in place. A camera without tracks (phone poses, a hand-made transforms.json) has
     no prior. Needs the data parser's ``track_evidence`` (COLMAP scenes with points, ns-process-data transforms.json
-    with their ``colmap/sparse/0``). Off by default until measured on the real-regime grid
-    (``s2camp-bench robustness --preset regime``, docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 12-13)."""
+    with their ``colmap/sparse/0``). On in the ``s2camp`` and ``s2camp-splat`` methods (``method_config``), off in
+    this config (the baselines' setting: CamP's and nerfstudio's code have no prior); measured on the real-regime
+    grid (``s2camp-bench robustness --preset regime``, docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 12-14)."""
 
     fix_common_rotation: bool = False
     """After every step, remove the rotation that all training cameras share (the mean over images of the pose
@@ -133,7 +134,8 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     once is the similarity gauge in disguise: with a rotation-translation pair per camera that shifts the image of
     content at the scene's depth by nothing, a common pitch of cameras on a ring equals moving all of them up, and a
     common yaw of forward-facing cameras equals turning the world, neither of which the photometric loss sees
-    (docs/DESIGN-NOTES.md sec. 13). A candidate, off by default until measured on the real-regime grid."""
+    (docs/DESIGN-NOTES.md sec. 13). On in the ``s2camp`` and ``s2camp-splat`` methods, off in this config (the
+    baselines' setting)."""
 
     fix_common_dolly: bool = False
     """After every step, remove the forward motion that all training cameras share (the mean over images of the pose
@@ -336,7 +338,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         # step (``recompute_stale_preconditioner``), once Adam's moments are loaded too.
         self._stale_preconditioner: str | None = None
         # Track prior radius per image in whitened units (RMS px / max(W, H)); NaN = no prior (``set_track_prior``),
-        # and per physical camera for the shared intrinsics latent (the RMS of its images' radii).
+        # and per physical camera for the shared intrinsics latent (the standard error of its images' pooled radii).
         no_prior = torch.full((num_cameras,), float("nan"), dtype=torch.float64, device=device)
         self.register_buffer("prior_radius", no_prior, persistent=False)
         self.register_buffer("prior_radius_intrinsics", no_prior.clone(), persistent=False)
@@ -454,7 +456,12 @@ class S2CampCameraOptimizer(CameraOptimizer):
             finite = torch.isfinite(radius)
             pooled.index_add_(0, self.camera_of_image[finite], radius[finite].square())
             counts.index_add_(0, self.camera_of_image[finite], torch.ones_like(radius[finite]))
-            self.prior_radius_intrinsics = torch.where(counts > 0, (pooled / counts.clamp(min=1.0)).sqrt(), torch.nan)
+            # The intrinsics are fitted to the tracks of all their n_c images at once, so their scale is the standard
+            # error of that pooled fit, RMS(r_i) / sqrt(n_c) = sqrt(sum r_i^2) / n_c: a unit step of the shared latent
+            # moves every image's proxy points together (core.shared_intrinsics), which independent per-image noise
+            # of r_i explains only to 1 / sqrt(n_c). With the RMS alone the shared focal length of 49 SfM images
+            # ended 0.2-0.37 px further from the truth than SfM's (docs/DESIGN-NOTES.md sec. 14).
+            self.prior_radius_intrinsics = torch.where(counts > 0, pooled.sqrt() / counts.clamp(min=1.0), torch.nan)
 
     def prior_anchor_latents(self) -> tuple[Float[Tensor, "n k"], Float[Tensor, "c m"] | None]:
         """The anchor in the whitened latent under the current P (phi_hat = P phi, paper eq. 15): the pose latent per
@@ -477,7 +484,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
         whitened coordinate at most r from the anchor, the tracks' noise; gradient noise (|m / sqrt(v)| near 0.23 for
         Adam's beta1 0.9) about a quarter of that. Once the field stops pulling, the camera relaxes back towards the
         anchor within about r / lr steps instead of staying where early field errors pushed it. Images without
-        tracks are untouched. Shared intrinsics take the RMS of their images' radii.
+        tracks are untouched. Shared intrinsics take the standard error of their images' pooled radii,
+        RMS(r_i) / sqrt(n_c) for the n_c images with tracks (``set_track_prior``).
         """
         # A Python flag, not a look at the radii: no device synchronisation on the training step's path.
         if not self.enabled or not self.has_track_prior or lr <= 0:

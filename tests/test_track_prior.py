@@ -136,8 +136,9 @@ def test_prior_step_shrinks_each_latent_by_its_radius_and_leaves_untracked_image
     expected = [1 / 1.1, 1 / 1.01, 1.0, 1 / 1.05]
     assert optimizer.whitened_delta[:, 0].tolist() == pytest.approx(expected, rel=1e-6)
     assert bool((optimizer.whitened_delta == optimizer.whitened_delta[:, :1]).all())  # every coordinate alike
-    # Camera A (images 0 and 2): only image 0 has tracks, radius 0.01; camera B: RMS of 0.1 and 0.02.
-    radius_b = math.sqrt((0.1**2 + 0.02**2) / 2)
+    # Camera A (images 0 and 2): only image 0 has tracks, radius 0.01; camera B: the standard error of its two
+    # images' radii 0.1 and 0.02 pooled, RMS / sqrt(2).
+    radius_b = math.sqrt((0.1**2 + 0.02**2) / 2) / math.sqrt(2)
     shared = [1 / (1 + 1e-3 / r) for r in (0.01, radius_b)]
     labels = optimizer.camera_of_image.tolist()
     assert optimizer.whitened_intrinsics[labels[0], 0].item() == pytest.approx(shared[0], rel=1e-6)
