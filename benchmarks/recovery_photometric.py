@@ -40,6 +40,7 @@ import torch
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 from s2camp_ns.nerfstudio.train_commands import (
     FROZEN_LR,
+    PHOTOMETRIC_ONLY,
     camera_schedule_arguments,
     ns_train_arguments,
     perturbation_arguments,
@@ -128,12 +129,15 @@ def _arguments(
     method: str, scene: Path, work: Path, experiment: str, timestamp: str, iterations: int, every: int, rays: int
 ) -> list[str]:
     """The demo's shared ns-train options, plus: every checkpoint kept (the error curves), no camera-error logging
-    during training (errors are computed afterwards, the same way for every variant, and time is not spent on it)."""
+    during training (errors are computed afterwards, the same way for every variant, and time is not spent on it);
+    for ``s2camp`` runs the track prior and the common-rotation removal off (``PHOTOMETRIC_ONLY``), so the tiers
+    compare the preconditioners alone, as they did before both became s2camp's defaults."""
     return [
         *ns_train_arguments(method, scene, work, experiment, timestamp, iterations, every, rays),
         "--save-only-latest-checkpoint", "False",
         "--vis", "tensorboard",
         "--pipeline.model.camera-error-every", "0",
+        *(PHOTOMETRIC_ONLY if method == "s2camp" else []),
     ]  # fmt: skip
 
 

@@ -141,6 +141,8 @@ def _check_run(config, method: str, camera: dict, warm: Path) -> None:
     assert config.method_name == method
     assert config.max_num_iterations == 5 and config.load_dir == warm
     optimizer = config.pipeline.model.camera_optimizer
+    if method != "s2camp-so3xr3":  # the tiers compare preconditioners: no track prior, no common-rotation removal
+        assert optimizer.track_prior is False and optimizer.fix_common_rotation is False, method
     for key, value in camera.items():
         assert getattr(optimizer, key) == value, (method, key)
 

@@ -25,6 +25,15 @@ SMALL_MODEL = [
 CPU step."""
 
 
+PHOTOMETRIC_ONLY = [
+    "--pipeline.model.camera-optimizer.fix-common-rotation", "False",
+    "--pipeline.model.camera-optimizer.track-prior", "False",
+]  # fmt: skip
+"""``ns-train s2camp`` options that leave the cameras to the photometric loss and the preconditioner alone: no track
+prior and no removal of the common rotation (both on in s2camp's defaults, neither in CamP's or nerfstudio's code).
+The recovery tiers compare preconditioners on equal terms with them (``s2camp-bench recovery``)."""
+
+
 def ns_train_executable() -> str:
     """The ns-train next to this Python (the same environment), else the one on PATH."""
     ns_train = Path(sys.executable).with_name("ns-train")
