@@ -125,49 +125,48 @@ RECOVERY_STARTS = ("perturbed", "phone")
 """Starts that refinement must correct (the report gives the fraction of the start error removed); the others
 (accurate, sfm) it must not make worse."""
 VARIANTS = (
-    "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-track-prior", "s2camp-damped", "s2camp-damped-gauge",
-    "s2camp-damped-gauge-prior", "s2camp-gauge-prior", "s2camp-gauge-dolly-prior",
+    "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-free", "s2camp-track-prior", "s2camp-damped",
+    "s2camp-damped-gauge", "s2camp-damped-gauge-prior", "s2camp-gauge-dolly-prior",
 )  # fmt: skip
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
-    "s2camp-track-prior": "s2camp", "s2camp-damped": "s2camp", "s2camp-damped-gauge": "s2camp",
-    "s2camp-damped-gauge-prior": "s2camp", "s2camp-gauge-prior": "s2camp",
-    "s2camp-gauge-dolly-prior": "s2camp",
+    "s2camp-free": "s2camp", "s2camp-track-prior": "s2camp", "s2camp-damped": "s2camp",
+    "s2camp-damped-gauge": "s2camp", "s2camp-damped-gauge-prior": "s2camp", "s2camp-gauge-dolly-prior": "s2camp",
 }  # fmt: skip
+_ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
+_PRIOR = "--pipeline.model.camera-optimizer.track-prior"
+_DAMPED = ["--pipeline.model.camera-optimizer.damping.damping-rel", "1.0"]
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
-    "s2camp-track-prior": ["--pipeline.model.camera-optimizer.track-prior", "True"],
-    "s2camp-damped": ["--pipeline.model.camera-optimizer.damping.damping-rel", "1.0"],
-    "s2camp-damped-gauge": [
-        "--pipeline.model.camera-optimizer.damping.damping-rel", "1.0",
-        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
-    ],
-    "s2camp-damped-gauge-prior": [
-        "--pipeline.model.camera-optimizer.damping.damping-rel", "1.0",
-        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
-        "--pipeline.model.camera-optimizer.track-prior", "True",
-    ],
-    "s2camp-gauge-prior": [
-        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
-        "--pipeline.model.camera-optimizer.track-prior", "True",
-    ],
+    "s2camp-free": [_ROTATION, "False", _PRIOR, "False"],
+    "s2camp-track-prior": [_ROTATION, "False", _PRIOR, "True"],
+    "s2camp-damped": [*_DAMPED, _ROTATION, "False", _PRIOR, "False"],
+    "s2camp-damped-gauge": [*_DAMPED, _ROTATION, "True", _PRIOR, "False"],
+    "s2camp-damped-gauge-prior": [*_DAMPED, _ROTATION, "True", _PRIOR, "True"],
     "s2camp-gauge-dolly-prior": [
-        "--pipeline.model.camera-optimizer.fix-common-rotation", "True",
-        "--pipeline.model.camera-optimizer.fix-common-dolly", "True",
-        "--pipeline.model.camera-optimizer.track-prior", "True",
+        _ROTATION, "True", "--pipeline.model.camera-optimizer.fix-common-dolly", "True", _PRIOR, "True",
     ],
 }  # fmt: skip
-"""Method options per variant beyond the CPU-sized run: "off" disables camera refinement; "s2camp-track-prior" is
-s2camp with its track prior; "s2camp-damped" s2camp with ten times CamP's relative damping of Sigma (1.0 of its
-diagonal), a candidate that limits how far a unit whitened step moves the weakly observed rotation-translation
-combinations (docs/DESIGN-NOTES.md sec. 13); "s2camp-damped-gauge" that plus ``fix_common_rotation``;
-"s2camp-damped-gauge-prior" that plus the track prior (a no-op where the start has no tracks: the phone start);
-"s2camp-gauge-prior" the common rotation removed and the track prior, with the default damping;
-"s2camp-gauge-dolly-prior" that plus the common forward motion removed (``fix_common_dolly``). Rows recorded before
-the track prior took its anchor from the tracks (``core.track_fit``) anchored at the given cameras; they carry the
-names "s2camp-track-prior-given" and "s2camp-damped-gauge-prior-given" (``HISTORICAL_VARIANTS``)."""
-HISTORICAL_VARIANTS = ("s2camp-track-prior-given", "s2camp-damped-gauge-prior-given")
-"""Variant names found only in committed rows: the track prior anchored at the given cameras (no longer runnable)."""
+"""Method options per variant beyond the CPU-sized run, each stating every candidate option so that a variant keeps
+its meaning when a default changes. "s2camp" is the method's defaults (the common rotation removed and the track
+prior on, ``S2CAMP_CAMERA_OPTIMIZER``); "off" disables camera refinement; "s2camp-free" is s2camp with both off (the
+defaults before both became s2camp's); "s2camp-track-prior" the track prior alone; "s2camp-damped" ten times CamP's
+relative damping of Sigma (1.0 of its diagonal), a candidate that limits how far a unit whitened step moves the
+weakly observed rotation-translation combinations (docs/DESIGN-NOTES.md sec. 13); "s2camp-damped-gauge" that plus
+the common rotation removed; "s2camp-damped-gauge-prior" that plus the track prior (a no-op where the start has no
+tracks: the phone start); "s2camp-gauge-dolly-prior" the defaults plus the common forward motion removed
+(``fix_common_dolly``). Committed rows under older names (``HISTORICAL_VARIANTS``) were recorded with settings that
+no longer run."""
+HISTORICAL_VARIANTS = {
+    "s2camp-track-prior-given": "the track prior anchored at the given cameras, before it took its anchor from the "
+    "tracks (`s2camp_ns.core.track_fit`)",
+    "s2camp-damped-gauge-prior-given": "the same, with the damped and common-rotation options",
+    "s2camp-gauge-prior-rms": "the common rotation removed and the track prior, the shared intrinsics' prior scale the "
+    "RMS of their images' instead of its standard error (RMS / sqrt(images)); where the start has no tracks (phone) "
+    "the code path of today's s2camp",
+    "s2camp-damped-gauge-prior-rms": "the same with the damping raised",
+}
+"""Variant names found only in committed rows, and what they ran (no longer runnable)."""
 PHONE_PROFILE = {"sigma_position": 0.02, "sigma_look_at": 0.02, "sigma_dolly_z": 0.02, "sigma_focal_length": 0.0}
 """The phone-pose start, in CamP's protocol (normalized units: the camera centres fill [-1, 1]^3). Assumed sizes of
 visual-inertial poses and factory intrinsics as Polycam / Record3D exports carry them, not measured here: centres off
@@ -751,8 +750,9 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
     historical = sorted({row["variant"] for row in rows} & set(HISTORICAL_VARIANTS))
     if historical:
         setup += (
-            f" Variants {', '.join(historical)}: rows recorded when the track prior was anchored at the given "
-            f"cameras, before it took its anchor from the tracks (`s2camp_ns.core.track_fit`)."
+            " Rows of settings that no longer run: "
+            + "; ".join(f"{name}: {HISTORICAL_VARIANTS[name]}" for name in historical)
+            + "."
         )
     columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]
     headers = [

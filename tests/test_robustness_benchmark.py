@@ -30,46 +30,34 @@ def _option(command: list[str], name: str) -> str:
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
     command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
-    candidates = ("off", "s2camp-track-prior", "s2camp-gauge-prior", "s2camp-gauge-dolly-prior")
-    assert command[1] == ("s2camp" if variant in candidates or "damped" in variant else variant)
+    assert command[1] == (variant if variant in ("s2camp-so3xr3", "s2camp-camp") else "s2camp")
     assert _option(command, "--max-num-iterations") == "123"
     assert _option(command, "--machine.seed") == "2"
     assert _option(command, "--machine.device-type") == "cpu"
     # No camera learning rate, schedule or sampling option: the method's defaults.
     assert not [arg for arg in command if arg.startswith("--optimizers.")]
-    camera_options = [arg for arg in command if arg.startswith("--pipeline.model.camera-optimizer.")]
-    expected_options = {
-        "off": ["--pipeline.model.camera-optimizer.mode"],
-        "s2camp-track-prior": ["--pipeline.model.camera-optimizer.track-prior"],
-        "s2camp-damped": ["--pipeline.model.camera-optimizer.damping.damping-rel"],
-        "s2camp-damped-gauge": [
-            "--pipeline.model.camera-optimizer.damping.damping-rel",
-            "--pipeline.model.camera-optimizer.fix-common-rotation",
-        ],
-        "s2camp-damped-gauge-prior": [
-            "--pipeline.model.camera-optimizer.damping.damping-rel",
-            "--pipeline.model.camera-optimizer.fix-common-rotation",
-            "--pipeline.model.camera-optimizer.track-prior",
-        ],
-        "s2camp-gauge-prior": [
-            "--pipeline.model.camera-optimizer.fix-common-rotation",
-            "--pipeline.model.camera-optimizer.track-prior",
-        ],
-        "s2camp-gauge-dolly-prior": [
-            "--pipeline.model.camera-optimizer.fix-common-rotation",
-            "--pipeline.model.camera-optimizer.fix-common-dolly",
-            "--pipeline.model.camera-optimizer.track-prior",
-        ],
+    camera_options = {
+        arg: command[index + 1]
+        for index, arg in enumerate(command)
+        if arg.startswith("--pipeline.model.camera-optimizer.")
     }
-    assert camera_options == expected_options.get(variant, [])
-    if variant == "off":
-        assert _option(command, "--pipeline.model.camera-optimizer.mode") == "off"
-    if "prior" in variant:
-        assert _option(command, "--pipeline.model.camera-optimizer.track-prior") == "True"
-    if "damped" in variant:
-        assert _option(command, "--pipeline.model.camera-optimizer.damping.damping-rel") == "1.0"
-    if "gauge" in variant:
-        assert _option(command, "--pipeline.model.camera-optimizer.fix-common-rotation") == "True"
+    rotation = "--pipeline.model.camera-optimizer.fix-common-rotation"
+    prior = "--pipeline.model.camera-optimizer.track-prior"
+    damping = "--pipeline.model.camera-optimizer.damping.damping-rel"
+    # Every s2camp variant but the default states both candidate options, so it keeps its meaning when a default
+    # changes; "s2camp" and the baselines take the method's own defaults.
+    expected_options = {
+        "off": {"--pipeline.model.camera-optimizer.mode": "off"},
+        "s2camp-free": {rotation: "False", prior: "False"},
+        "s2camp-track-prior": {rotation: "False", prior: "True"},
+        "s2camp-damped": {damping: "1.0", rotation: "False", prior: "False"},
+        "s2camp-damped-gauge": {damping: "1.0", rotation: "True", prior: "False"},
+        "s2camp-damped-gauge-prior": {damping: "1.0", rotation: "True", prior: "True"},
+        "s2camp-gauge-dolly-prior": {
+            rotation: "True", "--pipeline.model.camera-optimizer.fix-common-dolly": "True", prior: "True",
+        },
+    }  # fmt: skip
+    assert camera_options == expected_options.get(variant, {})
     tail = command[command.index("s2camp-data") :]
     seed = str(SCENES["near-deep"].perturbation_seed)
     if start == "accurate":
@@ -214,18 +202,18 @@ def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path:
     assert (tmp_path / "regime.png").exists()
 
 
-def test_report_names_rows_of_the_given_camera_anchor_only_when_present(tmp_path: Path) -> None:
+def test_report_names_rows_of_settings_that_no_longer_run_only_when_present(tmp_path: Path) -> None:
     from s2camp_ns.benchmarks.robustness import report
 
     extra = {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
     rows = [_row("sfm", "off", 0, 20.0, 0.1, 0.1) | extra]
     config = RobustnessConfig(preset="regime", output_dir=tmp_path)
-    assert "anchored at the given cameras" not in report(rows, config).read_text()
-    rows.append(_row("sfm", "s2camp-damped-gauge-prior-given", 0, 20.0, 0.1, 0.1) | extra)
-    text = report(rows, config).read_text()
-    assert "Variants s2camp-damped-gauge-prior-given: rows recorded when the track prior was anchored at the given" in (
-        " ".join(text.split())
-    )
+    assert "no longer run" not in report(rows, config).read_text()
+    rows.append(_row("sfm", "s2camp-track-prior-given", 0, 20.0, 0.1, 0.1) | extra)
+    rows.append(_row("sfm", "s2camp-gauge-prior-rms", 0, 20.0, 0.1, 0.1) | extra)
+    text = " ".join(report(rows, config).read_text().split())
+    assert "Rows of settings that no longer run: s2camp-gauge-prior-rms: the common rotation removed" in text
+    assert "; s2camp-track-prior-given: the track prior anchored at the given cameras" in text
 
 
 def test_a_work_folder_keeps_its_rows_and_a_rerun_skips_the_finished_runs(tmp_path: Path) -> None:
