@@ -1,25 +1,31 @@
 """``make demo``: generate a scene, perturb its cameras (CamP protocol), train ``s2camp``, print camera errors.
 
-Everything runs offline on the CPU in minutes, with two short ``ns-train s2camp`` runs on a small procedural scene in
-the mip-NeRF 360 layout:
+Everything runs offline on the CPU in minutes, on a small procedural scene in the mip-NeRF 360 layout (images,
+COLMAP cameras and the sparse points with their tracks). Two recipes:
 
-1. warm start: nerfacto (CPU-sized) is fitted to the accurate cameras, with the camera learning rate at zero;
-2. refinement: the run resumes from that checkpoint with the training cameras perturbed (CamP's protocol: position,
-   look-at, per-camera focal length and a shared dolly zoom, radial distortion zeroed), and S2CamP refines pose and
-   intrinsics jointly with the NeRF. The warm start's P was computed for the accurate intrinsics: on loading, the
-   camera optimizer sees that the base cameras changed, says so, and recomputes P for the perturbed ones before the
-   first step (``S2CampCameraOptimizer.recompute_stale_preconditioner``); no stale P is used.
+- ``default`` (``make demo``): ``ns-train s2camp`` with every camera option at its default, from scratch, on the
+  perturbed training cameras (CamP's protocol: position, look-at, per-camera focal length and a shared dolly zoom,
+  radial distortion zeroed). The default's track prior anchors each camera where the scene's SfM tracks put it (a
+  camera-only bundle adjustment against the fixed points, ``s2camp_ns.core.track_fit``) with the tracks' reprojection
+  error as its scale. The generated scene's tracks are exact, so the anchor is the true camera and its scale near
+  zero: the cameras go there within the first steps, whatever the field does. Real SfM tracks carry their noise
+  (docs/benchmarks/regime.md: SfM cameras stay where SfM put them). Without tracks (phone poses) the cameras move by
+  the photometric loss alone, after a warm-up of at least 2500 steps: runs as long as a demo never leave it.
+- ``warm-start``: the photometric refinement alone, shown in a demo-length run. nerfacto (CPU-sized) is first fitted
+  to the accurate cameras with the camera learning rate at zero; the run then resumes from that checkpoint on the
+  perturbed cameras without the track prior, with the camera learning rate raised and no warm-up. The warm start's P
+  was computed for the accurate intrinsics: on loading, the camera optimizer sees that the base cameras changed, says
+  so, and recomputes P for the perturbed ones before the first step
+  (``S2CampCameraOptimizer.recompute_stale_preconditioner``).
 
 Then the camera errors of the perturbed start and of the refined cameras against the unperturbed ones, after a
 similarity alignment, are read from the final checkpoint (nerfstudio's ``eval_setup``) and printed.
 
-Why the warm start: measured on this scene, a NeRF trained from scratch on perturbed cameras for a few hundred CPU
-iterations absorbs the inconsistencies, and the cameras then barely move (focal and position errors fell by about
-10% in 400 iterations, the rotation error rose). Against a NeRF that has already seen the scene, the focal error and
-the dolly zoom are recovered within tens of iterations and large position errors fall by about two thirds.
-``--warm-start 0`` runs the plain joint optimisation from scratch instead. The sigmas are CamP's for focal and dolly,
-and larger for position and look-at: CamP's 0.005 is a fraction of a pixel at this resolution, below the gradient
-noise of a run this short.
+Why the warm-start recipe needs its warm start: measured on this scene, a NeRF trained from scratch on perturbed
+cameras for a few hundred CPU iterations absorbs the inconsistencies, and the cameras then barely move. Against a
+NeRF that has already seen the scene, the focal error and the dolly zoom are recovered within tens of iterations.
+The sigmas are CamP's for focal and dolly, and larger for position and look-at: CamP's 0.005 is a fraction of a
+pixel at this resolution, below the gradient noise of a run this short.
 """
 
 from __future__ import annotations
@@ -57,6 +63,9 @@ CONSOLE = Console()
 EXPERIMENT = "demo"
 WARM_START_TIMESTAMP = "warm-start"
 REFINE_TIMESTAMP = "refine"
+NO_TRACK_PRIOR = ["--pipeline.model.camera-optimizer.track-prior", "False"]
+"""Recipe "warm-start" shows what the photometric loss alone does: the scene's exact tracks would otherwise take the
+cameras to the truth by themselves."""
 
 
 @dataclass
@@ -73,16 +82,21 @@ class DemoConfig:
     """Image width of the generated scene (even)."""
     height: int = 72
     """Image height of the generated scene (even)."""
+    recipe: Literal["default", "warm-start"] = "default"
+    """"default": the method's defaults from scratch on the perturbed cameras (the track prior takes them to where
+    the scene's tracks put them); "warm-start": the photometric refinement alone, from a field fitted to the accurate
+    cameras, the camera learning rate raised, the track prior off (module docstring)."""
     warm_start: int = 250
-    """Iterations of the warm start on the accurate cameras (camera learning rate zero); 0 skips it."""
+    """Recipe "warm-start": iterations of the warm start on the accurate cameras (camera learning rate zero); 0 skips
+    it."""
     iterations: int = 200
-    """Iterations of the refinement run on the perturbed cameras."""
+    """Iterations of the run on the perturbed cameras."""
     rays_per_batch: int = 1024
     """Training rays per iteration."""
     camera_lr: float = 1e-3
-    """Learning rate of the whitened camera parameters at the start of the refinement run."""
+    """Recipe "warm-start": learning rate of the whitened camera parameters at the start of the refinement run."""
     camera_lr_final: float = 3e-4
-    """Camera learning rate at the end of the refinement run (exponential decay)."""
+    """Recipe "warm-start": camera learning rate at the end of the refinement run (exponential decay)."""
     sigma_position: float = 0.05
     """Perturbation: camera centres move this far (normalized scene units, cameras within [-1, 1]^3; CamP 0.005)."""
     sigma_look_at: float = 0.02
@@ -102,6 +116,9 @@ class DemoConfig:
     always written to <output_dir>/{warm-start,refine}.log."""
 
 
+WARM_START_RECIPE_OPTIONS = ("warm_start", "camera_lr", "camera_lr_final")
+
+
 def check_config(config: DemoConfig) -> None:
     """Reject settings that would only fail inside ns-train, with the parameter's name."""
     for name in ("warm_start", "iterations", "rays_per_batch", "num_cameras", "width", "height", "perturbation_seed"):
@@ -117,6 +134,14 @@ def check_config(config: DemoConfig) -> None:
         value = getattr(config, name)
         if not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    if config.recipe == "default":  # the default recipe uses the method's own schedule: these would do nothing
+        for name in WARM_START_RECIPE_OPTIONS:
+            value, default = getattr(config, name), getattr(DemoConfig, name)
+            if value != default:
+                raise ValueError(
+                    f"{name} applies to recipe 'warm-start' only, got {value!r} with recipe 'default' (which trains "
+                    "with the method's own camera schedule); add --recipe warm-start"
+                )
 
 
 def ensure_scene(config: DemoConfig) -> Path:
@@ -150,23 +175,35 @@ def run_dir(config: DemoConfig, timestamp: str) -> Path:
     return config.output_dir / EXPERIMENT / config.method / timestamp
 
 
+def uses_warm_start(config: DemoConfig) -> bool:
+    return config.recipe == "warm-start" and config.warm_start > 0
+
+
 def warm_start_command(config: DemoConfig, scene: Path) -> list[str]:
     """nerfacto on the accurate cameras; the camera optimizer exists (the checkpoints must match) but does not move."""
     return [
         *_common_arguments(config, scene, WARM_START_TIMESTAMP, config.warm_start),
         "--vis", "tensorboard",
         *camera_schedule_arguments(FROZEN_LR, FROZEN_LR),
+        *NO_TRACK_PRIOR,
     ]  # fmt: skip
 
 
 def refine_command(config: DemoConfig, scene: Path) -> list[str]:
-    """The perturbed run: resumes the warm start (if any) with a fresh camera schedule compressed to its length."""
+    """The run on the perturbed cameras: recipe "default" with the method's camera options as they are; recipe
+    "warm-start" resuming the warm start (if any) with a fresh camera schedule compressed to its length and no track
+    prior."""
     command = [
         *_common_arguments(config, scene, REFINE_TIMESTAMP, config.iterations),
         "--vis", "viewer+tensorboard" if config.viewer else "tensorboard",
         "--viewer.quit-on-train-completion", "True",
+    ]  # fmt: skip
+    if config.recipe == "default":
+        return [*command, *perturbation_arguments(config)]
+    command += [
         *camera_schedule_arguments(config.camera_lr, config.camera_lr_final, config.iterations),
         "--pipeline.model.camera-optimizer.refresh-every", str(max(config.iterations // 4, 1)),
+        *NO_TRACK_PRIOR,
     ]  # fmt: skip
     if config.warm_start > 0:
         command += [
@@ -304,9 +341,23 @@ def print_table(results: dict[str, dict[str, float]], title: str) -> None:
 
 
 def protocol_notice(config: DemoConfig) -> str:
-    """What this demo does that a user's ``ns-train s2camp`` run does not (printed before training and saved with
-    the errors): the default method from scratch is measured by ``s2camp-bench robustness --preset regime``."""
-    overrides = []
+    """What this demo's run is, against a user's ``ns-train s2camp`` run (printed before training and saved with the
+    errors)."""
+    if config.recipe == "default" and config.method == "s2camp-camp":
+        return (
+            "s2camp-camp with its default options, from scratch, on perturbed cameras. CamP has no track prior: its "
+            "cameras move by the photometric loss alone, after a warm-up of at least 2500 steps, longer than this "
+            "demo. `--recipe warm-start` shows its photometric refinement."
+        )
+    if config.recipe == "default":
+        return (
+            "s2camp with its default options, from scratch, on perturbed cameras. The default track prior takes each "
+            "camera to where the scene's SfM tracks put it; this generated scene's tracks are exact, so that is the "
+            "true camera, reached within the first steps. Real SfM tracks carry their noise, and cameras without "
+            "tracks move by the photometric loss alone after a warm-up of at least 2500 steps (longer than this demo): "
+            "docs/benchmarks/regime.md. `--recipe warm-start` shows the photometric refinement alone."
+        )
+    overrides = ["the track prior is off, so the photometric loss alone moves the cameras"]
     if config.warm_start > 0:
         overrides.append(
             f"the field is first fitted for {config.warm_start} iterations to the ACCURATE cameras (a warm start no "
@@ -318,7 +369,7 @@ def protocol_notice(config: DemoConfig) -> str:
         "steps and peaks at 1e-4)"
     )
     return (
-        "This demo shows that the optimizer can correct cameras, not the default recipe: "
+        "This recipe shows that the optimizer can correct cameras, not the default recipe: "
         + "; ".join(overrides)
         + ". Real-regime runs with the default options: docs/benchmarks/regime.md."
     )
@@ -332,7 +383,7 @@ def main(config: DemoConfig) -> dict[str, dict[str, float]]:
     for timestamp in (WARM_START_TIMESTAMP, REFINE_TIMESTAMP):
         shutil.rmtree(run_dir(config, timestamp), ignore_errors=True)
     seconds = 0.0
-    if config.warm_start > 0:
+    if uses_warm_start(config):
         seconds += run(
             warm_start_command(config, scene),
             f"1/2 warm start: nerfacto on the accurate cameras, {config.warm_start} iterations",
@@ -340,10 +391,11 @@ def main(config: DemoConfig) -> dict[str, dict[str, float]]:
             config.warm_start,
             config.verbose,
         )
-    step = "2/2 " if config.warm_start > 0 else ""
+    step = "2/2 " if uses_warm_start(config) else ""
+    what = "default options, from scratch" if config.recipe == "default" else "photometric refinement"
     seconds += run(
         refine_command(config, scene),
-        f"{step}{config.method} on perturbed cameras (CamP protocol): joint refinement, {config.iterations} iterations",
+        f"{step}{config.method} on perturbed cameras (CamP protocol): {what}, {config.iterations} iterations",
         config.output_dir / f"{REFINE_TIMESTAMP}.log",
         config.iterations,
         config.verbose,
@@ -351,10 +403,12 @@ def main(config: DemoConfig) -> dict[str, dict[str, float]]:
     config_path = run_dir(config, REFINE_TIMESTAMP) / "config.yml"
     CONSOLE.rule("camera errors")
     results = camera_error_table(config_path)
-    warm = f"{config.warm_start} warm-start + " if config.warm_start > 0 else ""
-    print_table(
-        results, f"{config.method}: {warm}{config.iterations} refinement iterations, {seconds:.0f} s of training"
-    )
+    if config.recipe == "default":
+        title = f"{config.method}, default options from scratch: {config.iterations} iterations"
+    else:
+        warm = f"{config.warm_start} warm-start + " if config.warm_start > 0 else ""
+        title = f"{config.method}, photometric refinement: {warm}{config.iterations} refinement iterations"
+    print_table(results, f"{title}, {seconds:.0f} s of training")
     summary = config.output_dir / "camera_errors.json"
     payload = {"config": _jsonable(config), "protocol": notice, "training_seconds": seconds, **results}
     summary.write_text(json.dumps(payload, indent=2))

@@ -1,10 +1,11 @@
 """End-to-end: ``ns-train s2camp`` / ``s2camp-camp`` on a generated scene, logged metrics, checkpoint, COLMAP export.
 
-The module-scoped fixture runs the demo's protocol (``s2camp_ns.demo``) on the conftest's tiny scene (12 cameras,
-64x48): a short warm start of nerfacto on the accurate cameras, then ``ns-train s2camp`` resumed from it with the
-training cameras perturbed by CamP's protocol (position, look-at, per-camera focal, shared dolly zoom), jointly
-refining cameras and NeRF. Most tests read that one pair of runs. Neither run passes ``--machine.device-type``: on a
-machine without CUDA the method config must fall back to the CPU by itself.
+The module-scoped fixture runs the demo's "warm-start" recipe (``s2camp_ns.demo``) on the conftest's tiny scene (12
+cameras, 64x48): a short warm start of nerfacto on the accurate cameras, then ``ns-train s2camp`` resumed from it with
+the training cameras perturbed by CamP's protocol (position, look-at, per-camera focal, shared dolly zoom), jointly
+refining cameras and NeRF by the photometric loss alone (track prior off). Most tests read that one pair of runs.
+Neither run passes ``--machine.device-type``: on a machine without CUDA the method config must fall back to the CPU
+by itself.
 
 What a run this short shows (measured when these tests were written): the focal error, dolly zoom included, falls by
 about 75% (4.46 px -> 1.11 px), while rotation and position errors of CamP's size (0.005 normalized units, a fraction
@@ -83,6 +84,7 @@ def runs(tiny_scene: Path, tiny_scene_config, tmp_path_factory: pytest.TempPathF
         num_cameras=tiny_scene_config.num_cameras,
         width=tiny_scene_config.width,
         height=tiny_scene_config.height,
+        recipe="warm-start",
         warm_start=WARM_START,
         iterations=ITERATIONS,
         rays_per_batch=512,
@@ -420,15 +422,37 @@ def test_interrupted_run_resumes_bit_identically(tiny_scene: Path, tmp_path: Pat
     assert not torch.equal(whole[delta], pipeline_state("whole", 6)[delta])  # the resumed steps did move the cameras
 
 
-def test_demo_commands_resume_and_perturb(tmp_path: Path):
-    """Fast check of the demo's command lines: the refinement resumes the warm start and perturbs the cameras."""
+def test_demo_default_recipe_runs_the_method_defaults_from_scratch(tmp_path: Path):
+    """``make demo`` trains ``s2camp`` as a user would: no camera option, schedule or checkpoint of its own."""
     config = replace(demo.DemoConfig(), output_dir=tmp_path)
+    assert config.recipe == "default"
+    command = demo.refine_command(config, tmp_path)
+    assert command[1] == "s2camp"
+    assert "--load-dir" not in command
+    assert not [arg for arg in command if arg.startswith(("--optimizers.", "--pipeline.model.camera-optimizer."))]
+    assert command[command.index("--perturbation.enabled") + 1] == "True"
+    assert not demo.uses_warm_start(config)
+    assert "default options, from scratch" in demo.protocol_notice(config)
+    assert "warm-up" in demo.protocol_notice(replace(config, method="s2camp-camp"))
+    # Options of the other recipe are refused by name instead of being ignored.
+    with pytest.raises(ValueError, match="camera_lr applies to recipe 'warm-start' only, got 0.01"):
+        demo.check_config(replace(config, camera_lr=0.01))
+    demo.check_config(replace(config, recipe="warm-start", camera_lr=0.01))
+
+
+def test_demo_commands_resume_and_perturb(tmp_path: Path):
+    """Fast check of the warm-start recipe's command lines: the refinement resumes the warm start, perturbs the
+    cameras and turns the track prior off in both runs (same model, photometric loss alone)."""
+    config = replace(demo.DemoConfig(), output_dir=tmp_path, recipe="warm-start")
     warm, refine = demo.warm_start_command(config, tmp_path), demo.refine_command(config, tmp_path)
     assert "--load-dir" not in warm and "--perturbation.enabled" not in warm
     assert refine[refine.index("--load-dir") + 1].endswith(f"{demo.WARM_START_TIMESTAMP}/nerfstudio_models")
     # Dataparser options come after its subcommand, at the end.
     assert refine.index(train_commands.DATAPARSER_SUBCOMMAND) < refine.index("--perturbation.enabled")
     assert refine[refine.index("--perturbation.enabled") + 1] == "True"
+    for command in (warm, refine):
+        assert command[command.index("--pipeline.model.camera-optimizer.track-prior") + 1] == "False"
+    assert "the track prior is off" in demo.protocol_notice(config)
     scratch = demo.refine_command(replace(config, warm_start=0), tmp_path)
     assert "--load-dir" not in scratch
     with pytest.raises(ValueError, match="iterations"):
