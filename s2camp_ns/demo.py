@@ -13,7 +13,8 @@ COLMAP cameras and the sparse points with their tracks). Two recipes:
   the photometric loss alone, after a warm-up of at least 2500 steps: runs as long as a demo never leave it.
 - ``warm-start``: the photometric refinement alone, shown in a demo-length run. nerfacto (CPU-sized) is first fitted
   to the accurate cameras with the camera learning rate at zero; the run then resumes from that checkpoint on the
-  perturbed cameras without the track prior, with the camera learning rate raised and no warm-up. The warm start's P
+  perturbed cameras without the track prior or the common-rotation removal (``PHOTOMETRIC_ONLY``), with the camera
+  learning rate raised and no warm-up. The warm start's P
   was computed for the accurate intrinsics: on loading, the camera optimizer sees that the base cameras changed, says
   so, and recomputes P for the perturbed ones before the first step
   (``S2CampCameraOptimizer.recompute_stale_preconditioner``).
@@ -51,6 +52,7 @@ from rich.table import Table
 
 from s2camp_ns.nerfstudio.train_commands import (
     FROZEN_LR,
+    PHOTOMETRIC_ONLY,
     camera_schedule_arguments,
     ns_train_arguments,
     perturbation_arguments,
@@ -63,9 +65,6 @@ CONSOLE = Console()
 EXPERIMENT = "demo"
 WARM_START_TIMESTAMP = "warm-start"
 REFINE_TIMESTAMP = "refine"
-NO_TRACK_PRIOR = ["--pipeline.model.camera-optimizer.track-prior", "False"]
-"""Recipe "warm-start" shows what the photometric loss alone does: the scene's exact tracks would otherwise take the
-cameras to the truth by themselves."""
 
 
 @dataclass
@@ -85,7 +84,8 @@ class DemoConfig:
     recipe: Literal["default", "warm-start"] = "default"
     """"default": the method's defaults from scratch on the perturbed cameras (the track prior takes them to where
     the scene's tracks put them); "warm-start": the photometric refinement alone, from a field fitted to the accurate
-    cameras, the camera learning rate raised, the track prior off (module docstring)."""
+    cameras, the camera learning rate raised, the track prior and the common-rotation removal off (module
+    docstring)."""
     warm_start: int = 250
     """Recipe "warm-start": iterations of the warm start on the accurate cameras (camera learning rate zero); 0 skips
     it."""
@@ -185,14 +185,14 @@ def warm_start_command(config: DemoConfig, scene: Path) -> list[str]:
         *_common_arguments(config, scene, WARM_START_TIMESTAMP, config.warm_start),
         "--vis", "tensorboard",
         *camera_schedule_arguments(FROZEN_LR, FROZEN_LR),
-        *NO_TRACK_PRIOR,
+        *PHOTOMETRIC_ONLY,  # the scene's exact tracks would take the cameras to the truth by themselves
     ]  # fmt: skip
 
 
 def refine_command(config: DemoConfig, scene: Path) -> list[str]:
     """The run on the perturbed cameras: recipe "default" with the method's camera options as they are; recipe
-    "warm-start" resuming the warm start (if any) with a fresh camera schedule compressed to its length and no track
-    prior."""
+    "warm-start" resuming the warm start (if any) with a fresh camera schedule compressed to its length, the
+    photometric loss alone moving the cameras."""
     command = [
         *_common_arguments(config, scene, REFINE_TIMESTAMP, config.iterations),
         "--vis", "viewer+tensorboard" if config.viewer else "tensorboard",
@@ -203,7 +203,7 @@ def refine_command(config: DemoConfig, scene: Path) -> list[str]:
     command += [
         *camera_schedule_arguments(config.camera_lr, config.camera_lr_final, config.iterations),
         "--pipeline.model.camera-optimizer.refresh-every", str(max(config.iterations // 4, 1)),
-        *NO_TRACK_PRIOR,
+        *PHOTOMETRIC_ONLY,  # the scene's exact tracks would take the cameras to the truth by themselves
     ]  # fmt: skip
     if config.warm_start > 0:
         command += [
@@ -357,7 +357,7 @@ def protocol_notice(config: DemoConfig) -> str:
             "tracks move by the photometric loss alone after a warm-up of at least 2500 steps (longer than this demo): "
             "docs/benchmarks/regime.md. `--recipe warm-start` shows the photometric refinement alone."
         )
-    overrides = ["the track prior is off, so the photometric loss alone moves the cameras"]
+    overrides = ["the track prior and the common-rotation removal are off: the photometric loss alone moves cameras"]
     if config.warm_start > 0:
         overrides.append(
             f"the field is first fitted for {config.warm_start} iterations to the ACCURATE cameras (a warm start no "

@@ -3,9 +3,9 @@
 The module-scoped fixture runs the demo's "warm-start" recipe (``s2camp_ns.demo``) on the conftest's tiny scene (12
 cameras, 64x48): a short warm start of nerfacto on the accurate cameras, then ``ns-train s2camp`` resumed from it with
 the training cameras perturbed by CamP's protocol (position, look-at, per-camera focal, shared dolly zoom), jointly
-refining cameras and NeRF by the photometric loss alone (track prior off). Most tests read that one pair of runs.
-Neither run passes ``--machine.device-type``: on a machine without CUDA the method config must fall back to the CPU
-by itself.
+refining cameras and NeRF by the photometric loss alone (track prior and common-rotation removal off). Most tests
+read that one pair of runs. Neither run passes ``--machine.device-type``: on a machine without CUDA the method config
+must fall back to the CPU by itself.
 
 What a run this short shows (measured when these tests were written): the focal error, dolly zoom included, falls by
 about 75% (4.46 px -> 1.11 px), while rotation and position errors of CamP's size (0.005 normalized units, a fraction
@@ -442,7 +442,8 @@ def test_demo_default_recipe_runs_the_method_defaults_from_scratch(tmp_path: Pat
 
 def test_demo_commands_resume_and_perturb(tmp_path: Path):
     """Fast check of the warm-start recipe's command lines: the refinement resumes the warm start, perturbs the
-    cameras and turns the track prior off in both runs (same model, photometric loss alone)."""
+    cameras and turns the track prior and the common-rotation removal off in both runs (same model, photometric loss
+    alone)."""
     config = replace(demo.DemoConfig(), output_dir=tmp_path, recipe="warm-start")
     warm, refine = demo.warm_start_command(config, tmp_path), demo.refine_command(config, tmp_path)
     assert "--load-dir" not in warm and "--perturbation.enabled" not in warm
@@ -452,7 +453,8 @@ def test_demo_commands_resume_and_perturb(tmp_path: Path):
     assert refine[refine.index("--perturbation.enabled") + 1] == "True"
     for command in (warm, refine):
         assert command[command.index("--pipeline.model.camera-optimizer.track-prior") + 1] == "False"
-    assert "the track prior is off" in demo.protocol_notice(config)
+        assert command[command.index("--pipeline.model.camera-optimizer.fix-common-rotation") + 1] == "False"
+    assert "the track prior and the common-rotation removal are off" in demo.protocol_notice(config)
     scratch = demo.refine_command(replace(config, warm_start=0), tmp_path)
     assert "--load-dir" not in scratch
     with pytest.raises(ValueError, match="iterations"):
