@@ -40,7 +40,12 @@ from pathlib import Path
 
 from s2camp_ns.core.validation import check_choice, check_positive_int
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
-from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_arguments, training_environment
+from s2camp_ns.nerfstudio.train_commands import (
+    DATAPARSER_SUBCOMMAND,
+    PHOTOMETRIC_ONLY,
+    ns_train_arguments,
+    training_environment,
+)
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
@@ -138,7 +143,7 @@ _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
 _DAMPED = ["--pipeline.model.camera-optimizer.damping.damping-rel", "1.0"]
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
-    "s2camp-free": [_ROTATION, "False", _PRIOR, "False"],
+    "s2camp-free": PHOTOMETRIC_ONLY,
     "s2camp-track-prior": [_ROTATION, "False", _PRIOR, "True"],
     "s2camp-damped": [*_DAMPED, _ROTATION, "False", _PRIOR, "False"],
     "s2camp-damped-gauge": [*_DAMPED, _ROTATION, "True", _PRIOR, "False"],
