@@ -165,13 +165,15 @@ no longer run."""
 HISTORICAL_VARIANTS = {
     "s2camp-track-prior-given": "the track prior anchored at the given cameras, before it took its anchor from the "
     "tracks (`s2camp_ns.core.track_fit`)",
-    "s2camp-damped-gauge-prior-given": "the same, with the damped and common-rotation options",
+    "s2camp-damped-gauge-prior-given": "the track prior anchored at the given cameras, with the damping raised and "
+    "the common rotation removed",
     "s2camp-gauge-prior-rms": "the common rotation removed and the track prior, the shared intrinsics' prior scale the "
-    "RMS of their images' instead of its standard error (RMS / sqrt(images)); where the start has no tracks (phone) "
-    "the code path of today's s2camp",
-    "s2camp-damped-gauge-prior-rms": "the same with the damping raised",
+    "RMS of their images' instead of its standard error (RMS / sqrt(images)); its phone rows, which have no tracks "
+    "and so ran today's code path, are filed as s2camp",
+    "s2camp-damped-gauge-prior-rms": "as s2camp-gauge-prior-rms, with the damping raised",
 }
-"""Variant names found only in committed rows, and what they ran (no longer runnable)."""
+"""Variant names found only in committed rows, and what they ran (no longer runnable). Each description stands on
+its own: the report lists them in alphabetical order."""
 PHONE_PROFILE = {"sigma_position": 0.02, "sigma_look_at": 0.02, "sigma_dolly_z": 0.02, "sigma_focal_length": 0.0}
 """The phone-pose start, in CamP's protocol (normalized units: the camera centres fill [-1, 1]^3). Assumed sizes of
 visual-inertial poses and factory intrinsics as Polycam / Record3D exports carry them, not measured here: centres off
