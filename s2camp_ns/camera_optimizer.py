@@ -35,6 +35,7 @@ the next step instead of using a stale P.
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field
 from typing import Literal, Union
@@ -66,7 +67,7 @@ from s2camp_ns.core.preconditioner import (
 )
 from s2camp_ns.core.proxy_range import ProxyRanges, proxy_ranges
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS, compute_shared_preconditioner, reexpress_shared_latents
-from s2camp_ns.core.track_fit import TrackEvidence, fit_cameras_to_tracks
+from s2camp_ns.core.track_fit import TrackEvidence, fit_anchor
 from s2camp_ns.core.validation import check_range
 
 PIXEL_KEY = "s2camp_pixels"
@@ -338,7 +339,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         # step (``recompute_stale_preconditioner``), once Adam's moments are loaded too.
         self._stale_preconditioner: str | None = None
         # Track prior radius per image in whitened units (RMS px / max(W, H)); NaN = no prior (``set_track_prior``),
-        # and per physical camera for the shared intrinsics latent (the standard error of its images' pooled radii).
+        # and per physical camera for the shared intrinsics latent (the standard error of its pooled fit).
         no_prior = torch.full((num_cameras,), float("nan"), dtype=torch.float64, device=device)
         self.register_buffer("prior_radius", no_prior, persistent=False)
         self.register_buffer("prior_radius_intrinsics", no_prior.clone(), persistent=False)
@@ -408,18 +409,20 @@ class S2CampCameraOptimizer(CameraOptimizer):
 
         With ``evidence`` (the scene's tracks and the given cameras in the tracks' world, from the data parser) the
         anchor is where the tracks put each camera (``core.track_fit``: a camera-only bundle adjustment of this
-        optimizer's free parameters against the fixed SfM points) and the scale is the reprojection error there,
-        the tracks' own noise. Without it the anchor is the given camera and the scale ``track_rms_px``, its
-        reprojection error against the tracks (``core.tracks``; NaN or None: no prior). Scales are stored in
-        whitened units (divided by max(W, H), the Gram matrix's pixel unit, docs/EQUATIONS.md eq. 5). Call after
-        ``set_train_cameras``."""
+        optimizer's free parameters against the fixed SfM points, which keeps the given intrinsics unless the tracks
+        call for others, ``fit_anchor``) and the scale is the reprojection error there, the tracks' own noise; shared
+        intrinsics take the standard error of their fit to all their images' observations. Without it the anchor is
+        the given camera and the scale ``track_rms_px``, its reprojection error against the tracks (``core.tracks``;
+        NaN or None: no prior). Scales are stored in whitened units (divided by max(W, H), the Gram matrix's pixel
+        unit, docs/EQUATIONS.md eq. 5). Call after ``set_train_cameras``."""
         self._require_cameras()
         device = self.precond.device
         radius = torch.full((self.num_cameras,), float("nan"), dtype=torch.float64, device=device)
         anchor = torch.zeros(self.num_cameras, self.layout.num_params, dtype=torch.float64, device=device)
         rms = None
+        observations = None
         if self.config.track_prior and evidence is not None:
-            fit = fit_cameras_to_tracks(
+            fit = fit_anchor(
                 evidence.tracks,
                 evidence.c2w,
                 self.base_intrinsics_struct(),
@@ -430,12 +433,15 @@ class S2CampCameraOptimizer(CameraOptimizer):
             deltas[:, :3] = deltas[:, :3] * float(evidence.world_scale)  # tracks' world -> training frame
             anchor = deltas[:, list(self.layout.indices)].to(device)
             rms = fit.rms_px.to(device)
+            observations = fit.observations.to(device)
             moved = torch.isfinite(fit.rms_given_px) & torch.isfinite(fit.rms_px)
             if bool(moved.any()):
+                held = fit.intrinsics_held
+                kept = "" if held is None else f"; given intrinsics kept: {int(held.sum())} of {held.numel()} camera(s)"
                 LOG.print(
                     f"[dim]Track prior: the cameras' reprojection error against the SfM tracks is "
                     f"{_span(fit.rms_given_px[moved])} px as given and {_span(fit.rms_px[moved])} px where the tracks "
-                    f"put them (the anchor; {fit.iterations} Levenberg-Marquardt iterations)"
+                    f"put them (the anchor{kept}; {fit.iterations} Levenberg-Marquardt iterations)"
                 )
         elif track_rms_px is not None and self.config.track_prior:
             rms = torch.as_tensor(track_rms_px, dtype=torch.float64).reshape(-1).to(device)
@@ -451,17 +457,25 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.prior_anchor = torch.where(torch.isfinite(radius)[:, None], anchor, torch.zeros_like(anchor))
         self.has_track_prior = bool(torch.isfinite(radius).any())
         if self.shared:  # groups are known by now: set_train_cameras fixed them
-            pooled = torch.zeros(self.num_physical_cameras, dtype=torch.float64, device=radius.device)
-            counts = torch.zeros_like(pooled)
             finite = torch.isfinite(radius)
-            pooled.index_add_(0, self.camera_of_image[finite], radius[finite].square())
-            counts.index_add_(0, self.camera_of_image[finite], torch.ones_like(radius[finite]))
-            # The intrinsics are fitted to the tracks of all their n_c images at once, so their scale is the standard
-            # error of that pooled fit, RMS(r_i) / sqrt(n_c) = sqrt(sum r_i^2) / n_c: a unit step of the shared latent
-            # moves every image's proxy points together (core.shared_intrinsics), which independent per-image noise
-            # of r_i explains only to 1 / sqrt(n_c). With the RMS alone the shared focal length of 49 SfM images
-            # ended 0.2-0.37 px further from the truth than SfM's (docs/DESIGN-NOTES.md sec. 14).
-            self.prior_radius_intrinsics = torch.where(counts > 0, pooled.sqrt() / counts.clamp(min=1.0), torch.nan)
+            weight = torch.ones_like(radius) if observations is None else observations.to(radius)
+            weight = torch.where(finite, weight, torch.zeros_like(weight))
+            squared = torch.zeros(self.num_physical_cameras, dtype=torch.float64, device=radius.device)
+            counts = torch.zeros_like(squared)
+            squared.index_add_(0, self.camera_of_image, torch.nan_to_num(radius).square() * weight)
+            counts.index_add_(0, self.camera_of_image, weight)
+            # The shared intrinsics are fitted to every observation of their images at once, so their scale is the
+            # standard error of that pooled fit: a unit step of the shared latent moves each image's proxy points by
+            # an RMS of one (core.shared_intrinsics), and so each of the O observations by about one; O of them with
+            # pixel noise of RMS r (2D: r^2 / 2 per coordinate) determine it to r / sqrt(2 O), r the pooled RMS,
+            # i.e. sqrt(sum_i O_i r_i^2) / (sqrt(2) sum_i O_i). The poses keep each image's own noise r_i as theirs
+            # (the photometric loss corrects poses within it), but the focal length's photometric evidence in the
+            # regime is the biased pull of the dolly zoom (docs/DESIGN-NOTES.md sec. 12-14): with r_i / sqrt(n_c)
+            # the shared focal length of 49 SfM images still ended 0.06-0.08 px further from the truth than SfM's.
+            # Without observation counts (track_rms_px alone) each image counts once: a looser prior.
+            self.prior_radius_intrinsics = torch.where(
+                counts > 0, squared.sqrt() / (math.sqrt(2.0) * counts.clamp(min=1e-12)), torch.nan
+            )
 
     def prior_anchor_latents(self) -> tuple[Float[Tensor, "n k"], Float[Tensor, "c m"] | None]:
         """The anchor in the whitened latent under the current P (phi_hat = P phi, paper eq. 15): the pose latent per
@@ -484,8 +498,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
         whitened coordinate at most r from the anchor, the tracks' noise; gradient noise (|m / sqrt(v)| near 0.23 for
         Adam's beta1 0.9) about a quarter of that. Once the field stops pulling, the camera relaxes back towards the
         anchor within about r / lr steps instead of staying where early field errors pushed it. Images without
-        tracks are untouched. Shared intrinsics take the standard error of their images' pooled radii,
-        RMS(r_i) / sqrt(n_c) for the n_c images with tracks (``set_track_prior``).
+        tracks are untouched. Shared intrinsics take the standard error of their fit to all their images'
+        observations, RMS / sqrt(2 O) for O observations of pooled RMS (``set_track_prior``).
         """
         # A Python flag, not a look at the radii: no device synchronisation on the training step's path.
         if not self.enabled or not self.has_track_prior or lr <= 0:

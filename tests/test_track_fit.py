@@ -13,7 +13,7 @@ from test_transforms_tracks import _ns_process_data_layout, _parse
 
 from s2camp_ns.core.camera import Intrinsics, project, se3_exp
 from s2camp_ns.core.perturbation import look_at_rotation
-from s2camp_ns.core.track_fit import fit_cameras_to_tracks
+from s2camp_ns.core.track_fit import fit_anchor, fit_cameras_to_tracks
 from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
 
 WIDTH, HEIGHT = 64, 48
@@ -133,6 +133,66 @@ def test_a_similarity_of_the_world_scales_only_the_translation_deltas() -> None:
     moved_fit = fit_cameras_to_tracks(moved_tracks, moved_given, truth, tuple(range(6)))
     torch.testing.assert_close(moved_fit.deltas[:, 3:6], fit.deltas[:, 3:6], atol=1e-9, rtol=0)
     torch.testing.assert_close(moved_fit.deltas[:, :3], scale * fit.deltas[:, :3], atol=1e-9, rtol=0)
+
+
+POSE_FOCAL = tuple(range(7))
+POSE_INTRINSICS_DISTORTION = (*range(10), 10, 11)  # pose, focal, principal point, skew, k1, k2
+
+
+def _sfm_like(noise_px: float) -> tuple[Tracks, torch.Tensor, Intrinsics]:
+    """Noisy tracks of a ring and cameras as SfM leaves them: the best fit of SfM's own model (pose and one shared
+    focal length; principal point and distortion held) to those tracks."""
+    n = 8
+    truth_c2w, truth = _ring(n), _intrinsics(n)
+    tracks = _observe(_points(400), truth_c2w, truth, noise_px=noise_px)
+    shared = torch.zeros(n, dtype=torch.long)
+    sfm = fit_cameras_to_tracks(tracks, truth_c2w, truth, POSE_FOCAL, shared)
+    return tracks, _moved(truth_c2w, sfm.deltas[:, :6]), truth.with_delta(sfm.deltas)
+
+
+def test_anchor_keeps_intrinsics_that_noisy_tracks_do_not_contradict() -> None:
+    # Cameras at the optimum of SfM's model: freeing the principal point, skew and distortion lets a refit chase the
+    # noise (the focal length moves with them), which the likelihood-ratio test does not take as evidence.
+    tracks, c2w, intrinsics = _sfm_like(noise_px=0.5)
+    shared = torch.zeros(8, dtype=torch.long)
+    refit = fit_cameras_to_tracks(tracks, c2w, intrinsics, POSE_INTRINSICS_DISTORTION, shared)
+    assert float(refit.deltas[:, 6:12].abs().max()) > 1e-3  # the plain refit does move the intrinsics
+    anchor = fit_anchor(tracks, c2w, intrinsics, POSE_INTRINSICS_DISTORTION, shared)
+    assert anchor.intrinsics_held.tolist() == [True]
+    assert bool((anchor.deltas[:, 6:] == 0).all())
+    poses = fit_cameras_to_tracks(tracks, c2w, intrinsics, tuple(range(6)), shared)
+    torch.testing.assert_close(anchor.deltas, poses.deltas, rtol=0, atol=0)  # the poses' fit with those intrinsics
+    torch.testing.assert_close(anchor.rms_px, poses.rms_px, rtol=0, atol=0)
+
+
+def test_anchor_refits_intrinsics_the_tracks_contradict() -> None:
+    # The same cameras with the shared focal length 6 px (10%) off: the tracks call for it. (At 1 px the dolly of
+    # the pose-only fit absorbs nearly all of it at this noise: a likelihood ratio of 9.8 on 6 parameters, no call.)
+    tracks, c2w, intrinsics = _sfm_like(noise_px=0.5)
+    change = torch.zeros(8, 16, dtype=torch.float64)
+    change[:, 6] = 6.0
+    shared = torch.zeros(8, dtype=torch.long)
+    anchor = fit_anchor(tracks, c2w, intrinsics.with_delta(change), POSE_INTRINSICS_DISTORTION, shared)
+    assert anchor.intrinsics_held.tolist() == [False]
+    assert anchor.deltas[:, 6].tolist() == pytest.approx([-6.0] * 8, abs=0.5)
+    # Per-image intrinsics (one physical camera each, 400 observations) decide per camera: only camera 3's focal
+    # length is off, by 15 px.
+    per_image = torch.zeros(8, 16, dtype=torch.float64)
+    per_image[3, 6] = 15.0
+    anchor = fit_anchor(tracks, c2w, intrinsics.with_delta(per_image), POSE_INTRINSICS_DISTORTION)
+    assert anchor.intrinsics_held.tolist() == [True, True, True, False, True, True, True, True]
+    assert anchor.deltas[3, 6].item() == pytest.approx(-15.0, abs=0.5)
+    assert bool((anchor.deltas[torch.arange(8) != 3, 6:] == 0).all())
+
+
+def test_observations_count_each_images_valid_tracks() -> None:
+    n = 4
+    truth_c2w, truth = _ring(n), _intrinsics(n)
+    tracks = _observe(_points(), truth_c2w, truth)
+    fit = fit_cameras_to_tracks(tracks, truth_c2w, truth, tuple(range(6)))
+    # Every generated observation lies inside its image, in front of the camera: all are valid.
+    assert fit.observations.tolist() == torch.bincount(tracks.image, minlength=n).double().tolist()
+    assert float(fit.observations.min()) >= 10
 
 
 def test_fit_refuses_a_wrong_free_mask_and_camera_count() -> None:

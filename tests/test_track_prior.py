@@ -136,13 +136,38 @@ def test_prior_step_shrinks_each_latent_by_its_radius_and_leaves_untracked_image
     expected = [1 / 1.1, 1 / 1.01, 1.0, 1 / 1.05]
     assert optimizer.whitened_delta[:, 0].tolist() == pytest.approx(expected, rel=1e-6)
     assert bool((optimizer.whitened_delta == optimizer.whitened_delta[:, :1]).all())  # every coordinate alike
-    # Camera A (images 0 and 2): only image 0 has tracks, radius 0.01; camera B: the standard error of its two
-    # images' radii 0.1 and 0.02 pooled, RMS / sqrt(2).
-    radius_b = math.sqrt((0.1**2 + 0.02**2) / 2) / math.sqrt(2)
-    shared = [1 / (1 + 1e-3 / r) for r in (0.01, radius_b)]
+    # Shared intrinsics: the standard error r / sqrt(2 O) of a fit to O observations of pooled RMS r. Without the
+    # observation counts (track_rms_px alone) each image counts once. Camera A (images 0 and 2): only image 0 has
+    # tracks, 0.01 / sqrt(2); camera B: images 1 and 3, radii 0.1 and 0.02 pooled over 2 observations.
+    radius_b = math.sqrt((0.1**2 + 0.02**2) / 2) / math.sqrt(2 * 2)
+    shared = [1 / (1 + 1e-3 / r) for r in (0.01 / math.sqrt(2), radius_b)]
     labels = optimizer.camera_of_image.tolist()
     assert optimizer.whitened_intrinsics[labels[0], 0].item() == pytest.approx(shared[0], rel=1e-6)
     assert optimizer.whitened_intrinsics[labels[1], 0].item() == pytest.approx(shared[1], rel=1e-6)
+
+
+def test_shared_intrinsics_radius_is_the_standard_error_of_every_observation(monkeypatch) -> None:
+    # The anchor's fit (stubbed: its RMS and observation counts per image) sets the radii: each image's pose keeps
+    # its own RMS, each physical camera's intrinsics the standard error of the pooled fit, sqrt(sum O_i r_i^2) /
+    # (sqrt(2) sum O_i). Camera A holds images 0 and 2, camera B images 1 and 3 (``make_optimizer``), width 64.
+    import s2camp_ns.camera_optimizer as module
+    from s2camp_ns.core.track_fit import TrackEvidence, TrackFit
+
+    rms = torch.tensor([0.64, 6.4, 1.28, 3.2], dtype=torch.float64)
+    observations = torch.tensor([100.0, 300.0, 50.0, 20.0], dtype=torch.float64)
+    fit = TrackFit(torch.zeros(4, 16, dtype=torch.float64), rms, rms, 1, observations, torch.tensor([True, True]))
+    monkeypatch.setattr(module, "fit_anchor", lambda *args, **kwargs: fit)
+    optimizer = make_optimizer(track_prior=True)
+    index = torch.zeros(1, dtype=torch.long)
+    tracks = Tracks(torch.zeros(1, 3), index, index, torch.zeros(1, 2))
+    evidence = TrackEvidence(tracks, IDENTITY_C2W.expand(4, 3, 4), 1.0)
+    optimizer.set_track_prior(None, evidence)
+    assert optimizer.prior_radius.tolist() == pytest.approx([0.01, 0.1, 0.02, 0.05], rel=1e-12)
+    camera_a = math.sqrt(100 * 0.01**2 + 50 * 0.02**2) / (math.sqrt(2) * 150)
+    camera_b = math.sqrt(300 * 0.1**2 + 20 * 0.05**2) / (math.sqrt(2) * 320)
+    labels = optimizer.camera_of_image.tolist()
+    assert optimizer.prior_radius_intrinsics[labels[0]].item() == pytest.approx(camera_a, rel=1e-12)
+    assert optimizer.prior_radius_intrinsics[labels[1]].item() == pytest.approx(camera_b, rel=1e-12)
 
 
 def test_prior_off_or_without_tracks_changes_nothing() -> None:

@@ -33,6 +33,9 @@ from s2camp_ns.core.camera import NUM_CAMERA_PARAMS, Intrinsics, apply_pose_delt
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
 from s2camp_ns.core.tracks import Tracks, per_image_rms
 
+INTRINSICS_REFIT_LEVEL = 1e-3
+"""Significance level at which the tracks must call for other intrinsics than the given ones before the anchor takes
+them (``fit_anchor``): a fixed statistical level, the same for every scene."""
 MIN_OBSERVATIONS = 10
 """Valid observations an image needs to be fitted: with fewer its six pose parameters are barely determined (three
 points fit any pose exactly), so the RMS at the fit would say nothing of the noise and a prior of that scale would pin
@@ -53,6 +56,11 @@ class TrackFit:
     """Reprojection RMS per image of the given cameras, for comparison."""
     iterations: int
     """Levenberg-Marquardt iterations taken."""
+    observations: Float[Tensor, " n"]
+    """Valid observations per image at the fit (0 for an image that was not fitted)."""
+    intrinsics_held: Bool[Tensor, " c"] | None = None
+    """``fit_anchor`` only: per physical camera, True where the tracks do not call for other intrinsics than the given
+    ones (``INTRINSICS_REFIT_LEVEL``), so the fit kept them and moved only the poses."""
 
 
 def _residuals(
@@ -167,7 +175,72 @@ def fit_cameras_to_tracks(
     deltas = torch.zeros(n, NUM_CAMERA_PARAMS, dtype=torch.float64)
     deltas[:, pose_columns] = pose
     deltas[:, intrinsics_columns] = intr[groups]
-    return TrackFit(deltas, rms_of(residual, weight), rms_given, iterations)
+    observations = torch.zeros(n, dtype=torch.float64).index_add_(0, image, weight)
+    return TrackFit(deltas, rms_of(residual, weight), rms_given, iterations, observations)
+
+
+def fit_anchor(
+    tracks: Tracks,
+    c2w: Float[Tensor, "n 3 4"],
+    intrinsics: Intrinsics,
+    free: Bool[Tensor, " 16"] | tuple[int, ...],
+    camera_of_image: Int[Tensor, " n"] | None = None,
+) -> TrackFit:
+    """The track prior's anchor: ``fit_cameras_to_tracks``, with each physical camera's intrinsics moved from the
+    given ones only where the tracks call for it.
+
+    Cameras straight out of SfM sit at the optimum of SfM's own camera model, in which some intrinsics were held
+    (COLMAP's SIMPLE_RADIAL refines neither the principal point nor a second distortion term). Freeing those in a
+    camera-only refit moves the focal length a little along with them, by noise: on the regime scene's SfM cameras
+    (49 images, 16k observations) by 0.024 px, further from the truth, for a fall of the cost that six parameters
+    fitted to noise explain. So the intrinsics are refitted (with the poses) and kept fixed (poses only), and the
+    refit is the anchor of a physical camera only where its likelihood-ratio statistic, the fall of the cost over the
+    refit's noise variance per residual, is beyond ``INTRINSICS_REFIT_LEVEL`` of a chi-square with one degree of
+    freedom per free intrinsic (Wilks' theorem for nested least squares with Gaussian noise). Cameras changed after
+    SfM (a perturbation, another tool's calibration) fail that test by orders of magnitude and get the refit.
+    """
+    full = fit_cameras_to_tracks(tracks, c2w, intrinsics, free, camera_of_image)
+    mask = torch.zeros(NUM_CAMERA_PARAMS, dtype=torch.bool)
+    if isinstance(free, tuple):
+        mask[list(free)] = True
+    else:
+        mask = free.to(device="cpu", dtype=torch.bool)
+    m = int(mask[NUM_POSE_PARAMS:].sum())
+    n = c2w.shape[0]
+    groups = torch.arange(n) if camera_of_image is None else camera_of_image.to("cpu", torch.long)
+    num_groups = int(groups.max()) + 1 if n else 0
+    if m == 0 or num_groups == 0:
+        return full
+    pose_mask = mask.clone()
+    pose_mask[NUM_POSE_PARAMS:] = False
+    held = fit_cameras_to_tracks(tracks, c2w, intrinsics, pose_mask, camera_of_image)
+
+    def per_group(values: Tensor) -> Tensor:
+        return torch.zeros(num_groups, dtype=torch.float64).index_add_(0, groups, values)
+
+    def cost(fit: TrackFit) -> Tensor:
+        return per_group(torch.nan_to_num(fit.rms_px).square() * fit.observations)
+
+    p = int(mask[:NUM_POSE_PARAMS].sum())
+    fitted_images = per_group((full.observations > 0).to(torch.float64))
+    residuals = 2.0 * per_group(full.observations)
+    dof = residuals - p * fitted_images - m
+    cost_full, cost_held = cost(full), cost(held)
+    fall = (cost_held - cost_full).clamp(min=0.0)
+    variance = cost_full / dof.clamp(min=1.0)
+    # Exact tracks leave no noise (variance 0): any fall of the cost is then evidence.
+    statistic = torch.where(variance > 0, fall / variance.clamp(min=1e-300), torch.where(fall > 0, torch.inf, 0.0))
+    p_value = torch.special.gammaincc(torch.full_like(statistic, m / 2.0), statistic / 2.0)
+    held_groups = (p_value >= INTRINSICS_REFIT_LEVEL) | (dof <= 0)
+    take_held = held_groups[groups]
+    return TrackFit(
+        deltas=torch.where(take_held[:, None], held.deltas, full.deltas),
+        rms_px=torch.where(take_held, held.rms_px, full.rms_px),
+        rms_given_px=full.rms_given_px,
+        iterations=full.iterations + held.iterations,
+        observations=torch.where(take_held, held.observations, full.observations),
+        intrinsics_held=held_groups,
+    )
 
 
 def _solve_normal_equations(
@@ -224,4 +297,4 @@ class TrackEvidence:
     """Training-frame units per unit of the tracks' world (nerfstudio's ``dataparser_scale``)."""
 
 
-__all__ = ["TrackEvidence", "TrackFit", "fit_cameras_to_tracks"]
+__all__ = ["INTRINSICS_REFIT_LEVEL", "TrackEvidence", "TrackFit", "fit_anchor", "fit_cameras_to_tracks"]
