@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import platform
@@ -14,7 +15,9 @@ from pathlib import Path
 
 import torch
 
+from s2camp_ns import __version__ as s2camp_version
 from s2camp_ns.core.camera import Intrinsics
+from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 DEFAULT_OUTPUT_DIR = Path("outputs/benchmarks")
 """Where reports and plots go unless ``--output-dir`` says otherwise: beside ns-train's ``outputs/``, so that trying a
@@ -122,3 +125,28 @@ def in_work_folder(folder: Path | None, prefix: str, body: Callable[[Path], list
 def log(message: str) -> None:
     """Progress goes to stderr so that ``--json`` keeps stdout machine-readable."""
     print(message, file=sys.stderr, flush=True)
+
+
+def generated_scene(config: MakeSceneConfig) -> Path:
+    """The scene ``config`` generates, in ``config.output_dir``: the folder as it is when it already holds that scene
+    (its ``scene_info.json``, written last, records the same generator config and version), else generated there.
+
+    A grid that spans sessions starts several benchmark processes on one work folder. Regenerating the scene in
+    place while another run reads it (its evaluation reads the true cameras) made that run fail with "no COLMAP
+    model"; the scene is deterministic, so an identical one is kept instead."""
+    info_path = Path(config.output_dir) / "scene_info.json"
+    if info_path.is_file():
+        info = json.loads(info_path.read_text(encoding="utf8"))
+        wanted = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()}
+        if info.get("version") == s2camp_version and json.loads(json.dumps(wanted)) == info.get("config"):
+            return Path(config.output_dir)
+    return make_scene(config)
+
+
+def no_longer_run_note(rows: Iterable[dict], historical: dict[str, str]) -> str:
+    """The report's sentence on the rows whose variant is a name of ``historical`` (settings that no longer run, with
+    what they ran), in alphabetical order; empty when there are none."""
+    names = sorted({row["variant"] for row in rows} & set(historical))
+    if not names:
+        return ""
+    return " Rows of settings that no longer run: " + "; ".join(f"{name}: {historical[name]}" for name in names) + "."

@@ -46,9 +46,17 @@ from s2camp_ns.nerfstudio.train_commands import (
     ns_train_arguments,
     training_environment,
 )
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.scene.make_scene import MakeSceneConfig
 
-from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
+from .common import (
+    DEFAULT_OUTPUT_DIR,
+    generated_scene,
+    in_work_folder,
+    log,
+    markdown_table,
+    no_longer_run_note,
+    write_report,
+)
 
 
 def focal_for_fov(width: int, fov_degrees: float) -> float:
@@ -122,9 +130,12 @@ the centre, so the ring radius sets the depth range each camera sees. The camera
 of images times the field of view is how often the background is covered: the narrow scene gets the most images
 (with 8 images of 40 degrees a held-out view sees background no training view saw, and its PSNR stayed at 14.7 dB
 from 20 to 200 iterations while the training PSNR rose to 29.5), the wide one the fewest."""
-STARTS = ("accurate", "perturbed", "sfm", "phone")
+STARTS = ("accurate", "perturbed", "sfm", "phone", "accurate-untracked")
 """accurate: the true cameras; perturbed: CamP's perturbation; sfm: pycolmap SfM on the full-size images with an
-EXIF-like focal prior (``benchmarks/sfm.py``); phone: ``PHONE_PROFILE`` without SfM tracks (module docstring)."""
+EXIF-like focal prior (``benchmarks/sfm.py``); phone: ``PHONE_PROFILE`` without SfM tracks (module docstring);
+accurate-untracked: the true cameras without SfM tracks (a hand-made or exported transforms.json): what refinement
+does to good cameras when nothing but the images anchors them."""
+REGIME_STARTS = STARTS[:4]
 DEFAULT_STARTS = ("accurate", "perturbed")
 RECOVERY_STARTS = ("perturbed", "phone")
 """Starts that refinement must correct (the report gives the fraction of the start error removed); the others
@@ -168,8 +179,12 @@ HISTORICAL_VARIANTS = {
     "s2camp-damped-gauge-prior-given": "the track prior anchored at the given cameras, with the damping raised and "
     "the common rotation removed",
     "s2camp-gauge-prior-rms": "the common rotation removed and the track prior, the shared intrinsics' prior scale the "
-    "RMS of their images' instead of its standard error (RMS / sqrt(images)); its phone rows, which have no tracks "
-    "and so ran today's code path, are filed as s2camp",
+    "RMS of their images' scales; its phone rows, which have no tracks and so ran today's code path, are filed as "
+    "s2camp",
+    "s2camp-prior-image-se": "the defaults (common rotation removed, track prior) with the shared intrinsics' prior "
+    "scale RMS / sqrt(images), one unit of noise per image, and the anchor's intrinsics always refitted; since then "
+    "the anchor keeps the given intrinsics unless the tracks call for others and the scale is the standard error over "
+    "every observation (`s2camp_ns.core.track_fit.fit_anchor`)",
     "s2camp-damped-gauge-prior-rms": "as s2camp-gauge-prior-rms, with the damping raised",
 }
 """Variant names found only in committed rows, and what they ran (no longer runnable). Each description stands on
@@ -186,7 +201,7 @@ SFM_FOCAL_PRIOR = 1.05
 METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim", "psnr_unaligned")
 ERRORS = ("rot_err", "pos_err", "focal_err", "drift_px")
 QUICK = {"iterations": 20, "seeds": 1, "variants": ("off", "s2camp")}
-REGIME = {"scenes": ("regime-wide",), "starts": STARTS, "iterations": 3000, "variants": VARIANTS[:4]}
+REGIME = {"scenes": ("regime-wide",), "starts": REGIME_STARTS, "iterations": 3000, "variants": VARIANTS[:4]}
 """``--preset regime``: the regime real runs train in (the scene's ``varies``); passes per pixel in every row."""
 """``--quick``: the first scene only, both starts, these settings, 10 test-time alignment steps of 64 rays."""
 
@@ -327,6 +342,7 @@ def train_command(
     if spec.start == "phone":
         for key, value in PHONE_PROFILE.items():
             dataparser += [f"--perturbation.{key.replace('_', '-')}", str(value)]
+    if spec.start in ("phone", "accurate-untracked"):
         dataparser += ["--tracks", "False"]
     if spec.start == "sfm":
         assert truth is not None, "an sfm start measures against the generated scene's cameras"
@@ -540,7 +556,7 @@ def _run(config: RobustnessConfig, root: Path) -> list[dict]:
     began = time.perf_counter()
     (root / "logs").mkdir(parents=True, exist_ok=True)
     scene_dirs = {
-        name: make_scene(replace(SCENES[name].scene, output_dir=root / "scenes" / name)) for name in config.scenes
+        name: generated_scene(replace(SCENES[name].scene, output_dir=root / "scenes" / name)) for name in config.scenes
     }
     done, specs = resume(run_specs(config), root)
     log(
@@ -746,21 +762,16 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         f"--pipeline.model.camera-optimizer.mode off`. 'perturbed' is the data parser's CamP perturbation "
         f"(CamP's sigmas, the scene's perturbation seed), 'accurate' the true cameras, 'sfm' pycolmap SfM on the "
         f"full-size images (focal prior {SFM_FOCAL_PRIOR} x the true focal), 'phone' `PHONE_PROFILE` without SfM "
-        f"tracks (`benchmarks/robustness.py`). Errors of the final "
-        f"checkpoint after a similarity alignment to the true cameras: rotation in degrees, position in normalized "
-        f"scene units (the cameras fit in [-1, 1]^3), focal in px; drift = RMS pixel displacement of the scene's 3D "
+        f"tracks, 'accurate-untracked' the true cameras without SfM tracks (`benchmarks/robustness.py`). Errors of "
+        f"the final checkpoint after a similarity alignment to the true cameras: rotation in degrees, position in "
+        f"normalized scene units (the cameras fit in [-1, 1]^3), focal in px; "
+        f"drift = RMS pixel displacement of the scene's 3D "
         f"points between the true and the aligned refined cameras (`s2camp_ns.core.drift`). PSNR / SSIM: held-out "
         f"views (every 8th image) after {a.steps} test-time alignment steps of {a.rays} rays. Cells: mean "
         f"[min, max] over seeds. 'PSNR vs off': difference of the means, 'no difference' when smaller than the "
         f"larger seed range of the two. 'removed': 1 - final / start error for perturbed and phone starts."
     )
-    historical = sorted({row["variant"] for row in rows} & set(HISTORICAL_VARIANTS))
-    if historical:
-        setup += (
-            " Rows of settings that no longer run: "
-            + "; ".join(f"{name}: {HISTORICAL_VARIANTS[name]}" for name in historical)
-            + "."
-        )
+    setup += no_longer_run_note(rows, HISTORICAL_VARIANTS)
     columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]
     headers = [
         "scene", "start", "variant", "seeds", "passes", "start rot / pos / focal / drift", "rot err (deg)",

@@ -53,9 +53,17 @@ from pathlib import Path
 from s2camp_ns.core.validation import check_choice, check_positive_int
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_base_arguments
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.scene.make_scene import MakeSceneConfig
 
-from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
+from .common import (
+    DEFAULT_OUTPUT_DIR,
+    generated_scene,
+    in_work_folder,
+    log,
+    markdown_table,
+    no_longer_run_note,
+    write_report,
+)
 from .robustness import (
     ERRORS,
     METRICS,
@@ -102,6 +110,12 @@ VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
 CANDIDATE_VARIANTS = ("s2camp-splat-gauge", "s2camp-splat-plain", "s2camp-splat-damped-gauge")
 """Variants a run may name beyond the default grid: s2camp-splat with parts of its default turned off, and the
 real-regime issue's candidate (``benchmarks/robustness.py``) on splatting."""
+HISTORICAL_VARIANTS = {
+    "s2camp-splat-prior-rms": "s2camp-splat's defaults as they were before the track prior's shared intrinsics "
+    "took the standard error of their fit as their scale (then the RMS of their images' scales) and before the "
+    "anchor kept the given intrinsics unless the tracks call for others (`s2camp_ns.core.track_fit.fit_anchor`)",
+}
+"""Variant names found only in committed rows, and what they ran (no longer runnable)."""
 METHODS = {
     "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
     "s2camp-splat-gauge": "s2camp-splat", "s2camp-splat-plain": "s2camp-splat",
@@ -312,7 +326,7 @@ def add_quarter_images(scene: Path) -> Path:
 def _scene_dir(name: str, root: Path) -> Path:
     """The generated scene ``name`` under ``root``, with the images_{k} folder its training resolution needs."""
     preset = SCENES[name]
-    scene = make_scene(replace(preset.scene, output_dir=root / "scenes" / name))
+    scene = generated_scene(replace(preset.scene, output_dir=root / "scenes" / name))
     if preset.downscale == 4:
         add_quarter_images(scene)
     elif preset.downscale not in (1, 2):
@@ -526,6 +540,7 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         f"over s2camp-splat-so3xr3's from the same start (runs that trained side by side share the CPU: compare "
         f"ratios only between runs of the same `--workers`; `--workers 1` on an idle machine times cleanest)."
     )
+    setup += no_longer_run_note(rows, HISTORICAL_VARIANTS)
     rebuilt = [row for row in rows if row.get("reconstructed")]
     if rebuilt:
         setup += (

@@ -16,9 +16,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_arguments
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.scene.make_scene import MakeSceneConfig
 
-from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, generated_scene, in_work_folder, log, markdown_table, write_report
 from .recovery_photometric import _run_ns_train, seconds_per_iteration
 
 BASELINE = "s2camp-so3xr3"
@@ -81,7 +81,7 @@ def run(config: TrainTimeConfig) -> list[dict]:
 
 
 def _run(config: TrainTimeConfig, root: Path) -> list[dict]:
-    scene = make_scene(replace(config.scene, output_dir=root / "scene"))
+    scene = generated_scene(replace(config.scene, output_dir=root / "scene"))
     work = root / "runs"
     times: dict[str, list[float]] = {method: [] for method in config.methods}
     rows = []

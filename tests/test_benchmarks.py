@@ -214,3 +214,25 @@ def test_quick_json_run_leaves_docs_untouched(tmp_path: Path) -> None:
     assert sorted(p.name for p in docs.iterdir()) == ["shared-intrinsics.md"]
     report = tmp_path / "outputs" / "benchmarks" / "shared-intrinsics.md"
     assert "Regenerate with `s2camp-bench shared-intrinsics --quick`." in report.read_text()
+
+
+def test_a_generated_scene_is_kept_when_it_is_the_one_asked_for(tmp_path: Path) -> None:
+    # Several benchmark processes share a grid's work folder: regenerating a scene in place while another run reads
+    # it made that run fail. The same config keeps the folder untouched; another config regenerates it.
+    from dataclasses import replace
+
+    from s2camp_ns.benchmarks.common import generated_scene
+    from s2camp_ns.scene.make_scene import MakeSceneConfig
+
+    config = MakeSceneConfig(num_cameras=4, width=64, height=48, points_per_image=150, k1=0.0, k2=0.0,
+                             output_dir=tmp_path / "scene")  # fmt: skip
+    scene = generated_scene(config)
+    model = scene / "sparse" / "0" / "images.bin"
+    model.write_bytes(model.read_bytes())  # a new modification time, same bytes: rewriting would change it again
+    touched = model.stat().st_mtime_ns
+    assert generated_scene(config) == scene and model.stat().st_mtime_ns == touched
+    info = json.loads((scene / "scene_info.json").read_text())
+    assert info["config"]["seed"] == config.seed
+    generated_scene(replace(config, seed=config.seed + 1))
+    assert model.stat().st_mtime_ns != touched  # regenerated
+    assert json.loads((scene / "scene_info.json").read_text())["config"]["seed"] == config.seed + 1

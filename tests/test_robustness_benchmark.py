@@ -10,7 +10,6 @@ import pytest
 
 from s2camp_ns.benchmarks.robustness import (
     SCENES,
-    STARTS,
     VARIANTS,
     RobustnessConfig,
     RunSpec,
@@ -25,7 +24,7 @@ def _option(command: list[str], name: str) -> str:
     return command[command.index(name) + 1]
 
 
-@pytest.mark.parametrize("start", ["accurate", "perturbed", "phone"])
+@pytest.mark.parametrize("start", ["accurate", "perturbed", "phone", "accurate-untracked"])
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
@@ -62,6 +61,8 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     seed = str(SCENES["near-deep"].perturbation_seed)
     if start == "accurate":
         assert tail == ["s2camp-data", "--downscale-factor", "1"]
+    elif start == "accurate-untracked":  # the true cameras with nothing but the images to anchor them
+        assert tail == ["s2camp-data", "--downscale-factor", "1", "--tracks", "False"]
     elif start == "perturbed":
         assert tail == ["s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True",
                         "--perturbation.seed", seed]  # fmt: skip
@@ -92,7 +93,8 @@ def test_regime_scene_sees_each_training_pixel_one_and_a_half_times() -> None:
     # 56 images, every 8th held out (7): 49 training images of 160 x 120 (trained at half of 320 x 240).
     assert preset.training_pixels == 49 * 160 * 120
     config = RobustnessConfig(preset="regime").effective()
-    assert (config.scenes, config.starts, config.iterations) == (("regime-wide",), STARTS, 3000)
+    starts = ("accurate", "perturbed", "sfm", "phone")  # accurate-untracked only when asked for
+    assert (config.scenes, config.starts, config.iterations) == (("regime-wide",), starts, 3000)
     assert config.iterations * config.rays_per_batch / preset.training_pixels == pytest.approx(1536000 / 940800)
     assert config.variants == ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp")
 

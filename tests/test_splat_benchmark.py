@@ -245,3 +245,17 @@ def test_report_says_which_rows_were_rebuilt_from_logs(tmp_path: Path) -> None:
     rows.append(_row("perturbed", "s2camp-splat", 0, psnr_unaligned=float("nan"), reconstructed="log", **timing))
     text = " ".join(report(rows, config).read_text().split())
     assert "1 row(s) were rebuilt from their run's log line" in text
+
+
+def test_report_names_rows_of_settings_that_no_longer_run_only_when_present(tmp_path: Path) -> None:
+    from s2camp_ns.benchmarks.splat_bench import SplatBenchConfig, report
+
+    timing = {"iterations": 1000, "train_seconds": 1.0, "eval_seconds": 1.0, "compress_schedule": True,
+              "densify": False, "workers": 1}  # fmt: skip
+    rows = [_row("sfm", variant, 0, **timing) for variant in ("splat-off", "s2camp-splat")]
+    config = SplatBenchConfig(output_dir=tmp_path)
+    assert "no longer run" not in report(rows, config).read_text()
+    rows.append(_row("sfm", "s2camp-splat-prior-rms", 0, **timing))
+    text = " ".join(report(rows, config).read_text().split())
+    assert "Rows of settings that no longer run: s2camp-splat-prior-rms: s2camp-splat's defaults as they were" in text
+    assert "| sfm | s2camp-splat-prior-rms | 1 |" in text
