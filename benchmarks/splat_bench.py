@@ -371,7 +371,9 @@ def _train(spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig,
     return train_logged(command, root / "logs" / f"{spec.experiment}-{spec.timestamp}.log", spec)
 
 
-def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, pool: ProcessPoolExecutor) -> dict:
+def _run_one(
+    spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, pool: ProcessPoolExecutor, invocation: str
+) -> dict:
     from .recovery_photometric import seconds_per_iteration
 
     truth = None
@@ -389,6 +391,7 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfi
         "compress_schedule": config.compress_schedule,
         "densify": config.densify,
         "workers": config.workers,
+        "invocation": invocation,
         "eval_views": result["eval_views"],
         "train_seconds": train_seconds,
         "eval_seconds": result["eval_seconds"],
@@ -423,8 +426,10 @@ def _run(config: SplatBenchConfig, root: Path) -> list[dict]:
         f" passes), {config.workers} at a time (work: {root})"
         + (f"; {len(done)} already in {ROWS_FILE}" if done else "")
     )
-    rows = run_side_by_side(specs, lambda spec, pool: _run_one(spec, scene_dirs[spec.scene], root, config, pool),
-                            config.workers)  # fmt: skip
+    invocation = time.strftime("%Y-%m-%dT%H:%M:%S")  # the rows of one invocation share the machine's load
+    rows = run_side_by_side(
+        specs, lambda spec, pool: _run_one(spec, scene_dirs[spec.scene], root, config, pool, invocation), config.workers
+    )
     run.minutes = (time.perf_counter() - began) / 60.0  # type: ignore[attr-defined]
     return done + rows
 
@@ -437,7 +442,7 @@ def summarize(rows: list[dict]) -> list[dict]:
     """One entry per scene, start and variant: the metrics over seeds (``Spread``); the start errors (equal for
     every seed); for a recovery start the fraction of each start error removed (1 - mean final / start), for the
     others the change final - start; the PSNR differences against SO3xR3 and splat-off; the ratio of the mean
-    seconds per iteration to SO3xR3's from the same start."""
+    seconds per iteration to SO3xR3's from the same start and invocation (``_time_ratio``)."""
     groups: dict[tuple[str, str, str], list[dict]] = {}
     for row in rows:
         groups.setdefault((row["scene"], row["start"], row["variant"]), []).append(row)
@@ -460,11 +465,21 @@ def summarize(rows: list[dict]) -> list[dict]:
         for other, label in ((BASELINE, "so3xr3"), ("splat-off", "off")):
             reference = by_key.get((entry["scene"], entry["start"], other))
             entry[f"psnr_vs_{label}"] = math.nan if reference is None else entry["psnr"].mean - reference["psnr"].mean
-        baseline = by_key.get((entry["scene"], entry["start"], BASELINE))
-        entry["time_ratio"] = (
-            math.nan if baseline is None else entry["sec_per_iter"].mean / baseline["sec_per_iter"].mean
-        )
+        entry["time_ratio"] = _time_ratio(groups[(entry["scene"], entry["start"], entry["variant"])],
+                                          groups.get((entry["scene"], entry["start"], BASELINE), []))  # fmt: skip
     return summary
+
+
+def _time_ratio(rows: list[dict], baseline: list[dict]) -> float:
+    """Mean seconds per iteration over the baseline's, from the rows of the invocations both have runs in: the
+    machine is shared, so seconds from different invocations are not comparable (the same settings ran at 0.04 and
+    0.3 s per step on different days). Rows from before invocations were recorded share the invocation ''."""
+    shared = {row.get("invocation", "") for row in rows} & {row.get("invocation", "") for row in baseline}
+    mine = [row["sec_per_iter"] for row in rows if row.get("invocation", "") in shared]
+    theirs = [row["sec_per_iter"] for row in baseline if row.get("invocation", "") in shared]
+    if not mine or not theirs:
+        return math.nan
+    return statistics.fmean(mine) / statistics.fmean(theirs)
 
 
 def _errors_cell(entry: dict) -> str:
@@ -537,7 +552,9 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         f"fraction of each start error removed (1 - final / start; negative: the error grew), for the others "
         f"final - start (rot / pos / focal / drift; positive: worse). 'PSNR vs': difference of the mean PSNR "
         f"against s2camp-splat-so3xr3 / splat-off ('-': no such run). 'time ratio': mean seconds per iteration "
-        f"over s2camp-splat-so3xr3's from the same start (runs that trained side by side share the CPU: compare "
+        f"over s2camp-splat-so3xr3's from the same start and the same invocation of the benchmark (empty where "
+        f"none ran in one: the machine is shared, so seconds of different invocations are not comparable; runs "
+        f"that trained side by side share the CPU: compare "
         f"ratios only between runs of the same `--workers`; `--workers 1` on an idle machine times cleanest)."
     )
     setup += no_longer_run_note(rows, HISTORICAL_VARIANTS)

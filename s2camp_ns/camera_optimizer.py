@@ -403,7 +403,10 @@ class S2CampCameraOptimizer(CameraOptimizer):
             self._check_base_cameras()
 
     def set_track_prior(
-        self, track_rms_px: Float[Tensor, " n"] | None, evidence: TrackEvidence | None = None
+        self,
+        track_rms_px: Float[Tensor, " n"] | None,
+        evidence: TrackEvidence | None = None,
+        track_observations: Float[Tensor, " n"] | None = None,
     ) -> None:
         """The track prior's anchor and scale per training image (``track_prior=False`` ignores both).
 
@@ -413,8 +416,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         call for others, ``fit_anchor``) and the scale is the reprojection error there, the tracks' own noise; shared
         intrinsics take the standard error of their fit to all their images' observations. Without it the anchor is
         the given camera and the scale ``track_rms_px``, its reprojection error against the tracks (``core.tracks``;
-        NaN or None: no prior). Scales are stored in whitened units (divided by max(W, H), the Gram matrix's pixel
-        unit, docs/EQUATIONS.md eq. 5). Call after ``set_train_cameras``."""
+        NaN or None: no prior), with ``track_observations`` (each image's number of tracks) for the shared
+        intrinsics' standard error. Scales are stored in whitened units (divided by max(W, H), the Gram matrix's
+        pixel unit, docs/EQUATIONS.md eq. 5). Call after ``set_train_cameras``."""
         self._require_cameras()
         device = self.precond.device
         radius = torch.full((self.num_cameras,), float("nan"), dtype=torch.float64, device=device)
@@ -451,6 +455,13 @@ class S2CampCameraOptimizer(CameraOptimizer):
                 )
             if bool((rms < 0).any()):
                 raise ValueError(f"track_rms_px must be >= 0 (pixels), got minimum {float(rms.min())}")
+            if track_observations is not None:
+                observations = torch.as_tensor(track_observations, dtype=torch.float64).reshape(-1).to(device)
+                if observations.shape[0] != self.num_cameras or bool((observations < 0).any()):
+                    raise ValueError(
+                        f"track_observations must hold {self.num_cameras} counts >= 0 (one per training image), got "
+                        f"{observations.shape[0]} with minimum {float(observations.min())}"
+                    )
         if rms is not None:
             radius = rms / self.base_intrinsics_struct().image_scale()
         self.prior_radius = radius
@@ -472,7 +483,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
             # (the photometric loss corrects poses within it), but the focal length's photometric evidence in the
             # regime is the biased pull of the dolly zoom (docs/DESIGN-NOTES.md sec. 12-14): with r_i / sqrt(n_c)
             # the shared focal length of 49 SfM images still ended 0.06-0.08 px further from the truth than SfM's.
-            # Without observation counts (track_rms_px alone) each image counts once: a looser prior.
+            # Without observation counts (track_rms_px alone, no track_observations) each image counts once.
             self.prior_radius_intrinsics = torch.where(
                 counts > 0, squared.sqrt() / (math.sqrt(2.0) * counts.clamp(min=1e-12)), torch.nan
             )

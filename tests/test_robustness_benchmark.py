@@ -182,6 +182,16 @@ def test_summary_spread_difference_against_off_and_removed_start_error() -> None
     assert summary[("accurate", "off")]["psnr_vs_off_label"] == ""
 
 
+def test_the_untracked_true_cameras_compare_with_refinement_off_from_the_tracked_ones() -> None:
+    # Refinement off never reads the tracks: its rows from the true cameras are the untracked start's reference.
+    rows = [_row("accurate", "off", seed, 25.0 + 0.1 * seed, 0.0, 0.0) for seed in range(2)]
+    rows += [_row("accurate-untracked", "s2camp", seed, 24.0 + 0.1 * seed, 0.1, 0.0) for seed in range(2)]
+    summary = {(entry["start"], entry["variant"]): entry for entry in summarize(rows)}
+    untracked = summary[("accurate-untracked", "s2camp")]
+    assert untracked["psnr_vs_off"] == pytest.approx(-1.0)
+    assert untracked["psnr_vs_off_label"] == "-1.00 dB (beyond the seed range 0.10)"
+
+
 def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path: Path) -> None:
     from s2camp_ns.benchmarks.robustness import TRACE_COLUMNS, report
 

@@ -194,6 +194,20 @@ def test_summary_gives_removed_fractions_changes_psnr_differences_and_time_ratio
     assert math.isnan(accurate["time_ratio"]) and math.isnan(accurate["psnr_vs_so3xr3"])  # no baseline run
 
 
+def test_time_ratios_compare_seconds_of_one_invocation_only() -> None:
+    # The machine is shared: seconds per step from different invocations of the benchmark are not comparable.
+    rows = [
+        _row("sfm", "s2camp-splat-so3xr3", 0, sec_per_iter=0.30),  # an earlier invocation (no field: "")
+        _row("sfm", "s2camp-splat-so3xr3", 1, sec_per_iter=0.04, invocation="b"),
+        _row("sfm", "s2camp-splat", 0, sec_per_iter=0.05, invocation="b"),
+        _row("sfm", "s2camp-splat", 1, sec_per_iter=0.06, invocation="b"),
+        _row("sfm", "splat-off", 0, sec_per_iter=0.05, invocation="c"),
+    ]
+    summary = {(e["start"], e["variant"]): e for e in summarize(rows)}
+    assert summary[("sfm", "s2camp-splat")]["time_ratio"] == pytest.approx(0.055 / 0.04)  # not over the mean 0.17
+    assert math.isnan(summary[("sfm", "splat-off")]["time_ratio"])  # no baseline run in its invocation
+
+
 def _bench() -> str:
     script = Path(sys.executable).with_name("s2camp-bench")
     assert script.exists(), f"s2camp-bench is not installed next to {sys.executable}: run `make venv`"

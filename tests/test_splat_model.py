@@ -291,6 +291,35 @@ def test_camera_errors_of_undistorted_training_cameras_use_the_undistorted_refer
     assert model.update_camera_errors()["camera_errors/focal_err_mean"] == pytest.approx(0.0, abs=1e-4)
 
 
+def test_undistorted_cameras_keep_the_given_anchor_and_the_tracks_standard_error():
+    """Distorted SfM cameras: the model refines the undistorted pinhole camera, which the tracks' (distorted) pixels
+    do not fit, so no refit anchor; the shared intrinsics still count each image's tracks for their standard error,
+    sqrt(sum O_i r_i^2) / (sqrt(2) sum O_i) (here 30 and 10 tracks of RMS 0.4 and 0.8 px, width 40)."""
+    from test_splat_alignment import splat_model
+
+    from s2camp_ns.core.track_fit import TrackEvidence
+    from s2camp_ns.core.tracks import Tracks
+
+    model = splat_model(50, (1.0, 1.0, 1.0))
+    model.camera_optimizer.config.track_prior = True
+    c2w = two_cameras().camera_to_worlds
+    distortion = torch.tensor([[0.05, 0.0, 0.0, 0.0, 0.0, 0.0]]).expand(2, 6)
+    cameras = Cameras(
+        camera_to_worlds=c2w.float(), fx=36.0, fy=36.0, cx=20.0, cy=15.0, width=40, height=30,
+        distortion_params=distortion, camera_type=CameraType.PERSPECTIVE,
+    )  # fmt: skip
+    image = torch.cat([torch.zeros(30, dtype=torch.long), torch.ones(10, dtype=torch.long)])
+    tracks = Tracks(torch.zeros(40, 3), image, torch.arange(40), torch.zeros(40, 2))
+    evidence = TrackEvidence(tracks, c2w.double(), 1.0)
+    rms = torch.tensor([0.4, 0.8], dtype=torch.float64)
+    model.set_train_cameras(cameras, track_rms_px=rms, track_evidence=evidence)
+    optimizer = model.camera_optimizer
+    assert bool((optimizer.prior_anchor == 0).all())  # the given cameras: no refit against the distorted pixels
+    assert optimizer.prior_radius.tolist() == pytest.approx([0.4 / 40, 0.8 / 40], rel=1e-12)
+    expected = math.sqrt(30 * 0.4**2 + 10 * 0.8**2) / (math.sqrt(2) * 40) / 40
+    assert optimizer.prior_radius_intrinsics.tolist() == pytest.approx([expected], rel=1e-12)
+
+
 def test_undistortion_scale_is_the_data_managers_focal_over_the_dataparsers():
     from s2camp_ns.nerfstudio.pipeline import undistortion_scale
 

@@ -186,6 +186,8 @@ def test_prior_refuses_wrong_sizes_and_negative_errors() -> None:
         optimizer.set_track_prior(torch.ones(3))
     with pytest.raises(ValueError, match=r"track_rms_px must be >= 0 \(pixels\), got minimum -1"):
         optimizer.set_track_prior(torch.tensor([1.0, -1.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match=r"track_observations must hold 4 counts >= 0 .* got 3 with minimum 5"):
+        optimizer.set_track_prior(torch.ones(4), track_observations=torch.full((3,), 5.0))
 
 
 @pytest.mark.parametrize("noise", [False, True])

@@ -87,15 +87,16 @@ class S2CampRefinementMixin:
         points: Tensor | None = None,
         track_rms_px: Tensor | None = None,
         track_evidence: TrackEvidence | None = None,
+        track_observations: Tensor | None = None,
     ) -> None:
         """Keep the dataparser's training cameras (called by the pipeline before any checkpoint is loaded); the
         scene's sparse ``points`` (normalized world) choose the S2CamP optimizer's proxy range, the SfM tracks
-        (``track_evidence``; else the cameras' reprojection errors against them, ``track_rms_px``, px) its track
-        prior."""
+        (``track_evidence``; else the cameras' reprojection errors against them, ``track_rms_px``, px, and each
+        image's number of tracks, ``track_observations``) its track prior."""
         self._train_cameras = cameras.to("cpu")
         if self.uses_s2camp_optimizer:
             self.camera_optimizer.set_train_cameras(cameras, points=points)
-            self.camera_optimizer.set_track_prior(track_rms_px, track_evidence)
+            self.camera_optimizer.set_track_prior(track_rms_px, track_evidence, track_observations)
 
     @torch.no_grad()
     def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:

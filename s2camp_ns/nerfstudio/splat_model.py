@@ -140,10 +140,16 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
     ) -> None:
         pinhole = pinhole_cameras(cameras)
         # The tracks' pixels are the distorted images'; the model refines the undistorted pinhole camera, which they
-        # do not fit: there the prior keeps its given-camera anchor and the reprojection error as its scale.
+        # do not fit: there the prior keeps its given-camera anchor and the reprojection error as its scale, with
+        # each image's number of tracks for the shared intrinsics' standard error.
         undistorted = cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
-        evidence = None if undistorted else track_evidence
-        super().set_train_cameras(pinhole, points=points, track_rms_px=track_rms_px, track_evidence=evidence)
+        evidence, observations = track_evidence, None
+        if undistorted and track_evidence is not None:
+            image = track_evidence.tracks.image
+            evidence, observations = None, torch.bincount(image, minlength=cameras.shape[0]).to(torch.float64)
+        super().set_train_cameras(
+            pinhole, points=points, track_rms_px=track_rms_px, track_evidence=evidence, track_observations=observations
+        )
 
     def set_undistortion_scale(self, fx_scale: Tensor, fy_scale: Tensor) -> None:
         """Per training image, the data manager's undistorted focal lengths over the dataparser's (1 where an image
