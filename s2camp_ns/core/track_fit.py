@@ -63,6 +63,17 @@ class TrackFit:
     ones (``INTRINSICS_REFIT_LEVEL``), so the fit kept them and moved only the poses."""
 
 
+def _free_mask(free: Bool[Tensor, " 16"] | tuple[int, ...]) -> Bool[Tensor, " 16"]:
+    """The ``free`` argument of the fits as a mask over the ``PARAMETER_NAMES`` columns."""
+    if isinstance(free, tuple):
+        mask = torch.zeros(NUM_CAMERA_PARAMS, dtype=torch.bool)
+        mask[list(free)] = True
+        return mask
+    if free.shape != (NUM_CAMERA_PARAMS,):
+        raise ValueError(f"free must mask the {NUM_CAMERA_PARAMS} camera parameters, got shape {tuple(free.shape)}")
+    return free.to(device="cpu", dtype=torch.bool)
+
+
 def _residuals(
     deltas: Float[Tensor, "o 16"],
     points_cam: Float[Tensor, "o 1 3"],
@@ -96,13 +107,7 @@ def fit_cameras_to_tracks(
     tracks.validate(n)
     if intrinsics.num_cameras != n:
         raise ValueError(f"intrinsics must describe the {n} cameras of c2w, got {intrinsics.num_cameras}")
-    mask = torch.zeros(NUM_CAMERA_PARAMS, dtype=torch.bool)
-    if isinstance(free, tuple):
-        mask[list(free)] = True
-    else:
-        if free.shape != (NUM_CAMERA_PARAMS,):
-            raise ValueError(f"free must mask the {NUM_CAMERA_PARAMS} camera parameters, got shape {tuple(free.shape)}")
-        mask = free.to(device="cpu", dtype=torch.bool)
+    mask = _free_mask(free)
     pose_columns = [j for j in range(NUM_POSE_PARAMS) if mask[j]]
     intrinsics_columns = [j for j in range(NUM_POSE_PARAMS, NUM_CAMERA_PARAMS) if mask[j]]
     groups = torch.arange(n) if camera_of_image is None else camera_of_image.to("cpu", torch.long)
@@ -200,11 +205,7 @@ def fit_anchor(
     SfM (a perturbation, another tool's calibration) fail that test by orders of magnitude and get the refit.
     """
     full = fit_cameras_to_tracks(tracks, c2w, intrinsics, free, camera_of_image)
-    mask = torch.zeros(NUM_CAMERA_PARAMS, dtype=torch.bool)
-    if isinstance(free, tuple):
-        mask[list(free)] = True
-    else:
-        mask = free.to(device="cpu", dtype=torch.bool)
+    mask = _free_mask(free)
     m = int(mask[NUM_POSE_PARAMS:].sum())
     n = c2w.shape[0]
     groups = torch.arange(n) if camera_of_image is None else camera_of_image.to("cpu", torch.long)
