@@ -248,15 +248,18 @@ def test_quick_splat_benchmark_trains_the_three_variants(tmp_path: Path) -> None
     assert "time ratio vs so3xr3" in text and (tmp_path / "splat.png").exists()
 
 
+REPORT_FIELDS = {"iterations": 1000, "train_seconds": 1.0, "eval_seconds": 1.0, "compress_schedule": True,
+                 "densify": False, "workers": 1}  # fmt: skip
+"""What a row needs beyond ``_row`` for the report: run settings and timings."""
+
+
 def test_report_says_which_rows_were_rebuilt_from_logs(tmp_path: Path) -> None:
     from s2camp_ns.benchmarks.splat_bench import SplatBenchConfig, report
 
-    timing = {"iterations": 1000, "train_seconds": 1.0, "eval_seconds": 1.0, "compress_schedule": True,
-              "densify": False, "workers": 1}  # fmt: skip
-    rows = [_row("perturbed", variant, 0, **timing) for variant in ("splat-off", "s2camp-splat-so3xr3")]
+    rows = [_row("perturbed", variant, 0, **REPORT_FIELDS) for variant in ("splat-off", "s2camp-splat-so3xr3")]
     config = SplatBenchConfig(output_dir=tmp_path)
     assert "rebuilt from their run's log line" not in report(rows, config).read_text()
-    rows.append(_row("perturbed", "s2camp-splat", 0, psnr_unaligned=float("nan"), reconstructed="log", **timing))
+    rows.append(_row("perturbed", "s2camp-splat", 0, psnr_unaligned=float("nan"), reconstructed="log", **REPORT_FIELDS))
     text = " ".join(report(rows, config).read_text().split())
     assert "1 row(s) were rebuilt from their run's log line" in text
 
@@ -264,12 +267,10 @@ def test_report_says_which_rows_were_rebuilt_from_logs(tmp_path: Path) -> None:
 def test_report_names_rows_of_settings_that_no_longer_run_only_when_present(tmp_path: Path) -> None:
     from s2camp_ns.benchmarks.splat_bench import SplatBenchConfig, report
 
-    timing = {"iterations": 1000, "train_seconds": 1.0, "eval_seconds": 1.0, "compress_schedule": True,
-              "densify": False, "workers": 1}  # fmt: skip
-    rows = [_row("sfm", variant, 0, **timing) for variant in ("splat-off", "s2camp-splat")]
+    rows = [_row("sfm", variant, 0, **REPORT_FIELDS) for variant in ("splat-off", "s2camp-splat")]
     config = SplatBenchConfig(output_dir=tmp_path)
     assert "no longer run" not in report(rows, config).read_text()
-    rows.append(_row("sfm", "s2camp-splat-prior-rms", 0, **timing))
+    rows.append(_row("sfm", "s2camp-splat-prior-rms", 0, **REPORT_FIELDS))
     text = " ".join(report(rows, config).read_text().split())
     assert "Rows of settings that no longer run: s2camp-splat-prior-rms: s2camp-splat's defaults as they were" in text
     assert "| sfm | s2camp-splat-prior-rms | 1 |" in text
