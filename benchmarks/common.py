@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import platform
@@ -17,7 +16,7 @@ import torch
 
 from s2camp_ns import __version__ as s2camp_version
 from s2camp_ns.core.camera import Intrinsics
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.scene.make_scene import MakeSceneConfig, config_record, make_scene
 
 DEFAULT_OUTPUT_DIR = Path("outputs/benchmarks")
 """Where reports and plots go unless ``--output-dir`` says otherwise: beside ns-train's ``outputs/``, so that trying a
@@ -137,8 +136,7 @@ def generated_scene(config: MakeSceneConfig) -> Path:
     info_path = Path(config.output_dir) / "scene_info.json"
     if info_path.is_file():
         info = json.loads(info_path.read_text(encoding="utf8"))
-        wanted = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()}
-        if info.get("version") == s2camp_version and json.loads(json.dumps(wanted)) == info.get("config"):
+        if info.get("version") == s2camp_version and config_record(config) == info.get("config"):
             return Path(config.output_dir)
     return make_scene(config)
 

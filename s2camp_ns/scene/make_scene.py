@@ -314,6 +314,13 @@ def _prepare_output(output_dir: Path) -> None:
         (output_dir / sub).mkdir(parents=True, exist_ok=True)
 
 
+def config_record(config: MakeSceneConfig) -> dict:
+    """``config`` as ``scene_info.json`` records it (paths as strings, tuples as JSON lists): what a reader compares
+    to tell whether a folder holds the scene of a given config."""
+    record = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()}
+    return json.loads(json.dumps(record))
+
+
 def make_scene(config: MakeSceneConfig) -> Path:
     """Generate the scene described by ``config``; return its directory."""
     camera = make_camera(config)
@@ -370,7 +377,7 @@ def make_scene(config: MakeSceneConfig) -> Path:
     info = {
         "generator": "s2camp_ns.scene.make_scene",
         "version": __version__,
-        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()},
+        "config": config_record(config),
         "world_up": [0.0, 0.0, 1.0],
         "look_at": procedural.LOOK_AT.tolist(),
         "background_radius": procedural.BACKGROUND_RADIUS,
