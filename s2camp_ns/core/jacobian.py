@@ -170,7 +170,12 @@ def gram_matrix(
     jac = jacobian.to(torch.float64) / image_scale.to(torch.float64)[:, None, None, None]
     jac = jac * mask[..., None, None].to(torch.float64)
     count = mask.sum(dim=-1)
-    sigma = torch.einsum("nlik,nlij->nkj", jac, jac)
+    # One matrix product per camera, not one batched product: a batched product's summation order depends on how
+    # many cameras it holds (with two CPU threads the whole batch and chunks of it differed in the last bit of Sigma,
+    # on an AVX-512 machine), and P must be bit-identical for any chunk size (tests/test_preconditioner.py).
+    flat = jac.flatten(1, 2)
+    k = jac.shape[-1]
+    sigma = torch.stack([rows.T @ rows for rows in flat]) if len(flat) else jac.new_zeros((0, k, k))
     sigma = sigma / count.clamp(min=1).to(torch.float64)[:, None, None]
     return 0.5 * (sigma + sigma.transpose(-1, -2)), count
 
