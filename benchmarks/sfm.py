@@ -19,16 +19,14 @@ into several models, or whose centres or rotations are far from the truth is a f
 
 from __future__ import annotations
 
-import contextlib
-import os
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from s2camp_ns.colmap_log import colmap_log_to
 from s2camp_ns.core.alignment import rotation_angle, umeyama
 from s2camp_ns.core.validation import check_choice, check_range
 
@@ -88,26 +86,6 @@ class SfmResult:
     """Why the reconstruction is not usable (None: it is)."""
 
 
-@contextlib.contextmanager
-def _output_to(path: Path):
-    """Send this process's stdout and stderr file descriptors (COLMAP's glog writes there from C++) to ``path``."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = [os.dup(1), os.dup(2)]
-    with open(path, "a", encoding="utf8") as log_file:
-        os.dup2(log_file.fileno(), 1)
-        os.dup2(log_file.fileno(), 2)
-        try:
-            yield
-        finally:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            for descriptor in saved:
-                os.close(descriptor)
-
-
 def initial_camera_params(camera_model: str, focal: float, width: int, height: int) -> str:
     """COLMAP's ``camera_params`` string for a start at ``focal`` (pixels), principal point at the image centre and
     no distortion, in the parameter order of ``camera_model``."""
@@ -148,7 +126,7 @@ def run_sfm(
         reader.camera_params = initial_camera_params(
             camera_model, focal_prior * camera.focal_length_x, camera.width, camera.height
         )
-    with _output_to(output / "sfm.log"):
+    with colmap_log_to(output / "sfm.log"):
         pycolmap.extract_features(
             database,
             images,
@@ -317,7 +295,7 @@ def local_refinement_check(scene: Path, sfm_scene: Path, check: SfmCheck = SfmCh
     solver = options.ceres.solver_options
     solver.max_num_iterations = LOCAL_REFINEMENT_ITERATIONS
     solver.function_tolerance = solver.gradient_tolerance = solver.parameter_tolerance = 0.0
-    with _output_to(sfm_scene / "sfm.log"):
+    with colmap_log_to(sfm_scene / "sfm.log"):
         pycolmap.bundle_adjustment(adjusted, options)
     after = compare_with_truth(sfm_scene, adjusted, truth, 1, check)
     errors = {"sfm": triangulated_reprojection_errors(sfm, sfm), "truth": triangulated_reprojection_errors(sfm, truth)}

@@ -115,8 +115,8 @@ def test_transforms_json_without_applied_transform(tiny_scene: Path, tmp_path: P
     assert "track_rms_px" not in _parse(source).metadata
     assert "track_rms_px" not in _parse(source, split="val").metadata
     err = _stderr(capsys)
-    assert err.count("No track prior:") == 1
-    assert f"No track prior: {source} has no applied_transform and its cameras are in neither COLMAP's frame of" in err
+    assert err.count("No SfM tracks:") == 1
+    assert f"No SfM tracks: {source} has no applied_transform and its cameras are in neither COLMAP's frame of" in err
     assert "colmap/sparse/0/images.bin (10 of 10 cameras are not where COLMAP has them" in err
     assert "nor nerfstudio's legacy one: the frame is unknown" in err
     # Written by ns-process-data before applied_transform was recorded: x and y swapped, z negated (the frame that
@@ -140,7 +140,7 @@ def test_no_model_no_points_or_tracks_off_give_no_prior(tiny_scene: Path, tmp_pa
     model = tmp_path / "ns" / "colmap" / "sparse" / "0"
     (model / "points3D.bin").unlink()
     assert "track_rms_px" not in _parse(source).metadata
-    assert f"No track prior: no COLMAP model with points (cameras, images, points3D) in {model}" in _stderr(capsys)
+    assert f"No SfM tracks: no COLMAP model with points (cameras, images, points3D) in {model}" in _stderr(capsys)
     shutil.rmtree(tmp_path / "ns" / "colmap")
     assert "track_rms_px" not in _parse(source).metadata
 
@@ -163,7 +163,7 @@ def test_a_moved_camera_is_detected_and_named(tiny_scene: Path, tmp_path: Path, 
     capsys.readouterr()
     assert "track_rms_px" not in _parse(source).metadata
     err = _stderr(capsys)
-    assert f"No track prior: the cameras of {source} disagree with {tmp_path}/ns/colmap/sparse/0/images.bin" in err
+    assert f"No SfM tracks: the cameras of {source} disagree with {tmp_path}/ns/colmap/sparse/0/images.bin" in err
     assert "1 of 10 cameras are not where COLMAP has them; the farthest, 'frame_00005.png', is 1 from" in err
     assert "(tolerance 0.04: 0.01 of the camera centres' spread 4, in COLMAP's units)" in err
     assert "the transforms.json was edited or belongs to another reconstruction" in err

@@ -1,7 +1,7 @@
 """The SfM tracks of a COLMAP model, for ``core.tracks``: each training image's observations of the model's 3D points.
 
 Points stay in COLMAP's world frame; the dataparser maps the training cameras back to that frame
-(``dataparser.c2w_to_colmap_world``) before measuring, so nerfstudio's normalization never touches the points.
+(``colmap_world.c2w_to_colmap_world``) before measuring, so nerfstudio's normalization never touches the points.
 Observed pixels are COLMAP's (full resolution, top-left pixel centre at (0.5, 0.5)) divided by the downscale factor
 of the image folder the cameras describe. Observations without a 3D point (point3D_id -1) are not part of a track.
 """

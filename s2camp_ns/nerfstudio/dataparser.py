@@ -66,7 +66,10 @@ from s2camp_ns.core.tracks import track_reprojection_rms
 from s2camp_ns.core.validation import check_range
 from s2camp_ns.nerfstudio.colmap_model import ColmapModelError, model_file, read_model_file
 from s2camp_ns.nerfstudio.colmap_tracks import read_colmap_tracks
-from s2camp_ns.nerfstudio.transforms_tracks import colmap_model_of_transforms, transforms_track_rms
+from s2camp_ns.nerfstudio.colmap_world import c2w_to_colmap_world, colmap_world_to_c2w
+from s2camp_ns.nerfstudio.export_cameras import export_cameras
+from s2camp_ns.nerfstudio.image_tracks import image_tracks
+from s2camp_ns.nerfstudio.transforms_tracks import colmap_model_of_transforms, full_size_images, transforms_track_rms
 
 NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 """nerfstudio's distortion_params order."""
@@ -121,7 +124,18 @@ class S2CampDataParserConfig(DataParserConfig):
     the model's world, ``metadata["track_evidence"]``, from which the camera optimizer's track prior takes its anchor
     and scale (``core.track_fit``). COLMAP scenes with points, and transforms.json scenes with the model
     ns-process-data leaves beside them (``colmap/sparse/0``, cameras checked against it, ``transforms_tracks``);
-    images the model does not hold get NaN. False measures nothing (no prior), as for a scene without tracks."""
+    images the model does not hold get NaN. Scenes without them get tracks made from their images (``image_tracks``).
+    False measures nothing (no prior)."""
+    image_tracks: Literal["auto", "always", "never"] = "auto"
+    """Tracks made from the scene's own images for the track prior (``nerfstudio/image_tracks.py``: SIFT matches,
+    points triangulated with the given training cameras, bundle-adjusted with them and aligned to them by a
+    similarity; built once, on the CPU, and cached). auto: where the scene has no SfM tracks (phone exports, hand-made
+    or converted transforms.json files); always: in place of the scene's own tracks; never: only the scene's tracks.
+    Without tracks the photometric loss leaves the focal length and forward motion barely determined
+    (docs/DESIGN-NOTES.md sec. 15)."""
+    image_tracks_cache: Path | None = None
+    """Folder of the image tracks' cache; None: ``s2camp_image_tracks`` in the scene folder (beside the
+    transforms.json)."""
     perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
     """CamP perturbation of the training cameras (evaluation protocol, off by default)."""
     reference_model: Path | None = None
@@ -467,11 +481,17 @@ class S2CampDataParser(DataParser):
             cameras = perturb_nerfstudio_cameras(cameras, self.config.perturbation)
         metadata = dict(outputs.metadata)
         metadata.update(extra)
-        if data_format == "colmap" and self.config.tracks and self.config.load_3D_points and self._has_points(source):
-            rms, evidence = colmap_track_evidence(cameras, source, extra, outputs)
+        scene_tracks = self.config.tracks and self.config.image_tracks != "always"
+        if data_format == "colmap" and scene_tracks and self.config.load_3D_points and self._has_points(source):
+            rms, evidence = colmap_track_evidence(cameras, source, extra["image_names"], extra, outputs)
             metadata.update(track_rms_px=rms, track_evidence=evidence)
-        elif data_format == "nerfstudio" and self.config.tracks:
+        elif data_format == "nerfstudio" and scene_tracks:
             result = self._transforms_track_rms(source, cameras, outputs, extra)
+            if result is not None:
+                metadata["track_rms_px"], metadata["track_evidence"] = result
+        made = self.config.tracks and self.config.image_tracks != "never" and "track_evidence" not in metadata
+        if made and split == "train":  # only the training cameras are refined
+            result = self._image_track_evidence(data_format, source, cameras, outputs, extra)
             if result is not None:
                 metadata["track_rms_px"], metadata["track_evidence"] = result
         metadata.update(
@@ -624,9 +644,41 @@ class S2CampDataParser(DataParser):
         if result.rms is None or result.evidence is None:
             # A transforms.json that disagrees with its COLMAP model is a warning; a scene without one is normal.
             style = "bold yellow" if result.cause == "disagree" else "dim"
-            _show_once((source.resolve(), result.cause), f"[{style}]No track prior: {escape(result.reason)}")
+            _show_once((source.resolve(), result.cause), f"[{style}]No SfM tracks: {escape(result.reason)}")
             return None
         return result.rms, result.evidence
+
+    def _image_track_evidence(
+        self, data_format: str, source: Path, cameras: Cameras, outputs: DataparserOutputs, extra: dict
+    ) -> tuple[torch.Tensor, TrackEvidence] | None:
+        """``track_rms_px`` and ``track_evidence`` from tracks made from the scene's full-size images with the given
+        ``cameras`` (``image_tracks``); None, with the reason shown once, when none could be made."""
+        k = extra["downscale_factor"]
+        if data_format == "colmap":
+            scene = Path(self.config.data)
+            root, names, full_size = scene / self.config.images_path, extra["image_names"], extra["full_image_size"]
+        else:
+            scene = source.parent
+            paths = full_size_images(source, outputs.image_filenames, k)
+            root = Path(os.path.commonpath([path.parent for path in paths]))
+            names = [path.relative_to(root).as_posix() for path in paths]
+            sizes = transforms_declared_sizes(source, k)
+            full_size = torch.tensor([sizes[os.path.normpath(p)] for p in outputs.image_filenames], dtype=torch.int64)
+        scale = float(outputs.dataparser_scale)
+        given = export_cameras(
+            cameras, outputs.dataparser_transform, scale, names, full_image_size=full_size,
+            camera_ids=group_identical_intrinsics(cameras).tolist(),
+        )  # fmt: skip
+        cache = self.config.image_tracks_cache or scene / IMAGE_TRACKS_CACHE
+        result = image_tracks(given, root, cache)  # minutes for hundreds of large images, then read from the cache
+        if result.model is None:
+            _show_once((source.resolve(), "image-tracks"), f"[bold yellow]No track prior: {escape(result.reason)}")
+            return None
+        _show_once(
+            (result.model, "summary"),
+            f"[dim]Track prior from tracks made from the images of {root} ({result.model}): {escape(result.summary)}",
+        )
+        return colmap_track_evidence(cameras, result.model, names, extra, outputs)
 
     @staticmethod
     def _transforms_frames(source: Path) -> list:
@@ -634,6 +686,8 @@ class S2CampDataParser(DataParser):
             return list(json.load(f).get("frames", []))
 
 
+IMAGE_TRACKS_CACHE = Path("s2camp_image_tracks")
+"""The image tracks' cache folder in the scene folder (``image_tracks_cache`` None)."""
 LOG = Console(stderr=True, width=120)
 """Notes of the data parser (why a scene has no track prior): on stderr, as the camera optimizer's."""
 _SHOWN: set[tuple] = set()
@@ -647,47 +701,16 @@ def _show_once(key: tuple, message: str) -> None:
 
 
 def colmap_track_evidence(
-    cameras: Cameras, model: Path, extra: dict, outputs: DataparserOutputs
+    cameras: Cameras, model: Path, names: list[str], extra: dict, outputs: DataparserOutputs
 ) -> tuple[torch.Tensor, TrackEvidence]:
     """Reprojection RMS (px, float64 [N]) of the COLMAP model's tracks under ``cameras`` (normalized, as the data parser
-    returns them), measured in COLMAP's world frame (``core.tracks``), and the tracks with the cameras in that world
-    (the track prior's anchor, ``core.track_fit``)."""
-    tracks = read_colmap_tracks(model, extra["image_names"], extra["downscale_factor"])
+    returns them; image i is the model's image ``names[i]``), measured in COLMAP's world frame (``core.tracks``), and
+    the tracks with the cameras in that world (the track prior's anchor, ``core.track_fit``)."""
+    tracks = read_colmap_tracks(model, names, extra["downscale_factor"])
     scale = float(outputs.dataparser_scale)
     c2w = c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, scale)
     rms = track_reprojection_rms(tracks, c2w, intrinsics_from_cameras(cameras))
     return rms, TrackEvidence(tracks, c2w, scale)
-
-
-def c2w_to_colmap_world(
-    c2w_normalized: torch.Tensor, dataparser_transform: torch.Tensor, dataparser_scale: float
-) -> torch.Tensor:
-    """Undo nerfstudio's normalization: normalized OpenGL c2w [N, 3, 4] -> original-world OpenCV c2w (float64).
-
-    nerfstudio maps an original-world pose to ``T @ c2w`` (T = dataparser_transform as 4x4, which includes the
-    COLMAP world axis swap) and then multiplies the centre by the scale; this inverts both and flips the camera axes.
-    """
-    c2w = c2w_normalized.detach().double().cpu().clone()
-    transform = torch.eye(4, dtype=torch.float64)
-    transform[:3, :4] = dataparser_transform.detach().double().cpu()
-    c2w[:, :, 3] = c2w[:, :, 3] / float(dataparser_scale)
-    c2w4 = torch.cat([c2w, torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(c2w.shape[0], 1, 4)], dim=1)
-    original = torch.linalg.inv(transform) @ c2w4
-    return opengl_to_opencv(original[:, :3, :4])
-
-
-def colmap_world_to_c2w(
-    c2w_world: torch.Tensor, dataparser_transform: torch.Tensor, dataparser_scale: float
-) -> torch.Tensor:
-    """nerfstudio's normalization of original-world OpenCV c2w [N, 3, 4] (float64): the inverse of
-    ``c2w_to_colmap_world`` (camera axes flipped to OpenGL, ``T @ c2w``, centres times the scale)."""
-    c2w = opengl_to_opencv(c2w_world.detach().double().cpu())
-    transform = torch.eye(4, dtype=torch.float64)
-    transform[:3, :4] = dataparser_transform.detach().double().cpu()
-    bottom = torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(c2w.shape[0], 1, 4)
-    normalized = (transform @ torch.cat([c2w, bottom], dim=1))[:, :3, :4]
-    normalized[:, :, 3] = normalized[:, :, 3] * float(dataparser_scale)
-    return normalized
 
 
 def _read_colmap_model(folder: Path) -> tuple[dict, dict, Path]:
@@ -794,8 +817,6 @@ __all__ = [
     "S2CampDataParser",
     "S2CampDataParserConfig",
     "SUPPORTED_COLMAP_MODELS",
-    "c2w_to_colmap_world",
-    "colmap_world_to_c2w",
     "detect_format",
     "perturb_nerfstudio_cameras",
     "reference_from_model",

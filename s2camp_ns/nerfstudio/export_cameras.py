@@ -34,7 +34,7 @@ from torch import Tensor
 
 from s2camp_ns.camera_optimizer import group_identical_intrinsics, projection_of
 from s2camp_ns.core.colmap_models import colmap_model_for, colmap_to_values, values_to_colmap
-from s2camp_ns.nerfstudio.dataparser import c2w_to_colmap_world
+from s2camp_ns.nerfstudio.colmap_world import c2w_to_colmap_world
 
 CameraModel = Literal["auto", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"]
 CAMERA_MODELS: tuple[str, ...] = ("auto", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")

@@ -15,7 +15,7 @@ Frames. ``colmap_to_json`` writes each camera as ``A @ c2w`` with ``c2w`` COLMAP
 flipped to OpenGL (y and z columns negated), and ``A = applied_transform`` (rows x, z, -y of COLMAP's world: z up),
 stored in the json. nerfstudio's transforms.json parser composes ``A`` into its normalization: its
 ``dataparser_transform`` is ``transform_matrix @ A``, so inverting the normalization (``dataparser_transform`` and
-``dataparser_scale``, ``dataparser.c2w_to_colmap_world``) gives COLMAP's world directly (the S2CamP data parser
+``dataparser_scale``, ``colmap_world.c2w_to_colmap_world``) gives COLMAP's world directly (the S2CamP data parser
 hands nerfstudio the json file itself, so nerfstudio's guess for a json without ``applied_transform``, which it makes
 only when ``colmap/sparse/0`` lies under the path it was given, never applies). Without ``applied_transform`` the
 same inversion gives the json's own world. Two worlds are known for such files: COLMAP's own
@@ -89,24 +89,42 @@ def _has_model(folder: Path) -> bool:
     return all(model_file(folder, kind).exists() for kind in ("cameras", "images", "points3D"))
 
 
+def _frames_by_read_path(source: Path, downscale_factor: int) -> dict[str, tuple[str, dict]]:
+    """Every frame of the transforms.json ``source`` by the image path nerfstudio reads for it at ``downscale_factor``
+    (``images_k/<file name>`` beside the json for k > 1), with its full-size image path."""
+    with open(source, encoding="utf8") as f:
+        frames = json.load(f).get("frames", [])
+    data_dir = source.parent
+    by_read_path = {}
+    for frame in frames:
+        file_path = Path(frame["file_path"])
+        full = os.path.normpath(data_dir / file_path)
+        downscaled = data_dir / f"images_{downscale_factor}" / file_path.name
+        read = full if downscale_factor == 1 else os.path.normpath(downscaled)
+        by_read_path[read] = (full, frame)
+    return by_read_path
+
+
+def full_size_images(source: Path, image_filenames: list[Path], downscale_factor: int) -> list[Path]:
+    """The full-size image of each image nerfstudio read from the transforms.json ``source``."""
+    by_read_path = _frames_by_read_path(source, downscale_factor)
+    missing = [path for path in image_filenames if os.path.normpath(path) not in by_read_path]
+    if missing:
+        raise ValueError(f"{source} lists no frame for image '{missing[0]}'")
+    return [Path(by_read_path[os.path.normpath(path)][0]) for path in image_filenames]
+
+
 def frame_names(
     source: Path, image_filenames: list[Path], downscale_factor: int, images_path: Path
 ) -> list[tuple[str, int | None] | None]:
     """For each image nerfstudio read from ``source``: its COLMAP image name (the frame's image relative to the data
     folder's ``images_path``, else its file name) and the frame's ``colmap_im_id`` (None if absent); None for an
     image no frame lists."""
-    with open(source, encoding="utf8") as f:
-        frames = json.load(f).get("frames", [])
-    data_dir = source.parent
-    image_folder = os.path.normpath(data_dir / images_path)
+    image_folder = os.path.normpath(source.parent / images_path)
     name_of = {}
-    for frame in frames:
-        file_path = Path(frame["file_path"])
-        full = os.path.normpath(data_dir / file_path)
-        downscaled = data_dir / f"images_{downscale_factor}" / file_path.name
-        read = full if downscale_factor == 1 else os.path.normpath(downscaled)
+    for read, (full, frame) in _frames_by_read_path(source, downscale_factor).items():
         relative = Path(os.path.relpath(full, image_folder))
-        name = file_path.name if relative.parts[0] == ".." else relative.as_posix()
+        name = Path(full).name if relative.parts[0] == ".." else relative.as_posix()
         image_id = frame.get("colmap_im_id")
         name_of[read] = (name, int(image_id) if isinstance(image_id, int) else None)
     return [name_of.get(os.path.normpath(path)) for path in image_filenames]
@@ -183,7 +201,7 @@ def transforms_track_rms(
 
     ``c2w_given`` are the cameras to measure (after any perturbation) and ``c2w_reference`` the same cameras as the
     json gives them, both OpenCV camera-to-world in the world nerfstudio's normalization came from
-    (``dataparser.c2w_to_colmap_world``); ``declared_sizes`` are the frames' full-size ``w``, ``h``; ``world_scale``
+    (``colmap_world.c2w_to_colmap_world``); ``declared_sizes`` are the frames' full-size ``w``, ``h``; ``world_scale``
     the training frame's units per unit of that world (``dataparser_scale``). No tracks
     (``rms`` None, with the reason) when the model or its points are missing, the json has no ``applied_transform``
     and its cameras are not COLMAP's, or the cameras disagree with the model (module docstring).
@@ -252,5 +270,6 @@ __all__ = [
     "TransformsTracks",
     "colmap_model_of_transforms",
     "frame_names",
+    "full_size_images",
     "transforms_track_rms",
 ]

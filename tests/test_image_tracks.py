@@ -1,0 +1,250 @@
+"""Tracks made from a scene's images (``s2camp_ns.nerfstudio.image_tracks``): they bring noisy cameras near the truth,
+are cached, refuse what cannot anchor cameras, and reach the data parser's track evidence."""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+import torch
+
+from s2camp_ns.core.alignment import camera_errors
+from s2camp_ns.nerfstudio import image_tracks as module
+from s2camp_ns.nerfstudio.image_tracks import cache_key, image_tracks, neighbour_pairs
+
+ROTATION_NOISE = 0.01
+"""Per-axis rotation noise of the given cameras (rad): about one degree in all, a phone's visual-inertial poses."""
+CENTRE_NOISE = 0.02
+"""Per-axis centre noise (scene units; the ring radius is 4)."""
+FOCAL_FACTOR = 1.02
+"""The given focal length, 2% long."""
+
+
+@pytest.fixture(scope="module")
+def textured_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """32 images of 320x240, 80 degrees (about 20 s). Smaller scenes track too little to test against: 16 images of
+    160x120 give 14 points, and 24 of 240x180 about 500, whose bundle adjustment ends 0.3 degrees from the truth with
+    centres further off than the noise."""
+    from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+
+    folder = tmp_path_factory.mktemp("image_tracks") / "scene"
+    return make_scene(MakeSceneConfig(output_dir=folder, num_cameras=32, width=320, height=240, fov="wide", seed=0))
+
+
+def _given(truth: pycolmap.Reconstruction, rotation=ROTATION_NOISE, centre=CENTRE_NOISE, focal=FOCAL_FACTOR):
+    """The truth's images with noisy poses and a scaled focal length, and no points."""
+    rng = np.random.default_rng(0)
+    given = pycolmap.Reconstruction()
+    camera = copy.copy(truth.cameras[1])
+    params = camera.params.copy()
+    params[0] *= focal
+    camera.params = params
+    given.add_camera_with_trivial_rig(camera)
+    for image in sorted(truth.images.values(), key=lambda image: image.name):
+        world_to_camera = image.cam_from_world()
+        centre_true = -(world_to_camera.rotation.inverse() * world_to_camera.translation)
+        rotation_noisy = pycolmap.Rotation3d(rng.normal(0.0, rotation, 3)) * world_to_camera.rotation
+        centre_noisy = centre_true + rng.normal(0.0, centre, 3)
+        noisy = pycolmap.Rigid3d(rotation_noisy, -(rotation_noisy * centre_noisy))
+        given.add_image_with_trivial_frame(pycolmap.Image(name=image.name, camera_id=1, image_id=image.image_id), noisy)
+    return given
+
+
+def _c2w_and_focal(reconstruction: pycolmap.Reconstruction, names: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
+    by_name = {image.name: image for image in reconstruction.images.values()}
+    c2w, focal = [], []
+    for name in names:
+        image = by_name[name]
+        c2w.append(np.asarray(image.cam_from_world().inverse().matrix()))
+        focal.append(reconstruction.cameras[image.camera_id].focal_length_x)
+    return torch.tensor(np.stack(c2w)), torch.tensor(focal, dtype=torch.float64)
+
+
+def _errors(reconstruction, truth) -> dict[str, float]:
+    names = sorted(image.name for image in reconstruction.images.values())
+    c2w, focal = _c2w_and_focal(reconstruction, names)
+    true_c2w, true_focal = _c2w_and_focal(truth, names)
+    return camera_errors(c2w, true_c2w, focal, true_focal, align=True)
+
+
+def test_tracks_bring_noisy_cameras_near_the_truth_and_keep_the_given_frame(textured_scene: Path, tmp_path: Path):
+    truth = pycolmap.Reconstruction(textured_scene / "sparse" / "0")
+    given = _given(truth)
+    result = image_tracks(given, textured_scene / "images", tmp_path / "cache")
+    assert result.model is not None, result.reason
+    made = pycolmap.Reconstruction(result.model)
+    before, after = _errors(given, truth), _errors(made, truth)
+    assert math.degrees(before["rot_err_mean"]) > 0.8
+    assert after["rot_err_mean"] < 0.25 * before["rot_err_mean"]
+    assert after["pos_err_mean"] < 0.5 * before["pos_err_mean"]
+    assert after["focal_err_mean"] < 0.25 * before["focal_err_mean"]  # 2% = 2.9 px before
+    assert all(image.num_points3D >= 10 for image in made.images.values())
+    # The similarity keeps the given world: centres stay within a few noise sigmas of the given ones.
+    names = sorted(image.name for image in given.images.values())
+    made_c2w, _ = _c2w_and_focal(made, names)
+    given_c2w, _ = _c2w_and_focal(given, names)
+    assert float((made_c2w[:, :, 3] - given_c2w[:, :, 3]).norm(dim=1).max()) < 5 * math.sqrt(3) * CENTRE_NOISE
+    assert "points" in result.summary and "focal length" in result.summary
+
+
+def test_a_second_call_reads_the_cache_and_any_change_of_input_is_another_key(
+    textured_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    truth = pycolmap.Reconstruction(textured_scene / "sparse" / "0")
+    given = _given(truth)
+    first = image_tracks(given, textured_scene / "images", tmp_path)
+    assert [path.name for path in tmp_path.iterdir()] == [first.model.name]  # no temporary folder left
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the cache was rebuilt")
+
+    monkeypatch.setattr(module, "_build", fail)
+    again = image_tracks(given, textured_scene / "images", tmp_path)
+    assert (again.model, again.summary) == (first.model, first.summary)
+
+    key = cache_key(given, textured_scene / "images")
+    moved = pycolmap.Reconstruction(given)
+    image = next(iter(moved.images.values()))
+    pose = image.cam_from_world()
+    translation = pose.translation.copy()
+    translation[0] = np.nextafter(translation[0], np.inf)
+    moved.frame(image.frame_id).set_cam_from_world(image.camera_id, pycolmap.Rigid3d(pose.rotation, translation))
+    assert cache_key(moved, textured_scene / "images") != key
+    images = tmp_path / "images"
+    images.mkdir()
+    for file in (textured_scene / "images").iterdir():
+        (images / file.name).write_bytes(file.read_bytes())
+    stat = (images / image.name).stat()
+    keys = {cache_key(given, images)}
+    os.utime(images / image.name, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1))
+    keys.add(cache_key(given, images))
+    assert len(keys) == 2
+
+
+def test_images_too_small_to_track_give_no_tracks_with_the_reason_and_the_failure_is_cached(
+    tiny_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    truth = pycolmap.Reconstruction(tiny_scene / "sparse" / "0")
+    given = _given(truth, rotation=0.0, centre=0.0, focal=1.0)
+    result = image_tracks(given, tiny_scene / "images", tmp_path)
+    assert result.model is None
+    assert result.reason is not None
+    assert result.reason.startswith("no point could be triangulated from the images' matched features")
+    assert str(tmp_path) in result.reason  # where COLMAP's log is
+    monkeypatch.setattr(module, "_build", lambda *args: pytest.fail("the failed build was repeated"))
+    assert image_tracks(given, tiny_scene / "images", tmp_path).reason == result.reason
+
+
+def test_cameras_far_from_their_tracks_are_refused(textured_scene: Path):
+    """``_implausible`` against the scene's own tracked model: the truth passes; cameras turned by 20 degrees, or
+    moved by half the ring, are refused with the measured change."""
+    truth = pycolmap.Reconstruction(textured_scene / "sparse" / "0")
+    assert module._implausible(truth, truth) is None
+    turned = _given(truth, rotation=math.radians(20.0) / math.sqrt(3.0), centre=0.0, focal=1.0)
+    assert "turn the cameras by" in module._implausible(turned, truth)
+    moved = _given(truth, rotation=0.0, centre=2.0, focal=1.0)
+    assert "move the camera centres by" in module._implausible(moved, truth)
+    sparse = pycolmap.Reconstruction(truth)
+    for point_id in sorted(sparse.points3D)[5:]:  # 5 points left: no image sees 10
+        sparse.delete_point3D(point_id)
+    reason = module._implausible(truth, sparse)
+    assert reason is not None and "only 0 of 32 images see at least 10 tracked points (5 points in all)" in reason
+
+
+def test_a_missing_image_and_an_unwritable_cache_are_named(textured_scene: Path, tmp_path: Path):
+    truth = pycolmap.Reconstruction(textured_scene / "sparse" / "0")
+    given = _given(truth)
+    with pytest.raises(FileNotFoundError, match=r"image '.*nowhere/frame_00000\.png' does not exist \(32 of 32"):
+        image_tracks(given, tmp_path / "nowhere", tmp_path / "cache")
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    with pytest.raises(OSError, match=r"cannot write the image tracks' cache folder .*file/cache.*image-tracks-cache"):
+        image_tracks(given, textured_scene / "images", blocker / "cache")
+
+
+def _line_of_cameras(count: int) -> pycolmap.Reconstruction:
+    """``count`` cameras 1 unit apart along x, all looking along +z, except the last, which looks along -z."""
+    reconstruction = pycolmap.Reconstruction()
+    reconstruction.add_camera_with_trivial_rig(
+        pycolmap.Camera(model="PINHOLE", width=100, height=100, params=[50.0, 50.0, 50.0, 50.0], camera_id=1)
+    )
+    for i in range(count):
+        rotation = pycolmap.Rotation3d(np.array([0.0, math.pi, 0.0]) if i == count - 1 else np.zeros(3))
+        pose = pycolmap.Rigid3d(rotation, -(rotation * np.array([float(i), 0.0, 0.0])))
+        image = pycolmap.Image(name=f"{i:03d}.png", camera_id=1, image_id=i + 1)
+        reconstruction.add_image_with_trivial_frame(image, pose)
+    return reconstruction
+
+
+def test_neighbour_pairs_join_nearest_cameras_that_face_alike(monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.setattr(module, "NEIGHBOURS", 2)
+    pairs = neighbour_pairs(_line_of_cameras(6))
+    # Each camera's two nearest: 000 -> 001, 002; 001 -> 000, 002; 002 -> 001, 003; 003 -> 002, 004; 004 -> 003, 002.
+    expected = {("000.png", "001.png"), ("000.png", "002.png"), ("001.png", "002.png"), ("002.png", "003.png"),
+                ("002.png", "004.png"), ("003.png", "004.png")}  # fmt: skip
+    assert set(pairs) == expected  # 005 looks the other way: no pair
+    assert pairs == sorted(pairs)
+
+
+def test_the_data_parser_uses_image_tracks_where_asked(textured_scene: Path, tmp_path: Path):
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+
+    def evidence(**options):
+        config = S2CampDataParserConfig(data=textured_scene, downscale_factor=2, image_tracks_cache=tmp_path, **options)
+        return config.setup()._generate_dataparser_outputs("train").metadata.get("track_evidence")
+
+    scene_points = pycolmap.Reconstruction(textured_scene / "sparse" / "0").num_points3D()
+    own = evidence()  # the scene has tracks: auto keeps them and makes none
+    assert own.tracks.points.shape[0] == scene_points
+    assert not any(tmp_path.iterdir())
+    made = evidence(image_tracks="always")
+    (folder,) = tmp_path.iterdir()
+    assert made.tracks.points.shape[0] == pycolmap.Reconstruction(folder).num_points3D() != scene_points
+    # Pixels at the training resolution (images_2): inside the 160x120 training images, not only their top-left quarter.
+    assert 120 < float(made.tracks.pixels[:, 0].max()) <= 160 and 90 < float(made.tracks.pixels[:, 1].max()) <= 120
+    assert evidence(tracks=False) is None
+    assert evidence(tracks=False, image_tracks="always") is None
+
+
+def test_a_transforms_json_without_tracks_gets_them_from_its_full_size_images(textured_scene: Path, tmp_path: Path):
+    """A hand-made transforms.json (no COLMAP model beside it) trained at images_2: auto makes tracks from the
+    full-size images its frames name; never leaves the scene without tracks."""
+    import json
+
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+
+    data = tmp_path / "scene"
+    data.mkdir()
+    for folder in ("images", "images_2"):
+        (data / folder).symlink_to(textured_scene / folder, target_is_directory=True)
+    truth = pycolmap.Reconstruction(textured_scene / "sparse" / "0")
+    frames = []
+    for image in sorted(truth.images.values(), key=lambda image: image.name):
+        c2w = np.asarray(image.cam_from_world().inverse().matrix())
+        c2w[:, 1:3] *= -1  # OpenCV -> OpenGL camera axes
+        frames.append({"file_path": f"images/{image.name}", "transform_matrix": [*c2w.tolist(), [0, 0, 0, 1]]})
+    f, cx, cy, k1, k2 = truth.cameras[1].params
+    content = {"camera_model": "OPENCV", "fl_x": f, "fl_y": f, "cx": cx, "cy": cy, "w": 320, "h": 240}
+    (data / "transforms.json").write_text(json.dumps({**content, "k1": k1, "k2": k2, "frames": frames}))
+
+    def parse(**options):
+        config = S2CampDataParserConfig(data=data / "transforms.json", downscale_factor=2, **options)
+        return config.setup()._generate_dataparser_outputs("train").metadata
+
+    assert "track_evidence" not in parse(image_tracks="never")
+    metadata = parse()
+    evidence = metadata["track_evidence"]
+    (folder,) = (data / "s2camp_image_tracks").iterdir()
+    made = pycolmap.Reconstruction(folder)
+    assert evidence.tracks.points.shape[0] == made.num_points3D() > 100
+    assert sorted(image.name for image in made.images.values()) == sorted(
+        Path(name).name for name in metadata["image_names"]
+    )
+    # Every training image is fitted: each sees at least 10 tracked points, and its RMS is the tracks' noise.
+    rms = metadata["track_rms_px"]
+    assert bool(torch.isfinite(rms).all()) and float(rms.max()) < 1.0
