@@ -134,8 +134,12 @@ STARTS = ("accurate", "perturbed", "sfm", "phone", "accurate-untracked")
 """accurate: the true cameras; perturbed: CamP's perturbation; sfm: pycolmap SfM on the full-size images with an
 EXIF-like focal prior (``benchmarks/sfm.py``); phone: ``PHONE_PROFILE`` without SfM tracks (module docstring);
 accurate-untracked: the true cameras without SfM tracks (a hand-made or exported transforms.json): what refinement
-does to good cameras when nothing but the images anchors them."""
+does to good cameras when nothing but the images anchors them. Both starts without SfM tracks train as such a scene
+does by default: with tracks made from its images (``--image-tracks always`` in place of the scene's own,
+``s2camp_ns/nerfstudio/image_tracks.py``)."""
 REGIME_STARTS = STARTS[:4]
+UNTRACKED_STARTS = ("phone", "accurate-untracked")
+"""Starts whose scene has no SfM tracks: the data parser makes tracks from the images instead."""
 OFF_REFERENCE_START = {"accurate-untracked": "accurate"}
 """Starts whose 'PSNR vs off' compares with refinement off from another start: off never reads the tracks, so the
 true cameras with and without them train alike."""
@@ -184,6 +188,10 @@ HISTORICAL_VARIANTS = {
     "s2camp-gauge-prior-rms": "the common rotation removed and the track prior, the shared intrinsics' prior scale the "
     "RMS of their images' scales; its phone rows, which have no tracks and so ran today's code path, are filed as "
     "s2camp",
+    "s2camp-untracked": "the defaults on a scene without tracks, before tracks were made from its images: nothing "
+    "anchored the cameras but the photometric loss (phone and accurate-untracked starts)",
+    "s2camp-gauge-dolly-untracked": "the defaults plus the common forward motion removed, on a scene without tracks "
+    "before tracks were made from its images (phone start)",
     "s2camp-prior-image-se": "the defaults (common rotation removed, track prior) with the shared intrinsics' prior "
     "scale RMS / sqrt(images), one unit of noise per image, and the anchor's intrinsics always refitted; since then "
     "the anchor keeps the given intrinsics unless the tracks call for others and the scale is the standard error over "
@@ -197,8 +205,8 @@ PHONE_PROFILE = {"sigma_position": 0.02, "sigma_look_at": 0.02, "sigma_dolly_z":
 visual-inertial poses and factory intrinsics as Polycam / Record3D exports carry them, not measured here: centres off
 by 2% of the scene's half-size (centimetres in a room), optical axes by about 1.1 degrees (0.02 at unit distance),
 one focal length for every image (a single phone camera) 2% off through the shared dolly zoom, no per-image focal
-error. Four times CamP's pose sigmas. These exports carry no SfM tracks, so this start trains without them
-(``s2camp-data --tracks False``)."""
+error. Four times CamP's pose sigmas. These exports carry no SfM tracks, so this start trains without the scene's
+(``s2camp-data --image-tracks always``: tracks made from the images)."""
 SFM_FOCAL_PRIOR = 1.05
 """The sfm start's focal prior (the EXIF focal of a real capture; ``benchmarks/sfm.py``)."""
 METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim", "psnr_unaligned")
@@ -345,8 +353,8 @@ def train_command(
     if spec.start == "phone":
         for key, value in PHONE_PROFILE.items():
             dataparser += [f"--perturbation.{key.replace('_', '-')}", str(value)]
-    if spec.start in ("phone", "accurate-untracked"):
-        dataparser += ["--tracks", "False"]
+    if spec.start in UNTRACKED_STARTS:
+        dataparser += ["--image-tracks", "always"]
     if spec.start == "sfm":
         assert truth is not None, "an sfm start measures against the generated scene's cameras"
         dataparser += ["--reference-model", str(truth / "sparse" / "0")]

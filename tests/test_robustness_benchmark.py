@@ -61,16 +61,17 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     seed = str(SCENES["near-deep"].perturbation_seed)
     if start == "accurate":
         assert tail == ["s2camp-data", "--downscale-factor", "1"]
-    elif start == "accurate-untracked":  # the true cameras with nothing but the images to anchor them
-        assert tail == ["s2camp-data", "--downscale-factor", "1", "--tracks", "False"]
+    elif start == "accurate-untracked":  # the true cameras with tracks made from the images, not the scene's
+        assert tail == ["s2camp-data", "--downscale-factor", "1", "--image-tracks", "always"]
     elif start == "perturbed":
         assert tail == ["s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True",
                         "--perturbation.seed", seed]  # fmt: skip
-    else:  # phone: four times CamP's pose sigmas, a shared 2% focal error through the dolly, no tracks
+    else:  # phone: four times CamP's pose sigmas, a shared 2% focal error through the dolly, tracks from the images
         assert tail == [
             "s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True", "--perturbation.seed", seed,
             "--perturbation.sigma-position", "0.02", "--perturbation.sigma-look-at", "0.02",
-            "--perturbation.sigma-dolly-z", "0.02", "--perturbation.sigma-focal-length", "0.0", "--tracks", "False",
+            "--perturbation.sigma-dolly-z", "0.02", "--perturbation.sigma-focal-length", "0.0", "--image-tracks",
+            "always",
         ]  # fmt: skip
     assert "--save-only-latest-checkpoint" not in command
 
