@@ -123,11 +123,12 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     far from its anchor at most, however long the field pulls. For cameras straight out of SfM the anchor is the
     given camera and the scale SfM's own error; cameras changed after SfM are anchored where their tracks say they
     are (a camera-only bundle adjustment against the fixed points, ``core.track_fit``), so the prior guides them
-    there instead of holding them in place. A camera without tracks (phone poses, a hand-made transforms.json) has
-    no prior. Needs the data parser's ``track_evidence`` (COLMAP scenes with points, ns-process-data transforms.json
-    with their ``colmap/sparse/0``). On in the ``s2camp`` and ``s2camp-splat`` methods (``method_config``), off in
-    this config (the baselines' setting: CamP's and nerfstudio's code have no prior); measured on the real-regime
-    grid (``s2camp-bench robustness --preset regime``, docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 12-14)."""
+    there instead of holding them in place. A camera without tracks has no prior. Needs the data parser's
+    ``track_evidence`` (COLMAP scenes with points, ns-process-data transforms.json with their ``colmap/sparse/0``, and
+    scenes without either through tracks made from their images, ``image_tracks``). On in the ``s2camp`` and
+    ``s2camp-splat`` methods (``method_config``), off in this config (the baselines' setting: CamP's and
+    nerfstudio's code have no prior); measured on the real-regime grid (``s2camp-bench robustness --preset regime``,
+    docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 12-16)."""
 
     fix_common_rotation: bool = False
     """After every step, remove the rotation that all training cameras share (the mean over images of the pose

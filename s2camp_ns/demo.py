@@ -9,8 +9,8 @@ COLMAP cameras and the sparse points with their tracks). Two recipes:
   camera-only bundle adjustment against the fixed points, ``s2camp_ns.core.track_fit``) with the tracks' reprojection
   error as its scale. The generated scene's tracks are exact, so the anchor is the true camera and its scale near
   zero: the cameras go there within the first steps, whatever the field does. Real SfM tracks carry their noise
-  (docs/benchmarks/regime.md: SfM cameras stay where SfM put them). Without tracks (phone poses) the cameras move by
-  the photometric loss alone, after a warm-up of at least 2500 steps: runs as long as a demo never leave it.
+  (docs/benchmarks/regime.md: SfM cameras stay where SfM put them). A scene without tracks (phone poses) gets tracks
+  made from its images (the data parser's ``image_tracks``), which carry the noise of its SIFT keypoints.
 - ``warm-start``: the photometric refinement alone, shown in a demo-length run. nerfacto (CPU-sized) is first fitted
   to the accurate cameras with the camera learning rate at zero; the run then resumes from that checkpoint on the
   perturbed cameras without the track prior or the common-rotation removal (``PHOTOMETRIC_ONLY``), with the camera
@@ -353,9 +353,9 @@ def protocol_notice(config: DemoConfig) -> str:
         return (
             "s2camp with its default options, from scratch, on perturbed cameras. The default track prior takes each "
             "camera to where the scene's SfM tracks put it; this generated scene's tracks are exact, so that is the "
-            "true camera, reached within the first steps. Real SfM tracks carry their noise, and cameras without "
-            "tracks move by the photometric loss alone after a warm-up of at least 2500 steps (longer than this demo): "
-            "docs/benchmarks/regime.md. `--recipe warm-start` shows the photometric refinement alone."
+            "true camera, reached within the first steps. Real SfM tracks carry their noise, and a scene without "
+            "tracks gets tracks made from its images (SIFT), which carry theirs: docs/benchmarks/regime.md. "
+            "`--recipe warm-start` shows the photometric refinement alone."
         )
     overrides = ["the track prior and the common-rotation removal are off: the photometric loss alone moves cameras"]
     if config.warm_start > 0:
