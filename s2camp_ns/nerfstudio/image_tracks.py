@@ -268,7 +268,8 @@ def _given_with_database_ids(given: pycolmap.Reconstruction, database: Path) -> 
 def neighbour_pairs(given: pycolmap.Reconstruction) -> list[tuple[str, str]]:
     """Image pairs to match beyond ``EXHAUSTIVE_LIMIT`` images: each image with its ``NEIGHBOURS`` nearest camera
     centres among the cameras whose optical axes are within 90 degrees of its own (each pair once, sorted)."""
-    names, centres, axes = _poses(given)
+    names, centres, rotations = _poses(given)
+    axes = rotations[:, 2, :]
     distance = torch.cdist(centres, centres)
     facing = axes @ axes.T > 0.0
     distance[~facing] = float("inf")
@@ -284,23 +285,16 @@ def neighbour_pairs(given: pycolmap.Reconstruction) -> list[tuple[str, str]]:
 
 
 def _poses(reconstruction: pycolmap.Reconstruction, names: list[str] | None = None):
-    """Image names (sorted unless given), camera centres [N, 3] and optical axes [N, 3] in the world (float64)."""
+    """Image names (sorted unless given), camera centres [N, 3] and world-to-camera rotations [N, 3, 3] (float64; row
+    2 of a rotation is the camera's optical axis in the world)."""
     by_name = {image.name: image for image in reconstruction.images.values()}
     names = sorted(by_name) if names is None else names
     matrices = torch.tensor(
         np.stack([np.asarray(by_name[name].cam_from_world().matrix()) for name in names]), dtype=torch.float64
     )
-    rotations = matrices[:, :, :3]  # world -> camera
+    rotations = matrices[:, :, :3]
     centres = -(rotations.transpose(1, 2) @ matrices[:, :, 3:]).squeeze(-1)
-    return names, centres, rotations[:, 2, :]
-
-
-def _rotations(reconstruction: pycolmap.Reconstruction, names: list[str]) -> torch.Tensor:
-    by_name = {image.name: image for image in reconstruction.images.values()}
-    return torch.tensor(
-        np.stack([np.asarray(by_name[name].cam_from_world().matrix())[:, :3].T for name in names]),
-        dtype=torch.float64,
-    )
+    return names, centres, rotations
 
 
 def _align_to_given(reconstruction: pycolmap.Reconstruction, given: pycolmap.Reconstruction) -> None:
@@ -323,11 +317,11 @@ def _camera_changes(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per image: the rotation (degrees) between the adjusted and the given camera, and the distance between their
     centres as a fraction of the given centres' spread."""
-    names, centres, _ = _poses(reconstruction)
-    _, given_centres, _ = _poses(given, names)
+    names, centres, rotations = _poses(reconstruction)
+    _, given_centres, given_rotations = _poses(given, names)
     spread = float((given_centres - given_centres.mean(dim=0)).square().sum(dim=1).mean().sqrt())
     moved = (centres - given_centres).norm(dim=1) / max(spread, 1e-12)
-    turned = torch.rad2deg(rotation_angle(_rotations(reconstruction, names), _rotations(given, names)))
+    turned = torch.rad2deg(rotation_angle(rotations, given_rotations))  # the same angle as between the c2w rotations
     return turned, moved
 
 
