@@ -248,3 +248,16 @@ def test_a_transforms_json_without_tracks_gets_them_from_its_full_size_images(te
     # Every training image is fitted: each sees at least 10 tracked points, and its RMS is the tracks' noise.
     rms = metadata["track_rms_px"]
     assert bool(torch.isfinite(rms).all()) and float(rms.max()) < 1.0
+
+
+def test_an_image_colmap_cannot_read_is_named_instead_of_missing_from_the_tracks(tiny_scene: Path, tmp_path: Path):
+    images = tmp_path / "images"
+    images.mkdir()
+    for file in (tiny_scene / "images").iterdir():
+        (images / file.name).write_bytes(file.read_bytes())
+    (images / "frame_00003.png").write_bytes(b"not a png")
+    truth = pycolmap.Reconstruction(tiny_scene / "sparse" / "0")
+    result = image_tracks(_given(truth, rotation=0.0, centre=0.0, focal=1.0), images, tmp_path / "cache")
+    assert result.model is None
+    expected = f"COLMAP could not read 1 of {truth.num_images()} images (first: 'frame_00003.png')"
+    assert result.reason.startswith(expected)

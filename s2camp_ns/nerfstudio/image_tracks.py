@@ -201,6 +201,14 @@ def _build(given: pycolmap.Reconstruction, image_root: Path, work: Path) -> tupl
                 device=pycolmap.Device.cpu,
             )  # fmt: skip
     reconstruction = _given_with_database_ids(given, database)
+    unread = sorted(
+        {image.name for image in given.images.values()} - {image.name for image in reconstruction.images.values()}
+    )
+    if unread:  # COLMAP skips an image it cannot decode; every training image must be in the model
+        return (
+            reconstruction,
+            f"COLMAP could not read {len(unread)} of {given.num_images()} images (first: '{unread[0]}')",
+        )
     adjustment = pycolmap.BundleAdjustmentOptions(refine_principal_point=False)
     adjustment.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     adjustment.ceres.loss_function_scale = LOSS_SCALE_PX
