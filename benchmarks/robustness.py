@@ -637,6 +637,7 @@ def summarize(rows: list[dict]) -> list[dict]:
     summary = []
     for (scene, start, variant), chosen in groups.items():
         entry = {"scene": scene, "start": start, "variant": variant, "seeds": len(chosen)}
+        entry["seed_list"] = sorted(row["seed"] for row in chosen)
         entry["passes"] = statistics.fmean(row.get("passes", math.nan) for row in chosen)
         for key in METRICS:
             entry[key] = Spread.of([row[key] for row in chosen])
@@ -735,10 +736,21 @@ def _scene_table(config: RobustnessConfig, summary: list[dict]) -> str:
     return markdown_table(rows, columns, headers)
 
 
+def seeds_cell(seeds: list[int]) -> str:
+    """The number of runs; a seed run more than once (ns-train on a CPU is not bit-reproducible, so a repeat is
+    another sample, not a copy) is named, so that the count is never read as that many distinct seeds."""
+    repeated = sorted({seed for seed in seeds if seeds.count(seed) > 1})
+    if not repeated:
+        return str(len(seeds))
+    names = ", ".join(f"{seed} x{seeds.count(seed)}" for seed in repeated)
+    return f"{len(seeds)} runs, {len(set(seeds))} seeds (seed {names})"
+
+
 def _summary_rows(summary: list[dict]) -> list[dict]:
     table = []
     for entry in summary:
-        row = {key: entry[key] for key in ("scene", "start", "variant", "seeds")}
+        row = {key: entry[key] for key in ("scene", "start", "variant")}
+        row["seeds"] = seeds_cell(entry["seed_list"])
         row |= {key: entry[key].cell() for key in METRICS}
         row["psnr_vs_off"] = entry["psnr_vs_off_label"]
         row["passes"] = f"{entry['passes']:.2f}"
@@ -765,22 +777,22 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
     setup = (
         f"Every run: `ns-train <method>` from scratch with the method's default options (camera learning rate and "
         f"schedule included) and only what a CPU run needs: the small nerfacto field "
-        f"(`s2camp_ns.nerfstudio.train_commands.SMALL_MODEL`), `--machine.device-type cpu`, "
-        f"`--max-num-iterations {iterations}`, {config.rays_per_batch} rays per step, no evaluation or "
-        f"camera-error logging during training; `--machine.seed` {seeds}. 'off' is `ns-train s2camp "
-        f"--pipeline.model.camera-optimizer.mode off`. 'perturbed' is the data parser's CamP perturbation "
-        f"(CamP's sigmas, the scene's perturbation seed), 'accurate' the true cameras, 'sfm' pycolmap SfM on the "
-        f"full-size images (focal prior {SFM_FOCAL_PRIOR} x the true focal), 'phone' `PHONE_PROFILE` without SfM "
-        f"tracks, 'accurate-untracked' the true cameras without SfM tracks (`benchmarks/robustness.py`); both train "
-        f"with tracks made from their images (`--image-tracks always`, `s2camp_ns/nerfstudio/image_tracks.py`). "
-        f"Errors of "
-        f"the final checkpoint after a similarity alignment to the true cameras: rotation in degrees, position in "
-        f"normalized scene units (the cameras fit in [-1, 1]^3), focal in px; "
-        f"drift = RMS pixel displacement of the scene's 3D "
-        f"points between the true and the aligned refined cameras (`s2camp_ns.core.drift`). PSNR / SSIM: held-out "
-        f"views (every 8th image) after {a.steps} test-time alignment steps of {a.rays} rays. Cells: mean "
-        f"[min, max] over seeds. 'PSNR vs off': difference of the means, 'no difference' when smaller than the "
-        f"larger seed range of the two. 'removed': 1 - final / start error for perturbed and phone starts."
+        f"(`s2camp_ns.nerfstudio.train_commands.SMALL_MODEL`), `--machine.device-type cpu`, `--max-num-iterations "
+        f"{iterations}`, {config.rays_per_batch} rays per step, no evaluation or camera-error logging during "
+        f"training; `--machine.seed` {seeds}. 'off' is `ns-train s2camp --pipeline.model.camera-optimizer.mode off`. "
+        f"'perturbed' is the data parser's CamP perturbation (CamP's sigmas, the scene's perturbation seed), "
+        f"'accurate' the true cameras, 'sfm' pycolmap SfM on the full-size images (focal prior {SFM_FOCAL_PRIOR} x "
+        f"the true focal; built once per work folder, and pycolmap's reconstruction differs between builds, so the "
+        f"start column gives each row's SfM errors), 'phone' `PHONE_PROFILE` without SfM tracks, 'accurate-untracked' "
+        f"the true cameras without SfM tracks (`benchmarks/robustness.py`); both train with tracks made from their "
+        f"images (`--image-tracks always`, `s2camp_ns/nerfstudio/image_tracks.py`). Errors of the final checkpoint "
+        f"after a similarity alignment to the true cameras: rotation in degrees, position in normalized scene units "
+        f"(the cameras fit in [-1, 1]^3), focal in px; drift = RMS pixel displacement of the scene's 3D points "
+        f"between the true and the aligned refined cameras (`s2camp_ns.core.drift`). PSNR / SSIM: held-out views "
+        f"(every 8th image) after {a.steps} test-time alignment steps of {a.rays} rays. Cells: mean [min, max] over "
+        f"the runs, one per seed unless the seeds cell names a seed run twice. 'PSNR vs off': difference of the "
+        f"means, 'no difference' when smaller than the larger seed range of the two. 'removed': 1 - final / start "
+        f"error for perturbed and phone starts."
     )
     setup += no_longer_run_note(rows, HISTORICAL_VARIANTS)
     columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]

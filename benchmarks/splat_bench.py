@@ -80,6 +80,7 @@ from .robustness import (
     record_row,
     resume,
     run_side_by_side,
+    seeds_cell,
     train_logged,
 )
 
@@ -449,6 +450,7 @@ def summarize(rows: list[dict]) -> list[dict]:
     summary = []
     for (scene, start, variant), chosen in groups.items():
         entry = {"scene": scene, "start": start, "variant": variant, "seeds": len(chosen)}
+        entry["seed_list"] = sorted(row["seed"] for row in chosen)
         entry["passes"] = statistics.fmean(row["passes"] for row in chosen)
         for key in SUMMARY_METRICS:
             entry[key] = Spread.of([float(row[key]) for row in chosen])
@@ -495,7 +497,8 @@ def _signed(value: float) -> str:
 def _summary_rows(summary: list[dict]) -> list[dict]:
     table = []
     for entry in summary:
-        row = {key: entry[key] for key in ("scene", "start", "variant", "seeds")}
+        row = {key: entry[key] for key in ("scene", "start", "variant")}
+        row["seeds"] = seeds_cell(entry["seed_list"])
         row |= {key: entry[key].cell() for key in METRICS}
         gaussians = entry["gaussians"]
         row["gaussians"] = f"{gaussians.mean:.0f}" + (

@@ -183,6 +183,17 @@ def test_summary_spread_difference_against_off_and_removed_start_error() -> None
     assert summary[("accurate", "off")]["psnr_vs_off_label"] == ""
 
 
+def test_a_seed_run_twice_is_counted_as_a_run_and_named(tmp_path: Path) -> None:
+    from s2camp_ns.benchmarks.robustness import report
+
+    extra = {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
+    rows = [_row("phone", "off", seed, 23.0 + seed, 1.0, 1.0) | extra for seed in (0, 2, 2)]
+    rows += [_row("phone", "s2camp", seed, 26.0, 0.1, 1.0) | extra for seed in (0, 1, 2)]
+    text = report(rows, RobustnessConfig(preset="regime", output_dir=tmp_path)).read_text()
+    assert "| regime-wide | phone | off | 3 runs, 2 seeds (seed 2 x2) | 1.50 |" in text
+    assert "| regime-wide | phone | s2camp | 3 | 1.50 |" in text
+
+
 def test_the_untracked_true_cameras_compare_with_refinement_off_from_the_tracked_ones() -> None:
     # Refinement off never reads the tracks: its rows from the true cameras are the untracked start's reference.
     rows = [_row("accurate", "off", seed, 25.0 + 0.1 * seed, 0.0, 0.0) for seed in range(2)]
