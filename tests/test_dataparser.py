@@ -566,7 +566,8 @@ def test_transforms_images_of_a_downscaled_folder_are_checked_and_fitted(generat
     for path in (source.parent / "images_4").iterdir():
         Image.open(path).resize((25, 19)).save(path)  # a half-size folder saved as images_4
     with pytest.raises(
-        ValueError, match=r"images_4/frame_\d+\.png is 25x19 but the w x h in .*transforms\.json is 50x38, which at "
+        ValueError,
+        match=r"images_4/frame_\d+\.png is 25x19 but the w x h in .*transforms\.json is 50x38, which at "
         r"downscale_factor 4 gives 12\.5x9\.5.*pick the downscale_factor that matches the folder",
     ):
         parse(source, downscale_factor=4)

@@ -53,7 +53,10 @@ CUDA_TESTS = [
     "tests/test_splat_identity.py::test_gsplat_cuda_intrinsics_gradient_through_view_matrix",
 ]
 CUDA_MODULES = [
-    "test_cuda.py", "test_device_audit.py", "test_mixed_precision.py", "test_splat_alignment.py",
+    "test_cuda.py",
+    "test_device_audit.py",
+    "test_mixed_precision.py",
+    "test_splat_alignment.py",
     "test_splat_identity.py",
 ]
 """The test modules that use the ``cuda`` marker."""
@@ -142,7 +145,12 @@ def test_train_arguments_of_the_methods() -> None:
     ]  # fmt: skip
     for method in ("nerfacto", "s2camp-so3xr3", "s2camp-camp"):
         assert train_arguments(config, method, Path("scene")) == [
-            method, *shared, "--timestamp", method, *run, *perturbed
+            method,
+            *shared,
+            "--timestamp",
+            method,
+            *run,
+            *perturbed,
         ]
 
 

@@ -209,9 +209,7 @@ def test_held_out_splat_views_are_splatfactos_images_through_the_reference_camer
     given = _cameras(given_c2w, [35.0, 38.0], width, height, distortion=distortion)  # view 1: K after undistortion
     reference = _cameras(reference_c2w, [37.0, 33.0], width, height)
     shown = [pinhole(37.0, width, height), pinhole(38.0, width, height)]  # the reference K, the undistorted one
-    images = [
-        (render_as_nerfstudio(model, reference_c2w[i], shown[i]) * 255).round().to(torch.uint8) for i in range(2)
-    ]
+    images = [(render_as_nerfstudio(model, reference_c2w[i], shown[i]) * 255).round().to(torch.uint8) for i in range(2)]
     dataset = _EvalDataset(given, {"reference_cameras": reference})
     datamanager = SimpleNamespace(
         cached_eval=[{"image": image} for image in images],

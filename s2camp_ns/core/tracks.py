@@ -56,9 +56,7 @@ class Tracks:
                              f"[{int(self.point.min())}, {int(self.point.max())}]")  # fmt: skip
 
 
-def track_reprojection_rms(
-    tracks: Tracks, c2w: Float[Tensor, "n 3 4"], intrinsics: Intrinsics
-) -> Float[Tensor, " n"]:
+def track_reprojection_rms(tracks: Tracks, c2w: Float[Tensor, "n 3 4"], intrinsics: Intrinsics) -> Float[Tensor, " n"]:
     """RMS pixel distance, per camera, between each observed pixel and its point projected through the camera
     (float64, on ``c2w``'s device); NaN for a camera with no valid observation (module docstring)."""
     n = c2w.shape[0]
@@ -73,7 +71,7 @@ def track_reprojection_rms(
     points = tracks.points.to(device=device, dtype=torch.float64)[tracks.point.to(device)]
     rotation, centre = c2w[image, :, :3], c2w[image, :, 3]
     # Camera-frame point R^T (x - c), one observation per row ([O, 1, 3] for ``project``'s [n, l, 3]).
-    points_cam = ((points - centre)[:, None, :] @ rotation)
+    points_cam = (points - centre)[:, None, :] @ rotation
     pixels, margin = project(points_cam, intrinsics.to(device=device, dtype=torch.float64)[image])
     squared = (pixels[:, 0] - tracks.pixels.to(device=device, dtype=torch.float64)).square().sum(dim=-1)
     return per_image_rms(squared, (margin[:, 0] > 0).to(torch.float64), image, n)

@@ -72,7 +72,6 @@ def check_checkpoint_cameras(state: Mapping[str, Any], num_train_cameras: int, d
     )
 
 
-
 def undistortion_scale(datamanager) -> tuple[Float[Tensor, "n 1"], Float[Tensor, "n 1"]]:
     """fx and fy of each training camera after a full-image data manager undistorted its image, over the
     dataparser's (1 where an image was left alone): the argument of ``S2CampSplatModel.set_undistortion_scale``."""

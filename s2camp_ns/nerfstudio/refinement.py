@@ -284,7 +284,6 @@ class S2CampRefinementMixin:
             metrics_dict.update(self._camera_errors)
         return metrics_dict
 
-
     def get_image_metrics_and_images(
         self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]
     ) -> tuple[dict[str, float], dict[str, torch.Tensor]]:

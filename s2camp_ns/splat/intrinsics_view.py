@@ -72,9 +72,7 @@ def intrinsics_correction(
     )
 
 
-def corrected_viewmat(
-    viewmat: Float[Tensor, "n 4 4"], correction: Float[Tensor, "n 3 3"]
-) -> Float[Tensor, "n 4 4"]:
+def corrected_viewmat(viewmat: Float[Tensor, "n 4 4"], correction: Float[Tensor, "n 3 3"]) -> Float[Tensor, "n 4 4"]:
     """World-to-camera [[A R, A t], [0, 1]] (docs/SPLAT.md eq. S4): with the base K it renders as the refined K' = K A;
     differentiable in both."""
     top = correction @ viewmat[..., :3, :]

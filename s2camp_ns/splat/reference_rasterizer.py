@@ -337,9 +337,7 @@ def rasterization(
         camera_record = record.setdefault(camera, {}) if absgrad else None
         for ty in range(tiles_y):
             for tx in range(tiles_x):
-                hits = (
-                    (tile_min[:, 0] <= tx) & (tx < tile_max[:, 0]) & (tile_min[:, 1] <= ty) & (ty < tile_max[:, 1])
-                )
+                hits = (tile_min[:, 0] <= tx) & (tx < tile_max[:, 0]) & (tile_min[:, 1] <= ty) & (ty < tile_max[:, 1])
                 x0, y0 = tx * tile_size, ty * tile_size
                 x1, y1 = min(x0 + tile_size, width), min(y0 + tile_size, height)
                 ids = order[hits]
@@ -364,12 +362,8 @@ def rasterization(
                     pixels,
                     tile_record,
                 )
-                image = image.index_put(
-                    (ys.reshape(-1).long(), xs.reshape(-1).long()), colour
-                )
-                alpha_image = alpha_image.index_put(
-                    (ys.reshape(-1).long(), xs.reshape(-1).long()), 1.0 - transmittance
-                )
+                image = image.index_put((ys.reshape(-1).long(), xs.reshape(-1).long()), colour)
+                alpha_image = alpha_image.index_put((ys.reshape(-1).long(), xs.reshape(-1).long()), 1.0 - transmittance)
         images.append(image)
         alphas.append(alpha_image[..., None])
     render_colors = torch.stack(images)
