@@ -215,7 +215,7 @@ def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path:
             "iterations": 3000,
             "eval_seconds": 1.0,
             "sec_per_iter": 0.5,
-        }  # fmt: skip
+        }
         for variant, psnr, rot in (("off", 20.0, 0.1), ("s2camp", 21.0, 0.3))
         for seed in (0, 1)
     ]
