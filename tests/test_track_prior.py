@@ -92,7 +92,7 @@ def _tiny_model(folder, observations: list[tuple[str, list[tuple[float, float, i
     return folder
 
 
-def test_read_colmap_tracks_follows_the_requested_names_and_downscale(tmp_path) -> None:
+def test_read_colmap_tracks_follows_the_requested_names_and_image_size(tmp_path) -> None:
     from s2camp_ns.nerfstudio.colmap_tracks import read_colmap_tracks
 
     model = _tiny_model(
@@ -100,11 +100,13 @@ def test_read_colmap_tracks_follows_the_requested_names_and_downscale(tmp_path) 
         [("a.png", [(10.0, 20.0, 1), (30.0, 40.0, -1)]), ("b.png", [(50.0, 60.0, 2), (70.0, 8.0, 1)])],
         {1: [0.0, 0.0, 1.0], 2: [0.1, 0.0, 1.0]},
     )
-    tracks = read_colmap_tracks(model, ["b.png", "a.png"], downscale_factor=2)
+    # The model's camera is 100 x 80; images of 50 x 20 halve u and quarter v.
+    tracks = read_colmap_tracks(model, ["b.png", "a.png"], image_size=torch.tensor([[50, 20], [50, 20]]))
     assert tracks.image.tolist() == [0, 0, 1]  # b's two tracked points, then a's one (its -1 is not a track)
     rows = tracks.point.tolist()
     assert tracks.points[rows].tolist() == [[0.1, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]
-    assert tracks.pixels.tolist() == [[25.0, 30.0], [35.0, 4.0], [5.0, 10.0]]
+    assert tracks.pixels.tolist() == [[25.0, 15.0], [35.0, 2.0], [5.0, 5.0]]
+    assert read_colmap_tracks(model, ["a.png"]).pixels.tolist() == [[10.0, 20.0]]  # the model's own pixels
     with pytest.raises(ValueError, match=r"holds no image named 'c.png'"):
         read_colmap_tracks(model, ["c.png"])
 

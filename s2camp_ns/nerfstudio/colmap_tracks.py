@@ -2,8 +2,16 @@
 
 Points stay in COLMAP's world frame; the dataparser maps the training cameras back to that frame
 (``colmap_world.c2w_to_colmap_world``) before measuring, so nerfstudio's normalization never touches the points.
-Observed pixels are COLMAP's (full resolution, top-left pixel centre at (0.5, 0.5)) divided by the downscale factor
-of the image folder the cameras describe. Observations without a 3D point (point3D_id -1) are not part of a track.
+
+Pixels. COLMAP's keypoints are in the pixels of the model's cameras (their declared width x height, top-left pixel
+centre at (0.5, 0.5)). The training cameras describe the images the parser reads, which may be a downscaled folder
+whose sizes were rounded (mip-NeRF 360's ``images_4``: 3114 x 2075 -> 779 x 519, per-axis ratios 779 / 3114 and
+519 / 2075, not 1 / 4). The data parser fits the cameras' intrinsics to those images by the per-axis ratio
+(``dataparser._fit_intrinsics_to_images``), so the keypoints must be scaled by the same ratio, not by the downscale
+factor: with 1 / k a rounded folder's tracks would disagree with exact cameras by up to half a pixel at the image
+border and the anchor fit would refit the intrinsics to absorb it. In this pixel convention (pixel edges at
+integers) a resize by (sx, sy) maps u -> sx u and v -> sy v exactly, as it maps fx, cx -> sx fx, sx cx.
+Observations without a 3D point (point3D_id -1) are not part of a track.
 """
 
 from __future__ import annotations
@@ -12,25 +20,58 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from jaxtyping import Float
+from torch import Tensor
 
 from s2camp_ns.core.tracks import Tracks
 from s2camp_ns.nerfstudio.colmap_model import model_file, read_model_file
 
 
-def read_colmap_tracks(model: Path, names: list[str], downscale_factor: int = 1) -> Tracks:
+def pixel_scale_of(
+    width: Tensor, height: Tensor, model_size: Float[Tensor, "n 2"] | list[tuple[int, int]]
+) -> Float[Tensor, "n 2"]:
+    """Per-image (sx, sy) from the model's camera size (``model_size``: width, height of the camera that holds the
+    keypoints) to the training image size (``width``, ``height``: the cameras' own): the factor that takes COLMAP's
+    keypoints into the training cameras' pixels (module docstring)."""
+    size = torch.as_tensor(model_size, dtype=torch.float64).reshape(-1, 2)
+    trained = torch.stack([width.reshape(-1).double().cpu(), height.reshape(-1).double().cpu()], dim=-1)
+    if trained.shape != size.shape:
+        n, m = trained.shape[0], size.shape[0]
+        raise ValueError(f"model_size must hold one (width, height) per camera ({n}), got {m}")
+    if bool((size <= 0).any()):
+        raise ValueError(f"model_size must be positive pixel sizes, got minimum {float(size.min()):g}")
+    return trained / size
+
+
+def read_colmap_tracks(model: Path, names: list[str], image_size: Float[Tensor, "n 2"] | None = None) -> Tracks:
     """The tracks of COLMAP model folder ``model`` seen by the images ``names`` (image ``i`` of the result is
-    ``names[i]``; a name the model lacks is a ValueError naming it and the images file)."""
+    ``names[i]``; a name the model lacks is a ValueError naming it and the images file). With ``image_size`` (the
+    width, height of each image as the cameras describe it) the keypoints are scaled from the size of the model's
+    camera of that image to it, per axis (module docstring); None keeps the model's pixels."""
     images_file = model_file(model, "images")
     images = {image.name: image for image in read_model_file(images_file, "images").values()}
     points3d = read_model_file(model_file(model, "points3D"), "points3D")
-    return tracks_of_images(images, points3d, names, downscale_factor, images_file)
+    scale: Tensor | float = 1.0
+    if image_size is not None:
+        cameras = read_model_file(model_file(model, "cameras"), "cameras")
+        missing = [name for name in names if name not in images]
+        if missing:
+            raise ValueError(f"{images_file} holds no image named '{missing[0]}' (a training image of the scene)")
+        sizes = [(cameras[images[name].camera_id].width, cameras[images[name].camera_id].height) for name in names]
+        size = torch.as_tensor(image_size, dtype=torch.float64).reshape(-1, 2)
+        scale = pixel_scale_of(size[:, 0], size[:, 1], sizes)
+    return tracks_of_images(images, points3d, names, scale, images_file)
 
 
 def tracks_of_images(
-    images: dict, points3d: dict, names: list[str], downscale_factor: int, images_file: Path
+    images: dict, points3d: dict, names: list[str], pixel_scale: Float[Tensor, "n 2"] | float, images_file: Path
 ) -> Tracks:
     """``read_colmap_tracks`` on a model already read: ``images`` by name, ``points3d`` by id (``images_file`` names
     the source in errors)."""
+    scale = torch.as_tensor(pixel_scale, dtype=torch.float64)
+    scale = scale.expand(len(names), 2) if scale.ndim == 0 else scale.reshape(-1, 2)
+    if scale.shape[0] != len(names):
+        raise ValueError(f"pixel_scale must hold one (sx, sy) per image ({len(names)}), got {scale.shape[0]}")
     ids = np.fromiter(points3d.keys(), dtype=np.int64, count=len(points3d))
     xyz = np.stack([points3d[int(i)].xyz for i in ids]) if len(ids) else np.zeros((0, 3))
     row_of = {int(point_id): row for row, point_id in enumerate(ids)}
@@ -43,12 +84,14 @@ def tracks_of_images(
         image_index += [index] * len(keep)
         point_index += [row for row, _ in keep]
         pixels += [xy for _, xy in keep]
+    image = torch.as_tensor(image_index, dtype=torch.long)
+    observed = torch.as_tensor(np.asarray(pixels, dtype=np.float64).reshape(-1, 2))  # [O, 2] in the model's pixels
     return Tracks(
         points=torch.as_tensor(xyz, dtype=torch.float64),
-        image=torch.as_tensor(image_index, dtype=torch.long),
+        image=image,
         point=torch.as_tensor(point_index, dtype=torch.long),
-        pixels=torch.as_tensor(np.asarray(pixels, dtype=np.float64).reshape(-1, 2)) / float(downscale_factor),
+        pixels=observed * scale[image],
     )
 
 
-__all__ = ["read_colmap_tracks", "tracks_of_images"]
+__all__ = ["pixel_scale_of", "read_colmap_tracks", "tracks_of_images"]

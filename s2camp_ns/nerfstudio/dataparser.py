@@ -483,7 +483,7 @@ class S2CampDataParser(DataParser):
         metadata.update(extra)
         scene_tracks = self.config.tracks and self.config.image_tracks != "always"
         if data_format == "colmap" and scene_tracks and self.config.load_3D_points and self._has_points(source):
-            rms, evidence = colmap_track_evidence(cameras, source, extra["image_names"], extra, outputs)
+            rms, evidence = colmap_track_evidence(cameras, source, extra["image_names"], outputs)
             metadata.update(track_rms_px=rms, track_evidence=evidence)
         elif data_format == "nerfstudio" and scene_tracks:
             result = self._transforms_track_rms(source, cameras, outputs, extra)
@@ -618,7 +618,10 @@ class S2CampDataParser(DataParser):
             dataparser_scale=outputs.dataparser_scale,
             metadata=outputs.metadata,
         )
-        return outputs, dict(image_names=[Path(p).name for p in outputs.image_filenames], downscale_factor=k)
+        # The frames' declared full size (the transforms.json's w x h): the export's "original" resolution.
+        full_size = torch.tensor([declared_size[:2] for declared_size in declared], dtype=torch.int64)
+        names = [Path(p).name for p in outputs.image_filenames]
+        return outputs, dict(image_names=names, downscale_factor=k, full_image_size=full_size)
 
     def _transforms_track_rms(
         self, source: Path, cameras: Cameras, outputs: DataparserOutputs, extra: dict
@@ -653,17 +656,15 @@ class S2CampDataParser(DataParser):
     ) -> tuple[torch.Tensor, TrackEvidence] | None:
         """``track_rms_px`` and ``track_evidence`` from tracks made from the scene's full-size images with the given
         ``cameras`` (``image_tracks``); None, with the reason shown once, when none could be made."""
-        k = extra["downscale_factor"]
+        full_size = extra["full_image_size"]
         if data_format == "colmap":
             scene = Path(self.config.data)
-            root, names, full_size = scene / self.config.images_path, extra["image_names"], extra["full_image_size"]
+            root, names = scene / self.config.images_path, extra["image_names"]
         else:
             scene = source.parent
-            paths = full_size_images(source, outputs.image_filenames, k)
+            paths = full_size_images(source, outputs.image_filenames, extra["downscale_factor"])
             root = Path(os.path.commonpath([path.parent for path in paths]))
             names = [path.relative_to(root).as_posix() for path in paths]
-            sizes = transforms_declared_sizes(source, k)
-            full_size = torch.tensor([sizes[os.path.normpath(p)] for p in outputs.image_filenames], dtype=torch.int64)
         scale = float(outputs.dataparser_scale)
         given = export_cameras(
             cameras, outputs.dataparser_transform, scale, names, full_image_size=full_size,
@@ -678,7 +679,7 @@ class S2CampDataParser(DataParser):
             (result.model, "summary"),
             f"[dim]Track prior from tracks made from the images of {root} ({result.model}): {escape(result.summary)}",
         )
-        return colmap_track_evidence(cameras, result.model, names, extra, outputs)
+        return colmap_track_evidence(cameras, result.model, names, outputs)
 
     @staticmethod
     def _transforms_frames(source: Path) -> list:
@@ -701,12 +702,14 @@ def _show_once(key: tuple, message: str) -> None:
 
 
 def colmap_track_evidence(
-    cameras: Cameras, model: Path, names: list[str], extra: dict, outputs: DataparserOutputs
+    cameras: Cameras, model: Path, names: list[str], outputs: DataparserOutputs
 ) -> tuple[torch.Tensor, TrackEvidence]:
     """Reprojection RMS (px, float64 [N]) of the COLMAP model's tracks under ``cameras`` (normalized, as the data parser
     returns them; image i is the model's image ``names[i]``), measured in COLMAP's world frame (``core.tracks``), and
     the tracks with the cameras in that world (the track prior's anchor, ``core.track_fit``)."""
-    tracks = read_colmap_tracks(model, names, extra["downscale_factor"])
+    # Keypoints from the model's camera size to the training images' (a rounded images_k folder included).
+    size = torch.stack([cameras.width.reshape(-1), cameras.height.reshape(-1)], dim=-1)
+    tracks = read_colmap_tracks(model, names, image_size=size)
     scale = float(outputs.dataparser_scale)
     c2w = c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, scale)
     rms = track_reprojection_rms(tracks, c2w, intrinsics_from_cameras(cameras))

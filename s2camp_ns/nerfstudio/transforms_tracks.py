@@ -54,7 +54,7 @@ from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
 from s2camp_ns.nerfstudio.colmap_model import model_file, read_model_file
-from s2camp_ns.nerfstudio.colmap_tracks import tracks_of_images
+from s2camp_ns.nerfstudio.colmap_tracks import pixel_scale_of, tracks_of_images
 
 COLMAP_MODEL_OF_TRANSFORMS = Path("colmap/sparse/0")
 """Where ``ns-process-data`` writes the COLMAP model, relative to the transforms.json's folder."""
@@ -255,7 +255,9 @@ def transforms_track_rms(
             "transforms.json was edited or belongs to another reconstruction",
         )
     points3d = read_model_file(model_file(model, "points3D"), "points3D")
-    tracks = tracks_of_images(images, points3d, matched_names, downscale_factor, images_file)
+    # Keypoints into the training images' pixels by each image's per-axis ratio (colmap_tracks module docstring).
+    scale = pixel_scale_of(intrinsics.width[index], intrinsics.height[index], colmap_sizes)
+    tracks = tracks_of_images(images, points3d, matched_names, scale, images_file)
     rms = torch.full((len(names),), float("nan"), dtype=torch.float64)
     given = _world_from_json(c2w_given, rotation)
     rms[index] = track_reprojection_rms(tracks, given[index], intrinsics[index])
