@@ -10,6 +10,7 @@ import pycolmap
 import pytest
 import torch
 from test_camera_optimizer_shared import make_optimizer
+from test_transforms_tracks import perturbed_track_rms
 
 from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
@@ -111,7 +112,7 @@ def test_read_colmap_tracks_follows_the_requested_names_and_image_size(tmp_path)
         read_colmap_tracks(model, ["c.png"])
 
 
-def test_data_parser_measures_exact_tracks_at_zero_and_perturbed_cameras_above(tiny_scene) -> None:
+def test_data_parser_measures_exact_tracks_at_zero_and_moved_cameras_above(tiny_scene) -> None:
     from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 
     accurate = S2CampDataParserConfig(data=tiny_scene).setup().get_dataparser_outputs("train")
@@ -119,10 +120,7 @@ def test_data_parser_measures_exact_tracks_at_zero_and_perturbed_cameras_above(t
     assert rms.shape == (accurate.cameras.shape[0],)
     # The generated tracks are the exact projections of the generated points (float32 storage of the poses).
     assert float(rms.max()) < 1e-3
-    config = S2CampDataParserConfig(data=tiny_scene)
-    config.perturbation.enabled = True
-    perturbed = config.setup().get_dataparser_outputs("train")
-    assert float(perturbed.metadata["track_rms_px"].min()) > 0.1
+    assert float(perturbed_track_rms(tiny_scene).min()) > 0.1
     off = S2CampDataParserConfig(data=tiny_scene, tracks=False).setup().get_dataparser_outputs("train")
     assert "track_rms_px" not in off.metadata
 
@@ -212,3 +210,77 @@ def test_adam_with_the_prior_settles_within_the_radius(noise: bool) -> None:
         assert float(latent.abs().max()) > 0.02 * 0.05  # noise does move it: the bound above is not vacuous
     else:
         assert latent.flatten().tolist() == pytest.approx([0.05] * 24, rel=0.05)
+
+
+def test_perturbed_cameras_never_get_the_tracks_of_the_unperturbed_ones(tiny_scene, monkeypatch, capsys) -> None:
+    """The scene's tracks were made with the true cameras: a prior on them would lead perturbed cameras back to the
+    reference. Perturbed cameras get tracks made from the images with the perturbed cameras, or none, and the log
+    says which."""
+    import s2camp_ns.nerfstudio.dataparser as dataparser
+    from s2camp_ns.nerfstudio.image_tracks import ImageTracks
+
+    asked = []
+
+    def fake_image_tracks(given, image_root, cache, **kwargs):
+        asked.append(given)
+        return ImageTracks(None, reason="not built in this test")
+
+    monkeypatch.setattr(dataparser, "image_tracks", fake_image_tracks)
+    config = dataparser.S2CampDataParserConfig(data=tiny_scene, image_tracks="never")
+    config.perturbation.enabled = True
+    capsys.readouterr()
+    outputs = config.setup().get_dataparser_outputs("train")
+    assert "track_evidence" not in outputs.metadata and "track_rms_px" not in outputs.metadata
+    assert not asked
+    err = " ".join(capsys.readouterr().err.split())
+    assert "Perturbed cameras: the scene's own tracks were made with the unperturbed cameras and are not used" in err
+    assert "the track prior gets no track prior (image_tracks never)" in err
+
+    config.image_tracks = "auto"  # the default: tracks made from the images, with the perturbed cameras
+    outputs = config.setup().get_dataparser_outputs("train")
+    assert "track_evidence" not in outputs.metadata  # the fake built none
+    (given,) = asked
+    names = outputs.metadata["image_names"]
+    by_name = {image.name: image for image in given.images.values()}
+    centres = torch.tensor(np.stack([by_name[name].projection_center() for name in names]))
+    # The parser's cameras (perturbed) in COLMAP's world are the ones handed to the image tracks.
+    from s2camp_ns.nerfstudio.colmap_world import c2w_to_colmap_world
+
+    scale = float(outputs.dataparser_scale)
+    perturbed = c2w_to_colmap_world(outputs.cameras.camera_to_worlds, outputs.dataparser_transform, scale)
+    torch.testing.assert_close(centres, perturbed[:, :, 3].double(), atol=1e-5, rtol=0.0)
+    unperturbed = dataparser.S2CampDataParserConfig(data=tiny_scene, image_tracks="never").setup()
+    reference = unperturbed.get_dataparser_outputs("train").cameras.camera_to_worlds
+    assert float((reference - outputs.cameras.camera_to_worlds).abs().max()) > 1e-3  # they were perturbed
+
+
+def test_exact_tracks_anchor_moved_cameras_at_the_truth(tiny_scene) -> None:
+    # Cameras moved after the sparse model was made (CamP's perturbation, applied here outside the data parser, which
+    # never gives perturbed cameras these tracks): the exact tracks still say where the true cameras are, so the
+    # prior's anchor is the truth (``core.track_fit``) and, with a radius of ~0, its proximal step ends there. Checked
+    # against the true cameras, not against the fit.
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+    from s2camp_ns.core.perturbation import PerturbationConfig
+    from s2camp_ns.nerfstudio.dataparser import (
+        S2CampDataParserConfig,
+        colmap_track_evidence,
+        detect_format,
+        perturb_nerfstudio_cameras,
+    )
+
+    config = S2CampDataParserConfig(data=tiny_scene, image_tracks="never")
+    outputs = config.setup().get_dataparser_outputs("train")
+    truth = outputs.cameras
+    moved = perturb_nerfstudio_cameras(truth, PerturbationConfig(enabled=True))
+    _, model = detect_format(config)
+    rms, evidence = colmap_track_evidence(moved, model, outputs.metadata["image_names"], outputs)
+    optimizer = S2CampCameraOptimizerConfig(track_prior=True).setup(num_cameras=truth.shape[0], device="cpu")
+    optimizer.set_camera_groups(outputs.metadata["camera_ids"])
+    optimizer.set_train_cameras(moved, points=outputs.metadata["points3D_xyz"])
+    optimizer.set_track_prior(rms, evidence)
+    for _ in range(3):
+        optimizer.apply_track_prior(lr=1.0)
+    given, expected = moved.camera_to_worlds.double(), truth.camera_to_worlds.double()
+    assert float((given - expected).abs().max()) > 1e-2  # the perturbation is there to be undone
+    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), expected, atol=1e-4, rtol=0)
+    torch.testing.assert_close(optimizer.refined_intrinsics().fx, truth.fx[:, 0].double(), atol=1e-2, rtol=0)

@@ -25,7 +25,9 @@ OPENCV_FISHEYE k4 it does represent, so this parser fills the distortion in itse
 The CamP perturbation (off by default; ``ns-train s2camp --data D s2camp-data --perturbation.enabled True``) is applied
 to the training cameras after nerfstudio's orientation and scale normalization, so its sigmas are in normalized
 scene units (the cameras fit in [-1, 1]^3), as CamP applies them in its own normalized scene. The unperturbed
-cameras of the split are kept in ``metadata["reference_cameras"]``; evaluation cameras are never perturbed.
+cameras of the split are kept in ``metadata["reference_cameras"]``; evaluation cameras are never perturbed. The
+scene's own tracks, made with the unperturbed cameras, would tell the track prior where the reference is: perturbed
+cameras get tracks made from the images with the perturbed cameras instead, or no prior.
 With ``--reference-model`` (a COLMAP model of the true cameras, e.g. a rendered scene's when the input is an SfM
 reconstruction of it), the reference cameras are the true ones instead, similarity-aligned into the input's frame.
 """
@@ -125,7 +127,9 @@ class S2CampDataParserConfig(DataParserConfig):
     and scale (``core.track_fit``). COLMAP scenes with points, and transforms.json scenes with the model
     ns-process-data leaves beside them (``colmap/sparse/0``, cameras checked against it, ``transforms_tracks``);
     images the model does not hold get NaN. Scenes without them get tracks made from their images (``image_tracks``).
-    False measures nothing (no prior)."""
+    With the perturbation on, the scene's own tracks (made with the unperturbed cameras) are never used: the
+    perturbed cameras get tracks made from the images (``image_tracks`` auto or always) or none (never), and the log
+    says which. False measures nothing (no prior)."""
     image_tracks: Literal["auto", "always", "never"] = "auto"
     """Tracks made from the scene's own images for the track prior (``nerfstudio/image_tracks.py``: SIFT matches,
     points triangulated with the given training cameras, bundle-adjusted with them and aligned to them by a
@@ -481,7 +485,12 @@ class S2CampDataParser(DataParser):
             cameras = perturb_nerfstudio_cameras(cameras, self.config.perturbation)
         metadata = dict(outputs.metadata)
         metadata.update(extra)
-        scene_tracks = self.config.tracks and self.config.image_tracks != "always"
+        # The scene's own tracks were made with the unperturbed cameras: a prior on them would lead the perturbed
+        # cameras back to the reference the evaluation compares with. Perturbed cameras get tracks made from the
+        # images with the perturbed cameras instead (image_tracks auto or always), or no prior (never).
+        scene_tracks = self.config.tracks and self.config.image_tracks != "always" and not perturbed
+        if perturbed and self.config.tracks:
+            self._note_perturbed_tracks(source)
         if data_format == "colmap" and scene_tracks and self.config.load_3D_points and self._has_points(source):
             rms, evidence = colmap_track_evidence(cameras, source, extra["image_names"], outputs)
             metadata.update(track_rms_px=rms, track_evidence=evidence)
@@ -517,6 +526,18 @@ class S2CampDataParser(DataParser):
             dataparser_transform=outputs.dataparser_transform,
             dataparser_scale=outputs.dataparser_scale,
             metadata=metadata,
+        )
+
+    def _note_perturbed_tracks(self, source: Path) -> None:
+        """Say, once, which evidence the perturbed cameras' track prior gets (``_generate_dataparser_outputs``)."""
+        if self.config.image_tracks == "never":
+            evidence = "no track prior (image_tracks never)"
+        else:
+            evidence = "tracks made from the images with the perturbed cameras (image_tracks)"
+        _show_once(
+            (source.resolve(), "perturbed-tracks"),
+            f"[bold yellow]Perturbed cameras: the scene's own tracks were made with the unperturbed cameras and are "
+            f"not used; the track prior gets {evidence}",
         )
 
     def _reference_from_model(self, data_format: str, source: Path, outputs: DataparserOutputs, extra: dict) -> Cameras:
