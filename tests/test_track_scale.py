@@ -32,9 +32,10 @@ def _look_at(centre: np.ndarray) -> np.ndarray:
     return np.stack([right, down, forward])
 
 
-def _model(folder: Path, images: Path) -> dict[str, np.ndarray]:
+def _model(folder: Path, images: Path, keypoint_scale: float = 1.0) -> dict[str, np.ndarray]:
     """A COLMAP model of one PINHOLE camera at full size whose keypoints are exact projections plus N(0, NOISE_PX)
-    noise; returns each image's noise [M, 2] (full-size pixels). Writes the rounded images_4 folder."""
+    noise, times ``keypoint_scale`` (1: the cameras' pixels); returns each image's noise [M, 2] (full-size pixels).
+    Writes the rounded images_4 folder."""
     rng = np.random.default_rng(0)
     points = rng.uniform(-0.6, 0.6, size=(NUM_POINTS, 3))
     reconstruction = pycolmap.Reconstruction()
@@ -53,7 +54,8 @@ def _model(folder: Path, images: Path) -> dict[str, np.ndarray]:
         assert inside.all(), "every point must be seen by every camera"
         name = f"frame_{image_id:03d}.png"
         noise[name] = rng.normal(0.0, NOISE_PX, size=pixels.shape)
-        image = pycolmap.Image(name=name, keypoints=pixels + noise[name], camera_id=1, image_id=image_id)
+        keypoints = (pixels + noise[name]) * keypoint_scale
+        image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=1, image_id=image_id)
         world_to_camera = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), -rotation @ centre)
         reconstruction.add_image_with_trivial_frame(image, world_to_camera)
         for index in range(NUM_POINTS):
@@ -107,3 +109,36 @@ def test_the_anchor_keeps_the_given_intrinsics_of_a_rounded_folder(rounded_scene
     shared = torch.zeros(NUM_IMAGES, dtype=torch.long)
     fit = fit_anchor(evidence.tracks, evidence.c2w, intrinsics, ParameterLayout.from_preset("all").indices, shared)
     assert fit.intrinsics_held is not None and bool(fit.intrinsics_held.all())
+
+
+def test_a_model_whose_keypoints_are_at_another_scale_is_refused_by_name(tmp_path: Path) -> None:
+    """Keypoints left at the resolution SfM ran on (a quarter of the cameras' declared size, as after rescaling
+    cameras.bin by hand): the given cameras miss their tracks by hundreds of pixels, and the model is refused."""
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+
+    scene = tmp_path / "edited"
+    (scene / "images").mkdir(parents=True)
+    _model(scene / "sparse" / "0", scene / "images_4", keypoint_scale=0.25)
+    config = S2CampDataParserConfig(data=scene, downscale_factor=4, eval_mode="all", image_tracks="never")
+    with pytest.raises(ValueError) as refused:
+        config.setup().get_dataparser_outputs("train")
+    message = " ".join(str(refused.value).split())
+    assert str(scene / "sparse" / "0" / "images.bin") in message
+    assert "the model's own cameras miss their tracks by" in message and "median over 6 images; worst" in message
+    assert "far more than SfM leaves (at most 10 px): check that the keypoints and the cameras" in message
+    assert "pass s2camp-data --image-tracks always (tracks made from the images) or --tracks False" in message
+    median = float(message.split("miss their tracks by ")[1].split(" px")[0])
+    assert 100.0 < median < 2000.0  # hundreds of pixels at the model's 3114 px
+    without = S2CampDataParserConfig(data=scene, downscale_factor=4, eval_mode="all", tracks=False)
+    assert "track_evidence" not in without.setup().get_dataparser_outputs("train").metadata  # the way out
+
+
+def test_the_refusal_threshold_is_in_the_model_s_pixels() -> None:
+    from s2camp_ns.nerfstudio.colmap_tracks import MAX_SFM_TRACK_RMS_PX, check_sfm_track_rms
+
+    width, model_width = torch.tensor([779.0, 779.0, 779.0]), torch.full((3,), 3114.0)
+    # 2.4 px at 779 px are 9.6 px at 3114: accepted; 2.6 px are 10.4 px: refused (median of the three).
+    check_sfm_track_rms(torch.tensor([2.4, 2.4, float("nan")]), width, model_width, Path("images.bin"), "x")
+    with pytest.raises(ValueError, match=r"images.bin: .* by 10.39 px \(median over 3 images; worst 10.39 px"):
+        check_sfm_track_rms(torch.tensor([2.6, 2.6, 2.6]), width, model_width, Path("images.bin"), "x")
+    assert MAX_SFM_TRACK_RMS_PX == 10.0

@@ -201,3 +201,18 @@ def test_a_colmap_camera_of_another_size_is_named(tiny_scene: Path, tmp_path: Pa
     capsys.readouterr()
     assert "track_rms_px" not in _parse(source).metadata
     assert "image 'frame_00001.png' is declared 64x48 but its COLMAP camera is 128x48" in _stderr(capsys)
+
+
+def test_a_transforms_json_whose_colmap_keypoints_are_at_another_scale_is_refused(tiny_scene: Path, tmp_path: Path):
+    import pycolmap
+
+    source = _ns_process_data_layout(tiny_scene, tmp_path / "ns")
+    model = tmp_path / "ns" / "colmap" / "sparse" / "0"
+    reconstruction = pycolmap.Reconstruction(str(model))
+    for image in reconstruction.images.values():
+        for point in image.points2D:
+            point.xy = point.xy * 0.25  # keypoints of a quarter-size SfM run, cameras at full size
+    reconstruction.write_binary(str(model))
+    with pytest.raises(ValueError, match=r"colmap/sparse/0/images.bin: the model's own cameras miss their tracks by"):
+        _parse(source, image_tracks="never")
+    assert "track_evidence" not in _parse(source, tracks=False).metadata

@@ -43,6 +43,40 @@ def pixel_scale_of(
     return trained / size
 
 
+MAX_SFM_TRACK_RMS_PX = 10.0
+"""Largest median, over a model's images, of each image's reprojection RMS against its own tracks (pixels of the
+model's cameras) that a model's given cameras may have. COLMAP's mapper removes every observation beyond 4 px after
+each bundle adjustment (its ``filter_max_reproj_error``), so its own models sit well below 4 px in every image (0.3 to
+1.5 px is usual); other SfM tools report a pixel or two. Ten pixels, 2.5 times COLMAP's hard limit, is more than any
+SfM output leaves, and far less than a model whose keypoints and cameras are at different scales: keypoints at a
+quarter of the declared size miss by hundreds of pixels (half the image size times 3/4 at the border)."""
+
+
+def check_sfm_track_rms(
+    rms_px: Float[Tensor, " n"], width: Tensor, model_width: Tensor, images_file: Path, fallback: str
+) -> None:
+    """Refuse a model whose given cameras miss their own tracks by far more than SfM leaves (``MAX_SFM_TRACK_RMS_PX``).
+
+    ``rms_px`` are the given cameras' reprojection RMS at the training size (NaN: no tracks), ``width`` the training
+    images' and ``model_width`` the model cameras' widths; the check is in the model's pixels. ``fallback`` says how to
+    train without the model's tracks. ValueError naming ``images_file``, the median and worst error."""
+    rms = torch.as_tensor(rms_px, dtype=torch.float64).reshape(-1)
+    to_model = torch.as_tensor(model_width, dtype=torch.float64).reshape(-1) / width.reshape(-1).double().cpu()
+    at_model = (rms.cpu() * to_model)[torch.isfinite(rms.cpu())]
+    if at_model.numel() == 0:
+        return
+    median, worst = float(at_model.median()), float(at_model.max())
+    if median <= MAX_SFM_TRACK_RMS_PX:
+        return
+    raise ValueError(
+        f"{images_file}: the model's own cameras miss their tracks by {median:.4g} px (median over "
+        f"{at_model.numel()} images; worst {worst:.4g} px, in the pixels of the model's cameras), far more than SfM "
+        f"leaves (at most {MAX_SFM_TRACK_RMS_PX:g} px): check that the keypoints and the cameras are at the same "
+        f"scale (a cameras file rescaled by hand after resizing the images keeps the keypoints at the old size) and "
+        f"that images.bin belongs to these cameras; to train without this model's tracks, {fallback}"
+    )
+
+
 def read_colmap_tracks(model: Path, names: list[str], image_size: Float[Tensor, "n 2"] | None = None) -> Tracks:
     """The tracks of COLMAP model folder ``model`` seen by the images ``names`` (image ``i`` of the result is
     ``names[i]``; a name the model lacks is a ValueError naming it and the images file). With ``image_size`` (the
@@ -94,4 +128,4 @@ def tracks_of_images(
     )
 
 
-__all__ = ["pixel_scale_of", "read_colmap_tracks", "tracks_of_images"]
+__all__ = ["MAX_SFM_TRACK_RMS_PX", "check_sfm_track_rms", "pixel_scale_of", "read_colmap_tracks", "tracks_of_images"]

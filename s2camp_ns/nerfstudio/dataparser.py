@@ -67,7 +67,7 @@ from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import track_reprojection_rms
 from s2camp_ns.core.validation import check_range
 from s2camp_ns.nerfstudio.colmap_model import ColmapModelError, model_file, read_model_file
-from s2camp_ns.nerfstudio.colmap_tracks import read_colmap_tracks
+from s2camp_ns.nerfstudio.colmap_tracks import check_sfm_track_rms, read_colmap_tracks
 from s2camp_ns.nerfstudio.colmap_world import c2w_to_colmap_world, colmap_world_to_c2w
 from s2camp_ns.nerfstudio.export_cameras import export_cameras
 from s2camp_ns.nerfstudio.image_tracks import image_tracks
@@ -494,10 +494,18 @@ class S2CampDataParser(DataParser):
         if data_format == "colmap" and scene_tracks and self.config.load_3D_points and self._has_points(source):
             rms, evidence = colmap_track_evidence(cameras, source, extra["image_names"], outputs)
             metadata.update(track_rms_px=rms, track_evidence=evidence)
+            model = source
         elif data_format == "nerfstudio" and scene_tracks:
             result = self._transforms_track_rms(source, cameras, outputs, extra)
             if result is not None:
                 metadata["track_rms_px"], metadata["track_evidence"] = result
+            model = colmap_model_of_transforms(source, self.config.colmap_path)
+        if "track_rms_px" in metadata:  # the scene's own tracks under its given cameras
+            fallback = "pass s2camp-data --image-tracks always (tracks made from the images) or --tracks False"
+            model_width = extra["full_image_size"][:, 0]
+            check_sfm_track_rms(
+                metadata["track_rms_px"], cameras.width, model_width, model_file(model, "images"), fallback
+            )
         made = self.config.tracks and self.config.image_tracks != "never" and "track_evidence" not in metadata
         if made and split == "train":  # only the training cameras are refined
             result = self._image_track_evidence(data_format, source, cameras, outputs, extra)
