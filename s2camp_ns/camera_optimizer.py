@@ -130,6 +130,13 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
     nerfstudio's code have no prior); measured on the real-regime grid (``s2camp-bench robustness --preset regime``,
     docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 12-16)."""
 
+    photometric: bool = True
+    """Let the photometric loss move the cameras. False (with ``track_prior``): every camera with tracks is placed at
+    its track prior's anchor (the camera-only adjustment to the tracks, ``core.track_fit``) and stays there, the
+    others where they are given: the "tracks alone" baseline, what bundle adjustment gives a user without
+    refinement. The latent keeps its gradient, zeroed (Adam then makes no step), so mixed-precision training with
+    its gradient scaler runs as for the other settings."""
+
     fix_common_rotation: bool = False
     """After every step, remove the rotation that all training cameras share (the mean over images of the pose
     update's rotation, each in its own camera frame; ``remove_common_motion``). A rotation every camera makes at
@@ -152,6 +159,11 @@ class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
 
     def validate(self) -> None:
         self.layout()
+        if not self.photometric and not self.track_prior:
+            raise ValueError(
+                "camera-optimizer.photometric False places the cameras at the track prior's anchor and needs "
+                "camera-optimizer.track-prior True, got track_prior False"
+            )
         self.sampling.validate()
         self.damping.validate()
         check_range("refresh_every", self.refresh_every, low=0)
@@ -298,11 +310,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         # Shared intrinsics: the latent splits into a pose part per image and an intrinsics part per physical camera.
         self.shared = self.enabled and config.intrinsics == "per-camera" and k > NUM_POSE_PARAMS
         if self.enabled:
-            self.whitened_delta = nn.Parameter(
-                torch.zeros(num_cameras, NUM_POSE_PARAMS if self.shared else k, device=device)
-            )
+            self.whitened_delta = self._latent(torch.zeros(num_cameras, NUM_POSE_PARAMS if self.shared else k), device)
         if self.shared:  # one physical camera per image until ``set_camera_groups`` says otherwise
-            self.whitened_intrinsics = nn.Parameter(torch.zeros(num_cameras, k - NUM_POSE_PARAMS, device=device))
+            self.whitened_intrinsics = self._latent(torch.zeros(num_cameras, k - NUM_POSE_PARAMS), device)
         eye = torch.eye(k, dtype=torch.float64, device=device).expand(num_cameras, k, k).clone()
         # P and P^-1 (paper eq. 20) and the schedule state are persistent so that a resumed run continues with
         # the identical camera parameters.
@@ -353,6 +363,14 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.has_track_prior = False
 
     # ----------------------------------------------------------------------------------------------------- setup
+    def _latent(self, values: Tensor, device: torch.device | str) -> nn.Parameter:
+        """A latent parameter on ``device``; with ``photometric`` False its gradient is zeroed (tracks
+        alone: the images move no camera, and Adam steps by zero)."""
+        latent = nn.Parameter(values.to(device))
+        if not self.config.photometric:
+            latent.register_hook(torch.zeros_like)
+        return latent
+
     @property
     def num_physical_cameras(self) -> int:
         return int(self.camera_of_image.max()) + 1 if self.num_cameras else 0
@@ -373,7 +391,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
             m = self.layout.num_params - NUM_POSE_PARAMS
             existing = getattr(self, "whitened_intrinsics", None)
             if existing is None or existing.shape != (len(order), m):
-                self.whitened_intrinsics = nn.Parameter(torch.zeros(len(order), m, device=self.precond.device))
+                self.whitened_intrinsics = self._latent(torch.zeros(len(order), m), self.precond.device)
 
     def set_train_cameras(self, cameras: Cameras, points: Float[Tensor, "m 3"] | None = None) -> None:
         """Store the dataparser's training cameras, choose the proxy range from the scene's ``points`` and compute the
@@ -488,6 +506,18 @@ class S2CampCameraOptimizer(CameraOptimizer):
             self.prior_radius_intrinsics = torch.where(
                 counts > 0, squared.sqrt() / (math.sqrt(2.0) * counts.clamp(min=1e-12)), torch.nan
             )
+        if self.enabled and not self.config.photometric:
+            self._place_at_anchor()
+
+    @torch.no_grad()
+    def _place_at_anchor(self) -> None:
+        """``photometric`` False: the latent at the anchor (zero, the given camera, where there is no prior)."""
+        pose_anchor, intrinsics_anchor = self.prior_anchor_latents()
+        self.whitened_delta.copy_(pose_anchor.to(self.whitened_delta.dtype))
+        if self.shared:
+            finite = torch.isfinite(self.prior_radius_intrinsics)[:, None]
+            anchor = torch.where(finite, intrinsics_anchor, torch.zeros_like(intrinsics_anchor))
+            self.whitened_intrinsics.copy_(anchor.to(self.whitened_intrinsics.dtype))
 
     def prior_anchor_latents(self) -> tuple[Float[Tensor, "n k"], Float[Tensor, "c m"] | None]:
         """The anchor in the whitened latent under the current P (phi_hat = P phi, paper eq. 15): the pose latent per

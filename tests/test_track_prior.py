@@ -254,11 +254,9 @@ def test_perturbed_cameras_never_get_the_tracks_of_the_unperturbed_ones(tiny_sce
     assert float((reference - outputs.cameras.camera_to_worlds).abs().max()) > 1e-3  # they were perturbed
 
 
-def test_exact_tracks_anchor_moved_cameras_at_the_truth(tiny_scene) -> None:
-    # Cameras moved after the sparse model was made (CamP's perturbation, applied here outside the data parser, which
-    # never gives perturbed cameras these tracks): the exact tracks still say where the true cameras are, so the
-    # prior's anchor is the truth (``core.track_fit``) and, with a radius of ~0, its proximal step ends there. Checked
-    # against the true cameras, not against the fit.
+def _moved_cameras_with_exact_tracks(scene, **optimizer_options):
+    """The scene's training cameras moved by CamP's perturbation outside the data parser (which never gives perturbed
+    cameras these tracks), an S2CamP optimizer on them with the exact tracks' prior, and the true cameras."""
     from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
     from s2camp_ns.core.perturbation import PerturbationConfig
     from s2camp_ns.nerfstudio.dataparser import (
@@ -268,19 +266,45 @@ def test_exact_tracks_anchor_moved_cameras_at_the_truth(tiny_scene) -> None:
         perturb_nerfstudio_cameras,
     )
 
-    config = S2CampDataParserConfig(data=tiny_scene, image_tracks="never")
+    config = S2CampDataParserConfig(data=scene, image_tracks="never")
     outputs = config.setup().get_dataparser_outputs("train")
     truth = outputs.cameras
     moved = perturb_nerfstudio_cameras(truth, PerturbationConfig(enabled=True))
     _, model = detect_format(config)
     rms, evidence = colmap_track_evidence(moved, model, outputs.metadata["image_names"], outputs)
-    optimizer = S2CampCameraOptimizerConfig(track_prior=True).setup(num_cameras=truth.shape[0], device="cpu")
+    config = S2CampCameraOptimizerConfig(track_prior=True, **optimizer_options)
+    optimizer = config.setup(num_cameras=truth.shape[0], device="cpu")
     optimizer.set_camera_groups(outputs.metadata["camera_ids"])
     optimizer.set_train_cameras(moved, points=outputs.metadata["points3D_xyz"])
     optimizer.set_track_prior(rms, evidence)
+    assert float((moved.camera_to_worlds - truth.camera_to_worlds).abs().max()) > 1e-2  # there to be undone
+    return optimizer, truth
+
+
+def test_exact_tracks_anchor_moved_cameras_at_the_truth(tiny_scene) -> None:
+    # The exact tracks say where the true cameras are, so the prior's anchor is the truth (``core.track_fit``) and,
+    # with a radius of ~0, its proximal step ends there. Checked against the true cameras, not against the fit.
+    optimizer, truth = _moved_cameras_with_exact_tracks(tiny_scene)
     for _ in range(3):
         optimizer.apply_track_prior(lr=1.0)
-    given, expected = moved.camera_to_worlds.double(), truth.camera_to_worlds.double()
-    assert float((given - expected).abs().max()) > 1e-2  # the perturbation is there to be undone
-    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), expected, atol=1e-4, rtol=0)
+    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), truth.camera_to_worlds.double(), atol=1e-4, rtol=0)
     torch.testing.assert_close(optimizer.refined_intrinsics().fx, truth.fx[:, 0].double(), atol=1e-2, rtol=0)
+
+
+def test_tracks_alone_places_the_cameras_at_the_anchor_and_the_images_do_not_move_them(tiny_scene) -> None:
+    optimizer, truth = _moved_cameras_with_exact_tracks(tiny_scene, photometric=False)
+    expected = truth.camera_to_worlds.double()
+    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), expected, atol=1e-4, rtol=0)  # no step taken
+    before = [p.detach().clone() for p in optimizer.parameters()]
+    adam = torch.optim.Adam(optimizer.parameters(), lr=1e-2)
+    for _ in range(3):  # a loss that would move every coordinate
+        adam.zero_grad()
+        loss = sum((p - 1.0).square().sum() for p in optimizer.parameters())
+        loss.backward()
+        assert all(p.grad is not None and not bool(p.grad.any()) for p in optimizer.parameters())
+        adam.step()
+    assert all(torch.equal(p, q) for p, q in zip(optimizer.parameters(), before, strict=True))
+    with pytest.raises(ValueError, match=r"photometric False .* needs camera-optimizer.track-prior True"):
+        from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+
+        S2CampCameraOptimizerConfig(photometric=False).validate()
