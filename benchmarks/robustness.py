@@ -132,35 +132,51 @@ of images times the field of view is how often the background is covered: the na
 from 20 to 200 iterations while the training PSNR rose to 29.5), the wide one the fewest."""
 STARTS = ("accurate", "perturbed", "sfm", "phone", "accurate-untracked")
 """accurate: the true cameras; perturbed: CamP's perturbation; sfm: pycolmap SfM on the full-size images with an
-EXIF-like focal prior (``benchmarks/sfm.py``); phone: ``PHONE_PROFILE`` without SfM tracks (module docstring);
-accurate-untracked: the true cameras without SfM tracks (a hand-made or exported transforms.json): what refinement
-does to good cameras when nothing but the images anchors them. Both starts without SfM tracks train as such a scene
-does by default: with tracks made from its images (``--image-tracks always`` in place of the scene's own,
-``s2camp_ns/nerfstudio/image_tracks.py``)."""
+EXIF-like focal prior (``benchmarks/sfm.py``); phone: ``PHONE_PROFILE`` (module docstring); accurate-untracked: the
+true cameras as a scene without SfM tracks (a hand-made or exported transforms.json). Evidence that does not know the
+truth: the generated scene's own tracks are exact projections through the true cameras, so every start but sfm
+trains with tracks made from its images with its start cameras (``--image-tracks always``,
+``s2camp_ns/nerfstudio/image_tracks.py``), and the sfm start with SfM's tracks, made from the images too. accurate
+and accurate-untracked therefore train alike now; the second is kept for its earlier rows."""
 REGIME_STARTS = STARTS[:4]
-UNTRACKED_STARTS = ("phone", "accurate-untracked")
-"""Starts whose scene has no SfM tracks: the data parser makes tracks from the images instead."""
 OFF_REFERENCE_START = {"accurate-untracked": "accurate"}
 """Starts whose 'PSNR vs off' compares with refinement off from another start: off never reads the tracks, so the
 true cameras with and without them train alike."""
 DEFAULT_STARTS = ("accurate", "perturbed")
-RECOVERY_STARTS = ("perturbed", "phone")
+HISTORICAL_STARTS = {
+    "phone-iid": "the phone start before it modelled visual-inertial drift: CamP's i.i.d. perturbation with four times "
+    "its pose sigmas (0.02 position and look-at, a shared 2% dolly zoom), one draw for every seed",
+}
+"""Start names found only in committed rows, and what they ran."""
+RECOVERY_STARTS = ("perturbed", "phone", "phone-iid")
 """Starts that refinement must correct (the report gives the fraction of the start error removed); the others
 (accurate, sfm) it must not make worse."""
 VARIANTS = (
-    "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "s2camp-free", "s2camp-track-prior", "s2camp-damped",
-    "s2camp-damped-gauge", "s2camp-damped-gauge-prior", "s2camp-gauge-dolly-prior",
+    "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "tracks", "s2camp-photometric", "s2camp-camp-prior",
+    "s2camp-identity-prior", "s2camp-free", "s2camp-track-prior", "s2camp-damped", "s2camp-damped-gauge",
+    "s2camp-damped-gauge-prior", "s2camp-gauge-dolly-prior",
 )  # fmt: skip
+EVIDENCE_VARIANTS = VARIANTS[:8]
+"""The ``--preset regime`` variants: what each evidence adds. Beside refinement off, the two baselines and the
+default, the tracks alone, the images alone (S2CamP without the prior), and the prior with CamP's P and with P = I,
+every row that uses a prior with the same tracks."""
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
+    "tracks": "s2camp", "s2camp-photometric": "s2camp", "s2camp-camp-prior": "s2camp-camp",
+    "s2camp-identity-prior": "s2camp",
     "s2camp-free": "s2camp", "s2camp-track-prior": "s2camp", "s2camp-damped": "s2camp",
     "s2camp-damped-gauge": "s2camp", "s2camp-damped-gauge-prior": "s2camp", "s2camp-gauge-dolly-prior": "s2camp",
 }  # fmt: skip
 _ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
 _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
 _DAMPED = ["--pipeline.model.camera-optimizer.damping.damping-rel", "1.0"]
+_OPTIMIZER = "--pipeline.model.camera-optimizer"
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
+    "tracks": [f"{_OPTIMIZER}.photometric", "False", _ROTATION, "True", _PRIOR, "True"],
+    "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False"],
+    "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True"],
+    "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True"],
     "s2camp-free": PHOTOMETRIC_ONLY,
     "s2camp-track-prior": [_ROTATION, "False", _PRIOR, "True"],
     "s2camp-damped": [*_DAMPED, _ROTATION, "False", _PRIOR, "False"],
@@ -172,7 +188,11 @@ VARIANT_ARGUMENTS = {
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run, each stating every candidate option so that a variant keeps
 its meaning when a default changes. "s2camp" is the method's defaults (the common rotation removed and the track
-prior on, ``S2CAMP_CAMERA_OPTIMIZER``); "off" disables camera refinement; "s2camp-free" is s2camp with both off (the
+prior on, ``S2CAMP_CAMERA_OPTIMIZER``); "off" disables camera refinement; "tracks" the tracks alone (every camera at
+its track prior's anchor, the images move none: ``photometric`` False), what bundle adjustment gives without
+refinement; "s2camp-photometric" the images alone (the defaults without the prior); "s2camp-camp-prior" the prior
+with CamP's P (the s2camp-camp method plus the defaults' prior and common-rotation removal); "s2camp-identity-prior"
+the prior with P = I (the defaults, ``precondition`` False); "s2camp-free" is s2camp with both off (the
 defaults before both became s2camp's); "s2camp-track-prior" the track prior alone; "s2camp-damped" ten times CamP's
 relative damping of Sigma (1.0 of its diagonal), a candidate that limits how far a unit whitened step moves the
 weakly observed rotation-translation combinations (docs/DESIGN-NOTES.md sec. 13); "s2camp-damped-gauge" that plus
@@ -181,6 +201,9 @@ tracks: the phone start); "s2camp-gauge-dolly-prior" the defaults plus the commo
 (``fix_common_dolly``). Committed rows under older names (``HISTORICAL_VARIANTS``) were recorded with settings that
 no longer run."""
 HISTORICAL_VARIANTS = {
+    "s2camp-exact-tracks": "the defaults with the generated scene's own tracks, exact projections through the true "
+    "cameras (accurate and perturbed starts): the prior knew the truth. Since then every start but sfm trains with "
+    "tracks made from its images, and perturbed cameras never get the scene's tracks",
     "s2camp-track-prior-given": "the track prior anchored at the given cameras, before it took its anchor from the "
     "tracks (`s2camp_ns.core.track_fit`)",
     "s2camp-damped-gauge-prior-given": "the track prior anchored at the given cameras, with the damping raised and "
@@ -200,19 +223,28 @@ HISTORICAL_VARIANTS = {
 }
 """Variant names found only in committed rows, and what they ran (no longer runnable). Each description stands on
 its own: the report lists them in alphabetical order."""
-PHONE_PROFILE = {"sigma_position": 0.02, "sigma_look_at": 0.02, "sigma_dolly_z": 0.02, "sigma_focal_length": 0.0}
-"""The phone-pose start, in CamP's protocol (normalized units: the camera centres fill [-1, 1]^3). Assumed sizes of
-visual-inertial poses and factory intrinsics as Polycam / Record3D exports carry them, not measured here: centres off
-by 2% of the scene's half-size (centimetres in a room), optical axes by about 1.1 degrees (0.02 at unit distance),
-one focal length for every image (a single phone camera) 2% off through the shared dolly zoom, no per-image focal
-error. Four times CamP's pose sigmas. These exports carry no SfM tracks, so this start trains without the scene's
-(``s2camp-data --image-tracks always``: tracks made from the images)."""
+PHONE_PROFILE = {
+    "sigma_position": 0.0, "sigma_look_at": 0.0, "sigma_dolly_z": 0.0, "sigma_focal_length": 0.0,
+    "drift.enabled": True, "drift.position_drift": 0.01, "drift.yaw_drift_deg": 1.5, "drift.tilt_deg": 0.3,
+    "drift.focal_error": 0.015,
+}  # fmt: skip
+"""The phone-pose start: visual-inertial odometry poses (ARKit / ARCore, as Polycam or Record3D export them), the
+data parser's VIO drift (``s2camp_ns.core.perturbation.DriftConfig``, where each size's source or assumption is
+stated) with CamP's own steps off. Along the capture (image order, the ring's order): the centres a random walk from
+the first camera whose RMS grows to 1% of the distance travelled at the last (about 0.05 to 0.06 normalized units on
+these rings, which travel 4.6 to 6 units over the training cameras), the yaw (about +z, the data parser's up) a random
+walk to 1.5 degrees RMS, roll and pitch within 0.3 degrees of gravity, and one focal length for every image 1.5% off
+(a log-normal sigma; a single phone camera's factory calibration), no per-image focal error. Each run seed draws its
+own drift: seed s of a scene with perturbation seed p uses perturbation seed p + s, so the seeds of a grid are
+different draws (the variants of one seed share it), unlike the perturbed start's one draw per scene. These exports
+carry no SfM tracks, so this start trains without the scene's (``s2camp-data --image-tracks always``: tracks made from
+the images)."""
 SFM_FOCAL_PRIOR = 1.05
 """The sfm start's focal prior (the EXIF focal of a real capture; ``benchmarks/sfm.py``)."""
 METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim", "psnr_unaligned")
 ERRORS = ("rot_err", "pos_err", "focal_err", "drift_px")
 QUICK = {"iterations": 20, "seeds": 1, "variants": ("off", "s2camp")}
-REGIME = {"scenes": ("regime-wide",), "starts": REGIME_STARTS, "iterations": 3000, "variants": VARIANTS[:4]}
+REGIME = {"scenes": ("regime-wide",), "starts": REGIME_STARTS, "iterations": 3000, "variants": EVIDENCE_VARIANTS}
 """``--preset regime``: the regime real runs train in (the scene's ``varies``); passes per pixel in every row."""
 """``--quick``: the first scene only, both starts, these settings, 10 test-time alignment steps of 64 rays."""
 
@@ -348,12 +380,14 @@ def train_command(
     ]  # fmt: skip
     preset = SCENES[spec.scene]
     dataparser = [DATAPARSER_SUBCOMMAND, "--downscale-factor", str(preset.downscale)]
-    if spec.start in ("perturbed", "phone"):
+    if spec.start == "perturbed":
         dataparser += ["--perturbation.enabled", "True", "--perturbation.seed", str(preset.perturbation_seed)]
-    if spec.start == "phone":
+    if spec.start == "phone":  # one VIO drift draw per run seed (PHONE_PROFILE)
+        seed = preset.perturbation_seed + spec.seed
+        dataparser += ["--perturbation.enabled", "True", "--perturbation.seed", str(seed)]
         for key, value in PHONE_PROFILE.items():
             dataparser += [f"--perturbation.{key.replace('_', '-')}", str(value)]
-    if spec.start in UNTRACKED_STARTS:
+    if spec.start != "sfm":  # evidence that does not know the truth: the generated tracks are exact projections
         dataparser += ["--image-tracks", "always"]
     if spec.start == "sfm":
         assert truth is not None, "an sfm start measures against the generated scene's cameras"
@@ -795,6 +829,8 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         f"error for perturbed and phone starts."
     )
     setup += no_longer_run_note(rows, HISTORICAL_VARIANTS)
+    if any(row["start"] in HISTORICAL_STARTS for row in rows):
+        setup += " Starts that no longer run: " + "; ".join(f"{k}: {v}" for k, v in HISTORICAL_STARTS.items()) + "."
     columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]
     headers = [
         "scene", "start", "variant", "seeds", "passes", "start rot / pos / focal / drift", "rot err (deg)",

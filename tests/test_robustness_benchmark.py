@@ -29,7 +29,8 @@ def _option(command: list[str], name: str) -> str:
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
     command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
-    assert command[1] == (variant if variant in ("s2camp-so3xr3", "s2camp-camp") else "s2camp")
+    methods = {"s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp-camp-prior": "s2camp-camp"}
+    assert command[1] == methods.get(variant, "s2camp")
     assert _option(command, "--max-num-iterations") == "123"
     assert _option(command, "--machine.seed") == "2"
     assert _option(command, "--machine.device-type") == "cpu"
@@ -45,8 +46,14 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     damping = "--pipeline.model.camera-optimizer.damping.damping-rel"
     # Every s2camp variant but the default states both candidate options, so it keeps its meaning when a default
     # changes; "s2camp" and the baselines take the method's own defaults.
+    photometric = "--pipeline.model.camera-optimizer.photometric"
+    precondition = "--pipeline.model.camera-optimizer.precondition"
     expected_options = {
         "off": {"--pipeline.model.camera-optimizer.mode": "off"},
+        "tracks": {photometric: "False", rotation: "True", prior: "True"},
+        "s2camp-photometric": {rotation: "True", prior: "False"},
+        "s2camp-camp-prior": {rotation: "True", prior: "True"},
+        "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True"},
         "s2camp-free": {rotation: "False", prior: "False"},
         "s2camp-track-prior": {rotation: "False", prior: "True"},
         "s2camp-damped": {damping: "1.0", rotation: "False", prior: "False"},
@@ -59,19 +66,21 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     assert camera_options == expected_options.get(variant, {})
     tail = command[command.index("s2camp-data") :]
     seed = str(SCENES["near-deep"].perturbation_seed)
-    if start == "accurate":
-        assert tail == ["s2camp-data", "--downscale-factor", "1"]
-    elif start == "accurate-untracked":  # the true cameras with tracks made from the images, not the scene's
+    # Every start but sfm trains with tracks made from its images, never the generated scene's exact projections.
+    if start in ("accurate", "accurate-untracked"):
         assert tail == ["s2camp-data", "--downscale-factor", "1", "--image-tracks", "always"]
     elif start == "perturbed":
         assert tail == ["s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True",
-                        "--perturbation.seed", seed]  # fmt: skip
-    else:  # phone: four times CamP's pose sigmas, a shared 2% focal error through the dolly, tracks from the images
+                        "--perturbation.seed", seed, "--image-tracks", "always"]  # fmt: skip
+    else:  # phone: CamP's steps off, the VIO drift on, one draw per run seed (scene seed + run seed 2), own tracks
+        phone_seed = str(SCENES["near-deep"].perturbation_seed + 2)
         assert tail == [
-            "s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True", "--perturbation.seed", seed,
-            "--perturbation.sigma-position", "0.02", "--perturbation.sigma-look-at", "0.02",
-            "--perturbation.sigma-dolly-z", "0.02", "--perturbation.sigma-focal-length", "0.0", "--image-tracks",
-            "always",
+            "s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True", "--perturbation.seed",
+            phone_seed, "--perturbation.sigma-position", "0.0", "--perturbation.sigma-look-at", "0.0",
+            "--perturbation.sigma-dolly-z", "0.0", "--perturbation.sigma-focal-length", "0.0",
+            "--perturbation.drift.enabled", "True", "--perturbation.drift.position-drift", "0.01",
+            "--perturbation.drift.yaw-drift-deg", "1.5", "--perturbation.drift.tilt-deg", "0.3",
+            "--perturbation.drift.focal-error", "0.015", "--image-tracks", "always",
         ]  # fmt: skip
     assert "--save-only-latest-checkpoint" not in command
 
@@ -97,7 +106,11 @@ def test_regime_scene_sees_each_training_pixel_one_and_a_half_times() -> None:
     starts = ("accurate", "perturbed", "sfm", "phone")  # accurate-untracked only when asked for
     assert (config.scenes, config.starts, config.iterations) == (("regime-wide",), starts, 3000)
     assert config.iterations * config.rays_per_batch / preset.training_pixels == pytest.approx(1536000 / 940800)
-    assert config.variants == ("off", "s2camp-so3xr3", "s2camp-camp", "s2camp")
+    # Each evidence alone and the prior under each P, beside refinement off and the baselines.
+    assert config.variants == (
+        "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "tracks", "s2camp-photometric", "s2camp-camp-prior",
+        "s2camp-identity-prior",
+    )  # fmt: skip
 
 
 def test_the_regime_preset_keeps_the_starts_and_variants_the_command_line_chose() -> None:
