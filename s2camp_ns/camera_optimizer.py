@@ -58,6 +58,7 @@ from s2camp_ns.core.camera import (
     se3_exp,
 )
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS
+from s2camp_ns.core.config_defaults import DefaultsOnLoad
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
     Preconditioner,
@@ -80,7 +81,7 @@ TRAIN_CAMERA_KEY = "s2camp_train_camera_index"
 
 
 @dataclass
-class S2CampCameraOptimizerConfig(CameraOptimizerConfig):
+class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     """Preconditioned refinement of pose, focal length, principal point, skew and radial distortion (S2CamP).
 
     Sampling and damping are the core's own configs (``SamplingConfig``, ``DampingConfig``), nested, so the plugin and
@@ -462,7 +463,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
                 held = fit.intrinsics_held
                 kept = "" if held is None else f"; given intrinsics kept: {int(held.sum())} of {held.numel()} camera(s)"
                 LOG.print(
-                    f"[dim]Track prior: the cameras' reprojection error against the SfM tracks is "
+                    f"[dim]Track prior: the cameras' reprojection error against the tracks is "
                     f"{_span(fit.rms_given_px[moved])} px as given and {_span(fit.rms_px[moved])} px where the tracks "
                     f"put them (the anchor{kept}; {fit.iterations} Levenberg-Marquardt iterations)"
                 )

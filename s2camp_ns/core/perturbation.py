@@ -60,11 +60,12 @@ from jaxtyping import Float
 from torch import Tensor
 
 from s2camp_ns.core.camera import se3_exp
+from s2camp_ns.core.config_defaults import DefaultsOnLoad
 from s2camp_ns.core.validation import check_finite, check_range
 
 
 @dataclass
-class DriftConfig:
+class DriftConfig(DefaultsOnLoad):
     """Visual-inertial odometry drift (module docstring); off by default. Sizes are RMS values at the last camera,
     except ``tilt_deg`` (a bound) and ``focal_error`` (a log-normal sigma). The defaults stand for a phone's ARKit /
     ARCore poses; what each rests on is stated with it: measured figures are named as such, the rest are assumptions.
@@ -110,7 +111,7 @@ class DriftConfig:
 
 
 @dataclass
-class PerturbationConfig:
+class PerturbationConfig(DefaultsOnLoad):
     """CamP's camera perturbation; the defaults are its ``camera_optim_perturbed`` setting."""
 
     enabled: bool = False

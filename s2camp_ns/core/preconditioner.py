@@ -12,7 +12,7 @@ keeps P finite and invertible for parameters that the proxy points cannot observ
 
 from __future__ import annotations
 
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import dataclass, field, fields
 from typing import Literal
 
 import torch
@@ -21,6 +21,7 @@ from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, pixel_to_ray_direction, tangent_bounds
 from s2camp_ns.core.camp_sampling import CAMP_LADDER_P, CAMP_T_FAR, CAMP_T_NEAR, camp_frustum_points, validate_ladder
+from s2camp_ns.core.config_defaults import DefaultsOnLoad
 from s2camp_ns.core.contraction import uncontract_radius
 from s2camp_ns.core.frustum import RADIALS, Radial, radius_from_unit, radius_per_camera, sample_frustum
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
@@ -44,7 +45,7 @@ parameters (docs/benchmarks/scaling.md), whatever the number of cameras."""
 
 
 @dataclass(frozen=True)
-class SamplingConfig:
+class SamplingConfig(DefaultsOnLoad):
     """Where and how the proxy points are placed (paper sec. 4, "Deterministic View-Frustum Sampling")."""
 
     num_points: int = 500
@@ -81,16 +82,6 @@ class SamplingConfig:
     """Seed of the random and scrambled samplers; ignored by the deterministic lattice."""
     ladder_p: float = CAMP_LADDER_P
     """Exponent of the power-ladder ray warp of "camp-random" (negative; CamP's -1.5); ignored by the others."""
-
-    def __setstate__(self, state: dict) -> None:
-        """Unpickling and nerfstudio's config.yml (PyYAML builds the object from its saved fields): a config saved
-        before a field existed gets that field's default (``auto_range``, added with the scene-chosen range)."""
-        defaults = {
-            f.name: f.default_factory() if f.default_factory is not MISSING else f.default
-            for f in fields(self)
-            if f.default is not MISSING or f.default_factory is not MISSING
-        }
-        self.__dict__.update({**defaults, **state})
 
     def validate(self) -> None:
         check_positive_int("num_points", self.num_points)

@@ -1,0 +1,42 @@
+"""A run's config.yml written before a field existed still loads (ns-render, ns-eval, s2camp-export-cameras rebuild
+the config with PyYAML): the missing field takes its default."""
+
+from __future__ import annotations
+
+import yaml
+
+from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+from s2camp_ns.core.perturbation import DriftConfig, PerturbationConfig
+
+
+def _without(saved: str, line_start: str) -> str:
+    """The yaml text with the field whose line starts with ``line_start`` (and its nested lines) removed."""
+    lines, out, skipping, indent = saved.splitlines(), [], False, 0
+    for line in lines:
+        stripped = line.lstrip()
+        if skipping and len(line) - len(stripped) > indent:
+            continue
+        skipping = stripped.startswith(line_start)
+        indent = len(line) - len(stripped)
+        if not skipping:
+            out.append(line)
+    return "\n".join(out) + "\n"
+
+
+def test_a_perturbation_config_saved_before_the_drift_loads_with_it_off() -> None:
+    saved = yaml.dump(PerturbationConfig(enabled=True, seed=3))
+    old = _without(saved, "drift:")
+    assert "drift" not in old and "seed: 3" in old
+    loaded = yaml.load(old, Loader=yaml.Loader)
+    assert loaded.drift == DriftConfig() and loaded.drift.enabled is False
+    assert loaded.seed == 3 and loaded.enabled is True
+    loaded.validate()  # what the data parser does first: an AttributeError before
+
+
+def test_a_camera_optimizer_config_saved_before_photometric_loads_with_the_images_on() -> None:
+    saved = yaml.dump(S2CampCameraOptimizerConfig(track_prior=True, refresh_every=7))
+    old = _without(saved, "photometric:")
+    assert "photometric" not in old
+    loaded = yaml.load(old, Loader=yaml.Loader)
+    assert loaded.photometric is True and loaded.track_prior is True and loaded.refresh_every == 7
+    loaded.validate()
