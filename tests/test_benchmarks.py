@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from hang_guard import HANG_GUARD_S
 
 REQUIRED_KEYS = {
     "dispersion": {"frustum", "transform", "sampler", "L", "dispersion", "covering_bound"},
@@ -57,14 +58,14 @@ def _bench() -> str:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(660)  # above the subprocess hang guard below, which decides
+@pytest.mark.timeout(HANG_GUARD_S)
 @pytest.mark.parametrize("name", sorted(REQUIRED_KEYS))
 def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path) -> None:
     result = subprocess.run(
         [_bench(), name, "--quick", "--json", "--output-dir", str(tmp_path)],
         capture_output=True,
         text=True,
-        timeout=600,  # a hang guard, not a speed check: tier 3 alone runs SfM and five ns-train variants
+        timeout=HANG_GUARD_S,  # not a speed check: tier 3 alone runs SfM and five ns-train variants
         check=False,
     )
     assert result.returncode == 0, result.stderr[-3000:]
@@ -192,7 +193,7 @@ def test_committed_reports_regenerate_into_docs() -> None:
         assert command.startswith("s2camp-bench ") and command.endswith(" --output-dir docs/benchmarks"), line
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(HANG_GUARD_S)
 def test_quick_json_run_leaves_docs_untouched(tmp_path: Path) -> None:
     """``s2camp-bench <name> --quick --json`` without ``--output-dir``, run from a checkout-like folder: the report
     goes to outputs/benchmarks and the committed docs/benchmarks files keep their bytes."""
@@ -204,7 +205,7 @@ def test_quick_json_run_leaves_docs_untouched(tmp_path: Path) -> None:
         [_bench(), "shared-intrinsics", "--quick", "--json"],
         capture_output=True,
         text=True,
-        timeout=100,
+        timeout=HANG_GUARD_S,
         check=False,
         cwd=tmp_path,
     )

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from hang_guard import HANG_GUARD_S
 
 from s2camp_ns import bundled_ffmpeg
 
@@ -30,7 +31,7 @@ def test_script_runs_the_bundled_binary_with_its_arguments(tmp_path: Path):
     result = subprocess.run(
         [sys.executable, "-c", RUN_SCRIPT, "-hide_banner", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt",
          "rgb24", "-s", "4x2", "-i", "-", "-frames:v", "1", str(tmp_path / "frame.png")],
-        input=frames, capture_output=True, timeout=60, check=False,
+        input=frames, capture_output=True, timeout=HANG_GUARD_S, check=False,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr.decode()[-2000:]
     from PIL import Image
@@ -40,7 +41,7 @@ def test_script_runs_the_bundled_binary_with_its_arguments(tmp_path: Path):
         assert list(image.getdata())[:2] == [(0, 1, 2), (3, 4, 5)]
     failed = subprocess.run(
         [sys.executable, "-c", RUN_SCRIPT, "-i", str(tmp_path / "missing.mp4")],
-        capture_output=True, timeout=60, check=False,
+        capture_output=True, timeout=HANG_GUARD_S, check=False,
     )  # fmt: skip
     assert failed.returncode != 0 and b"missing.mp4" in failed.stderr
 
@@ -50,7 +51,11 @@ def test_script_started_by_imageio_ffmpegs_own_search_does_not_search_again():
     at once instead of starting the search again, endlessly."""
     environment = {**os.environ, "S2CAMP_BUNDLED_FFMPEG_RUNNING": "1"}
     result = subprocess.run(
-        [sys.executable, "-c", RUN_SCRIPT, "-version"], env=environment, capture_output=True, timeout=60, check=False
+        [sys.executable, "-c", RUN_SCRIPT, "-version"],
+        env=environment,
+        capture_output=True,
+        timeout=HANG_GUARD_S,
+        check=False,
     )
     assert result.returncode == 127 and b"ffmpeg version" not in result.stdout
 

@@ -7,16 +7,16 @@ from pathlib import Path
 
 import pytest
 import torch
+from hang_guard import HANG_GUARD_S
 from test_e2e import _failure, _run
 
 from s2camp_ns.nerfstudio.train_commands import camera_schedule_arguments, ns_train_arguments
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(HANG_GUARD_S)]
 
 STEPS = 12
 
 
-@pytest.mark.timeout(600)
 def test_the_trained_cameras_share_no_rotation_but_still_move(tiny_scene: Path, tmp_path: Path) -> None:
     command = [
         *ns_train_arguments("s2camp", tiny_scene, tmp_path, "gauge", "run", STEPS, STEPS, 256),
@@ -28,7 +28,7 @@ def test_the_trained_cameras_share_no_rotation_but_still_move(tiny_scene: Path, 
         # The default track prior would hold these accurate cameras at the exact tracks' anchor: nothing would rotate.
         "--pipeline.model.camera-optimizer.track-prior", "False",
     ]  # fmt: skip
-    result = _run(command, timeout=400)
+    result = _run(command)
     assert result.returncode == 0, _failure(result, "ns-train s2camp")
     checkpoint = tmp_path / "gauge" / "s2camp" / "run" / "nerfstudio_models" / f"step-{STEPS - 1:09d}.ckpt"
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)["pipeline"]

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from hang_guard import HANG_GUARD_S
 
 from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.core.preconditioner import Preconditioner, SamplingConfig, compute_preconditioner
@@ -79,9 +80,9 @@ def test_every_process_computes_the_same_p_bits_without_communicating() -> None:
     processes = [context.Process(target=_p_in_a_process, args=(queue,)) for _ in range(2)]
     for process in processes:
         process.start()
-    results = [queue.get(timeout=300) for _ in processes]
+    results = [queue.get(timeout=HANG_GUARD_S) for _ in processes]
     for process in processes:
-        process.join(timeout=60)
+        process.join(timeout=HANG_GUARD_S)
         assert process.exitcode == 0
     here: Preconditioner = compute_preconditioner(_cameras(), sampling=SamplingConfig(num_points=500))
     for result in results:
@@ -133,7 +134,7 @@ def runs(tiny_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     one = _train(tiny_scene, root / "one", 1, 2 * RAYS_PER_RANK, AGREED_REQUEST_STEP)
     states: dict = {"root": root}
     for name, process, ranks in (("two", two, 2), ("one", one, 1)):
-        returncode = process.wait(timeout=900)
+        returncode = process.wait(timeout=HANG_GUARD_S)
         log = (root / f"{name}.log").read_text()
         assert returncode == 0, f"{name}-process run failed:\n{log[-5000:]}"
         states[name] = [torch.load(root / name / f"rank{r}.pt", weights_only=False) for r in range(ranks)]

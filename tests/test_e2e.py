@@ -24,11 +24,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hang_guard import HANG_GUARD_S
 
 from s2camp_ns import demo
 from s2camp_ns.nerfstudio import train_commands
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(HANG_GUARD_S)]
 
 WARM_START = 120
 ITERATIONS = 50
@@ -43,7 +44,8 @@ def _failure(result: subprocess.CompletedProcess, what: str) -> str:
     )
 
 
-def _run(command: list[str], timeout: float, **environment: str) -> subprocess.CompletedProcess:
+def _run(command: list[str], **environment: str) -> subprocess.CompletedProcess:
+    """Run an installed console script with the training environment (plus ``environment``), under the hang guard."""
     tool = Path(command[0])
     if not (tool.is_absolute() and tool.exists()):
         pytest.fail(f"{command[0]} is not installed next to {sys.executable}")
@@ -51,7 +53,7 @@ def _run(command: list[str], timeout: float, **environment: str) -> subprocess.C
         command,
         capture_output=True,
         text=True,
-        timeout=timeout,
+        timeout=HANG_GUARD_S,
         env={**train_commands.training_environment(), "COLUMNS": "200", **environment},
     )
 
@@ -96,8 +98,8 @@ def runs(tiny_scene: Path, tiny_scene_config, tmp_path_factory: pytest.TempPathF
     )
     demo.check_config(config)
     commands = [demo.warm_start_command(config, tiny_scene), demo.refine_command(config, tiny_scene)]
-    warm_start = _run(commands[0], timeout=400)
-    refine = _run(commands[1], timeout=300) if warm_start.returncode == 0 else warm_start
+    warm_start = _run(commands[0])
+    refine = _run(commands[1]) if warm_start.returncode == 0 else warm_start
     return Runs(config, warm_start, refine, commands)
 
 
@@ -115,7 +117,6 @@ def _errors(run_dir: Path, name: str) -> list[float]:
     return [value for _, value in _scalars(run_dir)[f"Train Metrics Dict/camera_errors/{name}"]]
 
 
-@pytest.mark.timeout(720)
 def test_training_finishes_and_writes_checkpoints(runs: Runs):
     runs.check()
     assert (runs.warm_start_dir / "nerfstudio_models" / f"step-{WARM_START - 1:09d}.ckpt").is_file()
@@ -128,7 +129,6 @@ def test_training_finishes_and_writes_checkpoints(runs: Runs):
     assert (runs.refine_dir / "config.yml").is_file()
 
 
-@pytest.mark.timeout(720)
 def test_cpu_is_the_default_without_cuda(runs: Runs):
     """No ``--machine.device-type`` is passed: without CUDA each run uses the CPU and says so once, no traceback."""
     runs.check()
@@ -143,7 +143,6 @@ def test_cpu_is_the_default_without_cuda(runs: Runs):
     assert "device_type: cpu" in (runs.refine_dir / "config.yml").read_text()
 
 
-@pytest.mark.timeout(720)
 def test_metrics_are_logged_to_tensorboard(runs: Runs):
     runs.check()
     for run_dir in (runs.warm_start_dir, runs.refine_dir):
@@ -170,7 +169,6 @@ def test_metrics_are_logged_to_tensorboard(runs: Runs):
     assert len(_errors(runs.refine_dir, "focal_err_mean")) >= ITERATIONS // LOG_EVERY - 1
 
 
-@pytest.mark.timeout(720)
 def test_camera_refinement_reduces_the_focal_error(runs: Runs):
     """First vs last logged error of the perturbed run: the focal error (shared dolly zoom included) falls."""
     runs.check()
@@ -185,7 +183,6 @@ def test_camera_refinement_reduces_the_focal_error(runs: Runs):
     assert max(_errors(runs.refine_dir, "pos_err_max")) < 0.1
 
 
-@pytest.mark.timeout(720)
 def test_eval_setup_loads_the_run_and_the_demo_table(runs: Runs, capsys: pytest.CaptureFixture):
     """nerfstudio's eval_setup loads the trained pipeline; the demo's table reads the start and refined errors."""
     runs.check()
@@ -199,7 +196,6 @@ def test_eval_setup_loads_the_run_and_the_demo_table(runs: Runs, capsys: pytest.
     assert "after refinement" in capsys.readouterr().out
 
 
-@pytest.mark.timeout(720)
 def test_export_cameras_writes_a_colmap_model(runs: Runs, tmp_path: Path):
     import pycolmap
 
@@ -209,7 +205,7 @@ def test_export_cameras_writes_a_colmap_model(runs: Runs, tmp_path: Path):
     output_dir = tmp_path / "refined" / "sparse" / "0"
     export = str(Path(sys.executable).with_name("s2camp-export-cameras"))
     command = [export, "--load-config", str(runs.refine_dir / "config.yml"), "--output-dir", str(output_dir)]
-    result = _run(command, timeout=240)
+    result = _run(command)
     assert result.returncode == 0, _failure(result, "s2camp-export-cameras")
     for name in ("cameras.bin", "images.bin", "points3D.bin"):
         assert (output_dir / name).is_file(), name
@@ -303,7 +299,6 @@ def _assert_exported_poses_follow_the_checkpoint_twist(run_dir: Path, reconstruc
         )
 
 
-@pytest.mark.timeout(720)
 def test_s2camp_eval_aligns_held_out_views(runs: Runs, tmp_path: Path):
     """``s2camp-eval``: test-time alignment of the held-out views of the refined run, metrics written as JSON."""
     runs.check()
@@ -312,7 +307,6 @@ def test_s2camp_eval_aligns_held_out_views(runs: Runs, tmp_path: Path):
     result = _run(
         [tool, "--load-config", str(runs.refine_dir / "config.yml"), "--output-path", str(output),
          "--alignment.steps", "10", "--alignment.rays", "128"],
-        timeout=300,
     )  # fmt: skip
     assert result.returncode == 0, _failure(result, "s2camp-eval")
     payload = json.loads(output.read_text())
@@ -324,7 +318,6 @@ def test_s2camp_eval_aligns_held_out_views(runs: Runs, tmp_path: Path):
     assert "PSNR before" in result.stdout
 
 
-@pytest.mark.timeout(720)
 def test_ns_render_writes_a_video_without_a_system_ffmpeg(runs: Runs, tmp_path: Path):
     """``ns-render interpolate`` of the refined run writes an H.264 video on a machine without ffmpeg: nerfstudio
     checks for an ``ffmpeg`` on PATH and mediapy pipes the frames into it; s2camp-ns installs one (imageio-ffmpeg's
@@ -346,7 +339,7 @@ def test_ns_render_writes_a_video_without_a_system_ffmpeg(runs: Runs, tmp_path: 
         "--output-path", str(video), "--interpolation-steps", str(steps), "--frame-rate", "4",
         "--rendered-output-names", "rgb", "--downscale-factor", "2",
     ]  # fmt: skip
-    result = _run(command, timeout=300, PATH=str(empty))
+    result = _run(command, PATH=str(empty))
     assert result.returncode == 0, _failure(result, "ns-render interpolate")
     assert "Could not find ffmpeg" not in result.stdout + result.stderr
     # Two held-out cameras (every 8th of 12), one transition of `steps` frames, at half the images' 64x48.
@@ -359,7 +352,6 @@ def test_ns_render_writes_a_video_without_a_system_ffmpeg(runs: Runs, tmp_path: 
     assert all(frame.std() > 5.0 for frame in frames), [float(frame.std()) for frame in frames]
 
 
-@pytest.mark.timeout(300)
 def test_camp_baseline_trains(tiny_scene: Path, tiny_scene_config, tmp_path: Path):
     """``ns-train s2camp-camp`` (random-sample preconditioner computed once) runs a few perturbed iterations."""
     config = demo.DemoConfig(
@@ -373,7 +365,7 @@ def test_camp_baseline_trains(tiny_scene: Path, tiny_scene_config, tmp_path: Pat
         rays_per_batch=256,
         method="s2camp-camp",
     )
-    result = _run(demo.refine_command(config, tiny_scene), timeout=280)
+    result = _run(demo.refine_command(config, tiny_scene))
     assert result.returncode == 0, _failure(result, "ns-train s2camp-camp")
     assert "Traceback" not in result.stdout + result.stderr
     run_dir = demo.run_dir(config, demo.REFINE_TIMESTAMP)
@@ -381,7 +373,6 @@ def test_camp_baseline_trains(tiny_scene: Path, tiny_scene_config, tmp_path: Pat
     assert "method_name: s2camp-camp" in (run_dir / "config.yml").read_text()
 
 
-@pytest.mark.timeout(600)
 def test_interrupted_run_resumes_bit_identically(tiny_scene: Path, tmp_path: Path):
     """``ns-train s2camp`` resumed from its step-6 checkpoint (``--load-checkpoint``, as after a kill) runs steps 7-11
     again, across the P refresh at step 8, and ends with the checkpoint of the uninterrupted run, bit for bit: camera
@@ -403,7 +394,7 @@ def test_interrupted_run_resumes_bit_identically(tiny_scene: Path, tmp_path: Pat
             *extra,
             *train_commands.perturbation_arguments(perturbation),
         ]  # fmt: skip
-        result = _run(command, timeout=280, OMP_NUM_THREADS="1")
+        result = _run(command, OMP_NUM_THREADS="1")
         assert result.returncode == 0, _failure(result, f"ns-train s2camp ({timestamp})")
 
     def pipeline_state(timestamp: str, step: int) -> dict:

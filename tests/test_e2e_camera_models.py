@@ -16,12 +16,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from hang_guard import HANG_GUARD_S
 
 from s2camp_ns.core.camera import ParameterLayout
 from s2camp_ns.nerfstudio import train_commands
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(HANG_GUARD_S)]
 
 ITERATIONS = 6
 SCENES = {
@@ -45,7 +46,6 @@ def _ns_process_data_scene(model: str, root: Path) -> Path:
     return data / "transforms.json"
 
 
-@pytest.mark.timeout(300)
 @pytest.mark.parametrize("model", list(SCENES))
 def test_ns_train_s2camp_on_ns_process_data_transforms(model: str, tmp_path: Path):
     transforms = _ns_process_data_scene(model, tmp_path)
@@ -64,7 +64,7 @@ def test_ns_train_s2camp_on_ns_process_data_transforms(model: str, tmp_path: Pat
     if not Path(command[0]).exists():
         pytest.fail(f"{command[0]} is not installed next to {sys.executable}")
     result = subprocess.run(
-        command, capture_output=True, text=True, timeout=280, env={**train_commands.training_environment()}
+        command, capture_output=True, text=True, timeout=HANG_GUARD_S, env={**train_commands.training_environment()}
     )
     assert result.returncode == 0, f"ns-train failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
     assert "Traceback" not in result.stdout + result.stderr

@@ -16,6 +16,7 @@ import pytest
 import torch
 import tyro
 from conftest import CUDA_SKIP_REASON
+from hang_guard import HANG_GUARD_S
 from test_camera_optimizer import NUM_CAMERAS, make_cameras
 
 from s2camp_ns.gpu_check import report
@@ -171,7 +172,7 @@ def test_the_command_exits_non_zero_without_cuda_and_writes_no_report(tmp_path: 
     output = tmp_path / "out"
     result = subprocess.run(
         [sys.executable, "-m", "s2camp_ns.gpu_check", "--output-dir", str(output)],
-        capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=300,
+        capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     text = " ".join((result.stdout + result.stderr).split())
     assert result.returncode == 2, text
@@ -220,7 +221,7 @@ def test_the_cuda_marker_selects_exactly_the_cuda_tests() -> None:
             sys.executable, "-m", "pytest", "--collect-only", "-q", "-m", "cuda",
             *[f"tests/{name}" for name in CUDA_MODULES], "tests/test_gpu_check.py", "-p", "no:cacheprovider",
         ],
-        capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=600,
+        capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     selected = [line for line in result.stdout.splitlines() if "::" in line]
@@ -235,7 +236,7 @@ def test_without_cuda_the_cuda_tests_skip_with_the_reason_and_nothing_else_does(
             sys.executable, "-m", "pytest", "-q", "tests/test_cuda.py", unmarked, "-p", "no:cacheprovider",
             f"--junitxml={junit}",
         ],
-        capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=600,
+        capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:]
     assert junit_counts(junit) == {"tests": 6, "failures": 0, "errors": 0, "skipped": 5, "passed": 1}
@@ -417,12 +418,13 @@ def test_the_report_file(tmp_path: Path) -> None:
 def test_cpu_smoke_run_trains_and_evaluates_stock_nerfacto(tmp_path: Path) -> None:
     """The training stage end to end on the CPU (``--cpu-smoke``): measured_train runs stock nerfacto (offline
     without its LPIPS weights), evaluates it through StockNerfactoModel, and the report holds its row. About 35 s of
-    CPU time."""
+    CPU time. Its training run gets the suite's hang guard as gpu-check's run timeout, whose default (6 minutes) is
+    sized for a GPU, not for a busy CPU."""
     output = tmp_path / "out"
     result = subprocess.run(
         [sys.executable, "-m", "s2camp_ns.gpu_check", "--cpu-smoke", "--methods", "nerfacto", "--output-dir",
-         str(output)],
-        capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=600,
+         str(output), "--run-timeout-minutes", str(HANG_GUARD_S / 60)],
+        capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + (output / "logs" / "train-nerfacto.log").read_text()[-3000:]
     text = (output / "gpu-check.md").read_text()

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hang_guard import HANG_GUARD_S
 from nerfstudio.cameras import camera_paths, camera_utils
 from nerfstudio.cameras.cameras import Cameras
 
@@ -23,7 +24,6 @@ from s2camp_ns.nerfstudio import render_path, train_commands
 SCENE = {"num_cameras": 8, "width": 64, "height": 48, "points_per_image": 150, "seed": 0}
 """The smallest scene of the default split with one eval camera and more than one training camera."""
 STEPS = 2
-SUBPROCESS_TIMEOUT = 1800
 """Seconds each of ns-train and ns-render may take: about 30 s each on an idle 2-core laptop, far more on a busy one."""
 SINGLE_CAMERA_NOTE = "the pose source holds a single camera"
 NERFSTUDIO_COPY_WARNING = "ignore:To copy construct from a tensor:UserWarning"
@@ -98,7 +98,7 @@ def _run(command: list[str]) -> subprocess.CompletedProcess:
     if not (tool.is_absolute() and tool.exists()):
         pytest.fail(f"{command[0]} is not installed next to {sys.executable}")
     environment = {**train_commands.training_environment(), "COLUMNS": "200"}
-    return subprocess.run(command, capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT, env=environment)
+    return subprocess.run(command, capture_output=True, text=True, timeout=HANG_GUARD_S, env=environment)
 
 
 def _failure(result: subprocess.CompletedProcess, what: str) -> str:
@@ -109,7 +109,7 @@ def _failure(result: subprocess.CompletedProcess, what: str) -> str:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(2 * SUBPROCESS_TIMEOUT + 300)
+@pytest.mark.timeout(HANG_GUARD_S)
 def test_ns_render_interpolate_writes_a_video_of_an_eight_camera_run(tmp_path: Path):
     """2 CPU steps of ``ns-train s2camp`` on 8 cameras (7 train, 1 eval), then ``ns-render interpolate`` with the
     default pose source (eval): a video of ``--interpolation-steps`` frames at the images' size."""

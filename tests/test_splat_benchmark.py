@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from hang_guard import HANG_GUARD_S
 
 from s2camp_ns.benchmarks.splat_bench import (
     CANDIDATE_VARIANTS,
@@ -215,12 +216,12 @@ def _bench() -> str:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(420)
+@pytest.mark.timeout(HANG_GUARD_S)
 def test_quick_splat_benchmark_trains_the_three_variants(tmp_path: Path) -> None:
     """``s2camp-bench splat --quick``: the three variants from the CamP perturbation, one seed, a few steps."""
     result = subprocess.run(
         [_bench(), "splat", "--quick", "--json", "--output-dir", str(tmp_path)],
-        capture_output=True, text=True, timeout=400, check=False,
+        capture_output=True, text=True, timeout=HANG_GUARD_S, check=False,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     rows = json.loads(result.stdout)["rows"]

@@ -7,11 +7,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from hang_guard import HANG_GUARD_S
 from test_e2e import _failure, _run
 
 from s2camp_ns.nerfstudio.train_commands import camera_schedule_arguments, ns_train_arguments
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(HANG_GUARD_S)]
 
 STEPS = 12
 
@@ -25,13 +26,12 @@ def _train(scene: Path, output: Path, prior: bool) -> dict:
         *camera_schedule_arguments(1e-2, 1e-2),
         "--pipeline.model.camera-optimizer.track-prior", str(prior),
     ]  # fmt: skip
-    result = _run(command, timeout=400)
+    result = _run(command)
     assert result.returncode == 0, _failure(result, "ns-train s2camp")
     checkpoint = output / "prior" / "s2camp" / f"prior-{prior}" / "nerfstudio_models" / f"step-{STEPS - 1:09d}.ckpt"
     return torch.load(checkpoint, map_location="cpu", weights_only=False)["pipeline"]
 
 
-@pytest.mark.timeout(900)
 def test_exact_tracks_hold_accurate_cameras_that_move_without_the_prior(tiny_scene: Path, tmp_path: Path) -> None:
     # The generated tracks are the exact projections of the true cameras (reprojection error ~1e-5 px): with the prior
     # the latents stay at the start; without it the same steps move them.

@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from hang_guard import HANG_GUARD_S
 from nerfstudio.configs.base_config import MachineConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig, Optimizers
 from nerfstudio.utils.eval_utils import eval_load_checkpoint
@@ -140,7 +141,7 @@ def test_killed_write_keeps_the_previous_checkpoint(tmp_path: Path):
         trainer.save_checkpoint(20)
         """
     )
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=HANG_GUARD_S)
     assert result.returncode == -signal.SIGKILL, result.stderr[-3000:]
     checkpoint_dir = make_trainer(tmp_path).checkpoint_dir
     leftovers = list(partial_dir(checkpoint_dir).iterdir())
