@@ -485,7 +485,12 @@ class S2CampCameraOptimizer(CameraOptimizer):
         if rms is not None:
             radius = rms / self.base_intrinsics_struct().image_scale()
         self.prior_radius = radius
-        self.prior_anchor = torch.where(torch.isfinite(radius)[:, None], anchor, torch.zeros_like(anchor))
+        keep = torch.isfinite(radius)[:, None].expand_as(anchor).clone()
+        if self.shared:  # the intrinsics are the physical camera's: anchored where any of its images is tracked
+            tracked = torch.zeros(self.num_physical_cameras, dtype=torch.bool, device=device)
+            tracked[self.camera_of_image[torch.isfinite(radius)]] = True
+            keep[:, NUM_POSE_PARAMS:] = tracked[self.camera_of_image][:, None]
+        self.prior_anchor = torch.where(keep, anchor, torch.zeros_like(anchor))
         self.has_track_prior = bool(torch.isfinite(radius).any())
         if self.shared:  # groups are known by now: set_train_cameras fixed them
             finite = torch.isfinite(radius)
