@@ -112,6 +112,9 @@ CANDIDATE_VARIANTS = ("s2camp-splat-gauge", "s2camp-splat-plain", "s2camp-splat-
 """Variants a run may name beyond the default grid: s2camp-splat with parts of its default turned off, and the
 real-regime issue's candidate (``benchmarks/robustness.py``) on splatting."""
 HISTORICAL_VARIANTS = {
+    "s2camp-splat-exact-tracks": "s2camp-splat's defaults with the generated scene's own tracks, exact projections "
+    "through the true cameras (accurate and perturbed starts): the prior knew the truth. Since then those starts "
+    "train with tracks made from the images, and perturbed cameras never get the scene's tracks",
     "s2camp-splat-prior-rms": "s2camp-splat's defaults as they were before the track prior's shared intrinsics "
     "took the standard error of their fit as their scale (then the RMS of their images' scales) and before the "
     "anchor kept the given intrinsics unless the tracks call for others (`s2camp_ns.core.track_fit.fit_anchor`)",
@@ -294,6 +297,8 @@ def train_command(
     dataparser = [DATAPARSER_SUBCOMMAND, "--downscale-factor", str(preset.downscale)]
     if spec.start == "perturbed":
         dataparser += ["--perturbation.enabled", "True", "--perturbation.seed", str(preset.perturbation_seed)]
+    if spec.start != "sfm":  # evidence that does not know the truth: the generated tracks are exact projections
+        dataparser += ["--image-tracks", "always"]
     if spec.start == "sfm":
         if truth is None:
             raise ValueError("an sfm start needs the generated scene (truth) to measure against")

@@ -93,6 +93,8 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     if start == "perturbed":
         assert _option(tail, "--perturbation.seed") == str(SCENES["splat-ring"].perturbation_seed)
     assert ("--reference-model" in tail) == (start == "sfm")
+    # Every start but sfm trains with tracks made from its images, never the generated scene's exact projections.
+    assert (tail[-2:] == ["--image-tracks", "always"]) == (start != "sfm")
     if start == "sfm":
         assert _option(tail, "--reference-model") == str(Path("truth") / "sparse" / "0")
 
