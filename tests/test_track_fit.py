@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_transforms_tracks import _ns_process_data_layout, _parse
+from test_transforms_tracks import _ns_process_data_layout, _parse, perturbed_with_scene_tracks
 
 from s2camp_ns.core.camera import Intrinsics, project, se3_exp
 from s2camp_ns.core.perturbation import look_at_rotation
@@ -230,7 +230,7 @@ def _assert_anchor_is_the_truth(outputs, optimizer) -> None:
 
 
 def test_colmap_scene_anchor_is_the_true_camera_for_perturbed_cameras(tiny_scene: Path) -> None:
-    outputs = _parse(tiny_scene, perturbed=True)
+    outputs = perturbed_with_scene_tracks(tiny_scene)
     optimizer = _optimizer_from(outputs)
     assert float(outputs.metadata["track_rms_px"].min()) > 0.1  # the given cameras disagree with their tracks
     assert float(optimizer.prior_radius.max()) < 1e-6  # the anchor agrees: exact tracks, radius ~0
@@ -238,13 +238,13 @@ def test_colmap_scene_anchor_is_the_true_camera_for_perturbed_cameras(tiny_scene
 
 
 def test_ns_process_data_anchor_is_the_true_camera_too(tiny_scene: Path, tmp_path: Path) -> None:
-    outputs = _parse(_ns_process_data_layout(tiny_scene, tmp_path / "ns"), perturbed=True)
+    outputs = perturbed_with_scene_tracks(_ns_process_data_layout(tiny_scene, tmp_path / "ns"))
     assert outputs.metadata["source_format"] == "nerfstudio"
     _assert_anchor_is_the_truth(outputs, _optimizer_from(outputs))
 
 
 def test_per_image_intrinsics_anchor_and_the_accurate_start_anchor_at_zero(tiny_scene: Path) -> None:
-    perturbed = _parse(tiny_scene, perturbed=True)
+    perturbed = perturbed_with_scene_tracks(tiny_scene)
     _assert_anchor_is_the_truth(perturbed, _optimizer_from(perturbed, intrinsics="per-image"))
     accurate = _parse(tiny_scene)
     optimizer = _optimizer_from(accurate)
@@ -252,7 +252,7 @@ def test_per_image_intrinsics_anchor_and_the_accurate_start_anchor_at_zero(tiny_
 
 
 def test_proximal_step_pulls_towards_the_anchor_not_the_given_camera(tiny_scene: Path) -> None:
-    outputs = _parse(tiny_scene, perturbed=True)
+    outputs = perturbed_with_scene_tracks(tiny_scene)
     optimizer = _optimizer_from(outputs)
     pose, intrinsics = optimizer.prior_anchor_latents()
     optimizer.prior_radius.fill_(0.01)  # a finite radius: one step closes lr / (r + lr) of the gap
@@ -267,7 +267,7 @@ def test_proximal_step_pulls_towards_the_anchor_not_the_given_camera(tiny_scene:
 def test_common_rotation_removal_keeps_the_rotation_the_anchors_share(tiny_scene: Path) -> None:
     # The anchors' own corrections share a rotation (their mean is not zero): with the tracks fixing the world it is
     # no gauge. At the anchor the removal must change nothing; without the prior it removes that mean.
-    outputs = _parse(tiny_scene, perturbed=True)
+    outputs = perturbed_with_scene_tracks(tiny_scene)
     optimizer = _optimizer_from(outputs, fix_common_rotation=True)
     pose, intrinsics = optimizer.prior_anchor_latents()
     with torch.no_grad():

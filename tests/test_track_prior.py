@@ -226,6 +226,7 @@ def test_perturbed_cameras_never_get_the_tracks_of_the_unperturbed_ones(tiny_sce
         return ImageTracks(None, reason="not built in this test")
 
     monkeypatch.setattr(dataparser, "image_tracks", fake_image_tracks)
+    monkeypatch.setattr(dataparser, "_SHOWN", set())  # the notes are shown once per process: earlier tests saw them
     config = dataparser.S2CampDataParserConfig(data=tiny_scene, image_tracks="never")
     config.perturbation.enabled = True
     capsys.readouterr()

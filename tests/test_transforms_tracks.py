@@ -31,10 +31,13 @@ def _parse(data: Path, split: str = "train", **options):
     return S2CampDataParserConfig(data=data, **options).setup().get_dataparser_outputs(split)
 
 
-def perturbed_track_rms(data: Path, **options) -> torch.Tensor:
-    """The scene's own tracks measured under its training cameras moved by CamP's perturbation (seed 0), through the
-    data parser's measurement. The data parser itself never gives perturbed cameras these tracks (they were made with
-    the unperturbed cameras): the plumbing is tested here by perturbing outside it."""
+def perturbed_with_scene_tracks(data: Path, **options):
+    """The data parser's training outputs with the cameras moved by CamP's perturbation (seed 0) outside the parser,
+    the scene's own tracks measured under them (``track_rms_px``, ``track_evidence``) and the unperturbed cameras as
+    ``reference_cameras``. The data parser itself never gives perturbed cameras these tracks (they were made with the
+    unperturbed cameras): the plumbing is tested here by perturbing outside it."""
+    import dataclasses
+
     from s2camp_ns.core.perturbation import PerturbationConfig
     from s2camp_ns.nerfstudio.dataparser import colmap_track_evidence, detect_format, perturb_nerfstudio_cameras
 
@@ -44,10 +47,19 @@ def perturbed_track_rms(data: Path, **options) -> torch.Tensor:
     moved = perturb_nerfstudio_cameras(outputs.cameras, PerturbationConfig(enabled=True))
     data_format, source = detect_format(config)
     if data_format == "colmap":
-        return colmap_track_evidence(moved, source, outputs.metadata["image_names"], outputs)[0]
-    result = parser._transforms_track_rms(source, moved, outputs, outputs.metadata)
+        result = colmap_track_evidence(moved, source, outputs.metadata["image_names"], outputs)
+    else:
+        result = parser._transforms_track_rms(source, moved, outputs, outputs.metadata)
     assert result is not None, "the scene's tracks must be found"
-    return result[0]
+    metadata = dict(outputs.metadata, reference_cameras=outputs.cameras, perturbed=True)
+    metadata["track_rms_px"], metadata["track_evidence"] = result
+    return dataclasses.replace(outputs, cameras=moved, metadata=metadata)
+
+
+def perturbed_track_rms(data: Path, **options) -> torch.Tensor:
+    """The scene's own tracks' reprojection RMS (px [N]) under its perturbed training cameras
+    (``perturbed_with_scene_tracks``)."""
+    return perturbed_with_scene_tracks(data, **options).metadata["track_rms_px"]
 
 
 def _rms_by_name(outputs) -> dict[str, float]:
