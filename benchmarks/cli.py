@@ -13,6 +13,7 @@ import tyro
 from .common import DEFAULT_OUTPUT_DIR, emit_json, log
 from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
+from .image_tracks_cost import ImageTracksCostConfig
 from .lattice_search import LatticeSearchConfig
 from .proxy_range import ProxyRangeBenchConfig
 from .recovery import RecoveryConfig
@@ -34,6 +35,7 @@ MODULES = {
     ProxyRangeBenchConfig: "proxy_range",
     RobustnessConfig: "robustness",
     SplatBenchConfig: "splat_bench",
+    ImageTracksCostConfig: "image_tracks_cost",
 }
 """The benchmarks ``s2camp-bench all`` runs."""
 TOOLS = {LatticeSearchConfig: "lattice_search"}
@@ -60,6 +62,7 @@ Command = Union[
     Annotated[ProxyRangeBenchConfig, tyro.conf.subcommand("proxy-range")],
     Annotated[RobustnessConfig, tyro.conf.subcommand("robustness")],
     Annotated[SplatBenchConfig, tyro.conf.subcommand("splat")],
+    Annotated[ImageTracksCostConfig, tyro.conf.subcommand("image-tracks")],
     Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]

@@ -37,6 +37,7 @@ REQUIRED_KEYS = {
         "start_drift_px",
         "train_seconds",
     },  # fmt: skip
+    "image-tracks": {"images", "pairs", "seconds", "SIFT_seconds", "matching_seconds", "summary", "device"},
 }
 REPORTS = {
     "dispersion": "dispersion.md",
@@ -47,6 +48,7 @@ REPORTS = {
     "train-time": "train-time.md",
     "proxy-range": "proxy-range.md",
     "robustness": "robustness.md",
+    "image-tracks": "image-tracks.md",
 }
 
 
@@ -105,6 +107,10 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
         assert "## Tier 3" in report.read_text()
     if name == "robustness":
         _check_robustness_rows(rows, tmp_path)
+    if name == "image-tracks":
+        assert [row["images"] for row in rows] == [12, 8]
+        assert all(row["SIFT_seconds"] > 0.0 and row["matching_seconds"] > 0.0 for row in rows), rows
+        assert [row["pairs"] for row in rows] == [66, 28]  # every pair up to EXHAUSTIVE_LIMIT images
     if name == "train-time":
         summary = {row["method"]: row for row in rows if row["kind"] == "summary"}
         assert set(summary) == {"s2camp-so3xr3", "s2camp"}  # --quick: the baseline and s2camp

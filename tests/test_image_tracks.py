@@ -4,8 +4,11 @@ are cached, refuse what cannot anchor cameras, and reach the data parser's track
 from __future__ import annotations
 
 import copy
+import io
 import math
 import os
+import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -89,7 +92,7 @@ def test_tracks_bring_noisy_cameras_near_the_truth_and_keep_the_given_frame(text
     made_c2w, _ = _c2w_and_focal(made, names)
     given_c2w, _ = _c2w_and_focal(given, names)
     assert float((made_c2w[:, :, 3] - given_c2w[:, :, 3]).norm(dim=1).max()) < 5 * math.sqrt(3) * CENTRE_NOISE
-    assert "points" in result.summary and "focal length" in result.summary
+    assert "points" in result.summary and "focal length" in result.summary and "; built in " in result.summary
 
 
 def test_a_second_call_reads_the_cache_and_any_change_of_input_is_another_key(
@@ -261,3 +264,285 @@ def test_an_image_colmap_cannot_read_is_named_instead_of_missing_from_the_tracks
     assert result.model is None
     expected = f"COLMAP could not read 1 of {truth.num_images()} images (first: 'frame_00003.png')"
     assert result.reason.startswith(expected)
+
+
+@pytest.mark.parametrize(
+    ("has_cuda", "device_present", "expected", "notice"),
+    [
+        (True, True, "cuda", False),
+        (False, True, "cpu", True),
+        (True, False, "cpu", False),
+        (False, False, "cpu", False),
+    ],
+)
+def test_sift_runs_on_cuda_only_where_pycolmap_has_it_and_a_device_is_present(
+    monkeypatch: pytest.MonkeyPatch, has_cuda: bool, device_present: bool, expected: str, notice: bool
+):
+    monkeypatch.setattr(pycolmap, "has_cuda", has_cuda)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: device_present)
+    device, text = module.feature_device()
+    assert device == getattr(pycolmap.Device, expected)
+    assert (text is not None) == notice
+    if notice:
+        assert "s2camp-ns[gpu]" in text and "\n" not in text
+
+
+class _Stop(Exception):
+    """Ends a build once the calls under test were made."""
+
+
+def test_the_device_reaches_extraction_and_matching_and_not_the_cache_key(
+    tiny_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture
+):
+    given = _given(pycolmap.Reconstruction(tiny_scene / "sparse" / "0"), rotation=0.0, centre=0.0, focal=1.0)
+    key = cache_key(given, tiny_scene / "images")
+    devices = []
+    extract = pycolmap.extract_features
+
+    def extract_on_the_cpu(*args, device, **kwargs):
+        devices.append(("extract", device))
+        extract(*args, device=pycolmap.Device.cpu, **kwargs)
+
+    def match(*args, device, **kwargs):
+        devices.append(("match", device))
+        raise _Stop
+
+    monkeypatch.setattr(pycolmap, "extract_features", extract_on_the_cpu)
+    monkeypatch.setattr(pycolmap, "match_exhaustive", match)
+    monkeypatch.setattr(module, "feature_device", lambda: (pycolmap.Device.cuda, "a notice"))
+    monkeypatch.setattr(pycolmap, "has_cuda", True)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    with pytest.raises(_Stop):
+        image_tracks(given, tiny_scene / "images", tmp_path)
+    assert devices == [("extract", pycolmap.Device.cuda), ("match", pycolmap.Device.cuda)]
+    output = capfd.readouterr().err
+    assert "SIFT and matching on the GPU" in output and "a notice" in output
+    assert cache_key(given, tiny_scene / "images") == key
+    assert not any(tmp_path.iterdir())  # the interrupted build left nothing
+
+
+def _pinhole(width: int, height: int, focal: float, camera_id: int = 1) -> pycolmap.Camera:
+    params = [focal, focal, width / 2, height / 2]
+    return pycolmap.Camera(model="PINHOLE", width=width, height=height, params=params, camera_id=camera_id)
+
+
+@pytest.mark.parametrize(
+    ("width", "height", "focal", "keypoint_px", "given_px"),
+    [
+        (64, 48, 50.0, 4.0, 4.0),  # 2 degrees are 1.7 px: COLMAP's 4 px bound the keypoints
+        (320, 240, 190.0, 4.0, 6.632),  # 80 degrees wide
+        (1920, 1440, 1300.0, 4.8, 45.379),  # a phone: SIFT sees it at 1600 px
+        (4000, 3000, 3000.0, 10.0, 104.720),
+    ],
+)
+def test_thresholds_grow_with_the_extraction_downsampling_and_the_focal_length(
+    width: int, height: int, focal: float, keypoint_px: float, given_px: float
+):
+    given = pycolmap.Reconstruction()
+    given.add_camera_with_trivial_rig(_pinhole(width, height, focal))
+    thresholds = module.Thresholds.of(given)
+    assert thresholds.keypoint_px == pytest.approx(keypoint_px)
+    assert thresholds.given_px == pytest.approx(given_px, abs=1e-3)
+    given.add_camera_with_trivial_rig(_pinhole(width // 2, height // 2, focal / 2, camera_id=2))
+    assert module.Thresholds.of(given) == thresholds  # the camera that needs the loosest bound sets it
+
+
+def _cameras(centres, rotations) -> pycolmap.Reconstruction:
+    """Cameras at ``centres`` with world-to-camera ``rotations`` (3x3 each), named 000.png, 001.png, ..."""
+    reconstruction = pycolmap.Reconstruction()
+    reconstruction.add_camera_with_trivial_rig(_pinhole(100, 100, 50.0))
+    for i, (centre, matrix) in enumerate(zip(centres, rotations, strict=True)):
+        rotation = pycolmap.Rotation3d(np.asarray(matrix, dtype=np.float64))
+        pose = pycolmap.Rigid3d(rotation, -(rotation * np.asarray(centre, dtype=np.float64)))
+        reconstruction.add_image_with_trivial_frame(
+            pycolmap.Image(name=f"{i:03d}.png", camera_id=1, image_id=i + 1), pose
+        )
+    return reconstruction
+
+
+def test_neighbour_pairs_prefer_a_camera_that_faces_alike_to_a_nearer_one_turned_away(monkeypatch: pytest.MonkeyPatch):
+    """000 and 002 face +z, 1.5 apart; 001, 1 from 000, is turned 80 degrees: it counts (2 - cos 80) = 1.83 times as
+    far, 1.83 from 000 (so 000 matches 002) and 0.91 from 002."""
+    monkeypatch.setattr(module, "NEIGHBOURS", 1)
+    turned = np.asarray(pycolmap.Rotation3d(np.array([0.0, math.radians(80.0), 0.0])).matrix())
+    reconstruction = _cameras([[0, 0, 0], [1, 0, 0], [1.5, 0, 0]], [np.eye(3), turned, np.eye(3)])
+    assert neighbour_pairs(reconstruction) == [("000.png", "002.png"), ("001.png", "002.png")]
+
+
+def _ring(count: int, radius: float = 4.0) -> pycolmap.Reconstruction:
+    """``count`` cameras evenly on a horizontal ring, each looking at its centre."""
+    centres, rotations = [], []
+    for angle in np.linspace(0.0, 2.0 * math.pi, count, endpoint=False):
+        centre = radius * np.array([math.cos(angle), math.sin(angle), 0.0])
+        axis = -centre / radius
+        down = np.array([0.0, 0.0, -1.0])
+        centres.append(centre)
+        rotations.append(np.stack([np.cross(down, axis), down, axis]))
+    return _cameras(centres, rotations)
+
+
+def test_neighbour_pairs_are_near_linear_in_the_images_and_do_not_depend_on_the_rows_ranked_at_once(
+    monkeypatch: pytest.MonkeyPatch,
+):
+    ring = _ring(300)
+    pairs = neighbour_pairs(ring)
+    assert len(pairs) == len(set(pairs)) == 300 * module.NEIGHBOURS // 2  # each camera's 15 on either side
+    per_image = {}
+    for a, b in pairs:
+        assert a < b
+        per_image[a] = per_image.get(a, 0) + 1
+        per_image[b] = per_image.get(b, 0) + 1
+    assert set(per_image.values()) == {module.NEIGHBOURS}
+    assert ("000.png", "015.png") in pairs and ("000.png", "016.png") not in pairs and ("000.png", "285.png") in pairs
+    monkeypatch.setattr(module, "PAIR_ROWS", 7)
+    assert neighbour_pairs(ring) == pairs
+
+
+def test_a_build_shows_its_stages_with_counts_and_times(tiny_scene: Path, tmp_path: Path, capfd: pytest.CaptureFixture):
+    """stderr is no terminal under pytest: one line per finished stage, then the breakdown (the tiny scene's images
+    give no points, so the build ends after the first triangulation)."""
+    given = _given(pycolmap.Reconstruction(tiny_scene / "sparse" / "0"), rotation=0.0, centre=0.0, focal=1.0)
+    result = image_tracks(given, tiny_scene / "images", tmp_path)
+    output = capfd.readouterr().err
+    assert list(result.stage_seconds) == ["SIFT", "matching", "triangulation"]  # the entry keeps its cost
+    assert all(seconds > 0.0 for seconds in result.stage_seconds.values())
+    assert image_tracks(given, tiny_scene / "images", tmp_path).stage_seconds == result.stage_seconds  # cached
+    assert "Making image tracks of 12 images (64x48) for the track prior, SIFT and matching on the CPU" in output
+    assert re.search(r"\n  SIFT features: \d+ keypoints \(12/12 images, [0-9.]+ s\)\n", output)
+    assert re.search(r"\n  matching, every pair: \d+ verified \(4\.0 px\), \d+ inlier matches \(66/66 pairs, ", output)
+    assert re.search(
+        r"\n  triangulation 1/4, given cameras \(4\.0 px\): 0 points, 0 observations \([0-9.]+ s\)", output
+    )
+    assert re.search(
+        r"\nImage tracks built: SIFT [0-9.]+ s, matching [0-9.]+ s, triangulation [0-9.]+ s, total ", output
+    )
+
+
+def test_build_progress_lines_without_a_terminal_and_the_breakdown_by_kind():
+    from rich.console import Console
+
+    from s2camp_ns.nerfstudio.build_progress import BuildProgress
+
+    console = Console(file=io.StringIO(), width=200)
+    with BuildProgress("Built", console=console) as progress:
+        with progress.stage("counting", "count", 3, "things", lambda: 2) as stage:
+            stage.outcome = "three things"
+        for _ in range(2):
+            with progress.stage("waiting", "wait"):
+                pass
+    text = console.file.getvalue()
+    assert re.search(r"^  counting: three things \(3/3 things, [0-9.]+ s\)$", text, re.MULTILINE)
+    assert len(re.findall(r"^  waiting \([0-9.]+ s\)$", text, re.MULTILINE)) == 2
+    assert re.search(r"^Built: count [0-9.]+ s, wait [0-9.]+ s \(2\), total [0-9.]+ s$", text, re.MULTILINE)
+    with pytest.raises(_Stop), BuildProgress("Built", console=console) as progress:
+        raise _Stop
+    assert console.file.getvalue().count("Built:") == 1  # no breakdown of a build that raised
+
+
+def test_build_progress_on_a_terminal_shows_the_count_read_while_the_stage_runs(monkeypatch: pytest.MonkeyPatch):
+    import threading
+
+    from rich.console import Console
+
+    from s2camp_ns.nerfstudio import build_progress
+
+    monkeypatch.setattr(build_progress, "POLL_SECONDS", 0.01)
+    console = Console(file=io.StringIO(), width=200, force_terminal=True)
+    reads = []
+    read_twice = threading.Event()
+
+    def count():
+        reads.append(None)
+        if len(reads) >= 2:
+            read_twice.set()
+        return None if len(reads) == 1 else 7  # unreadable first, then more than the total
+
+    progress = build_progress.BuildProgress("Built", console=console)
+    with progress, progress.stage("reading", "read", 5, "rows", count):
+        assert read_twice.wait(5.0)
+        time.sleep(0.3)  # rich redraws 10 times a second
+        (task,) = progress._progress.tasks
+        assert task.completed == 5 and task.fields["count"] == "5/5 rows"  # clipped to the total
+    text = console.file.getvalue()
+    assert "0/5 rows" in text and "5/5 rows" in text and "✓" in text
+    assert re.search(r"Built: read [0-9.]+ s, total", text)
+
+
+def test_database_count_reads_rows_or_says_it_cannot(tmp_path: Path):
+    import sqlite3
+
+    from s2camp_ns.nerfstudio.build_progress import database_count, duration_text
+
+    database = tmp_path / "database.db"
+    assert database_count(database, "keypoints") is None
+    connection = sqlite3.connect(database)
+    connection.execute("CREATE TABLE two_view_geometries (rows INTEGER)")
+    connection.executemany("INSERT INTO two_view_geometries VALUES (?)", [(0,), (12,), (30,)])
+    connection.commit()
+    connection.close()
+    assert database_count(database, "two_view_geometries") == 3
+    assert database_count(database, "two_view_geometries", "rows > 0") == 2
+    assert database_count(database, "keypoints") is None  # no such table yet
+    assert [duration_text(s) for s in (0.42, 12.4, 185.0, 3720.0)] == ["0.4 s", "12 s", "3 min 05 s", "1 h 02 min"]
+
+
+def _scene(folder: Path, **config) -> Path:
+    from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+
+    return make_scene(MakeSceneConfig(output_dir=folder, seed=0, **config))
+
+
+def _stage_line(output: str, stage: str) -> str:
+    """The line the build wrote for ``stage`` (stderr is no terminal under pytest: one line per finished stage)."""
+    (line,) = [line for line in output.splitlines() if line.strip().startswith(stage)]
+    return line
+
+
+@pytest.mark.slow
+def test_more_than_exhaustive_limit_images_are_matched_with_neighbours_and_tracked(
+    tmp_path: Path, capfd: pytest.CaptureFixture
+):
+    """104 images of 128x96 (a ring, 3.5 degrees apart; about 50 s to generate, 20 s to build) with cameras a
+    degree off: the neighbour pairs are matched, every image is in the model, and the adjustment brings rotations and
+    focal length nearer the truth (measured: 0.90 -> 0.52 degrees, 1.5 -> 0.06 px)."""
+    scene = _scene(tmp_path / "scene", num_cameras=module.EXHAUSTIVE_LIMIT + 4, width=128, height=96, fov="wide")
+    truth = pycolmap.Reconstruction(scene / "sparse" / "0")
+    given = _given(truth)
+    result = image_tracks(given, scene / "images", tmp_path / "cache")
+    assert result.model is not None, result.reason
+    output = capfd.readouterr().err
+    pairs = len(neighbour_pairs(given))
+    assert pairs <= 104 * module.NEIGHBOURS < 104 * 103 // 2
+    assert f"({pairs}/{pairs} pairs, " in _stage_line(output, "matching, 30 neighbours")
+    assert "(104/104 images, " in _stage_line(output, "SIFT features")
+    assert re.search(r"Image tracks built: SIFT .*, matching .*, adjustment .* \(4\), total ", output)
+    made = pycolmap.Reconstruction(result.model)
+    assert made.num_images() == 104
+    before, after = _errors(given, truth), _errors(made, truth)
+    assert after["rot_err_mean"] < 0.75 * before["rot_err_mean"]
+    assert after["focal_err_mean"] < 0.25 * before["focal_err_mean"]
+    assert re.search(r"; built in [0-9. a-z]+ on the CPU$", result.summary)
+
+
+@pytest.mark.slow
+def test_the_first_triangulation_admits_the_given_cameras_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """32 images of 320x240 at f 600 px (30 degrees wide; about a minute to generate) with cameras a degree off, 10
+    px: the bound of ``GIVEN_ANGLE_ERROR_DEG`` x focal (21 px) keeps enough observations of the wrong cameras and the
+    adjustment ends 0.24 degrees from the truth; with COLMAP's fixed 4 px the first triangulation keeps a quarter of
+    them and no point survives the adjusted cameras' triangulation (measured: 377 points, then none)."""
+    scene = _scene(tmp_path / "scene", num_cameras=32, width=320, height=240, focal=600.0)
+    truth = pycolmap.Reconstruction(scene / "sparse" / "0")
+    given = _given(truth)
+    thresholds = module.Thresholds.of(given)
+    assert thresholds.given_px == pytest.approx(math.radians(module.GIVEN_ANGLE_ERROR_DEG) * 600 * FOCAL_FACTOR)
+    result = image_tracks(given, scene / "images", tmp_path / "cache")
+    assert result.model is not None, result.reason
+    before, after = _errors(given, truth), _errors(pycolmap.Reconstruction(result.model), truth)
+    assert after["rot_err_mean"] < 0.4 * before["rot_err_mean"]
+
+    fixed = module.Thresholds(thresholds.keypoint_px, thresholds.keypoint_px)
+    monkeypatch.setattr(module.Thresholds, "of", classmethod(lambda cls, given: fixed))
+    colmap_default = image_tracks(given, scene / "images", tmp_path / "fixed 4 px")
+    if colmap_default.model is not None:  # measured: none
+        worse = _errors(pycolmap.Reconstruction(colmap_default.model), truth)
+        assert worse["rot_err_mean"] > 1.5 * after["rot_err_mean"]

@@ -138,8 +138,10 @@ class S2CampDataParserConfig(DataParserConfig):
     Without tracks the photometric loss leaves the focal length and forward motion barely determined
     (docs/DESIGN-NOTES.md sec. 15)."""
     image_tracks_cache: Path | None = None
-    """Folder of the image tracks' cache; None: ``s2camp_image_tracks`` in the scene folder (beside the
-    transforms.json)."""
+    """Folder of the image tracks' cache (read and written; an error when a build is needed and it cannot be
+    written); None: ``s2camp_image_tracks`` in the scene folder (beside the transforms.json), read where it exists,
+    and where the scene folder cannot be written new entries go to ``$XDG_CACHE_HOME/s2camp-ns/image_tracks``
+    (``~/.cache/...``; ``nerfstudio/track_cache.py``)."""
     perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
     """CamP perturbation of the training cameras (evaluation protocol, off by default)."""
     reference_model: Path | None = None
@@ -699,8 +701,8 @@ class S2CampDataParser(DataParser):
             cameras, outputs.dataparser_transform, scale, names, full_image_size=full_size,
             camera_ids=group_identical_intrinsics(cameras).tolist(),
         )  # fmt: skip
-        cache = self.config.image_tracks_cache or scene / IMAGE_TRACKS_CACHE
-        result = image_tracks(given, root, cache)  # minutes for hundreds of large images, then read from the cache
+        cache = self.config.image_tracks_cache or scene / IMAGE_TRACKS_CACHE  # minutes for many large images, once
+        result = image_tracks(given, root, cache, user_fallback=self.config.image_tracks_cache is None)
         if result.model is None:
             _show_once((source.resolve(), "image-tracks"), f"[bold yellow]No track prior: {escape(result.reason)}")
             return None
@@ -717,7 +719,8 @@ class S2CampDataParser(DataParser):
 
 
 IMAGE_TRACKS_CACHE = Path("s2camp_image_tracks")
-"""The image tracks' cache folder in the scene folder (``image_tracks_cache`` None)."""
+"""The image tracks' cache folder in the scene folder (``image_tracks_cache`` None; the user's cache folder where the
+scene folder cannot be written, ``track_cache.user_cache_folder``)."""
 LOG = Console(stderr=True, width=120)
 """Notes of the data parser (why a scene has no track prior): on stderr, as the camera optimizer's."""
 _SHOWN: set[tuple] = set()

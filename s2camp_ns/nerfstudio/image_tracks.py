@@ -5,18 +5,24 @@ Without tracks the photometric loss alone determines a camera's focal length to 
 train in, from every start (docs/DESIGN-NOTES.md sec. 15), and a camera's focal length and forward motion trade
 against each other. Keypoint tracks determine both: on the regime scene (49 training images of 320x240) the adjustment
 below ends 0.07 degrees and 0.4 px (of 228) from the true cameras, from the phone-pose start and from the true cameras
-alike, closer than pycolmap's own SfM (0.115 degrees, 0.8 px; docs/DESIGN-NOTES.md sec. 16).
+alike, closer than pycolmap's own SfM (0.115 degrees, 0.8 px; docs/DESIGN-NOTES.md sec. 16; measured with recipe 2,
+whose first triangulation kept observations up to 4 px off, 8 px since). Cost: docs/IMAGE-TRACKS.md.
 
-The recipe (pycolmap, on the CPU; COLMAP's log in ``colmap.log`` of the cache folder):
+The recipe (pycolmap; SIFT and matching on a CUDA device where pycolmap has CUDA, ``feature_device``, else on the
+CPU; COLMAP's log in ``colmap.log`` of the cache folder; each stage shown with its counts and time as it runs,
+``build_progress``):
 
 1. SIFT features of the full-size images (longest side at most ``MAX_IMAGE_SIZE``), one COLMAP camera per physical
    camera holding the given intrinsics.
-2. Matches, geometrically verified, between every pair of images up to ``EXHAUSTIVE_LIMIT`` images, else between each
-   image and its ``NEIGHBOURS`` nearest given camera centres among the cameras that look within 90 degrees of it.
-3. Points triangulated with the given cameras (COLMAP's point triangulator with its default filters, which drop
-   observations more than 4 px off), then ``REFINEMENT_ROUNDS`` rounds of a bundle adjustment of points, poses,
-   focal lengths and distortion (the principal point stays) followed by a new triangulation with the adjusted
-   cameras, and a last bundle adjustment: the points are those of the adjusted cameras.
+2. Matches, geometrically verified (RANSAC bound ``KEYPOINT_ERROR_PX``, grown for images SIFT sees downsampled:
+   ``Thresholds``), between every pair of images up to ``EXHAUSTIVE_LIMIT`` images, else between each image and its
+   ``NEIGHBOURS`` nearest given cameras that look within 90 degrees of it (``neighbour_pairs``).
+3. Points triangulated with the given cameras, keeping observations up to ``GIVEN_ANGLE_ERROR_DEG`` times the focal
+   length off (the given cameras' error: COLMAP's fixed 4 px drops the observations of cameras a degree off at
+   f 600 px and more, and then no point survives), then ``REFINEMENT_ROUNDS`` rounds of a bundle adjustment of
+   points, poses, focal lengths and distortion (the principal point stays) followed by a new triangulation with the
+   adjusted cameras (bound ``keypoint_px``), and a last bundle adjustment: the points are those of the adjusted
+   cameras.
 4. A similarity (Umeyama on the camera centres, ``core.alignment``) maps the adjusted reconstruction onto the given
    cameras: images do not fix the world's position, orientation and scale, so the tracks keep the given ones.
 
@@ -29,38 +35,67 @@ Cache. The model is built once per set of images and given cameras, in ``<cache>
 (intrinsics and poses, every bit). Later runs read it (COLMAP's matcher verifies pairs on several threads, so two
 builds can differ in their last digits; every run of one cache reads the same tracks). A build writes into a temporary
 sibling folder and renames it at the end, so processes that build at once never read half a model, and nothing in
-the cache is ever overwritten. The feature database is deleted once the model is written.
+the cache is ever overwritten. The feature database is deleted once the model is written. Where the cache lives (a
+scene folder that cannot be written has its shipped entries read and new ones built in the user's cache folder) and
+the lock that lets one process build an entry while the others wait for it: ``track_cache``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import functools
 import hashlib
 import json
+import math
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 import torch
+from rich.markup import escape
 
 from s2camp_ns.colmap_log import colmap_log_to
 from s2camp_ns.core.alignment import MIN_CAMERAS_FOR_ALIGNMENT, rotation_angle, umeyama
 from s2camp_ns.core.track_fit import MIN_OBSERVATIONS
+from s2camp_ns.nerfstudio.build_progress import BuildProgress, database_count, duration_text
+from s2camp_ns.nerfstudio.track_cache import build_folder, entry_lock, remove_stale_builds, user_cache_folder
 
-RECIPE_VERSION = 2
-"""Part of the cache key: raise it when the recipe changes, so older caches are not read."""
+RECIPE_VERSION = 3
+"""Part of the cache key: raise it when the recipe changes, so older caches are not read. 3: the thresholds scaled
+to the image size and the given cameras' error (``Thresholds``), neighbours that face alike (``neighbour_pairs``)."""
 MAX_IMAGE_SIZE = 1600
 """Longest image side SIFT sees (px; larger images are downsampled for extraction, keypoints are in full-size
 pixels): phone photos of 4000 px hold 6x its pixels, keypoints the track prior does not need."""
 EXHAUSTIVE_LIMIT = 100
 """Up to this many images every pair is matched (4950 pairs); beyond it, each image with its ``NEIGHBOURS``."""
 NEIGHBOURS = 30
-"""Images matched with each image beyond ``EXHAUSTIVE_LIMIT``: its nearest given camera centres among the cameras
-whose optical axes are within 90 degrees of its own."""
+"""Images matched with each image beyond ``EXHAUSTIVE_LIMIT``: the nearest given cameras among those whose optical
+axes are within 90 degrees of its own, a camera facing theta away counted (2 - cos theta) times as far
+(``neighbour_pairs``). At most ``NEIGHBOURS`` x images pairs: 9000 for 300 images, against 44850 exhaustive."""
+PAIR_ROWS = 1024
+"""Images whose neighbours ``neighbour_pairs`` ranks at once: the distances it holds are this many rows of all the
+images (8 MB per 1000 images), not the full square (800 MB at 10000 images)."""
+KEYPOINT_ERROR_PX = 4.0
+"""Reprojection error (px) a matched keypoint may have at the size SIFT sees its image: the geometric verification's
+RANSAC bound and that of the triangulations with adjusted cameras. COLMAP's default for both, which its pipeline is
+tuned with. SIFT locates keypoints to a fraction of a pixel of the image it is given whatever its size, so the bound
+does not shrink for small images; an image larger than ``MAX_IMAGE_SIZE`` is downsampled by max(W, H) /
+``MAX_IMAGE_SIZE`` for extraction and its keypoints, in full-size pixels, are that much less precise, so the bound
+grows by that factor (``Thresholds``: 4.8 px at 1920 px, 10 px at 4000 px)."""
+GIVEN_ANGLE_ERROR_DEG = 2.0
+"""Angle (degrees) by which the given cameras' rays may be off, which the first triangulation (with the given
+cameras) admits as a reprojection error of this angle times the focal length (``Thresholds``). Phone poses are about
+a degree off (1.1 degrees is 25 px at 1920x1440, f 1300 px: six times COLMAP's 4 px, whose filter would drop the
+observations of the cameras the tracks are to correct); twice that, for a focal length a few percent off on top (2%
+turns a ray 40 degrees off the axis by 0.6 degrees). Also the angle COLMAP's triangulator admits between a track's
+rays (its default, 2 degrees)."""
 REFINEMENT_ROUNDS = 3
 """Rounds of bundle adjustment and re-triangulation. On the regime scene, from cameras 0.94 degrees and 4.6 px (2%)
 off, the rotation error after each round was 0.079, 0.072, 0.072 degrees and stayed there for three more; the first
@@ -74,7 +109,10 @@ of 56 images of 320x240, from noisy and from true cameras): rotation errors 0.28
 COLMAP_SEED = 0
 """COLMAP's random seed (RANSAC of the geometric verification)."""
 RESULT_FILE = "result.json"
-"""Written last into a cache folder: the summary, or why no tracks could be made."""
+"""Written last into a cache folder: the summary, or why no tracks could be made, and the build's wall seconds per
+kind of stage (``ImageTracks.stage_seconds``)."""
+STAGES_FILE = "stages.json"
+"""The build's wall seconds per kind of stage, written by ``_build`` and moved into ``RESULT_FILE``."""
 MIN_TRACKED_FRACTION = 0.5
 """Fraction of the images that must see at least ``MIN_OBSERVATIONS`` tracked points (the least the anchor fit uses,
 ``core.track_fit``) for the tracks to be used. Below it the bundle adjustment rests on a handful of points and moves
@@ -97,6 +135,9 @@ class ImageTracks:
     model: Path | None
     summary: str = ""
     reason: str | None = None
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    """Wall seconds of the build that made the cache entry, per kind of stage (``SIFT``, ``matching``,
+    ``triangulation``, ``adjustment``; ``build_progress``): the cost of making it, on the machine that built it."""
 
 
 def cache_key(given: pycolmap.Reconstruction, image_root: Path) -> str:
@@ -118,9 +159,15 @@ def cache_key(given: pycolmap.Reconstruction, image_root: Path) -> str:
     return hashlib.sha256(json.dumps(record).encode("utf8")).hexdigest()[:20]
 
 
-def image_tracks(given: pycolmap.Reconstruction, image_root: Path, cache: Path) -> ImageTracks:
+def image_tracks(
+    given: pycolmap.Reconstruction, image_root: Path, cache: Path, user_fallback: bool = False
+) -> ImageTracks:
     """Tracks of the images of ``given`` (names relative to ``image_root``, the given cameras and poses; no points),
-    from the cache folder ``cache`` or built there (module docstring)."""
+    from the cache folder ``cache`` or built there (module docstring, Cache). ``user_fallback`` (the data parser's
+    default cache, in the scene folder): the entry is also read from the user's cache folder, and built there when
+    ``cache`` cannot be written (``track_cache``); without it, an unwritable ``cache`` that lacks the entry raises
+    OSError naming ``image_tracks_cache``. Processes that ask for one entry at once build it once: one builds, the
+    others wait and read it."""
     missing = sorted(image.name for image in given.images.values() if not (image_root / image.name).is_file())
     if missing:
         raise FileNotFoundError(
@@ -130,29 +177,40 @@ def image_tracks(given: pycolmap.Reconstruction, image_root: Path, cache: Path) 
     if given.num_images() < MIN_CAMERAS_FOR_ALIGNMENT:
         reason = f"{given.num_images()} images: tracks need at least {MIN_CAMERAS_FOR_ALIGNMENT}"
         return ImageTracks(None, reason=reason)
-    final = cache / cache_key(given, image_root)
-    if (final / RESULT_FILE).is_file():
-        return _cached(final)
+    key = cache_key(given, image_root)
+    for folder in (cache, user_cache_folder()) if user_fallback else (cache,):
+        if (folder / key / RESULT_FILE).is_file():  # read even where it cannot be written (a shipped cache)
+            return _cached(folder / key)
+    final = build_folder(cache, user_fallback) / key
+    with entry_lock(final):
+        if (final / RESULT_FILE).is_file():  # built by another process while this one waited
+            return _cached(final)
+        remove_stale_builds(final)
+        return _store(given, image_root, final)
+
+
+def _store(given: pycolmap.Reconstruction, image_root: Path, final: Path) -> ImageTracks:
+    """Build the cache entry ``final`` in a temporary sibling folder renamed to ``final`` when finished (module
+    docstring, Cache) and return its ``ImageTracks``; the caller holds ``final``'s ``entry_lock``."""
+    work = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".building", dir=final.parent))
     try:
-        cache.mkdir(parents=True, exist_ok=True)
-        work = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".building", dir=cache))
-    except OSError as error:
-        raise OSError(
-            f"cannot write the image tracks' cache folder {cache} ({error}); choose a writable one with the data "
-            "parser's --image-tracks-cache (ns-train s2camp --data D s2camp-data --image-tracks-cache DIR)"
-        ) from error
-    try:
+        started = time.perf_counter()
         reconstruction, reason = _build(given, image_root, work)
         result = {"reason": reason}
+        stages = work / STAGES_FILE
+        if stages.is_file():
+            result["stage_seconds"] = json.loads(stages.read_text(encoding="utf8"))
+            stages.unlink()
         if reason is None:
-            result["summary"] = _summary(given, reconstruction)
+            result["summary"] = _summary(given, reconstruction, time.perf_counter() - started)
             reconstruction.write_binary(work)
         (work / RESULT_FILE).write_text(json.dumps(result), encoding="utf8")
         (work / "database.db").unlink(missing_ok=True)
         shutil.rmtree(work / "triangulated", ignore_errors=True)
+        os.chmod(work, 0o755)  # mkdtemp's 0o700 would hide a shared or shipped cache from other users
         try:
             os.rename(work, final)
-        except OSError:  # another process finished the same build first: keep its folder
+        except OSError:  # another process finished the same build first (no lock without fcntl): keep its folder
             if not (final / RESULT_FILE).is_file():
                 raise
             shutil.rmtree(work)
@@ -166,40 +224,40 @@ def _cached(folder: Path) -> ImageTracks:
     """The ``ImageTracks`` of a finished cache folder: its model, or why there is none (a failed build is cached too,
     so that every run does not repeat it)."""
     result = json.loads((folder / RESULT_FILE).read_text(encoding="utf8"))
+    stage_seconds = result.get("stage_seconds", {})
     if result["reason"] is not None:
-        return ImageTracks(None, reason=f"{result['reason']} (COLMAP's log: {folder / 'colmap.log'})")
-    return ImageTracks(folder, result["summary"])
+        reason = f"{result['reason']} (COLMAP's log: {folder / 'colmap.log'})"
+        return ImageTracks(None, reason=reason, stage_seconds=stage_seconds)
+    return ImageTracks(folder, result["summary"], stage_seconds=stage_seconds)
 
 
 def _build(given: pycolmap.Reconstruction, image_root: Path, work: Path) -> tuple[pycolmap.Reconstruction, str | None]:
     """The adjusted, aligned reconstruction (module docstring, steps 1-4) and why it cannot anchor the cameras (None
-    when it can)."""
-    database = work / "database.db"
-    log = work / "colmap.log"
+    when it can), each stage shown with its counts and time as it runs (``build_progress``), then the stages' times."""
     pycolmap.set_random_seed(COLMAP_SEED)
-    by_camera: dict[int, list[str]] = {}
-    for image in sorted(given.images.values(), key=lambda image: image.name):
-        by_camera.setdefault(image.camera_id, []).append(image.name)
-    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_IMAGE_SIZE)
-    with colmap_log_to(log):
-        for camera_id, names in sorted(by_camera.items()):
-            camera = given.cameras[camera_id]
-            reader = pycolmap.ImageReaderOptions(
-                camera_model=camera.model.name, camera_params=",".join(repr(float(v)) for v in camera.params)
-            )
-            pycolmap.extract_features(
-                database, image_root, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
-            )  # fmt: skip
-        if given.num_images() <= EXHAUSTIVE_LIMIT:
-            pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
-        else:
-            pairs = work / "pairs.txt"
-            pairs.write_text("".join(f"{a} {b}\n" for a, b in neighbour_pairs(given)), encoding="utf8")
-            pycolmap.match_image_pairs(
-                database, pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs),
-                device=pycolmap.Device.cpu,
-            )  # fmt: skip
+    device, notice = feature_device()
+    with BuildProgress("Image tracks built") as progress:
+        sizes = sorted({f"{camera.width}x{camera.height}" for camera in given.cameras.values()})
+        progress.note(
+            f"Making image tracks of {given.num_images()} images ({', '.join(sizes)}) for the track prior, SIFT and "
+            f"matching on the {device_name(device)}; built once, into {escape(str(work.parent))}"
+        )
+        if notice is not None:
+            progress.note(f"[yellow]{escape(notice)}")
+        built = _build_stages(given, image_root, work, device, progress)
+    (work / STAGES_FILE).write_text(json.dumps(progress.seconds_by_kind()), encoding="utf8")
+    return built
+
+
+def _build_stages(
+    given: pycolmap.Reconstruction, image_root: Path, work: Path, device: pycolmap.Device, progress: BuildProgress
+) -> tuple[pycolmap.Reconstruction, str | None]:
+    """``_build``'s steps: features, matches, the given cameras under the database's ids, triangulation and
+    adjustment, the similarity to the given cameras and the plausibility checks."""
+    database = work / "database.db"
+    thresholds = Thresholds.of(given)
+    _extract(given, image_root, database, device, progress)
+    _match(given, database, device, thresholds, progress)
     reconstruction = _given_with_database_ids(given, database)
     unread = sorted(
         {image.name for image in given.images.values()} - {image.name for image in reconstruction.images.values()}
@@ -209,22 +267,186 @@ def _build(given: pycolmap.Reconstruction, image_root: Path, work: Path) -> tupl
             reconstruction,
             f"COLMAP could not read {len(unread)} of {given.num_images()} images (first: '{unread[0]}')",
         )
-    adjustment = pycolmap.BundleAdjustmentOptions(refine_principal_point=False)
-    adjustment.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    adjustment.ceres.loss_function_scale = LOSS_SCALE_PX
-    with colmap_log_to(log):
-        reconstruction = pycolmap.triangulate_points(reconstruction, database, image_root, work / "triangulated")
-        for _ in range(REFINEMENT_ROUNDS):
-            if reconstruction.num_points3D() == 0:
-                break
-            pycolmap.bundle_adjustment(reconstruction, adjustment)
-            reconstruction = pycolmap.triangulate_points(reconstruction, database, image_root, work / "triangulated")
-        if reconstruction.num_points3D() > 0:
-            pycolmap.bundle_adjustment(reconstruction, adjustment)
+    reconstruction = _triangulate_and_adjust(reconstruction, database, image_root, thresholds, progress)
     if reconstruction.num_points3D() == 0:
         return reconstruction, "no point could be triangulated from the images' matched features"
     _align_to_given(reconstruction, given)
     return reconstruction, _implausible(given, reconstruction)
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """A build's reprojection bounds (px of the full-size images): ``keypoint_px`` for the geometric verification of
+    the matches and the triangulations with the adjusted cameras (``KEYPOINT_ERROR_PX``, grown by the extraction's
+    downsampling), ``given_px`` for the first triangulation, with the given cameras (``GIVEN_ANGLE_ERROR_DEG`` times
+    the focal length, at least ``keypoint_px``)."""
+
+    keypoint_px: float
+    given_px: float
+
+    @classmethod
+    def of(cls, given: pycolmap.Reconstruction) -> Thresholds:
+        """The bounds of ``given``'s images: from its cameras' largest image side and focal length (COLMAP takes one
+        bound per call, so the camera that needs the loosest sets it)."""
+        size = max(max(camera.width, camera.height) for camera in given.cameras.values())
+        focal = max(camera.mean_focal_length() for camera in given.cameras.values())
+        keypoint = KEYPOINT_ERROR_PX * max(1.0, size / MAX_IMAGE_SIZE)
+        return cls(keypoint, max(keypoint, math.radians(GIVEN_ANGLE_ERROR_DEG) * focal))
+
+
+CUDA_NOTICE = (
+    "A CUDA device is present but the installed pycolmap has no CUDA: SIFT features and matching run on the CPU "
+    "(pip install 's2camp-ns[gpu]': pycolmap-cuda12, docs/IMAGE-TRACKS.md)"
+)
+"""``feature_device``'s notice: the CPU build of pycolmap is the default dependency (it installs everywhere)."""
+
+
+def feature_device() -> tuple[pycolmap.Device, str | None]:
+    """The device of SIFT extraction and matching, and a notice for the user (None when there is nothing to say):
+    CUDA where the installed pycolmap has it and torch sees a CUDA device, else the CPU, with ``CUDA_NOTICE`` when a
+    device is there but pycolmap lacks CUDA. The cache key does not name the device: GPU SIFT (SiftGPU) finds
+    slightly different keypoints than the CPU's, so an entry holds the tracks of the machine that built it, and any
+    machine reads it."""
+    cuda = torch.cuda.is_available()
+    if cuda and pycolmap.has_cuda:
+        return pycolmap.Device.cuda, None
+    return pycolmap.Device.cpu, CUDA_NOTICE if cuda else None
+
+
+def device_name(device: pycolmap.Device) -> str:
+    """``GPU`` or ``CPU``, for the build's messages."""
+    return "GPU" if device == pycolmap.Device.cuda else "CPU"
+
+
+def _extract(
+    given: pycolmap.Reconstruction, image_root: Path, database: Path, device: pycolmap.Device, progress: BuildProgress
+) -> None:
+    """Step 1: SIFT features of ``given``'s images into ``database``, one COLMAP camera per given camera, each
+    image's count shown as COLMAP stores it."""
+    by_camera: dict[int, list[str]] = {}
+    for image in sorted(given.images.values(), key=lambda image: image.name):
+        by_camera.setdefault(image.camera_id, []).append(image.name)
+    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_IMAGE_SIZE)
+    count = functools.partial(database_count, database, "keypoints")
+    with progress.stage("SIFT features", "SIFT", given.num_images(), "images", count) as stage:
+        with colmap_log_to(database.parent / "colmap.log"):
+            for camera_id, names in sorted(by_camera.items()):
+                camera = given.cameras[camera_id]
+                reader = pycolmap.ImageReaderOptions(
+                    camera_model=camera.model.name, camera_params=",".join(repr(float(v)) for v in camera.params)
+                )
+                pycolmap.extract_features(
+                    database, image_root, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                    reader_options=reader, extraction_options=extraction, device=device,
+                )  # fmt: skip
+        with _open(database) as db:
+            stage.outcome = f"{db.num_keypoints()} keypoints"
+
+
+def _match(
+    given: pycolmap.Reconstruction,
+    database: Path,
+    device: pycolmap.Device,
+    thresholds: Thresholds,
+    progress: BuildProgress,
+) -> None:
+    """Step 2: matches between every pair of images (up to ``EXHAUSTIVE_LIMIT`` images) or the ``neighbour_pairs``,
+    geometrically verified with ``thresholds.keypoint_px``; each pair's count shown as COLMAP stores it."""
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.max_error = thresholds.keypoint_px
+    count = given.num_images()
+    exhaustive = count <= EXHAUSTIVE_LIMIT
+    pairs = [] if exhaustive else neighbour_pairs(given)
+    total = count * (count - 1) // 2 if exhaustive else len(pairs)
+    done = functools.partial(database_count, database, "two_view_geometries")
+    label = "matching, every pair" if exhaustive else f"matching, {NEIGHBOURS} neighbours"
+    with progress.stage(label, "matching", total, "pairs", done) as stage:
+        with colmap_log_to(database.parent / "colmap.log"):
+            if exhaustive:
+                pycolmap.match_exhaustive(database, verification_options=verification, device=device)
+            else:
+                listed = database.parent / "pairs.txt"
+                listed.write_text("".join(f"{a} {b}\n" for a, b in pairs), encoding="utf8")
+                pycolmap.match_image_pairs(
+                    database, pairing_options=pycolmap.ImportedPairingOptions(match_list_path=listed),
+                    verification_options=verification, device=device,
+                )  # fmt: skip
+        verified = database_count(database, "two_view_geometries", "rows > 0")
+        with _open(database) as db:
+            stage.outcome = (
+                f"{verified} verified ({thresholds.keypoint_px:.1f} px), {db.num_inlier_matches()} inlier matches"
+            )
+
+
+@contextlib.contextmanager
+def _open(database: Path) -> Iterator[pycolmap.Database]:
+    """The COLMAP database ``database``, closed when the block ends."""
+    db = pycolmap.Database.open(database)
+    try:
+        yield db
+    finally:
+        db.close()
+
+
+def _triangulate_and_adjust(
+    reconstruction: pycolmap.Reconstruction,
+    database: Path,
+    image_root: Path,
+    thresholds: Thresholds,
+    progress: BuildProgress,
+) -> pycolmap.Reconstruction:
+    """Step 3: points triangulated with the given cameras (``thresholds.given_px``), then ``REFINEMENT_ROUNDS``
+    rounds of bundle adjustment and triangulation with the adjusted cameras (``thresholds.keypoint_px``), and a last
+    bundle adjustment; stops early when no point is left."""
+    adjustment = pycolmap.BundleAdjustmentOptions(refine_principal_point=False)
+    adjustment.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    adjustment.ceres.loss_function_scale = LOSS_SCALE_PX
+    rounds = REFINEMENT_ROUNDS + 1
+    reconstruction = _triangulate(reconstruction, database, image_root, thresholds.given_px, f"1/{rounds}", progress)
+    for done in range(1, rounds + 1):
+        if reconstruction.num_points3D() == 0:
+            break
+        with progress.stage(f"bundle adjustment {done}/{rounds}", "adjustment") as stage:
+            with colmap_log_to(database.parent / "colmap.log"):
+                pycolmap.bundle_adjustment(reconstruction, adjustment)
+            stage.outcome = f"mean reprojection error {reconstruction.compute_mean_reprojection_error():.3g} px"
+        if done < rounds:
+            position = f"{done + 1}/{rounds}"
+            reconstruction = _triangulate(
+                reconstruction, database, image_root, thresholds.keypoint_px, position, progress
+            )
+    return reconstruction
+
+
+def _triangulate(
+    reconstruction: pycolmap.Reconstruction,
+    database: Path,
+    image_root: Path,
+    max_error_px: float,
+    position: str,
+    progress: BuildProgress,
+) -> pycolmap.Reconstruction:
+    """The points of ``reconstruction``'s cameras (the previous ones are dropped), keeping the observations within
+    ``max_error_px`` (COLMAP's merge, completion and filter bounds); the first (``position`` 1/...) admits rays
+    ``GIVEN_ANGLE_ERROR_DEG`` off."""
+    options = pycolmap.IncrementalPipelineOptions()
+    options.triangulation.merge_max_reproj_error = max_error_px
+    options.triangulation.complete_max_reproj_error = max_error_px
+    options.mapper.filter_max_reproj_error = max_error_px
+    if position.startswith("1/"):
+        options.triangulation.create_max_angle_error = GIVEN_ANGLE_ERROR_DEG
+        options.triangulation.continue_max_angle_error = GIVEN_ANGLE_ERROR_DEG
+    cameras = "given" if position.startswith("1/") else "adjusted"
+    description = f"triangulation {position}, {cameras} cameras ({max_error_px:.1f} px)"
+    with progress.stage(description, "triangulation") as stage:
+        with colmap_log_to(database.parent / "colmap.log"):
+            reconstruction = pycolmap.triangulate_points(
+                reconstruction, database, image_root, database.parent / "triangulated", options=options
+            )
+        stage.outcome = (
+            f"{reconstruction.num_points3D()} points, {reconstruction.compute_num_observations()} observations"
+        )
+    return reconstruction
 
 
 def _implausible(given: pycolmap.Reconstruction, reconstruction: pycolmap.Reconstruction) -> str | None:
@@ -274,21 +496,28 @@ def _given_with_database_ids(given: pycolmap.Reconstruction, database: Path) -> 
 
 
 def neighbour_pairs(given: pycolmap.Reconstruction) -> list[tuple[str, str]]:
-    """Image pairs to match beyond ``EXHAUSTIVE_LIMIT`` images: each image with its ``NEIGHBOURS`` nearest camera
-    centres among the cameras whose optical axes are within 90 degrees of its own (each pair once, sorted)."""
+    """Image pairs to match beyond ``EXHAUSTIVE_LIMIT`` images (each pair once, its names sorted; the list sorted):
+    each image with its ``NEIGHBOURS`` nearest cameras among those whose optical axes are within 90 degrees of its
+    own, a camera whose axis is theta away from its own counted (2 - cos theta) times as far. The factor prefers a
+    camera that faces alike and sees more of the same scene: it leaves the order of a ring around an object or of a
+    walk, where nearer cameras also face more alike, and ranks the cameras of a turn on the spot, whose centres are
+    all near, by how alike they face (a camera 90 degrees away counts twice as far). At most ``NEIGHBOURS`` pairs
+    per image, in time and memory linear in the images for each ``PAIR_ROWS`` of them."""
     names, centres, rotations = _poses(given)
     axes = rotations[:, 2, :]
-    distance = torch.cdist(centres, centres)
-    facing = axes @ axes.T > 0.0
-    distance[~facing] = float("inf")
-    distance.fill_diagonal_(float("inf"))
     count = min(NEIGHBOURS, len(names) - 1)
-    nearest = distance.topk(count, dim=1, largest=False)
     pairs = set()
-    for i in range(len(names)):
-        for value, j in zip(nearest.values[i].tolist(), nearest.indices[i].tolist(), strict=True):
-            if value != float("inf"):
-                pairs.add(tuple(sorted((names[i], names[j]))))
+    for start in range(0, len(names), PAIR_ROWS):
+        rows = torch.arange(start, min(start + PAIR_ROWS, len(names)))
+        cosine = axes[rows] @ axes.T
+        score = torch.cdist(centres[rows], centres, compute_mode="donot_use_mm_for_euclid_dist") * (2.0 - cosine)
+        score[cosine <= 0.0] = float("inf")
+        score[torch.arange(len(rows)), rows] = float("inf")
+        nearest = score.topk(count, dim=1, largest=False)
+        for i, values, indices in zip(rows.tolist(), nearest.values.tolist(), nearest.indices.tolist(), strict=True):
+            for value, j in zip(values, indices, strict=True):
+                if value != float("inf"):  # fewer than NEIGHBOURS cameras face within 90 degrees
+                    pairs.add(tuple(sorted((names[i], names[j]))))
     return sorted(pairs)
 
 
@@ -333,8 +562,11 @@ def _camera_changes(
     return turned, moved
 
 
-def _summary(given: pycolmap.Reconstruction, reconstruction: pycolmap.Reconstruction) -> str:
-    """Points, observations, reprojection error and how far the adjusted cameras lie from the given ones."""
+def _summary(
+    given: pycolmap.Reconstruction, reconstruction: pycolmap.Reconstruction, seconds: float | None = None
+) -> str:
+    """Points, observations, reprojection error, how far the adjusted cameras lie from the given ones and, with
+    ``seconds``, the build's wall time and device (a cache entry keeps the cost of making it)."""
     turned, moved = _camera_changes(given, reconstruction)
     observations = sum(point.track.length() for point in reconstruction.points3D.values())
     given_camera = {image.name: given.cameras[image.camera_id] for image in given.images.values()}
@@ -349,17 +581,22 @@ def _summary(given: pycolmap.Reconstruction, reconstruction: pycolmap.Reconstruc
         f"median {float(turned.median()):.3f} deg (max {float(turned.max()):.3f}), centre median "
         f"{float(moved.median()):.2%} of the cameras' spread (max {float(moved.max()):.2%})"
         + f", focal length {', '.join(focal)}"
+        + ("" if seconds is None else f"; built in {duration_text(seconds)} on the {device_name(feature_device()[0])}")
     )
 
 
 __all__ = [
     "EXHAUSTIVE_LIMIT",
+    "GIVEN_ANGLE_ERROR_DEG",
+    "KEYPOINT_ERROR_PX",
     "MAX_IMAGE_SIZE",
     "NEIGHBOURS",
     "RECIPE_VERSION",
     "REFINEMENT_ROUNDS",
     "ImageTracks",
+    "Thresholds",
     "cache_key",
+    "feature_device",
     "image_tracks",
     "neighbour_pairs",
 ]

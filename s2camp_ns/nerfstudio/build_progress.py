@@ -1,0 +1,200 @@
+"""What an image tracks build (``image_tracks._build``) is doing and how long it takes, on the terminal.
+
+A build of hundreds of large images runs for minutes to hours in pycolmap's C++ calls, which block and send their own
+log to a file (``colmap_log``). ``BuildProgress`` shows one line per stage (rich's progress display, on stderr like the
+data parser's notices): a spinner, a bar, the counts done and the elapsed time. Stages whose work COLMAP writes to its
+feature database as it goes (SIFT features per image, matches per pair) show real per-item progress: a thread reads
+the database's row counts while the C++ call runs (pycolmap releases the GIL; the database is in SQLite's WAL mode,
+in which a reader never blocks COLMAP's writes), so the build itself is unchanged. The other stages (triangulation,
+bundle adjustment) cannot be split without changing their result: their line shows the elapsed time while they run
+and their outcome (points, reprojection error) when done.
+
+The display writes to a duplicate of the stderr descriptor taken when the build starts, so it stays on the terminal
+while COLMAP's log has descriptors 1 and 2. Where stderr is not a terminal (a log file, a batch job) each stage is
+written as one line when it finishes, without the live bars.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+POLL_SECONDS = 0.5
+"""How often (s) a stage with items reads its count from the feature database: twice a second is smooth on a
+terminal, and a count query costs well under a millisecond next to SIFT's tenths of a second per image."""
+LOG_WIDTH = 120
+"""Line width where stderr is not a terminal (the data parser's notices use the same)."""
+
+
+@dataclass
+class Stage:
+    """A stage: ``kind`` names it in the build's breakdown (``BuildProgress.breakdown``), ``outcome`` is set by the
+    code that runs it and shown after its description when it ends (``BuildProgress.stage``), ``seconds`` is its wall
+    time, set when it ends."""
+
+    description: str
+    kind: str
+    outcome: str = ""
+    seconds: float = 0.0
+
+
+def database_count(database: Path, table: str, where: str = "") -> int | None:
+    """Rows of ``table`` in the COLMAP database ``database`` (those that satisfy the SQL condition ``where``, when
+    given), read-only, or None while it cannot be read (not yet created, or locked a moment by a checkpoint)."""
+    try:
+        connection = sqlite3.connect(f"file:{database}?mode=ro", uri=True, timeout=0.05)
+    except sqlite3.Error:
+        return None
+    try:
+        condition = f" WHERE {where}" if where else ""
+        return int(connection.execute(f"SELECT COUNT(*) FROM {table}{condition}").fetchone()[0])
+    except sqlite3.Error:
+        return None
+    finally:
+        connection.close()
+
+
+class BuildProgress:
+    """The stages of one build on the terminal (module docstring); a context manager, entered for the whole build,
+    that ends with the line ``<title>: <breakdown>`` below the stages when the build did not raise. ``console``: where
+    to show them (tests); default, a duplicate of the process's stderr descriptor."""
+
+    def __init__(self, title: str = "Built", console: Console | None = None) -> None:
+        self.title = title
+        self._own_stream = None
+        if console is None:
+            try:
+                self._own_stream = os.fdopen(os.dup(2), "w", buffering=1, encoding="utf8", errors="replace")
+            except OSError:  # no stderr descriptor (a daemon): nothing to show
+                console = Console(quiet=True)
+            else:
+                console = Console(file=self._own_stream, width=None if self._own_stream.isatty() else LOG_WIDTH)
+        self.console = console
+        self.live = console.is_terminal and not console.is_dumb_terminal
+        self._progress = Progress(
+            SpinnerColumn(finished_text="[green]✓"),
+            TextColumn("{task.description}"),
+            BarColumn(bar_width=24),
+            TextColumn("{task.fields[count]}"),
+            TimeElapsedColumn(),
+            console=console,
+            disable=not self.live,
+            redirect_stdout=False,
+            redirect_stderr=False,
+        )
+        self.stages: list[Stage] = []
+        self._start = time.perf_counter()
+
+    def __enter__(self) -> BuildProgress:
+        self._start = time.perf_counter()
+        self._progress.start()
+        return self
+
+    def __exit__(self, exc_type, *exc_info) -> None:
+        self._progress.stop()
+        if exc_type is None:
+            self.note(f"[dim]{escape(self.title)}: {escape(self.breakdown())}")
+        if self._own_stream is not None:
+            self._own_stream.close()
+
+    @property
+    def elapsed(self) -> float:
+        """Seconds since the build started."""
+        return time.perf_counter() - self._start
+
+    def note(self, text: str) -> None:
+        """A line above the stages (rich markup)."""
+        self.console.print(text, highlight=False)
+
+    @contextlib.contextmanager
+    def stage(
+        self,
+        description: str,
+        kind: str,
+        total: int | None = None,
+        unit: str = "",
+        count: Callable[[], int | None] | None = None,
+    ) -> Iterator[Stage]:
+        """Show the stage ``description`` (of ``kind``) while the block runs. With ``total`` (items, named ``unit``)
+        and ``count`` (the items done so far, or None while unknown; read every ``POLL_SECONDS`` on a thread), a bar
+        of the items done; without, a bar that pulses. When the block ends the stage shows all items done, its wall
+        time and the ``outcome`` the block set on the yielded ``Stage``."""
+        stage = Stage(description, kind)
+        label = f" {unit}" if unit else ""
+        shown = f"0/{total}{label}" if total is not None else ""
+        task = self._progress.add_task(escape(description), total=total, count=shown)
+        stop = threading.Event()
+        poller = None
+        if count is not None and total is not None and self.live:
+            poller = threading.Thread(target=self._poll, args=(task, total, label, count, stop), daemon=True)
+            poller.start()
+        start = time.perf_counter()
+        try:
+            yield stage
+        finally:
+            stop.set()
+            if poller is not None:
+                poller.join()
+            stage.seconds = time.perf_counter() - start
+            self.stages.append(stage)
+            done = f"{total}/{total}{label}" if total is not None else ""
+            text = f"{description}: {stage.outcome}" if stage.outcome else description
+            self._progress.update(task, description=escape(text), total=total or 1, completed=total or 1, count=done)
+            self._progress.stop_task(task)
+            if not self.live:
+                items = f"{done}, " if done else ""
+                self.note(f"  {escape(text)} ({items}{duration_text(stage.seconds)})")
+
+    def _poll(self, task, total: int, label: str, count: Callable[[], int | None], stop: threading.Event) -> None:
+        """Update ``task`` with ``count()`` until ``stop`` is set."""
+        while not stop.wait(POLL_SECONDS):
+            done = count()
+            if done is not None:
+                done = min(done, total)
+                self._progress.update(task, completed=done, count=f"{done}/{total}{label}")
+
+    def breakdown(self) -> str:
+        """The wall time of each kind of stage (summed over its stages, their number in brackets when more than one)
+        and the total since the build started, on one line: ``SIFT 12 s, matching 40 s, triangulation 3.1 s (4),
+        ...``."""
+        counts: dict[str, int] = {}
+        for stage in self.stages:
+            counts[stage.kind] = counts.get(stage.kind, 0) + 1
+        parts = [
+            f"{kind} {duration_text(seconds)}" + (f" ({counts[kind]})" if counts[kind] > 1 else "")
+            for kind, seconds in self.seconds_by_kind().items()
+        ]
+        return ", ".join([*parts, f"total {duration_text(self.elapsed)}"])
+
+    def seconds_by_kind(self) -> dict[str, float]:
+        """Wall seconds of each kind of stage, summed over its stages, in the order the kinds first ran."""
+        seconds: dict[str, float] = {}
+        for stage in self.stages:
+            seconds[stage.kind] = seconds.get(stage.kind, 0.0) + stage.seconds
+        return seconds
+
+
+def duration_text(seconds: float) -> str:
+    """``0.4 s``, ``12 s``, ``3 min 05 s``, ``1 h 02 min``."""
+    if seconds < 10:
+        return f"{seconds:.1f} s"
+    if seconds < 60:
+        return f"{seconds:.0f} s"
+    minutes, rest = divmod(round(seconds), 60)
+    if minutes < 60:
+        return f"{minutes} min {rest:02d} s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours} h {minutes:02d} min"
+
+
+__all__ = ["POLL_SECONDS", "BuildProgress", "Stage", "database_count", "duration_text"]

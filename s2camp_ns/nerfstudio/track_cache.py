@@ -1,0 +1,181 @@
+"""Where the image tracks' cache lives, and one build per cache entry among processes (``image_tracks``).
+
+Folder. The data parser's default cache is ``s2camp_image_tracks`` in the scene folder. A scene folder that cannot be
+written (a read-only mount, a shared drive) still has its cache read when it ships one; a build then goes to the
+user's cache folder, ``$XDG_CACHE_HOME/s2camp-ns/image_tracks`` (``~/.cache/s2camp-ns/image_tracks`` when
+``XDG_CACHE_HOME`` is unset or relative). The entry's name hashes the images and cameras (``cache_key``), so the
+scenes that share the user's folder do not collide. A folder counts as writable when a file can be created in it
+(``write_error``): permission bits do not tell, root ignores them and a read-only mount keeps them.
+
+Lock. A build holds an exclusive ``flock`` on ``.<key>.lock`` beside its entry ``<key>`` (``entry_lock``): the data
+parser of every rank of a multi-device run, and two runs of one scene, ask for the same entry at once; one builds, the
+others wait (with one notice) and then read its entry. The kernel releases the lock of a process that dies, so a
+waiter is never stuck behind a dead builder: it finds no finished entry and builds itself. The holder removes the lock
+file before it lets go, so a finished cache holds its entries only; a waiter whose lock file was removed locks the new
+one. Without ``fcntl`` (Windows) there is no lock: processes that build at once each build, and the entry of the
+first to finish is kept.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import socket
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from rich.console import Console
+from rich.markup import escape
+
+try:
+    import fcntl
+except ImportError:  # Windows: no inter-process lock (module docstring, Lock)
+    fcntl = None
+
+USER_CACHE_SUBFOLDER = Path("s2camp-ns") / "image_tracks"
+"""The image tracks' folder in the user's cache folder (``XDG_CACHE_HOME``, else ``~/.cache``)."""
+LOG = Console(stderr=True, width=120)
+"""Notes of the cache: where a build goes when the scene folder cannot be written, and that a process waits for
+another's build (on stderr, as the data parser's)."""
+
+
+def user_cache_folder() -> Path:
+    """``$XDG_CACHE_HOME/s2camp-ns/image_tracks``, or ``~/.cache/s2camp-ns/image_tracks`` when ``XDG_CACHE_HOME`` is
+    unset, empty or relative (the XDG base directory specification ignores relative paths)."""
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    root = Path(base) if base and os.path.isabs(base) else Path.home() / ".cache"
+    return root / USER_CACHE_SUBFOLDER
+
+
+def write_error(folder: Path) -> OSError | None:
+    """None when a file can be created in ``folder`` (created, with its parents, when missing; the probe file is
+    removed), else the error that prevented it. Creating a file is the test: ``os.access`` says yes to root, and on
+    some mounts, where writing then fails."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        handle, probe = tempfile.mkstemp(prefix=".write-probe.", dir=folder)
+        os.close(handle)
+        os.unlink(probe)
+    except OSError as error:
+        return error
+    return None
+
+
+def build_folder(cache: Path, user_fallback: bool) -> Path:
+    """The folder in which to build a cache entry: ``cache`` when it can be written, else, with ``user_fallback``, the
+    user's cache folder (``user_cache_folder``, with a notice naming both). Raises OSError, naming the
+    ``image_tracks_cache`` option, the folder and the error, when neither can be written."""
+    error = write_error(cache)
+    if error is None:
+        return cache
+    option = "choose a writable folder with the data parser's --image-tracks-cache"
+    example = "(ns-train s2camp --data D s2camp-data --image-tracks-cache DIR)"
+    if not user_fallback:
+        raise OSError(
+            f"cannot write the image tracks' cache folder {cache} (image_tracks_cache; {error}): {option} {example}"
+        ) from error
+    user = user_cache_folder()
+    user_error = write_error(user)
+    if user_error is not None:
+        raise OSError(
+            f"cannot write the image tracks' cache folder {cache} in the scene ({error}) nor the user's cache folder "
+            f"{user} ({user_error}): {option} {example}, or set XDG_CACHE_HOME to a writable folder"
+        ) from user_error
+    why = escape(error.strerror or str(error))
+    LOG.print(
+        f"[dim]Image tracks: the scene's cache folder {escape(str(cache))} cannot be written ({why}); building them "
+        f"in the user's cache folder {escape(str(user))}",
+        soft_wrap=True,
+    )
+    return user
+
+
+@contextlib.contextmanager
+def entry_lock(entry: Path) -> Iterator[None]:
+    """Hold the exclusive inter-process lock of the cache entry ``entry`` (the file ``.<name>.lock`` beside it, in a
+    folder that can be written) for the body, waiting, with one notice, while another process holds it (module
+    docstring, Lock). The body must check whether ``entry`` was finished while this process waited. No lock without
+    ``fcntl``."""
+    if fcntl is None:
+        yield
+        return
+    path = entry.parent / f".{entry.name}.lock"
+    noticed = False
+    while True:
+        handle = _open_lock_file(path)
+        try:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                if not noticed:
+                    _notice_wait(handle, entry)
+                    noticed = True
+                fcntl.flock(handle, fcntl.LOCK_EX)
+            if _is_file_at(handle, path):
+                break
+        except BaseException:
+            os.close(handle)
+            raise
+        os.close(handle)  # the holder removed this lock file when it was done: lock the one now at `path`
+    try:
+        with contextlib.suppress(OSError):  # who holds it, for the waiters' notice (not where it is read-only)
+            os.ftruncate(handle, 0)
+            os.write(handle, f"{os.getpid()} {socket.gethostname()}\n".encode())
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        os.close(handle)
+
+
+def remove_stale_builds(entry: Path) -> None:
+    """Remove the temporary build folders (``.<name>.*.building`` beside ``entry``) of builders that died; only the
+    holder of ``entry_lock`` may call it, as only the holder builds. Nothing without ``fcntl`` (no lock)."""
+    if fcntl is None:
+        return
+    for stale in entry.parent.glob(f".{entry.name}.*.building"):
+        shutil.rmtree(stale, ignore_errors=True)
+
+
+def _open_lock_file(path: Path) -> int:
+    """A descriptor of the lock file ``path``, created when missing; read-only when another user's lock file cannot be
+    opened for writing (``flock`` locks either)."""
+    try:
+        return os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except PermissionError:
+        return os.open(path, os.O_RDONLY)
+
+
+def _is_file_at(handle: int, path: Path) -> bool:
+    """Whether the open file ``handle`` is still the file at ``path`` (not removed, nor replaced)."""
+    try:
+        here = os.stat(path)
+    except FileNotFoundError:
+        return False
+    mine = os.fstat(handle)
+    return (here.st_dev, here.st_ino) == (mine.st_dev, mine.st_ino)
+
+
+def _notice_wait(handle: int, entry: Path) -> None:
+    """One notice that this process waits for the build of ``entry`` by the process named in the lock file."""
+    holder: list[str] = []
+    with contextlib.suppress(OSError):
+        holder = os.pread(handle, 200, 0).decode(errors="replace").split()
+    holder = holder if len(holder) == 2 else ["?", "?"]
+    LOG.print(
+        f"[dim]Image tracks: waiting for process {escape(holder[0])} on {escape(holder[1])}, which builds them in "
+        f"{escape(str(entry))} (another rank, or another run of these images), to read them",
+        soft_wrap=True,
+    )
+
+
+__all__ = [
+    "USER_CACHE_SUBFOLDER",
+    "build_folder",
+    "entry_lock",
+    "remove_stale_builds",
+    "user_cache_folder",
+    "write_error",
+]
