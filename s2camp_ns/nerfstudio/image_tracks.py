@@ -409,13 +409,21 @@ def _triangulate_and_adjust(
         with progress.stage(f"bundle adjustment {done}/{rounds}", "adjustment") as stage:
             with colmap_log_to(database.parent / "colmap.log"):
                 pycolmap.bundle_adjustment(reconstruction, adjustment)
-            stage.outcome = f"mean reprojection error {reconstruction.compute_mean_reprojection_error():.3g} px"
+            stage.outcome = f"points' reprojection error median {_median_point_error(reconstruction):.3g} px"
         if done < rounds:
             position = f"{done + 1}/{rounds}"
             reconstruction = _triangulate(
                 reconstruction, database, image_root, thresholds.keypoint_px, position, progress
             )
     return reconstruction
+
+
+def _median_point_error(reconstruction: pycolmap.Reconstruction) -> float:
+    """The median over the points of each point's mean reprojection error (px): what an adjustment left. Not the mean
+    over the observations, which a single point the adjustment sent towards infinity (a ray pair of almost no
+    parallax; the next triangulation drops it) makes astronomically large."""
+    reconstruction.update_point_3d_errors()
+    return float(np.median([point.error for point in reconstruction.points3D.values()]))
 
 
 def _triangulate(
