@@ -486,6 +486,34 @@ def test_database_count_reads_rows_or_says_it_cannot(tmp_path: Path):
     assert [duration_text(s) for s in (0.42, 12.4, 185.0, 3720.0)] == ["0.4 s", "12 s", "3 min 05 s", "1 h 02 min"]
 
 
+def test_the_database_counter_reads_in_another_process_while_this_one_writes(tmp_path: Path):
+    """A live stage's count comes from a child process (two SQLite libraries in one process break each other's locks:
+    a bus error in COLMAP), follows the rows as they are committed, and the child is gone after the block."""
+    import sqlite3
+
+    from s2camp_ns.nerfstudio.build_progress import DatabaseCounter
+
+    database = tmp_path / "database.db"
+    connection = sqlite3.connect(database)
+    connection.execute("PRAGMA journal_mode=WAL")  # as COLMAP's database
+    connection.execute("CREATE TABLE keypoints (image_id INTEGER)")
+    connection.commit()
+    with DatabaseCounter(database, "keypoints") as count:
+        child = count._child
+        assert child.pid != os.getpid()
+        for rows in (1, 2, 3):
+            connection.execute("INSERT INTO keypoints VALUES (?)", (rows,))
+            connection.commit()
+            deadline = time.monotonic() + 10.0
+            while count() != rows and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert count() == rows
+    assert child.poll() is not None  # stopped
+    with DatabaseCounter(database, "keypoints", enabled=False) as idle:
+        assert idle() is None and idle._child is None  # no live display: nothing read
+    connection.close()
+
+
 def _scene(folder: Path, **config) -> Path:
     from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 

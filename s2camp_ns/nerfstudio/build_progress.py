@@ -3,9 +3,13 @@
 A build of hundreds of large images runs for minutes to hours in pycolmap's C++ calls, which block and send their own
 log to a file (``colmap_log``). ``BuildProgress`` shows one line per stage (rich's progress display, on stderr like the
 data parser's notices): a spinner, a bar, the counts done and the elapsed time. Stages whose work COLMAP writes to its
-feature database as it goes (SIFT features per image, matches per pair) show real per-item progress: a thread reads
-the database's row counts while the C++ call runs (pycolmap releases the GIL; the database is in SQLite's WAL mode,
-in which a reader never blocks COLMAP's writes), so the build itself is unchanged. The other stages (triangulation,
+feature database as it goes (SIFT features per image, matches per pair) show real per-item progress: while the C++
+call runs, a child process reads the database's row counts (``DatabaseCounter``; the database is in SQLite's WAL
+mode, in which a reader never blocks COLMAP's writes), so the build itself is unchanged. The reader must be another
+process: pycolmap links its own SQLite, and two SQLite libraries in one process break each other's POSIX locks (a
+process's locks on a file go when any of its descriptors on it closes), so a reader in this process that closed its
+connection took itself for the last one, truncated the write-ahead index that COLMAP had mapped, and the build died of
+a bus error. The other stages (triangulation,
 bundle adjustment) cannot be split without changing their result: their line shows the elapsed time while they run
 and their outcome (points, reprojection error) when done.
 
@@ -19,6 +23,8 @@ from __future__ import annotations
 import contextlib
 import os
 import sqlite3
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -50,7 +56,8 @@ class Stage:
 
 def database_count(database: Path, table: str, where: str = "") -> int | None:
     """Rows of ``table`` in the COLMAP database ``database`` (those that satisfy the SQL condition ``where``, when
-    given), read-only, or None while it cannot be read (not yet created, or locked a moment by a checkpoint)."""
+    given), read-only, or None while it cannot be read (not yet created, or locked a moment by a checkpoint). Only
+    while no pycolmap call has the database open (module docstring; during one: ``DatabaseCounter``)."""
     try:
         connection = sqlite3.connect(f"file:{database}?mode=ro", uri=True, timeout=0.05)
     except sqlite3.Error:
@@ -62,6 +69,61 @@ def database_count(database: Path, table: str, where: str = "") -> int | None:
         return None
     finally:
         connection.close()
+
+
+_READER = """
+import sqlite3, sys, time
+path, query, interval = sys.argv[1], sys.argv[2], float(sys.argv[3])
+while True:
+    try:
+        connection = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=0.05)
+        try:
+            print(int(connection.execute(query).fetchone()[0]), flush=True)
+        finally:
+            connection.close()
+    except sqlite3.Error:
+        pass
+    time.sleep(interval)
+"""
+"""The child process of ``DatabaseCounter``: prints the query's count every ``interval`` seconds until killed."""
+
+
+class DatabaseCounter:
+    """The rows of ``table`` in the COLMAP database ``database`` while COLMAP writes it, read by a child process
+    (module docstring: never by this one) every ``POLL_SECONDS``; a context manager that starts the reader on entry
+    (when ``enabled``: a live display) and stops it on exit. Calling it gives the latest count, or None while none
+    was read."""
+
+    def __init__(self, database: Path, table: str, enabled: bool = True) -> None:
+        self.database, self.table, self.enabled = database, table, enabled
+        self._latest: int | None = None
+        self._child: subprocess.Popen | None = None
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> DatabaseCounter:
+        if self.enabled:
+            query = f"SELECT COUNT(*) FROM {self.table}"
+            self._child = subprocess.Popen(
+                [sys.executable, "-c", _READER, str(self.database), query, str(POLL_SECONDS)],
+                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+            )  # fmt: skip
+            self._thread = threading.Thread(target=self._read, daemon=True)
+            self._thread.start()
+        return self
+
+    def _read(self) -> None:
+        for line in self._child.stdout:
+            self._latest = int(line)
+
+    def __call__(self) -> int | None:
+        return self._latest
+
+    def __exit__(self, *exc_info) -> None:
+        if self._child is not None:
+            self._child.kill()
+            self._child.wait()
+            self._thread.join()
+            self._child.stdout.close()
 
 
 class BuildProgress:
@@ -197,4 +259,4 @@ def duration_text(seconds: float) -> str:
     return f"{hours} h {minutes:02d} min"
 
 
-__all__ = ["POLL_SECONDS", "BuildProgress", "Stage", "database_count", "duration_text"]
+__all__ = ["POLL_SECONDS", "BuildProgress", "DatabaseCounter", "Stage", "database_count", "duration_text"]

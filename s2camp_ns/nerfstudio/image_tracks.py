@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import functools
 import hashlib
 import json
 import math
@@ -64,7 +63,7 @@ from rich.markup import escape
 from s2camp_ns.colmap_log import colmap_log_to
 from s2camp_ns.core.alignment import MIN_CAMERAS_FOR_ALIGNMENT, rotation_angle, umeyama
 from s2camp_ns.core.track_fit import MIN_OBSERVATIONS
-from s2camp_ns.nerfstudio.build_progress import BuildProgress, database_count, duration_text
+from s2camp_ns.nerfstudio.build_progress import BuildProgress, DatabaseCounter, database_count, duration_text
 from s2camp_ns.nerfstudio.track_cache import build_folder, entry_lock, remove_stale_builds, user_cache_folder
 
 RECIPE_VERSION = 3
@@ -327,8 +326,8 @@ def _extract(
     for image in sorted(given.images.values(), key=lambda image: image.name):
         by_camera.setdefault(image.camera_id, []).append(image.name)
     extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_IMAGE_SIZE)
-    count = functools.partial(database_count, database, "keypoints")
-    with progress.stage("SIFT features", "SIFT", given.num_images(), "images", count) as stage:
+    count = DatabaseCounter(database, "keypoints", enabled=progress.live)
+    with count, progress.stage("SIFT features", "SIFT", given.num_images(), "images", count) as stage:
         with colmap_log_to(database.parent / "colmap.log"):
             for camera_id, names in sorted(by_camera.items()):
                 camera = given.cameras[camera_id]
@@ -358,9 +357,9 @@ def _match(
     exhaustive = count <= EXHAUSTIVE_LIMIT
     pairs = [] if exhaustive else neighbour_pairs(given)
     total = count * (count - 1) // 2 if exhaustive else len(pairs)
-    done = functools.partial(database_count, database, "two_view_geometries")
+    done = DatabaseCounter(database, "two_view_geometries", enabled=progress.live)
     label = "matching, every pair" if exhaustive else f"matching, {NEIGHBOURS} neighbours"
-    with progress.stage(label, "matching", total, "pairs", done) as stage:
+    with done, progress.stage(label, "matching", total, "pairs", done) as stage:
         with colmap_log_to(database.parent / "colmap.log"):
             if exhaustive:
                 pycolmap.match_exhaustive(database, verification_options=verification, device=device)
