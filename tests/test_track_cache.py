@@ -94,10 +94,13 @@ def given(tiny_scene: Path) -> pycolmap.Reconstruction:
 
 @pytest.fixture
 def scene(tiny_scene: Path, tmp_path: Path) -> Iterator[Path]:
-    """A scene folder of its own (links to the tiny scene's files), writable again after the test."""
+    """A scene folder of its own (links to the tiny scene's files, not to the image tracks' cache that other tests of
+    the session may have built in the shared tiny scene), writable again after the test."""
     folder = tmp_path / "scene"
     folder.mkdir()
     for entry in tiny_scene.iterdir():
+        if entry.name == "s2camp_image_tracks":
+            continue
         (folder / entry.name).symlink_to(entry, target_is_directory=entry.is_dir())
     yield folder
     folder.chmod(0o755)
