@@ -181,8 +181,36 @@ def test_anchor_refits_intrinsics_the_tracks_contradict() -> None:
     per_image[3, 6] = 15.0
     anchor = fit_anchor(tracks, c2w, intrinsics.with_delta(per_image), POSE_INTRINSICS_DISTORTION)
     assert anchor.intrinsics_held.tolist() == [True, True, True, False, True, True, True, True]
-    assert anchor.deltas[3, 6].item() == pytest.approx(-15.0, abs=0.5)
+    # One image's focal length trades with its free k1, k2 on this small image: its fit scatters by about a pixel
+    # with the noise (plain least squares and the robust fit alike), far below the 15 px it corrects.
+    assert anchor.deltas[3, 6].item() == pytest.approx(-15.0, abs=1.0)
     assert bool((anchor.deltas[torch.arange(8) != 3, 6:] == 0).all())
+
+
+def _with_wrong_matches(tracks: Tracks, share: float = 0.02) -> Tracks:
+    """``tracks`` with a share of the observations moved 50-200 px in random directions (wrong matches)."""
+    generator = torch.Generator().manual_seed(7)
+    bad = torch.randperm(tracks.image.shape[0], generator=generator)[: int(share * tracks.image.shape[0])]
+    angle = 2 * math.pi * torch.rand(bad.shape[0], generator=generator, dtype=torch.float64)
+    size = 50.0 + 150.0 * torch.rand(bad.shape[0], generator=generator, dtype=torch.float64)
+    pixels = tracks.pixels.clone()
+    pixels[bad] += size[:, None] * torch.stack([angle.cos(), angle.sin()], dim=-1)
+    return Tracks(tracks.points, tracks.image, tracks.point, pixels)
+
+
+def test_anchor_decides_on_the_robust_cost_with_wrong_matches_among_the_tracks() -> None:
+    # 2% of the matches 50-200 px off: the plain cost's noise variance grows a hundredfold and a plain test would keep
+    # a focal length 6 px off; the robust one still keeps the SfM intrinsics and refits the wrong ones.
+    tracks, c2w, intrinsics = _sfm_like(noise_px=0.5)
+    tracks, shared = _with_wrong_matches(tracks), torch.zeros(8, dtype=torch.long)
+    anchor = fit_anchor(tracks, c2w, intrinsics, POSE_INTRINSICS_DISTORTION, shared)
+    assert anchor.intrinsics_held.tolist() == [True]
+    change = torch.zeros(8, 16, dtype=torch.float64)
+    change[:, 6] = 6.0
+    anchor = fit_anchor(tracks, c2w, intrinsics.with_delta(change), POSE_INTRINSICS_DISTORTION, shared)
+    assert anchor.intrinsics_held.tolist() == [False]
+    assert anchor.deltas[:, 6].tolist() == pytest.approx([-6.0] * 8, abs=0.5)
+    assert float(anchor.rms_px.min()) > 5.0  # the RMS stays plain: the wrong matches count with their square
 
 
 def test_observations_count_each_images_valid_tracks() -> None:

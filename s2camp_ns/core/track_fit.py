@@ -1,4 +1,5 @@
-"""The cameras that agree best with a scene's SfM tracks: a camera-only bundle adjustment against fixed 3D points.
+"""The cameras that agree best with a scene's SfM tracks: a robust camera-only bundle adjustment against fixed 3D
+points.
 
 The track prior (``S2CampCameraOptimizer.apply_track_prior``) anchors each camera where its tracks put it, with the
 tracks' own noise as its scale. For cameras straight out of SfM that is where they already are (SfM's bundle
@@ -10,11 +11,26 @@ it. This module finds the anchor.
 Unknowns are the camera optimizer's own deltas (``core.camera.PARAMETER_NAMES``, paper sec. 4): the twist xi of each
 image's pose, c2w' = c2w exp(xi) in its OpenCV camera frame, and the additive intrinsics deltas of each physical
 camera (``camera_of_image``; per-image intrinsics are one camera per image). Only the ``free`` columns move. The
-points stay fixed, so there is no gauge: the problem is a least-squares fit of reprojection residuals (paper eq. 2),
-solved by Levenberg-Marquardt in float64. The normal equations are block-sparse (a 6x6 block per image, an m x m
-block per physical camera and their coupling); eliminating the poses (Schur complement) leaves one m x m system per
-physical camera, so the cost is linear in the number of images. Jacobians are exact (reverse-mode autodiff of the
-projection, two backward passes: each observation depends on its own camera only).
+points stay fixed, so there is no gauge. The cost is robust: each valid observation (paper eq. 2) costs
+rho(s) = c^2 log(1 + s / c^2) of its squared reprojection distance s (pixels^2), Ceres' Cauchy loss with the scale
+c = ``LOSS_SCALE_PX`` of the image tracks' bundle adjustment, so that a wrong match hundreds of pixels off pulls the
+cameras about as hard as an observation a few c off, not with its square. Levenberg-Marquardt in float64 minimizes it
+by iteratively reweighted least squares: each step solves the normal equations with every observation weighted by
+rho'(s) = 1 / (1 + s / c^2) at the current residuals (the robust cost's exact gradient, Gauss-Newton's curvature),
+and is taken only where it lowers the robust cost. Exact tracks have zero residuals, weight one: the truth is the
+fit. The normal equations are block-sparse (a 6x6 block per image, an m x m block per physical camera and their
+coupling); eliminating the poses (Schur complement) leaves one m x m system per physical camera, so the cost is
+linear in the number of images. Jacobians are exact (reverse-mode autodiff of the projection, two backward passes:
+each observation depends on its own camera only).
+
+Why our own solver and not pycolmap's bundle adjustment, which minimizes the same robust cost: the unknowns are the
+camera optimizer's deltas in its 16-column layout (a right-multiplied twist in the OpenCV camera frame, one focal
+column added to fx and fy, principal point, skew, k1-k4, p1, p2) with its ``free`` column mask and per-physical-camera
+intrinsics, which COLMAP's camera models and parametrization do not express (no skew, no polynomial k4, fx and fy of a
+PINHOLE camera refined apart, distortion freed all or none), so the anchor lands in the optimizer's coordinates with
+no conversion; and ``fit_anchor``'s test needs the costs of two nested fits on one objective. Where the two do the
+same job (all points fixed; poses alone, or poses and the one focal length of a SIMPLE_* camera) they agree to the
+tolerances tests/test_track_fit_pycolmap.py states.
 
 The residuals are in pixels; a camera's translation deltas are in the units of the world the tracks live in. A
 similarity of points and cameras (nerfstudio's normalization) leaves the rotation and intrinsics deltas unchanged and
@@ -40,6 +56,12 @@ MIN_OBSERVATIONS = 10
 """Valid observations an image needs to be fitted: with fewer its six pose parameters are barely determined (three
 points fit any pose exactly), so the RMS at the fit would say nothing of the noise and a prior of that scale would pin
 the camera to an arbitrary pose. Such images keep their given camera and get no RMS (NaN: no prior)."""
+LOSS_SCALE_PX = 1.0
+"""Scale c (px) of the fit's Cauchy loss (module docstring): residuals well within c count as in least squares, those
+far beyond it about logarithmically. Equal to the image tracks' bundle adjustment's
+(``s2camp_ns.nerfstudio.image_tracks.LOSS_SCALE_PX``, a test holds them equal), so the anchor weighs observations as
+the adjustment that made those tracks did; the core does not import it (no nerfstudio in the core)."""
+_MAX_ITERATIONS = 50
 
 
 @dataclass(frozen=True)
@@ -47,13 +69,15 @@ class TrackFit:
     """Result of ``fit_cameras_to_tracks``."""
 
     deltas: Float[Tensor, "n 16"]
-    """Deltas (``PARAMETER_NAMES`` columns, float64) that move each given camera to its best agreement with the tracks;
-    zero in the columns that were not free and in the pose of images with too few observations."""
+    """Deltas (``PARAMETER_NAMES`` columns, float64) that move each given camera to the minimum of the robust cost
+    (module docstring); zero in the columns that were not free and in the pose of images with too few observations."""
     rms_px: Float[Tensor, " n"]
-    """Reprojection RMS per image at the fit (pixels; NaN with fewer than ``MIN_OBSERVATIONS`` valid observations):
-    the tracks' own noise."""
+    """Plain (not robust) reprojection RMS per image at the fit over all its valid observations, outliers included
+    (pixels; NaN with fewer than ``MIN_OBSERVATIONS`` valid observations): the tracks' own noise. Only the fit is
+    robust: an outlier does not move the cameras much, but it does count here with its full square."""
     rms_given_px: Float[Tensor, " n"]
-    """Reprojection RMS per image of the given cameras, for comparison."""
+    """Plain reprojection RMS per image of the given cameras over all their valid observations (as
+    ``core.tracks.track_reprojection_rms``), for comparison."""
     iterations: int
     """Levenberg-Marquardt iterations taken."""
     observations: Float[Tensor, " n"]
@@ -61,6 +85,18 @@ class TrackFit:
     intrinsics_held: Bool[Tensor, " c"] | None = None
     """``fit_anchor`` only: per physical camera, True where the tracks do not call for other intrinsics than the given
     ones (``INTRINSICS_REFIT_LEVEL``), so the fit kept them and moved only the poses."""
+
+
+def _cauchy_loss(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
+    """rho(s) = c^2 log(1 + s / c^2) of squared pixel distances s, c = ``LOSS_SCALE_PX`` (Ceres' ``CauchyLoss``)."""
+    c2 = LOSS_SCALE_PX**2
+    return c2 * torch.log1p(squared / c2)
+
+
+def _cauchy_weight(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
+    """rho'(s) = 1 / (1 + s / c^2): an observation's weight in the reweighted normal equations. For this loss
+    rho'(s) + s rho''(s) = rho'(s)^2 (``fit_anchor``'s scale uses it)."""
+    return 1.0 / (1.0 + squared / LOSS_SCALE_PX**2)
 
 
 def _free_mask(free: Bool[Tensor, " 16"] | tuple[int, ...]) -> Bool[Tensor, " 16"]:
@@ -89,87 +125,117 @@ def _residuals(
     return projected[:, 0] - pixels, margin[:, 0]
 
 
-def fit_cameras_to_tracks(
+@dataclass(frozen=True)
+class _Problem:
+    """The fixed data of a fit, one row per observation (float64, CPU), and the free columns."""
+
+    image: Int[Tensor, " o"]
+    group: Int[Tensor, " o"]
+    """Physical camera of each observation."""
+    groups: Int[Tensor, " n"]
+    """Physical camera of each image."""
+    num_groups: int
+    points_cam: Float[Tensor, "o 1 3"]
+    """Each observed point in its given camera's frame, R^T (x - c)."""
+    intrinsics: Intrinsics
+    pixels: Float[Tensor, "o 2"]
+    pose_columns: list[int]
+    intrinsics_columns: list[int]
+
+    def deltas(self, pose: Float[Tensor, "n p"], intr: Float[Tensor, "c m"]) -> Float[Tensor, "o 16"]:
+        deltas = torch.zeros(self.image.shape[0], NUM_CAMERA_PARAMS, dtype=torch.float64)
+        deltas[:, self.pose_columns] = pose[self.image]
+        deltas[:, self.intrinsics_columns] = intr[self.group]
+        return deltas
+
+    def residuals(
+        self, pose: Float[Tensor, "n p"], intr: Float[Tensor, "c m"]
+    ) -> tuple[Float[Tensor, "o 2"], Float[Tensor, " o"]]:
+        """Residuals (px) and validity (1: in front of the camera / inside a fisheye's range, 0: not)."""
+        residual, margin = _residuals(self.deltas(pose, intr), self.points_cam, self.intrinsics, self.pixels)
+        return residual, (margin > 0).to(torch.float64)
+
+    def jacobian(self, pose: Float[Tensor, "n p"], intr: Float[Tensor, "c m"]) -> Float[Tensor, "o 2 k"]:
+        """Exact Jacobian of each observation's residual over the free columns (pose columns first): observation o
+        depends on its own row of deltas only, so the gradient of the sum of the u (then v) residuals with respect to
+        the [O, 16] rows is every observation's Jacobian row."""
+        base = self.deltas(pose, intr).requires_grad_(True)
+        with torch.enable_grad():
+            projected = _residuals(base, self.points_cam, self.intrinsics, self.pixels)[0]
+            rows = [torch.autograd.grad(projected[:, a].sum(), base, retain_graph=a == 0)[0] for a in range(2)]
+        return torch.stack(rows, dim=1)[:, :, self.pose_columns + self.intrinsics_columns]
+
+
+def _problem(
     tracks: Tracks,
     c2w: Float[Tensor, "n 3 4"],
     intrinsics: Intrinsics,
     free: Bool[Tensor, " 16"] | tuple[int, ...],
-    camera_of_image: Int[Tensor, " n"] | None = None,
-    max_iterations: int = 50,
-) -> TrackFit:
-    """Levenberg-Marquardt fit of the ``free`` deltas of every camera to its tracks (module docstring).
-
-    ``c2w``: OpenCV camera-to-world in the tracks' world; ``free``: a mask over, or the indices of, the 16
-    ``PARAMETER_NAMES`` columns that move (pose columns per image, intrinsics columns per physical camera);
-    ``camera_of_image``: physical camera 0..C-1 of each image (default: one per image). Runs in float64 on the CPU.
-    """
+    camera_of_image: Int[Tensor, " n"] | None,
+) -> _Problem:
+    """The arguments of ``fit_cameras_to_tracks``, checked, as a ``_Problem``."""
     n = c2w.shape[0]
     tracks.validate(n)
     if intrinsics.num_cameras != n:
         raise ValueError(f"intrinsics must describe the {n} cameras of c2w, got {intrinsics.num_cameras}")
     mask = _free_mask(free)
-    pose_columns = [j for j in range(NUM_POSE_PARAMS) if mask[j]]
-    intrinsics_columns = [j for j in range(NUM_POSE_PARAMS, NUM_CAMERA_PARAMS) if mask[j]]
     groups = torch.arange(n) if camera_of_image is None else camera_of_image.to("cpu", torch.long)
     if groups.shape != (n,):
         raise ValueError(f"camera_of_image must hold one camera per image ({n}), got shape {tuple(groups.shape)}")
-    num_groups = int(groups.max()) + 1 if n else 0
-
     c2w = c2w.detach().to("cpu", torch.float64)
-    intrinsics = intrinsics.detach().to(device="cpu", dtype=torch.float64)
     image = tracks.image.to("cpu", torch.long)
-    group = groups[image]
     points = tracks.points.detach().to("cpu", torch.float64)[tracks.point.to("cpu", torch.long)]
-    pixels = tracks.pixels.detach().to("cpu", torch.float64)
-    # Each observed point in its given camera's frame, R^T (x - c): fixed over the iterations.
-    points_cam = (points - c2w[image, :, 3])[:, None, :] @ c2w[image, :, :3]
-    intrinsics_obs = intrinsics[image]
-    p, m = len(pose_columns), len(intrinsics_columns)
+    return _Problem(
+        image=image,
+        group=groups[image],
+        groups=groups,
+        num_groups=int(groups.max()) + 1 if n else 0,
+        points_cam=(points - c2w[image, :, 3])[:, None, :] @ c2w[image, :, :3],
+        intrinsics=intrinsics.detach().to(device="cpu", dtype=torch.float64)[image],
+        pixels=tracks.pixels.detach().to("cpu", torch.float64),
+        pose_columns=[j for j in range(NUM_POSE_PARAMS) if mask[j]],
+        intrinsics_columns=[j for j in range(NUM_POSE_PARAMS, NUM_CAMERA_PARAMS) if mask[j]],
+    )
+
+
+def _levenberg_marquardt(
+    problem: _Problem, fitted: Float[Tensor, " n"], max_iterations: int
+) -> tuple[Float[Tensor, "n p"], Float[Tensor, "c m"], Float[Tensor, "o 2"], Float[Tensor, " o"], int]:
+    """Robust Levenberg-Marquardt from zero deltas (module docstring) of the images with ``fitted`` 1; returns the
+    pose and intrinsics deltas, the residuals and validity (0 also for images not fitted) there, and the iterations."""
+    n, p, m = fitted.shape[0], len(problem.pose_columns), len(problem.intrinsics_columns)
+
+    def evaluate(pose: Tensor, intr: Tensor) -> tuple[Tensor, Tensor, float]:
+        residual, valid = problem.residuals(pose, intr)
+        valid = valid * fitted[problem.image]
+        return residual, valid, float((_cauchy_loss(residual.square().sum(-1)) * valid).sum())
+
     pose = torch.zeros(n, p, dtype=torch.float64)
-    intr = torch.zeros(num_groups, m, dtype=torch.float64)
-
-    def full(pose_values: Tensor, intr_values: Tensor) -> Tensor:
-        deltas = torch.zeros(image.shape[0], NUM_CAMERA_PARAMS, dtype=torch.float64)
-        deltas[:, pose_columns] = pose_values[image]
-        deltas[:, intrinsics_columns] = intr_values[group]
-        return deltas
-
-    def evaluate(pose_values: Tensor, intr_values: Tensor) -> tuple[Tensor, Tensor]:
-        residual, margin = _residuals(full(pose_values, intr_values), points_cam, intrinsics_obs, pixels)
-        return residual, (margin > 0).to(torch.float64) * fitted[image]
-
-    def rms_of(residual: Tensor, weight: Tensor) -> Tensor:
-        return per_image_rms(residual.square().sum(-1), weight, image, n)
-
-    fitted = torch.ones(n, dtype=torch.float64)
-    residual, weight = evaluate(pose, intr)
-    rms_given = rms_of(residual, weight)
-    valid = torch.zeros(n, dtype=torch.float64).index_add_(0, image, weight)
-    fitted = (valid >= MIN_OBSERVATIONS).to(torch.float64)
-    weight = weight * fitted[image]
-    cost = float((residual.square().sum(-1) * weight).sum())
+    intr = torch.zeros(problem.num_groups, m, dtype=torch.float64)
+    residual, valid, cost = evaluate(pose, intr)
     damping, iterations = 1e-3, 0
-    columns = pose_columns + intrinsics_columns
     while iterations < max_iterations:
         iterations += 1
-        # Exact Jacobian: observation o's residual depends on its own row of deltas only, so the gradient of the sum
-        # of the u (then v) residuals with respect to the [O, 16] rows is every observation's Jacobian row.
-        base = full(pose, intr).requires_grad_(True)
-        with torch.enable_grad():
-            projected = _residuals(base, points_cam, intrinsics_obs, pixels)[0]
-            rows = [torch.autograd.grad(projected[:, a].sum(), base, retain_graph=a == 0)[0] for a in range(2)]
-        jacobian = torch.stack(rows, dim=1)[:, :, columns]
-        jacobian = jacobian * weight[:, None, None]
+        # Reweighted least squares: rows scaled by sqrt(rho'(s)) at the current residuals (0 where invalid).
+        root = (valid * _cauchy_weight(residual.square().sum(-1))).sqrt()
         step_pose, step_intr = _solve_normal_equations(
-            jacobian, residual * weight[:, None], image, group, groups, num_groups, p, m, damping
+            problem.jacobian(pose, intr) * root[:, None, None],
+            residual * root[:, None],
+            problem.image,
+            problem.group,
+            problem.groups,
+            problem.num_groups,
+            p,
+            m,
+            damping,
         )
         trial_pose, trial_intr = pose + step_pose, intr + step_intr
-        trial_residual, trial_weight = evaluate(trial_pose, trial_intr)
-        trial_cost = float((trial_residual.square().sum(-1) * trial_weight).sum())
+        trial_residual, trial_valid, trial_cost = evaluate(trial_pose, trial_intr)
         if trial_cost < cost:
-            # Converged: the cost stopped falling, or the RMS is below 1e-10 px (beyond any meaning in pixels).
-            converged = cost - trial_cost <= 1e-10 * cost or trial_cost <= 1e-20 * image.shape[0]
-            pose, intr, residual, weight, cost = trial_pose, trial_intr, trial_residual, trial_weight, trial_cost
+            # Converged: the cost stopped falling (to about its rounding: reweighting converges linearly, so a fall
+            # of 1e-10 can leave the solution well short of its optimum), or the RMS is below 1e-10 px.
+            converged = cost - trial_cost <= 1e-14 * cost or trial_cost <= 1e-20 * problem.image.shape[0]
+            pose, intr, residual, valid, cost = trial_pose, trial_intr, trial_residual, trial_valid, trial_cost
             damping = max(damping / 10.0, 1e-12)
             if converged:
                 break
@@ -177,11 +243,52 @@ def fit_cameras_to_tracks(
             damping *= 10.0
             if damping > 1e8:
                 break
+    return pose, intr, residual, valid, iterations
+
+
+def _fit(
+    tracks: Tracks,
+    c2w: Float[Tensor, "n 3 4"],
+    intrinsics: Intrinsics,
+    free: Bool[Tensor, " 16"] | tuple[int, ...],
+    camera_of_image: Int[Tensor, " n"] | None,
+    max_iterations: int,
+) -> tuple[TrackFit, Float[Tensor, " o"], Float[Tensor, " o"]]:
+    """``fit_cameras_to_tracks``, with each observation's squared residual (px^2) and validity at the fit."""
+    problem = _problem(tracks, c2w, intrinsics, free, camera_of_image)
+    n, image = c2w.shape[0], problem.image
+    no_pose = torch.zeros(n, len(problem.pose_columns), dtype=torch.float64)
+    no_intr = torch.zeros(problem.num_groups, len(problem.intrinsics_columns), dtype=torch.float64)
+    residual, valid = problem.residuals(no_pose, no_intr)
+    rms_given = per_image_rms(residual.square().sum(-1), valid, image, n)
+    count = torch.zeros(n, dtype=torch.float64).index_add_(0, image, valid)
+    fitted = (count >= MIN_OBSERVATIONS).to(torch.float64)
+    pose, intr, residual, valid, iterations = _levenberg_marquardt(problem, fitted, max_iterations)
     deltas = torch.zeros(n, NUM_CAMERA_PARAMS, dtype=torch.float64)
-    deltas[:, pose_columns] = pose
-    deltas[:, intrinsics_columns] = intr[groups]
-    observations = torch.zeros(n, dtype=torch.float64).index_add_(0, image, weight)
-    return TrackFit(deltas, rms_of(residual, weight), rms_given, iterations, observations)
+    deltas[:, problem.pose_columns] = pose
+    deltas[:, problem.intrinsics_columns] = intr[problem.groups]
+    squared = residual.square().sum(-1)
+    observations = torch.zeros(n, dtype=torch.float64).index_add_(0, image, valid)
+    fit = TrackFit(deltas, per_image_rms(squared, valid, image, n), rms_given, iterations, observations)
+    return fit, squared, valid
+
+
+def fit_cameras_to_tracks(
+    tracks: Tracks,
+    c2w: Float[Tensor, "n 3 4"],
+    intrinsics: Intrinsics,
+    free: Bool[Tensor, " 16"] | tuple[int, ...],
+    camera_of_image: Int[Tensor, " n"] | None = None,
+    max_iterations: int = _MAX_ITERATIONS,
+) -> TrackFit:
+    """Robust Levenberg-Marquardt fit of the ``free`` deltas of every camera to its tracks (module docstring).
+
+    ``c2w``: OpenCV camera-to-world in the tracks' world; ``free``: a mask over, or the indices of, the 16
+    ``PARAMETER_NAMES`` columns that move (pose columns per image, intrinsics columns per physical camera);
+    ``camera_of_image``: physical camera 0..C-1 of each image (default: one per image). Runs in float64 on the CPU.
+    The deltas minimize the robust cost; the RMS values are plain (``TrackFit``).
+    """
+    return _fit(tracks, c2w, intrinsics, free, camera_of_image, max_iterations)[0]
 
 
 def fit_anchor(
@@ -196,15 +303,24 @@ def fit_anchor(
 
     Cameras straight out of SfM sit at the optimum of SfM's own camera model, in which some intrinsics were held
     (COLMAP's SIMPLE_RADIAL refines neither the principal point nor a second distortion term). Freeing those in a
-    camera-only refit moves the focal length a little along with them, by noise: on the regime scene's SfM cameras
-    (49 images, 16k observations) by 0.024 px, further from the truth, for a fall of the cost that six parameters
-    fitted to noise explain. So the intrinsics are refitted (with the poses) and kept fixed (poses only), and the
-    refit is the anchor of a physical camera only where its likelihood-ratio statistic, the fall of the cost over the
-    refit's noise variance per residual, is beyond ``INTRINSICS_REFIT_LEVEL`` of a chi-square with one degree of
-    freedom per free intrinsic (Wilks' theorem for nested least squares with Gaussian noise). Cameras changed after
-    SfM (a perturbation, another tool's calibration) fail that test by orders of magnitude and get the refit.
+    camera-only refit moves the focal length a little along with them, by noise (on the regime scene's SfM cameras
+    further from the truth), for a fall of the cost that the freed parameters fitted to noise explain. So the
+    intrinsics are refitted (with the poses) and kept fixed (poses only), and the refit is the anchor of a physical
+    camera only where the fall of the robust cost from the held fit to the refit, over the cost's noise scale lambda,
+    is beyond ``INTRINSICS_REFIT_LEVEL`` of a chi-square with one degree of freedom per free intrinsic. Cameras
+    changed after SfM (a perturbation, another tool's calibration) fail that test by orders of magnitude and get the
+    refit.
+
+    The test is the robust likelihood ratio (drop in dispersion) of Schrader and Hettmansperger. Its noise model: the
+    points exact and the observations' pixel errors independent and isotropic, all of one distribution, whatever it
+    is (keypoint noise with a share of gross mismatches). Under the given intrinsics the fall is then asymptotically
+    lambda chi2_m, lambda = E[s rho'(s)^2] / (2 E[rho'(s) + s rho''(s)]) (s: an observation's squared residual),
+    estimated per physical camera from the refit's residuals with the factor N / dof (N valid observations, dof the
+    residuals less the fitted parameters), so that with the plain loss (rho(s) = s) lambda is the unbiased noise
+    variance per axis and the test is Wilks' for Gaussian noise. Both costs are the two fits' own objective at their
+    own optima: the fits are nested on one objective.
     """
-    full = fit_cameras_to_tracks(tracks, c2w, intrinsics, free, camera_of_image)
+    full, full_squared, full_valid = _fit(tracks, c2w, intrinsics, free, camera_of_image, _MAX_ITERATIONS)
     mask = _free_mask(free)
     m = int(mask[NUM_POSE_PARAMS:].sum())
     n = c2w.shape[0]
@@ -214,23 +330,23 @@ def fit_anchor(
         return full
     pose_mask = mask.clone()
     pose_mask[NUM_POSE_PARAMS:] = False
-    held = fit_cameras_to_tracks(tracks, c2w, intrinsics, pose_mask, camera_of_image)
+    held, held_squared, held_valid = _fit(tracks, c2w, intrinsics, pose_mask, camera_of_image, _MAX_ITERATIONS)
+    group = groups[tracks.image.to("cpu", torch.long)]
 
-    def per_group(values: Tensor) -> Tensor:
-        return torch.zeros(num_groups, dtype=torch.float64).index_add_(0, groups, values)
-
-    def cost(fit: TrackFit) -> Tensor:
-        return per_group(torch.nan_to_num(fit.rms_px).square() * fit.observations)
+    def per_group(values: Tensor, index: Tensor = group) -> Tensor:
+        return torch.zeros(num_groups, dtype=torch.float64).index_add_(0, index, values)
 
     p = int(mask[:NUM_POSE_PARAMS].sum())
-    fitted_images = per_group((full.observations > 0).to(torch.float64))
-    residuals = 2.0 * per_group(full.observations)
-    dof = residuals - p * fitted_images - m
-    cost_full, cost_held = cost(full), cost(held)
-    fall = (cost_held - cost_full).clamp(min=0.0)
-    variance = cost_full / dof.clamp(min=1.0)
-    # Exact tracks leave no noise (variance 0): any fall of the cost is then evidence.
-    statistic = torch.where(variance > 0, fall / variance.clamp(min=1e-300), torch.where(fall > 0, torch.inf, 0.0))
+    count = per_group(full.observations, groups)
+    dof = 2.0 * count - p * per_group((full.observations > 0).to(torch.float64), groups) - m
+    fall = per_group(_cauchy_loss(held_squared) * held_valid) - per_group(_cauchy_loss(full_squared) * full_valid)
+    fall = fall.clamp(min=0.0)
+    # lambda's sample estimate; for the Cauchy loss rho' + s rho'' = rho'^2.
+    weight_squared = _cauchy_weight(full_squared).square() * full_valid
+    spread, curvature = per_group(full_squared * weight_squared), per_group(weight_squared)
+    scale = count * spread / (curvature.clamp(min=1e-300) * dof.clamp(min=1.0))
+    # Exact tracks leave no noise (scale 0): any fall of the cost is then evidence.
+    statistic = torch.where(scale > 0, fall / scale.clamp(min=1e-300), torch.where(fall > 0, torch.inf, 0.0))
     p_value = torch.special.gammaincc(torch.full_like(statistic, m / 2.0), statistic / 2.0)
     held_groups = (p_value >= INTRINSICS_REFIT_LEVEL) | (dof <= 0)
     take_held = held_groups[groups]
@@ -298,4 +414,11 @@ class TrackEvidence:
     """Training-frame units per unit of the tracks' world (nerfstudio's ``dataparser_scale``)."""
 
 
-__all__ = ["INTRINSICS_REFIT_LEVEL", "TrackEvidence", "TrackFit", "fit_anchor", "fit_cameras_to_tracks"]
+__all__ = [
+    "INTRINSICS_REFIT_LEVEL",
+    "LOSS_SCALE_PX",
+    "TrackEvidence",
+    "TrackFit",
+    "fit_anchor",
+    "fit_cameras_to_tracks",
+]
