@@ -26,8 +26,9 @@ import torch
 from s2camp_ns.core.dispersion import covering_bound, dispersion, reference_tangent_bounds, transform_volume
 from s2camp_ns.core.frustum import sample_frustum
 from s2camp_ns.core.lattice import frolov_lattice, random_points
+from s2camp_ns.report import markdown_table
 
-from .common import DEFAULT_OUTPUT_DIR, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, log, write_report
 
 
 @dataclass

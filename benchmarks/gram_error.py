@@ -19,8 +19,9 @@ from s2camp_ns.core.camera import ParameterLayout
 from s2camp_ns.core.gram_error import gram_estimation_error, reference_gram
 from s2camp_ns.core.jacobian import relative_gram_error
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING, SamplingConfig
+from s2camp_ns.report import markdown_table
 
-from .common import DEFAULT_OUTPUT_DIR, FRUSTA, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, FRUSTA, log, write_report
 
 SAMPLER_KINDS = {"deterministic": "frolov", "sobol": "sobol", "random": "random", "camp-random": "camp-random"}
 

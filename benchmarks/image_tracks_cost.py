@@ -33,6 +33,7 @@ from s2camp_ns.nerfstudio.image_tracks import (
     image_tracks,
     neighbour_pairs,
 )
+from s2camp_ns.report import markdown_table
 from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 from .common import (
@@ -40,7 +41,6 @@ from .common import (
     generated_scene,
     in_work_folder,
     log,
-    markdown_table,
     write_report,
 )
 

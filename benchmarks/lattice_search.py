@@ -25,8 +25,9 @@ from s2camp_ns.core.gram_error import reference_gram
 from s2camp_ns.core.jacobian import relative_gram_error
 from s2camp_ns.core.lattice import FrolovParams, frolov_points, halton_sequence, table_params
 from s2camp_ns.core.preconditioner import SamplingConfig, gram_from_points
+from s2camp_ns.report import markdown_table
 
-from .common import DEFAULT_OUTPUT_DIR, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, log, write_report
 
 
 def _candidates(count: int) -> list[FrolovParams]:

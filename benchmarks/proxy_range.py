@@ -50,10 +50,11 @@ from s2camp_ns.core.proxy_range import (
     match_inverse_moments,
     proxy_ranges,
 )
+from s2camp_ns.report import markdown_table
 from s2camp_ns.scene import procedural
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
-from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, write_report
 
 SCENES = {
     "narrow": MakeSceneConfig(num_cameras=16, width=96, height=72, fov="narrow", seed=0),

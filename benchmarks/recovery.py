@@ -16,9 +16,10 @@ from pathlib import Path
 import torch
 
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING
+from s2camp_ns.report import markdown_table
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
-from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, write_report
 from .recovery_geometric import SHARED_VARIANTS, VARIANTS, GeometricConfig, iterations_to, load_scene, run_variant
 from .recovery_photometric import PhotometricConfig, run_photometric
 from .recovery_sfm import SfmRecoveryConfig, run_sfm_tier

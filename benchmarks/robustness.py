@@ -42,10 +42,10 @@ from s2camp_ns.core.validation import check_choice, check_positive_int
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 from s2camp_ns.nerfstudio.train_commands import (
     DATAPARSER_SUBCOMMAND,
-    PHOTOMETRIC_ONLY,
     ns_train_arguments,
     training_environment,
 )
+from s2camp_ns.report import markdown_table
 from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 from .common import (
@@ -53,8 +53,8 @@ from .common import (
     generated_scene,
     in_work_folder,
     log,
-    markdown_table,
-    no_longer_run_note,
+    no_longer_run_section,
+    split_runnable,
     write_report,
 )
 
@@ -143,20 +143,15 @@ OFF_REFERENCE_START = {"accurate-untracked": "accurate"}
 """Starts whose 'PSNR vs off' compares with refinement off from another start: off never reads the tracks, so the
 true cameras with and without them train alike."""
 DEFAULT_STARTS = ("accurate", "perturbed")
-HISTORICAL_STARTS = {
-    "phone-iid": "the phone start before it modelled visual-inertial drift: CamP's i.i.d. perturbation with four times "
-    "its pose sigmas (0.02 position and look-at, a shared 2% dolly zoom), one draw for every seed",
-}
-"""Start names found only in committed rows, and what they ran."""
 RECOVERY_STARTS = ("perturbed", "phone", "phone-iid")
 """Starts that refinement must correct (the report gives the fraction of the start error removed); the others
-(accurate, sfm) it must not make worse."""
+(accurate, sfm) it must not make worse. phone-iid names committed rows of a start that no longer runs (docs/RESULTS.md,
+"Names that no longer run")."""
 VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "tracks", "s2camp-photometric", "s2camp-camp-prior",
-    "s2camp-identity-prior", "s2camp-free", "s2camp-track-prior", "s2camp-damped", "s2camp-damped-gauge",
-    "s2camp-damped-gauge-prior", "s2camp-gauge-dolly-prior",
+    "s2camp-identity-prior",
 )  # fmt: skip
-EVIDENCE_VARIANTS = VARIANTS[:8]
+EVIDENCE_VARIANTS = VARIANTS
 """The ``--preset regime`` variants: what each evidence adds. Beside refinement off, the two baselines and the
 default, the tracks alone, the images alone (S2CamP without the prior), and the prior with CamP's P and with P = I,
 every row that uses a prior with the same tracks."""
@@ -164,12 +159,9 @@ METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "tracks": "s2camp", "s2camp-photometric": "s2camp", "s2camp-camp-prior": "s2camp-camp",
     "s2camp-identity-prior": "s2camp",
-    "s2camp-free": "s2camp", "s2camp-track-prior": "s2camp", "s2camp-damped": "s2camp",
-    "s2camp-damped-gauge": "s2camp", "s2camp-damped-gauge-prior": "s2camp", "s2camp-gauge-dolly-prior": "s2camp",
 }  # fmt: skip
 _ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
 _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
-_DAMPED = ["--pipeline.model.camera-optimizer.damping.damping-rel", "1.0"]
 _OPTIMIZER = "--pipeline.model.camera-optimizer"
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
@@ -177,14 +169,6 @@ VARIANT_ARGUMENTS = {
     "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False"],
     "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True"],
     "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True"],
-    "s2camp-free": PHOTOMETRIC_ONLY,
-    "s2camp-track-prior": [_ROTATION, "False", _PRIOR, "True"],
-    "s2camp-damped": [*_DAMPED, _ROTATION, "False", _PRIOR, "False"],
-    "s2camp-damped-gauge": [*_DAMPED, _ROTATION, "True", _PRIOR, "False"],
-    "s2camp-damped-gauge-prior": [*_DAMPED, _ROTATION, "True", _PRIOR, "True"],
-    "s2camp-gauge-dolly-prior": [
-        _ROTATION, "True", "--pipeline.model.camera-optimizer.fix-common-dolly", "True", _PRIOR, "True",
-    ],
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run, each stating every candidate option so that a variant keeps
 its meaning when a default changes. "s2camp" is the method's defaults (the common rotation removed and the track
@@ -192,37 +176,9 @@ prior on, ``S2CAMP_CAMERA_OPTIMIZER``); "off" disables camera refinement; "track
 its track prior's anchor, the images move none: ``photometric`` False), what bundle adjustment gives without
 refinement; "s2camp-photometric" the images alone (the defaults without the prior); "s2camp-camp-prior" the prior
 with CamP's P (the s2camp-camp method plus the defaults' prior and common-rotation removal); "s2camp-identity-prior"
-the prior with P = I (the defaults, ``precondition`` False); "s2camp-free" is s2camp with both off (the
-defaults before both became s2camp's); "s2camp-track-prior" the track prior alone; "s2camp-damped" ten times CamP's
-relative damping of Sigma (1.0 of its diagonal), a candidate that limits how far a unit whitened step moves the
-weakly observed rotation-translation combinations (docs/DESIGN-NOTES.md sec. 13); "s2camp-damped-gauge" that plus
-the common rotation removed; "s2camp-damped-gauge-prior" that plus the track prior (a no-op where the start has no
-tracks: the phone start); "s2camp-gauge-dolly-prior" the defaults plus the common forward motion removed
-(``fix_common_dolly``). Committed rows under older names (``HISTORICAL_VARIANTS``) were recorded with settings that
-no longer run."""
-HISTORICAL_VARIANTS = {
-    "s2camp-exact-tracks": "the defaults with the generated scene's own tracks, exact projections through the true "
-    "cameras (accurate and perturbed starts): the prior knew the truth. Since then every start but sfm trains with "
-    "tracks made from its images, and perturbed cameras never get the scene's tracks",
-    "s2camp-track-prior-given": "the track prior anchored at the given cameras, before it took its anchor from the "
-    "tracks (`s2camp_ns.core.track_fit`)",
-    "s2camp-damped-gauge-prior-given": "the track prior anchored at the given cameras, with the damping raised and "
-    "the common rotation removed",
-    "s2camp-gauge-prior-rms": "the common rotation removed and the track prior, the shared intrinsics' prior scale the "
-    "RMS of their images' scales; its phone rows, which have no tracks and so ran today's code path, are filed as "
-    "s2camp",
-    "s2camp-untracked": "the defaults on a scene without tracks, before tracks were made from its images: nothing "
-    "anchored the cameras but the photometric loss (phone and accurate-untracked starts)",
-    "s2camp-gauge-dolly-untracked": "the defaults plus the common forward motion removed, on a scene without tracks "
-    "before tracks were made from its images (phone start)",
-    "s2camp-prior-image-se": "the defaults (common rotation removed, track prior) with the shared intrinsics' prior "
-    "scale RMS / sqrt(images), one unit of noise per image, and the anchor's intrinsics always refitted; since then "
-    "the anchor keeps the given intrinsics unless the tracks call for others and the scale is the standard error over "
-    "every observation (`s2camp_ns.core.track_fit.fit_anchor`)",
-    "s2camp-damped-gauge-prior-rms": "as s2camp-gauge-prior-rms, with the damping raised",
-}
-"""Variant names found only in committed rows, and what they ran (no longer runnable). Each description stands on
-its own: the report lists them in alphabetical order."""
+the prior with P = I (the defaults, ``precondition`` False). Committed rows under other variant names were recorded
+with settings that no longer run: the report lists them apart, and docs/RESULTS.md ("Names that no longer run")
+says what each ran."""
 PHONE_PROFILE = {
     "sigma_position": 0.0, "sigma_look_at": 0.0, "sigma_dolly_z": 0.0, "sigma_focal_length": 0.0,
     "drift.enabled": True, "drift.position_drift": 0.01, "drift.yaw_drift_deg": 1.5, "drift.tilt_deg": 0.3,
@@ -400,83 +356,16 @@ def run_folder(spec: RunSpec, runs: Path) -> Path:
 
 
 # ----------------------------------------------------------------------------------------------------- evaluation
-def _camera_metrics(model, points, c2w_gl, intrinsics) -> dict[str, float]:
-    """Errors of cameras (OpenGL c2w, Intrinsics) against the model's true training cameras, and their drift."""
-    import torch
-
-    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
-    from s2camp_ns.core.alignment import camera_errors
-    from s2camp_ns.core.camera import opengl_to_opencv
-    from s2camp_ns.core.drift import reprojection_drift
-
-    reference = model.reference_cameras()
-    if reference is None:
-        reference = model._train_cameras
-    true_c2w = reference.camera_to_worlds.to(torch.float64).cpu()
-    true_intrinsics = intrinsics_from_cameras(reference.to("cpu"))
-    errors = camera_errors(c2w_gl, true_c2w, intrinsics.fx, true_intrinsics.fx, align=True)
-    drift = reprojection_drift(
-        points, opengl_to_opencv(true_c2w), true_intrinsics, opengl_to_opencv(c2w_gl), intrinsics, align=True
-    )
-    return {
-        "rot_err": math.degrees(errors["rot_err_mean"]),
-        "pos_err": errors["pos_err_mean"],
-        "focal_err": errors["focal_err_mean"],
-        "drift_px": drift.rms_px,
-        "drift_behind": drift.behind,
-    }
-
-
-def _refined_cameras(model):
-    """OpenGL c2w and Intrinsics of the training cameras as the model sees them at the end (float64, CPU)."""
-    import torch
-
-    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
-
-    with torch.no_grad():
-        if model.uses_s2camp_optimizer:
-            optimizer = model.camera_optimizer
-            return optimizer.refined_c2w(opengl=True).cpu(), optimizer.refined_intrinsics().detach().to("cpu")
-        c2w, _ = model.refined_train_cameras()  # nerfstudio's pose optimizer leaves the intrinsics alone
-        return c2w, intrinsics_from_cameras(model._train_cameras)
-
-
 def evaluate_run(run: Path, alignment: AlignmentConfig) -> dict:
-    """Start and final camera metrics, held-out PSNR / SSIM after test-time alignment, of a finished run."""
+    """Start and final camera metrics, held-out PSNR / SSIM after test-time alignment, of a finished run
+    (``s2camp_ns.nerfstudio.evaluation.evaluate_pipeline`` of its last checkpoint); ``eval_seconds`` includes the
+    loading."""
+    from s2camp_ns.nerfstudio.evaluation import evaluate_pipeline
+
     from .recovery_photometric import _load_pipeline
 
     began = time.perf_counter()
     result = evaluate_pipeline(_load_pipeline(run), alignment)
-    result["eval_seconds"] = time.perf_counter() - began
-    return result
-
-
-def evaluate_pipeline(pipeline, alignment: AlignmentConfig) -> dict:
-    """``evaluate_run`` of a pipeline in memory (also used by ``make gpu-check``, in the training process)."""
-    import warnings
-
-    import torch
-
-    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
-    from s2camp_ns.nerfstudio.test_time_alignment import evaluate_held_out_views
-
-    began = time.perf_counter()
-    model = pipeline.model
-    points = pipeline.datamanager.train_dataparser_outputs.metadata["points3D_xyz"].to(torch.float64)
-    start_cameras = model._train_cameras
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the drift's warning about points behind a camera: counted in the row
-        start = _camera_metrics(
-            model, points, start_cameras.camera_to_worlds.to(torch.float64), intrinsics_from_cameras(start_cameras)
-        )
-        final = _camera_metrics(model, points, *_refined_cameras(model))
-    views = evaluate_held_out_views(pipeline, alignment)
-    result = {key: value for key, value in final.items()}
-    result |= {f"start_{key}": value for key, value in start.items()}
-    result["psnr"] = statistics.fmean(view.psnr for view in views)
-    result["ssim"] = statistics.fmean(view.ssim for view in views)
-    result["psnr_unaligned"] = statistics.fmean(view.psnr_unaligned for view in views)
-    result["eval_views"] = len(views)
     result["eval_seconds"] = time.perf_counter() - began
     return result
 
@@ -828,9 +717,6 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         f"means, 'no difference' when smaller than the larger seed range of the two. 'removed': 1 - final / start "
         f"error for perturbed and phone starts."
     )
-    setup += no_longer_run_note(rows, HISTORICAL_VARIANTS)
-    if any(row["start"] in HISTORICAL_STARTS for row in rows):
-        setup += " Starts that no longer run: " + "; ".join(f"{k}: {v}" for k, v in HISTORICAL_STARTS.items()) + "."
     columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]
     headers = [
         "scene", "start", "variant", "seeds", "passes", "start rot / pos / focal / drift", "rot err (deg)",
@@ -855,6 +741,7 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
     elif minutes is not None:
         timing += f"; wall time of this run {minutes:.1f} minutes"
     name = config.preset or "robustness"
+    current, old = split_runnable(_summary_rows(summary), VARIANTS, STARTS)
     sections = [
         "Does camera refinement with each method's default options help or hurt, from accurate and from perturbed "
         "cameras? Protocol and metrics: `benchmarks/robustness.py`. passes = steps x rays / training pixels.",
@@ -862,9 +749,10 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         _scene_table(config, summary),
         "## Results",
         setup,
-        markdown_table(_summary_rows(summary), columns, headers),
+        markdown_table(current, columns, headers),
         f"![PSNR and drift per variant]({name}.png)",
         timing + ".",
+        *(no_longer_run_section(markdown_table(old, columns, headers)) if old else []),
         *trace_sections(rows),
     ]
     return write_report(

@@ -29,8 +29,9 @@ import torch
 
 from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.core.preconditioner import DEFAULT_CHUNK_SIZE, SamplingConfig, compute_preconditioner
+from s2camp_ns.report import markdown_table
 
-from .common import DEFAULT_OUTPUT_DIR, FRUSTA, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, FRUSTA, log, write_report
 
 NUM_PARAMS = 12
 """K, all camera parameters (the paper's setting and the s2camp default)."""

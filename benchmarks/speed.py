@@ -33,8 +33,9 @@ from s2camp_ns.core.preconditioner import (
     sample_proxy_points,
     symmetric_sqrt_and_inverse,
 )
+from s2camp_ns.report import markdown_table
 
-from .common import DEFAULT_OUTPUT_DIR, FRUSTA, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, FRUSTA, log, write_report
 
 
 @dataclass

@@ -32,12 +32,12 @@ Regime: each splatfacto step renders one whole training image, so passes over ea
 training images. A real splatfacto run is 30k steps over ~300 images, ~100 passes; the default scene and
 ``iterations`` put a run in that range (``DEFAULT_ITERATIONS``). Every row records its passes.
 
-Metrics (robustness's ``evaluate_pipeline``, identical for every variant): rotation / position / focal errors of the
-final training cameras after a similarity alignment to the true ones, drift, held-out PSNR / SSIM after test-time
-alignment (docs/SPLAT.md sec. 5) and before it (unaligned); the same errors of the start cameras; the number of
-Gaussians at the end; training seconds per iteration from nerfstudio's per-step timing, and its ratio to
-s2camp-splat-so3xr3's from the same start in the same invocation (runs train ``workers`` at a time on one thread
-each: the ratio compares runs that shared the machine alike).
+Metrics (``s2camp_ns.nerfstudio.evaluation.evaluate_pipeline``, as robustness's, identical for every variant):
+rotation / position / focal errors of the final training cameras after a similarity alignment to the true ones,
+drift, held-out PSNR / SSIM after test-time alignment (docs/SPLAT.md sec. 5) and before it (unaligned); the same
+errors of the start cameras; the number of Gaussians at the end; training seconds per iteration from nerfstudio's
+per-step timing, and its ratio to s2camp-splat-so3xr3's from the same start in the same invocation (runs train
+``workers`` at a time on one thread each: the ratio compares runs that shared the machine alike).
 """
 
 from __future__ import annotations
@@ -53,6 +53,7 @@ from pathlib import Path
 from s2camp_ns.core.validation import check_choice, check_positive_int
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_base_arguments
+from s2camp_ns.report import markdown_table
 from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 from .common import (
@@ -60,8 +61,8 @@ from .common import (
     generated_scene,
     in_work_folder,
     log,
-    markdown_table,
-    no_longer_run_note,
+    no_longer_run_section,
+    split_runnable,
     write_report,
 )
 from .robustness import (
@@ -73,7 +74,6 @@ from .robustness import (
     RunSpec,
     Spread,
     _sfm_scene,
-    evaluate_pipeline,
     focal_for_fov,
     plot,
     read_rows,
@@ -108,35 +108,12 @@ RECOVERY_STARTS = ("perturbed",)
 it must do no harm (the report gives final - start)."""
 VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
 """The default grid's variants (issue 20's comparison)."""
-CANDIDATE_VARIANTS = ("s2camp-splat-gauge", "s2camp-splat-plain", "s2camp-splat-damped-gauge")
-"""Variants a run may name beyond the default grid: s2camp-splat with parts of its default turned off, and the
-real-regime issue's candidate (``benchmarks/robustness.py``) on splatting."""
-HISTORICAL_VARIANTS = {
-    "s2camp-splat-exact-tracks": "s2camp-splat's defaults with the generated scene's own tracks, exact projections "
-    "through the true cameras (accurate and perturbed starts): the prior knew the truth. Since then those starts "
-    "train with tracks made from the images, and perturbed cameras never get the scene's tracks",
-    "s2camp-splat-prior-rms": "s2camp-splat's defaults as they were before the track prior's shared intrinsics "
-    "took the standard error of their fit as their scale (then the RMS of their images' scales) and before the "
-    "anchor kept the given intrinsics unless the tracks call for others (`s2camp_ns.core.track_fit.fit_anchor`)",
-}
-"""Variant names found only in committed rows, and what they ran (no longer runnable)."""
-METHODS = {
-    "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
-    "s2camp-splat-gauge": "s2camp-splat", "s2camp-splat-plain": "s2camp-splat",
-    "s2camp-splat-damped-gauge": "s2camp-splat",
-}  # fmt: skip
-_NO_PRIOR = ["--pipeline.model.camera-optimizer.track-prior", "False"]
-VARIANT_ARGUMENTS = {
-    "splat-off": ["--pipeline.model.camera-optimizer.mode", "off"],
-    "s2camp-splat-gauge": _NO_PRIOR,
-    "s2camp-splat-plain": ["--pipeline.model.camera-optimizer.fix-common-rotation", "False", *_NO_PRIOR],
-    "s2camp-splat-damped-gauge": ["--pipeline.model.camera-optimizer.damping.damping-rel", "1.0", *_NO_PRIOR],
-}  # fmt: skip
+METHODS = {"splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat"}
+VARIANT_ARGUMENTS = {"splat-off": ["--pipeline.model.camera-optimizer.mode", "off"]}
 """Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat" its defaults
-(common rotation removed, track prior on: ``method_config.SPLAT_CAMERA_OPTIMIZER``); "s2camp-splat-gauge" without
-the track prior (a scene without tracks); "s2camp-splat-plain" without either (s2camp-splat's default before they
-were measured); "s2camp-splat-damped-gauge" without the prior and with ten times CamP's relative damping
-(robustness's "s2camp-damped-gauge", docs/DESIGN-NOTES.md sec. 13)."""
+(common rotation removed, track prior on: ``method_config.SPLAT_CAMERA_OPTIMIZER``). Committed rows under other
+variant names were recorded with settings that no longer run: the report lists them apart, and docs/RESULTS.md
+("Names that no longer run") says what each ran."""
 BASELINE = "s2camp-splat-so3xr3"
 """The variant whose seconds per iteration the others are compared with."""
 REFERENCE_STEPS = 30000
@@ -213,8 +190,7 @@ class SplatBenchConfig:
         return replace(self, scenes=self.scenes[:1], alignment=alignment, **QUICK)
 
     def validate(self) -> None:
-        allowed_variants = VARIANTS + CANDIDATE_VARIANTS
-        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", allowed_variants)):
+        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", VARIANTS)):
             values = getattr(self, name)
             if not values:
                 raise ValueError(f"{name} must name at least one of {', '.join(allowed)}, got none")
@@ -358,6 +334,8 @@ def evaluate_splat_run(run: Path, alignment: AlignmentConfig) -> dict:
     """Robustness's evaluation of a finished run, plus its number of Gaussians."""
     import contextlib
     import sys
+
+    from s2camp_ns.nerfstudio.evaluation import evaluate_pipeline
 
     from .recovery_photometric import _load_pipeline
 
@@ -519,12 +497,42 @@ def _summary_rows(summary: list[dict]) -> list[dict]:
     return table
 
 
+def _setup_text(rows: list[dict], config: SplatBenchConfig) -> str:
+    """The report's paragraph on how every run trained and was measured, and what each column means."""
+    seeds = ", ".join(str(value) for value in sorted({row["seed"] for row in rows}))
+    setup = (
+        f"Every run: `ns-train <method>` from scratch with the method's defaults and only what a CPU run needs "
+        f"(`--machine.device-type cpu`: the reference rasterizer; no evaluation or camera-error logging during "
+        f"training), `--machine.seed` {seeds}. 'splat-off' is `ns-train s2camp-splat "
+        f"--pipeline.model.camera-optimizer.mode off`. Starts: 'accurate' the true cameras, 'perturbed' the data "
+        f"parser's CamP perturbation, 'sfm' pycolmap SfM on the full-size images (focal prior {SFM_FOCAL_PRIOR} x the "
+        f"true focal). Errors of the final cameras after a similarity alignment to the true ones: rotation (deg), "
+        f"position (normalized scene units), focal (px at the training resolution); drift = RMS pixel displacement "
+        f"of the scene's points between the true and the aligned refined cameras. PSNR / SSIM: held-out views "
+        f"(every 8th image) after {config.alignment.steps} test-time alignment steps (docs/SPLAT.md sec. 5); "
+        f"'unaligned' before them. Cells: mean [min, max] over seeds. 'against start': for the perturbed start the "
+        f"fraction of each start error removed (1 - final / start; negative: the error grew), for the others "
+        f"final - start (rot / pos / focal / drift; positive: worse). 'PSNR vs': difference of the mean PSNR "
+        f"against s2camp-splat-so3xr3 / splat-off ('-': no such run). 'time ratio': mean seconds per iteration "
+        f"over s2camp-splat-so3xr3's from the same start and the same invocation of the benchmark (empty where "
+        f"none ran in one: the machine is shared, so seconds of different invocations are not comparable; runs "
+        f"that trained side by side share the CPU: compare "
+        f"ratios only between runs of the same `--workers`; `--workers 1` on an idle machine times cleanest)."
+    )
+    rebuilt = [row for row in rows if row.get("reconstructed")]
+    if rebuilt:
+        setup += (
+            f" {len(rebuilt)} row(s) were rebuilt from their run's log line (their `reconstructed` field says why): "
+            f"their unaligned PSNR was not logged, so it is nan and so is every mean that includes it."
+        )
+    return setup
+
+
 def report(rows: list[dict], config: SplatBenchConfig) -> Path:
     config = config.effective()
     summary = summarize(rows)
     iterations = ", ".join(str(value) for value in sorted({row["iterations"] for row in rows}))
     run_passes = ", ".join(f"{value:.1f}" for value in sorted({row["passes"] for row in rows}))
-    seeds = ", ".join(str(value) for value in sorted({row["seed"] for row in rows}))
     compressed = sorted({row.get("compress_schedule", True) for row in rows})
     densified = sorted({row.get("densify", False) for row in rows})
     workers = ", ".join(str(value) for value in sorted({row.get("workers", config.workers) for row in rows}))
@@ -546,32 +554,7 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         + {(False,): "off (the start's sparse points only)", (True,): "on"}.get(tuple(densified), "mixed")
         + "."
     )
-    setup = (
-        f"Every run: `ns-train <method>` from scratch with the method's defaults and only what a CPU run needs "
-        f"(`--machine.device-type cpu`: the reference rasterizer; no evaluation or camera-error logging during "
-        f"training), `--machine.seed` {seeds}. 'splat-off' is `ns-train s2camp-splat "
-        f"--pipeline.model.camera-optimizer.mode off`. Starts: 'accurate' the true cameras, 'perturbed' the data "
-        f"parser's CamP perturbation, 'sfm' pycolmap SfM on the full-size images (focal prior {SFM_FOCAL_PRIOR} x the "
-        f"true focal). Errors of the final cameras after a similarity alignment to the true ones: rotation (deg), "
-        f"position (normalized scene units), focal (px at the training resolution); drift = RMS pixel displacement "
-        f"of the scene's points between the true and the aligned refined cameras. PSNR / SSIM: held-out views "
-        f"(every 8th image) after {config.alignment.steps} test-time alignment steps (docs/SPLAT.md sec. 5); "
-        f"'unaligned' before them. Cells: mean [min, max] over seeds. 'against start': for the perturbed start the "
-        f"fraction of each start error removed (1 - final / start; negative: the error grew), for the others "
-        f"final - start (rot / pos / focal / drift; positive: worse). 'PSNR vs': difference of the mean PSNR "
-        f"against s2camp-splat-so3xr3 / splat-off ('-': no such run). 'time ratio': mean seconds per iteration "
-        f"over s2camp-splat-so3xr3's from the same start and the same invocation of the benchmark (empty where "
-        f"none ran in one: the machine is shared, so seconds of different invocations are not comparable; runs "
-        f"that trained side by side share the CPU: compare "
-        f"ratios only between runs of the same `--workers`; `--workers 1` on an idle machine times cleanest)."
-    )
-    setup += no_longer_run_note(rows, HISTORICAL_VARIANTS)
-    rebuilt = [row for row in rows if row.get("reconstructed")]
-    if rebuilt:
-        setup += (
-            f" {len(rebuilt)} row(s) were rebuilt from their run's log line (their `reconstructed` field says why): "
-            f"their unaligned PSNR was not logged, so it is nan and so is every mean that includes it."
-        )
+    setup = _setup_text(rows, config)
     columns = [
         "start", "variant", "seeds", "passes", "start_errors", *METRICS, "against_start", "psnr_vs", "gaussians",
         "sec_per_iter", "time_ratio",
@@ -594,6 +577,7 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         timing += f"; rows read from `{config.rows_from.name}` of an earlier run"
     elif minutes is not None:
         timing += f"; wall time of this run {minutes:.1f} minutes"
+    current, old = split_runnable(_summary_rows(summary), VARIANTS, STARTS)
     sections = [
         "s2camp-splat against splatfacto with SO3xR3 and without camera refinement (issue 20). Protocol and "
         "metrics: `benchmarks/splat_bench.py`.",
@@ -602,9 +586,10 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         markdown_table(scene_rows, ["scene", "images", "size", "fov", "what"]),
         "## Results",
         setup,
-        markdown_table(_summary_rows(summary), columns, headers),
+        markdown_table(current, columns, headers),
         "![PSNR and drift per variant](splat.png)",
         timing + ".",
+        *(no_longer_run_section(markdown_table(old, columns, headers)) if old else []),
     ]
     return write_report(
         config.output_dir, "splat", "Splatting: s2camp-splat against splatfacto with SO3xR3 and without refinement",

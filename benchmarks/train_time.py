@@ -16,9 +16,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_arguments
+from s2camp_ns.report import markdown_table
 from s2camp_ns.scene.make_scene import MakeSceneConfig
 
-from .common import DEFAULT_OUTPUT_DIR, generated_scene, in_work_folder, log, markdown_table, write_report
+from .common import DEFAULT_OUTPUT_DIR, generated_scene, in_work_folder, log, write_report
 from .recovery_photometric import _run_ns_train, seconds_per_iteration
 
 BASELINE = "s2camp-so3xr3"

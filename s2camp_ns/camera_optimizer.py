@@ -147,14 +147,6 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     (docs/DESIGN-NOTES.md sec. 13). On in the ``s2camp`` and ``s2camp-splat`` methods, off in this config (the
     baselines' setting)."""
 
-    fix_common_dolly: bool = False
-    """After every step, remove the forward motion that all training cameras share (the mean over images of the pose
-    update's translation along its own optical axis; ``remove_common_motion``). Every camera moving forward at once
-    is the world's scale (cameras on a ring) or its depth offset (forward-facing cameras) in disguise: the field would
-    reproduce it by a similarity, and with the focal length it forms a dolly zoom the images barely see. Without
-    tracks, refinement drifts along it while the field is fitting (docs/DESIGN-NOTES.md sec. 14). A candidate, off
-    by default until measured on the real-regime grid."""
-
     def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
         return ParameterLayout.from_preset(self.parameters, camera_model)
 
@@ -560,22 +552,20 @@ class S2CampCameraOptimizer(CameraOptimizer):
     @torch.no_grad()
     def remove_common_motion(self) -> None:
         """Subtract the mean over trainable images of the rotation part omega of the pose deltas phi
-        (``fix_common_rotation``) and of their forward translation rho_z (``fix_common_dolly``), each in its own
-        camera frame, from every image's, in the latent: phi_hat += P[:, :, c] d for those columns c (paper eq. 15;
-        with shared intrinsics the pose rows of the block-triangular P, so no intrinsics change). Everything else
-        stays; a no-op when both are off, when disabled or with fewer than three trainable images. With the track
-        prior the motion is measured from the prior's anchor: the tracks fix the world, so the motion the anchors
-        share (the mean of the cameras' own corrections) is no gauge and stays."""
-        columns = [2] if self.config.fix_common_dolly else []
-        columns += [3, 4, 5] if self.config.fix_common_rotation else []
-        if not self.enabled or not columns:
+        (``fix_common_rotation``), each in its own camera frame, from every image's, in the latent:
+        phi_hat += P[:, :, c] d for the rotation columns c (paper eq. 15; with shared intrinsics the pose rows of the
+        block-triangular P, so no intrinsics change). Everything else stays; a no-op when the option is off, when
+        disabled or with fewer than three trainable images. With the track prior the rotation is measured from the
+        prior's anchor: the tracks fix the world, so the rotation the anchors share (the mean of the cameras' own
+        corrections) is no gauge and stays."""
+        if not self.enabled or not self.config.fix_common_rotation:
             return
+        columns = [3, 4, 5]  # the twist's rotation: (rho_x, rho_y, rho_z, omega_x, omega_y, omega_z)
         trainable = torch.ones(self.num_cameras, dtype=torch.bool, device=self.precond.device)
         if self.non_trainable_camera_indices is not None:
             trainable[self.non_trainable_camera_indices.to(trainable.device)] = False
         if int(trainable.sum()) < 3:
             return
-        # Twist columns: (rho_x, rho_y, rho_z, omega_x, omega_y, omega_z); rho_z is the motion along the optical axis.
         motion = self.camera_deltas()[:, columns]
         if self.has_track_prior:
             motion = motion - self.layout.expand(self.prior_anchor)[:, columns]

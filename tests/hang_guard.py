@@ -14,7 +14,7 @@ apply the test's limit ends it first, since it counts from the test's start.
 
 Why 45 minutes: this is far above any run the suite guards, busy machine included. The slowest one is the quick
 recovery benchmark (SfM and five ns-train variants). On a busy 2-core laptop it ran past the former 10-minute limit
-while the whole suite took 56 minutes (issue 33). Every other guarded run takes seconds to a few minutes. It is also
+while the whole suite took 56 minutes. Every other guarded run takes seconds to a few minutes. It is also
 half of CI's 90-minute limit for the whole job: a single hung test is stopped, with pytest-timeout's stack dump
 naming it, instead of running until CI kills the job without a report.
 

@@ -293,22 +293,3 @@ def test_removing_the_common_rotation_keeps_everything_else(intrinsics: str) -> 
     kept = default.camera_deltas()
     default.remove_common_motion()
     assert torch.equal(default.camera_deltas(), kept)
-
-
-@pytest.mark.parametrize("intrinsics", ["per-camera", "per-image"])
-def test_removing_the_common_dolly_keeps_everything_else(intrinsics: str) -> None:
-    """fix_common_dolly: afterwards the forward translations rho_z average to zero over the images, each changed by
-    the same amount, and the other translations, the rotations and the intrinsics are untouched."""
-    optimizer = make_optimizer(intrinsics=intrinsics, fix_common_dolly=True)
-    generator = torch.Generator().manual_seed(4)
-    with torch.no_grad():
-        optimizer.whitened_delta.copy_(torch.randn(optimizer.whitened_delta.shape, generator=generator) * 1e-2)
-    before = optimizer.camera_deltas()
-    assert abs(float(before[:, 2].mean())) > 1e-4  # there is a common forward motion to remove
-    optimizer.remove_common_motion()
-    after = optimizer.camera_deltas()
-    assert abs(float(after[:, 2].mean())) < 1e-8
-    shift = after[:, 2] - before[:, 2]
-    torch.testing.assert_close(shift, shift[:1].expand_as(shift), atol=1e-6, rtol=0)
-    keep = [0, 1, *range(3, 16)]
-    torch.testing.assert_close(after[:, keep], before[:, keep], atol=1e-9, rtol=1e-6)

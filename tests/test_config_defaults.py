@@ -40,3 +40,16 @@ def test_a_camera_optimizer_config_saved_before_photometric_loads_with_the_image
     loaded = yaml.load(old, Loader=yaml.Loader)
     assert loaded.photometric is True and loaded.track_prior is True and loaded.refresh_every == 7
     loaded.validate()
+
+
+def test_a_camera_optimizer_config_saved_with_a_removed_field_still_loads() -> None:
+    """``fix_common_dolly`` (an option since removed) in a run's config.yml: the config loads and validates, with every
+    field as saved. The stale key stays on the instance (``DefaultsOnLoad`` keeps what it is given) and nothing
+    reads it."""
+    saved = yaml.dump(S2CampCameraOptimizerConfig(track_prior=True, fix_common_rotation=True, refresh_every=7))
+    old = saved.replace("fix_common_rotation: true\n", "fix_common_dolly: true\nfix_common_rotation: true\n")
+    assert "fix_common_dolly: true" in old
+    loaded = yaml.load(old, Loader=yaml.Loader)
+    loaded.validate()
+    assert loaded == S2CampCameraOptimizerConfig(track_prior=True, fix_common_rotation=True, refresh_every=7)
+    assert (loaded.track_prior, loaded.fix_common_rotation, loaded.refresh_every) == (True, True, 7)

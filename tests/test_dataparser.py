@@ -17,7 +17,8 @@ from PIL import Image
 
 from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
-from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig, perturb_nerfstudio_cameras
+from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
+from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 # 50 x 38 so that a quarter-size folder must round (12.5 x 9.5 -> 13 x 10), like mip-NeRF 360's images_4.

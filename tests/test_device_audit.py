@@ -495,7 +495,8 @@ def test_global_batch_sampling_on_cuda(cuda_pipeline, monkeypatch):
 def test_viewer_panel_rendering_and_test_time_alignment_on_cuda(cuda_pipeline):
     """The viewer panel's values and frusta, rendering a refined training camera, the test-time alignment of the
     held-out views, and the refined cameras exported as a COLMAP model, from a model on "cuda"."""
-    from s2camp_ns.nerfstudio.export_cameras import export_cameras, refined_training_cameras
+    from s2camp_ns.nerfstudio.colmap_reconstruction import export_cameras
+    from s2camp_ns.nerfstudio.export_cameras import refined_training_cameras
     from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_held_out_views
 
     pipeline, _ = cuda_pipeline

@@ -263,7 +263,7 @@ def _assert_exported_poses_follow_the_checkpoint_twist(run_dir: Path, reconstruc
     import yaml
     from scipy.linalg import expm
 
-    from s2camp_ns.nerfstudio.export_cameras import export_cameras, reconstruction_to_arrays
+    from s2camp_ns.nerfstudio.colmap_reconstruction import export_cameras, reconstruction_to_arrays
 
     config = yaml.load((run_dir / "config.yml").read_text(), Loader=yaml.Loader)
     dataparser = config.pipeline.datamanager.dataparser

@@ -17,14 +17,14 @@ from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.camera import se3_exp
 from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio import export_cameras as export
+from s2camp_ns.nerfstudio.colmap_reconstruction import (
+    cameras_to_reconstruction,
+    export_cameras,
+    reconstruction_to_arrays,
+)
 from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-from s2camp_ns.nerfstudio.export_cameras import (
-    ExportCamerasConfig,
-    cameras_to_reconstruction,
-    reconstruction_to_arrays,
-    refined_training_cameras,
-)
+from s2camp_ns.nerfstudio.export_cameras import ExportCamerasConfig, refined_training_cameras
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 
@@ -122,7 +122,7 @@ def input_arrays(scene: Path, names: list[str]) -> dict:
 def test_unrefined_cameras_reproduce_input_model(scene: Path, downscale: int):
     out = S2CampDataParserConfig(data=scene, downscale_factor=downscale).setup().get_dataparser_outputs("train")
     names = out.metadata["image_names"]
-    reconstruction = export.export_cameras(
+    reconstruction = export_cameras(
         out.cameras, out.dataparser_transform, out.dataparser_scale, names, out.metadata["full_image_size"]
     )
     compare(reconstruction_to_arrays(reconstruction), input_arrays(scene, names), pose_atol=2e-5, rel=2e-6)
@@ -280,7 +280,7 @@ def test_each_camera_model_exports_in_colmap_meaning(scene: Path, tmp_path: Path
     data = scene_with_model(scene, tmp_path, model)
     out = S2CampDataParserConfig(data=data).setup().get_dataparser_outputs("train")
     names = out.metadata["image_names"]
-    reconstruction = export.export_cameras(out.cameras, out.dataparser_transform, out.dataparser_scale, names)
+    reconstruction = export_cameras(out.cameras, out.dataparser_transform, out.dataparser_scale, names)
     (tmp_path / "unrefined").mkdir()
     reconstruction.write_binary(str(tmp_path / "unrefined"))
     loaded = pycolmap.Reconstruction(str(tmp_path / "unrefined"))
@@ -301,7 +301,7 @@ def test_each_camera_model_exports_in_colmap_meaning(scene: Path, tmp_path: Path
         phi[:, 10:] = torch.tensor([0.004, -0.001, 2e-4, 3e-5, 2e-4, -3e-4])
         optimizer.whitened_delta.copy_((optimizer.precond @ phi[:, list(layout.indices), None])[..., 0])
     refined = optimizer.refine_cameras(out.cameras)
-    reconstruction = export.export_cameras(refined, out.dataparser_transform, out.dataparser_scale, names)
+    reconstruction = export_cameras(refined, out.dataparser_transform, out.dataparser_scale, names)
     intrinsics = optimizer.refined_intrinsics().detach()
     points = torch.tensor([[[0.1, -0.2, 1.0], [0.3, 0.2, 2.0], [-0.25, 0.1, 1.5]]], dtype=torch.float64)
     for index, name in enumerate(names):

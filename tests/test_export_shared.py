@@ -6,7 +6,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from s2camp_ns.nerfstudio.export_cameras import cameras_to_reconstruction, reconstruction_to_arrays
+from s2camp_ns.nerfstudio.colmap_reconstruction import cameras_to_reconstruction, reconstruction_to_arrays
 
 
 def _poses(n: int) -> np.ndarray:

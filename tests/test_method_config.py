@@ -65,7 +65,6 @@ def test_camp_baseline_differs_only_in_camera_sampling():
     # s2camp keeps good cameras in place by default (track prior, common rotation removed); CamP's code has neither.
     assert (s2camp_camera.track_prior, s2camp_camera.fix_common_rotation) == (True, True)
     assert (camp_camera.track_prior, camp_camera.fix_common_rotation) == (False, False)
-    assert not s2camp_camera.fix_common_dolly
     aligned = dataclasses.replace(
         camp,
         method_name=s2camp.method_name,

@@ -10,6 +10,7 @@ import pytest
 
 from s2camp_ns.benchmarks.robustness import (
     SCENES,
+    STARTS,
     VARIANTS,
     RobustnessConfig,
     RunSpec,
@@ -43,7 +44,6 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     }
     rotation = "--pipeline.model.camera-optimizer.fix-common-rotation"
     prior = "--pipeline.model.camera-optimizer.track-prior"
-    damping = "--pipeline.model.camera-optimizer.damping.damping-rel"
     # Every s2camp variant but the default states both candidate options, so it keeps its meaning when a default
     # changes; "s2camp" and the baselines take the method's own defaults.
     photometric = "--pipeline.model.camera-optimizer.photometric"
@@ -54,14 +54,6 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
         "s2camp-photometric": {rotation: "True", prior: "False"},
         "s2camp-camp-prior": {rotation: "True", prior: "True"},
         "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True"},
-        "s2camp-free": {rotation: "False", prior: "False"},
-        "s2camp-track-prior": {rotation: "False", prior: "True"},
-        "s2camp-damped": {damping: "1.0", rotation: "False", prior: "False"},
-        "s2camp-damped-gauge": {damping: "1.0", rotation: "True", prior: "False"},
-        "s2camp-damped-gauge-prior": {damping: "1.0", rotation: "True", prior: "True"},
-        "s2camp-gauge-dolly-prior": {
-            rotation: "True", "--pipeline.model.camera-optimizer.fix-common-dolly": "True", prior: "True",
-        },
     }  # fmt: skip
     assert camera_options == expected_options.get(variant, {})
     tail = command[command.index("s2camp-data") :]
@@ -245,18 +237,27 @@ def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path:
     assert (tmp_path / "regime.png").exists()
 
 
-def test_report_names_rows_of_settings_that_no_longer_run_only_when_present(tmp_path: Path) -> None:
+def test_report_lists_rows_of_variants_and_starts_that_no_longer_run_apart(tmp_path: Path) -> None:
+    """Committed rows of names no longer runnable still render, in their own table after the results, and their
+    comparison with refinement off is that of the whole grid."""
+    from s2camp_ns.benchmarks.common import NO_LONGER_RUN_HEADING
     from s2camp_ns.benchmarks.robustness import report
 
     extra = {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
     rows = [_row("sfm", "off", 0, 20.0, 0.1, 0.1) | extra]
     config = RobustnessConfig(preset="regime", output_dir=tmp_path)
     assert "no longer run" not in report(rows, config).read_text()
-    rows.append(_row("sfm", "s2camp-track-prior-given", 0, 20.0, 0.1, 0.1) | extra)
-    rows.append(_row("sfm", "s2camp-gauge-prior-rms", 0, 20.0, 0.1, 0.1) | extra)
-    text = " ".join(report(rows, config).read_text().split())
-    assert "Rows of settings that no longer run: s2camp-gauge-prior-rms: the common rotation removed" in text
-    assert "; s2camp-track-prior-given: the track prior anchored at the given cameras" in text
+    assert "s2camp-damped" not in VARIANTS and "phone-iid" not in STARTS  # committed names, no longer runnable
+    rows.append(_row("sfm", "s2camp-damped", 0, 21.0, 0.1, 0.1) | extra)
+    rows.append(_row("phone-iid", "s2camp", 0, 22.0, 0.1, 1.0) | extra)
+    text = report(rows, config).read_text()
+    results, old = text.split(NO_LONGER_RUN_HEADING)
+    assert "| regime-wide | sfm | off | 1 |" in results
+    assert "s2camp-damped" not in results and "phone-iid" not in results
+    assert 'docs/RESULTS.md, "Names that no longer run"' in old
+    assert "| regime-wide | sfm | s2camp-damped | 1 |" in old
+    assert "+1.00 dB (1 seed, no spread)" in old  # against the sfm start's off row
+    assert "| regime-wide | phone-iid | s2camp | 1 |" in old and "rot 90%" in old  # a start refinement must correct
 
 
 def test_a_work_folder_keeps_its_rows_and_a_rerun_skips_the_finished_runs(tmp_path: Path) -> None:
@@ -271,3 +272,26 @@ def test_a_work_folder_keeps_its_rows_and_a_rerun_skips_the_finished_runs(tmp_pa
     done, pending = resume(specs, tmp_path)
     assert done == [finished] and pending == specs[1:]
     assert (tmp_path / ROWS_FILE).read_text().count("\n") == 2  # nothing removed
+
+
+def test_every_committed_name_that_no_longer_runs_is_described_in_the_results() -> None:
+    """The reports list committed rows of names no longer runnable apart and point to docs/RESULTS.md for what each
+    ran: every such variant and start of the committed rows files has its line there."""
+    import json
+    import re
+
+    from s2camp_ns.benchmarks import splat_bench
+
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "RESULTS.md").read_text(encoding="utf8").split("## Names that no longer run")[1]
+    described = set(re.findall(r"^\| `([^`]+)` \|", text, flags=re.M))
+    benchmarks = (
+        ("regime-rows.jsonl", VARIANTS, STARTS),
+        ("splat-rows.jsonl", splat_bench.VARIANTS, splat_bench.STARTS),
+    )
+    for name, variants, starts in benchmarks:
+        lines = (root / "docs" / "benchmarks" / name).read_text(encoding="utf8").splitlines()
+        rows = [json.loads(line) for line in lines if line.strip()]
+        old = {row["variant"] for row in rows if row["variant"] not in variants}
+        old |= {row["start"] for row in rows if row["start"] not in starts}
+        assert old and old <= described, (name, sorted(old - described))

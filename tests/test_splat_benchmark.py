@@ -13,7 +13,6 @@ import pytest
 from hang_guard import HANG_GUARD_S
 
 from s2camp_ns.benchmarks.splat_bench import (
-    CANDIDATE_VARIANTS,
     SCENES,
     STARTS,
     VARIANTS,
@@ -39,7 +38,7 @@ def _command(variant: str, start: str, **config) -> list[str]:
 
 
 @pytest.mark.parametrize("start", STARTS)
-@pytest.mark.parametrize("variant", [*VARIANTS, *CANDIDATE_VARIANTS])
+@pytest.mark.parametrize("variant", VARIANTS)
 def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_options(variant: str, start: str) -> None:
     command = _command(variant, start, iterations=900)
     assert command[1] == ("s2camp-splat-so3xr3" if variant == "s2camp-splat-so3xr3" else "s2camp-splat")
@@ -55,22 +54,6 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     if variant == "splat-off":
         assert camera_options == ["--pipeline.model.camera-optimizer.mode"]
         assert _option(command, "--pipeline.model.camera-optimizer.mode") == "off"
-    elif variant == "s2camp-splat-damped-gauge":  # the real-regime candidate: damping 1.0, no track prior
-        assert camera_options == [
-            "--pipeline.model.camera-optimizer.damping.damping-rel",
-            "--pipeline.model.camera-optimizer.track-prior",
-        ]
-        assert _option(command, "--pipeline.model.camera-optimizer.damping.damping-rel") == "1.0"
-        assert _option(command, "--pipeline.model.camera-optimizer.track-prior") == "False"
-    elif variant == "s2camp-splat-gauge":  # the default without its track prior
-        assert camera_options == ["--pipeline.model.camera-optimizer.track-prior"]
-        assert _option(command, "--pipeline.model.camera-optimizer.track-prior") == "False"
-    elif variant == "s2camp-splat-plain":  # neither the rotation fix nor the prior
-        assert camera_options == [
-            "--pipeline.model.camera-optimizer.fix-common-rotation",
-            "--pipeline.model.camera-optimizer.track-prior",
-        ]
-        assert _option(command, "--pipeline.model.camera-optimizer.fix-common-rotation") == "False"
     else:
         assert camera_options == []
     # The compressed schedule: 900 of splatfacto's 30000 steps = 3 %.
@@ -267,13 +250,17 @@ def test_report_says_which_rows_were_rebuilt_from_logs(tmp_path: Path) -> None:
     assert "1 row(s) were rebuilt from their run's log line" in text
 
 
-def test_report_names_rows_of_settings_that_no_longer_run_only_when_present(tmp_path: Path) -> None:
+def test_report_lists_rows_of_variants_that_no_longer_run_apart(tmp_path: Path) -> None:
+    from s2camp_ns.benchmarks.common import NO_LONGER_RUN_HEADING
     from s2camp_ns.benchmarks.splat_bench import SplatBenchConfig, report
 
     rows = [_row("sfm", variant, 0, **REPORT_FIELDS) for variant in ("splat-off", "s2camp-splat")]
     config = SplatBenchConfig(output_dir=tmp_path)
     assert "no longer run" not in report(rows, config).read_text()
     rows.append(_row("sfm", "s2camp-splat-prior-rms", 0, **REPORT_FIELDS))
-    text = " ".join(report(rows, config).read_text().split())
-    assert "Rows of settings that no longer run: s2camp-splat-prior-rms: s2camp-splat's defaults as they were" in text
-    assert "| sfm | s2camp-splat-prior-rms | 1 |" in text
+    with pytest.raises(ValueError, match="variants"):
+        SplatBenchConfig(variants=("s2camp-splat-prior-rms",)).validate()
+    results, old = report(rows, config).read_text().split(NO_LONGER_RUN_HEADING)
+    assert "| sfm | s2camp-splat | 1 |" in results and "s2camp-splat-prior-rms" not in results
+    assert 'docs/RESULTS.md, "Names that no longer run"' in old
+    assert "| sfm | s2camp-splat-prior-rms | 1 |" in old

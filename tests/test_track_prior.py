@@ -216,7 +216,8 @@ def test_perturbed_cameras_never_get_the_tracks_of_the_unperturbed_ones(tiny_sce
     """The scene's tracks were made with the true cameras: a prior on them would lead perturbed cameras back to the
     reference. Perturbed cameras get tracks made from the images with the perturbed cameras, or none, and the log
     says which."""
-    import s2camp_ns.nerfstudio.dataparser as dataparser
+    import s2camp_ns.nerfstudio.track_evidence as track_evidence
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
     from s2camp_ns.nerfstudio.image_tracks import ImageTracks
 
     asked = []
@@ -225,9 +226,9 @@ def test_perturbed_cameras_never_get_the_tracks_of_the_unperturbed_ones(tiny_sce
         asked.append(given)
         return ImageTracks(None, reason="not built in this test")
 
-    monkeypatch.setattr(dataparser, "image_tracks", fake_image_tracks)
-    monkeypatch.setattr(dataparser, "_SHOWN", set())  # the notes are shown once per process: earlier tests saw them
-    config = dataparser.S2CampDataParserConfig(data=tiny_scene, image_tracks="never")
+    monkeypatch.setattr(track_evidence, "image_tracks", fake_image_tracks)
+    monkeypatch.setattr(track_evidence, "_SHOWN", set())  # the notes are shown once per process: earlier tests saw them
+    config = S2CampDataParserConfig(data=tiny_scene, image_tracks="never")
     config.perturbation.enabled = True
     capsys.readouterr()
     outputs = config.setup().get_dataparser_outputs("train")
@@ -250,7 +251,7 @@ def test_perturbed_cameras_never_get_the_tracks_of_the_unperturbed_ones(tiny_sce
     scale = float(outputs.dataparser_scale)
     perturbed = c2w_to_colmap_world(outputs.cameras.camera_to_worlds, outputs.dataparser_transform, scale)
     torch.testing.assert_close(centres, perturbed[:, :, 3].double(), atol=1e-5, rtol=0.0)
-    unperturbed = dataparser.S2CampDataParserConfig(data=tiny_scene, image_tracks="never").setup()
+    unperturbed = S2CampDataParserConfig(data=tiny_scene, image_tracks="never").setup()
     reference = unperturbed.get_dataparser_outputs("train").cameras.camera_to_worlds
     assert float((reference - outputs.cameras.camera_to_worlds).abs().max()) > 1e-3  # they were perturbed
 
@@ -260,12 +261,10 @@ def _moved_cameras_with_exact_tracks(scene, **optimizer_options):
     cameras these tracks), an S2CamP optimizer on them with the exact tracks' prior, and the true cameras."""
     from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
     from s2camp_ns.core.perturbation import PerturbationConfig
-    from s2camp_ns.nerfstudio.dataparser import (
-        S2CampDataParserConfig,
-        colmap_track_evidence,
-        detect_format,
-        perturb_nerfstudio_cameras,
-    )
+    from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.nerfstudio.scene_formats import detect_format
+    from s2camp_ns.nerfstudio.track_evidence import colmap_track_evidence
 
     config = S2CampDataParserConfig(data=scene, image_tracks="never")
     outputs = config.setup().get_dataparser_outputs("train")

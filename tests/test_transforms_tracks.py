@@ -39,7 +39,9 @@ def perturbed_with_scene_tracks(data: Path, **options):
     import dataclasses
 
     from s2camp_ns.core.perturbation import PerturbationConfig
-    from s2camp_ns.nerfstudio.dataparser import colmap_track_evidence, detect_format, perturb_nerfstudio_cameras
+    from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
+    from s2camp_ns.nerfstudio.scene_formats import detect_format
+    from s2camp_ns.nerfstudio.track_evidence import colmap_track_evidence, transforms_track_evidence
 
     config = S2CampDataParserConfig(data=data, image_tracks="never", **options)
     parser = config.setup()
@@ -49,7 +51,7 @@ def perturbed_with_scene_tracks(data: Path, **options):
     if data_format == "colmap":
         result = colmap_track_evidence(moved, source, outputs.metadata["image_names"], outputs)
     else:
-        result = parser._transforms_track_rms(source, moved, outputs, outputs.metadata)
+        result = transforms_track_evidence(config, source, moved, outputs, outputs.metadata["downscale_factor"])
     assert result is not None, "the scene's tracks must be found"
     metadata = dict(outputs.metadata, reference_cameras=outputs.cameras, perturbed=True)
     metadata["track_rms_px"], metadata["track_evidence"] = result

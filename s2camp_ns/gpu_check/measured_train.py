@@ -71,7 +71,7 @@ def leave_out_stock_lpips() -> None:
 
 def evaluate(pipeline, alignment) -> dict:
     """Camera errors (start and final) and held-out PSNR of a trained pipeline, S2CamP's or stock nerfacto's."""
-    from s2camp_ns.benchmarks.robustness import evaluate_pipeline
+    from s2camp_ns.nerfstudio.evaluation import evaluate_pipeline
     from s2camp_ns.nerfstudio.model import S2CampModel
 
     from .stock_nerfacto import StockNerfactoPipeline

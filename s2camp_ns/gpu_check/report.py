@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from s2camp_ns.benchmarks.common import markdown_table, write_report
+from s2camp_ns.report import markdown_table, write_report
 
 MISSING = "-"
 

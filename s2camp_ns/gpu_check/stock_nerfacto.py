@@ -1,6 +1,6 @@
 """A stock ``nerfacto`` pipeline seen through the interface S2CamP's evaluation reads.
 
-The evaluation of the benchmarks (``s2camp_ns.benchmarks.robustness.evaluate_pipeline``: camera errors, held-out
+The evaluation of the benchmarks (``s2camp_ns.nerfstudio.evaluation.evaluate_pipeline``: camera errors, held-out
 views after test-time alignment) asks the model for its training cameras as given (``_train_cameras``), the
 unperturbed ones (``reference_cameras``) and the refined ones (``refined_train_cameras``); ``S2CampModel`` has them.
 Stock nerfacto trained on ``s2camp-data`` has the same information elsewhere: the cameras in its data manager, the

@@ -7,7 +7,7 @@ Pixels. COLMAP's keypoints are in the pixels of the model's cameras (their decla
 centre at (0.5, 0.5)). The training cameras describe the images the parser reads, which may be a downscaled folder
 whose sizes were rounded (mip-NeRF 360's ``images_4``: 3114 x 2075 -> 779 x 519, per-axis ratios 779 / 3114 and
 519 / 2075, not 1 / 4). The data parser fits the cameras' intrinsics to those images by the per-axis ratio
-(``dataparser._fit_intrinsics_to_images``), so the keypoints must be scaled by the same ratio, not by the downscale
+(``scene_formats.fit_intrinsics_to_images``), so the keypoints must be scaled by the same ratio, not by the downscale
 factor: with 1 / k a rounded folder's tracks would disagree with exact cameras by up to half a pixel at the image
 border and the anchor fit would refit the intrinsics to absorb it. In this pixel convention (pixel edges at
 integers) a resize by (sx, sy) maps u -> sx u and v -> sy v exactly, as it maps fx, cx -> sx fx, sx cx.

@@ -5,7 +5,8 @@
 The refined cameras (pose, intrinsics and distortion) come from the camera optimizer of the trained pipeline
 (``refine_cameras(train_cameras)`` of S2CamP's optimizer; nerfstudio's pose-only
 ``apply_to_camera`` otherwise). nerfstudio's normalization (dataparser transform and scale) is undone, the camera
-axes are flipped from OpenGL to OpenCV, and a COLMAP model is written with pycolmap: one COLMAP camera per physical
+axes are flipped from OpenGL to OpenCV, and a COLMAP model is written with pycolmap
+(``colmap_reconstruction.export_cameras``): one COLMAP camera per physical
 camera when the intrinsics were refined per camera (the default), one per image otherwise. The distortion is
 written in COLMAP's meaning (``core.colmap_models``): with
 ``camera_model auto`` fisheye cameras become OPENCV_FISHEYE (k1..k4), perspective ones RADIAL when fx = fy and
@@ -18,167 +19,16 @@ Skew is not representable in COLMAP and is dropped.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
-import pycolmap
 import torch
 import tyro
-from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
-from torch import Tensor
 
-from s2camp_ns.camera_optimizer import group_identical_intrinsics, projection_of
-from s2camp_ns.core.colmap_models import colmap_model_for, colmap_to_values, values_to_colmap
-from s2camp_ns.nerfstudio.colmap_world import c2w_to_colmap_world
-
-CameraModel = Literal["auto", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"]
-CAMERA_MODELS: tuple[str, ...] = ("auto", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
-DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
-
-
-def _as_numpy(name: str, value, n: int) -> np.ndarray:
-    array = np.asarray(value.detach().cpu().double() if isinstance(value, Tensor) else value, dtype=np.float64)
-    array = np.broadcast_to(array.reshape(-1) if array.size == n else array, (n,)).copy()
-    if not np.isfinite(array).all():
-        raise ValueError(f"{name} must be finite, got {array[~np.isfinite(array)][0]}")
-    return array
-
-
-def cameras_to_reconstruction(
-    c2w_opencv: Float[Tensor, "n 3 4"] | np.ndarray,
-    fx,
-    fy,
-    cx,
-    cy,
-    width,
-    height,
-    image_names: list[str],
-    k1=0.0,
-    k2=0.0,
-    camera_model: CameraModel = "auto",
-    points_xyz: np.ndarray | None = None,
-    points_rgb: np.ndarray | None = None,
-    k3=0.0,
-    k4=0.0,
-    p1=0.0,
-    p2=0.0,
-    projection: str = "perspective",
-    camera_ids: Sequence[int] | None = None,
-) -> pycolmap.Reconstruction:
-    """COLMAP reconstruction from OpenCV camera-to-world poses and intrinsics: one COLMAP camera per physical
-    camera (images with the same ``camera_ids`` entry share one; their intrinsics must agree), or one per image
-    when ``camera_ids`` is None.
-
-    Intrinsics are scalars or length-N sequences in pixels; distortion coefficients mean what they mean in
-    ``core.camera`` for ``projection`` ("perspective" or "fisheye"). ``camera_model`` auto picks the simplest model
-    that holds every camera (``core.colmap_models.colmap_model_for``): OPENCV_FISHEYE for fisheye cameras, else
-    RADIAL (f, cx, cy, k1, k2) when fx = fy and p1 = p2 = 0 for every camera, OPENCV (+ fy, p1, p2), or FULL_OPENCV
-    (+ k3) when some camera has k3.
-    """
-    c2w = np.asarray(
-        c2w_opencv.detach().cpu().double() if isinstance(c2w_opencv, Tensor) else c2w_opencv, dtype=np.float64
-    )
-    if c2w.ndim != 3 or c2w.shape[1:] != (3, 4):
-        raise ValueError(f"c2w_opencv must have shape [N, 3, 4], got {c2w.shape}")
-    n = c2w.shape[0]
-    if len(image_names) != n:
-        raise ValueError(f"image_names must have {n} entries (one per camera), got {len(image_names)}")
-    if len(set(image_names)) != n:
-        raise ValueError("image_names must be unique")
-    given = dict(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, k1=k1, k2=k2, k3=k3, k4=k4, p1=p1, p2=p2)
-    values = {name: _as_numpy(name, v, n) for name, v in given.items()}
-    for name in ("fx", "fy", "width", "height"):
-        if (values[name] <= 0).any():
-            raise ValueError(f"{name} must lie in (0, inf), got {values[name][values[name] <= 0][0]:g}")
-    if camera_model not in CAMERA_MODELS:
-        raise ValueError(f"camera_model must be one of {', '.join(map(repr, CAMERA_MODELS))}, got {camera_model!r}")
-    per_camera = [{name: float(array[i]) for name, array in values.items()} for i in range(n)]
-    if camera_model == "auto":
-        # The simplest model that holds every camera (the models nest: RADIAL < OPENCV < FULL_OPENCV).
-        order = ("RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
-        camera_model = max((colmap_model_for(v, projection) for v in per_camera), key=order.index)
-
-    groups = list(range(n)) if camera_ids is None else [int(c) for c in camera_ids]
-    if len(groups) != n:
-        raise ValueError(f"camera_ids must have {n} entries (one per image), got {len(groups)}")
-    colmap_id: dict[int, int] = {}
-    reconstruction = pycolmap.Reconstruction()
-    for i in range(n):
-        v = per_camera[i]
-        if groups[i] in colmap_id:
-            first = per_camera[next(j for j in range(n) if groups[j] == groups[i])]
-            differs = [name for name in values if not math.isclose(v[name], first[name], rel_tol=1e-6, abs_tol=1e-9)]
-            if differs:
-                raise ValueError(
-                    f"image {i} ({image_names[i]}) shares physical camera {groups[i]} but its {differs[0]} is "
-                    f"{v[differs[0]]:.8g}, not {first[differs[0]]:.8g}: shared intrinsics must agree"
-                )
-        else:
-            colmap_id[groups[i]] = len(colmap_id) + 1
-            try:
-                params = values_to_colmap(camera_model, v, projection)
-            except ValueError as error:
-                raise ValueError(f"camera_model {camera_model}: camera {i} ({image_names[i]}): {error}") from error
-            camera = pycolmap.Camera(
-                model=camera_model,
-                width=round(v["width"]),
-                height=round(v["height"]),
-                params=params,
-                camera_id=colmap_id[groups[i]],
-            )
-            reconstruction.add_camera_with_trivial_rig(camera)
-        rotation = c2w[i, :, :3]
-        if abs(np.linalg.det(rotation) - 1.0) > 1e-4:
-            raise ValueError(
-                f"camera {i} ({image_names[i]}) has a rotation with det {np.linalg.det(rotation):.6g}, "
-                "expected a proper rotation (det 1)"
-            )
-        # Re-orthonormalize: float32 poses from nerfstudio are a few 1e-7 off, and COLMAP stores quaternions.
-        u, _, vt = np.linalg.svd(rotation)
-        rotation = u @ vt
-        world_from_cam_t = c2w[i, :, 3]
-        cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation.T), -rotation.T @ world_from_cam_t)
-        image = pycolmap.Image(name=image_names[i], camera_id=colmap_id[groups[i]], image_id=i + 1)
-        reconstruction.add_image_with_trivial_frame(image, cam_from_world)
-    if points_xyz is not None:
-        xyz = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
-        rgb = np.zeros_like(xyz, dtype=np.uint8) if points_rgb is None else np.asarray(points_rgb, dtype=np.uint8)
-        for point, colour in zip(xyz, rgb.reshape(-1, 3), strict=True):
-            reconstruction.add_point3D(point, pycolmap.Track(), colour)
-    return reconstruction
-
-
-def reconstruction_to_arrays(reconstruction: pycolmap.Reconstruction) -> dict[str, np.ndarray | list[str]]:
-    """OpenCV c2w [N, 3, 4], names, models, and fx, fy, cx, cy, k1, k2, k3, k4, p1, p2 (``core.camera`` meaning),
-    width, height of a reconstruction, by image id."""
-    keys = ("names", "models", "c2w", "fx", "fy", "cx", "cy", *DISTORTION, "width", "height")
-    out: dict[str, list] = {key: [] for key in keys}
-    for image_id in sorted(reconstruction.images):
-        image = reconstruction.images[image_id]
-        camera = reconstruction.cameras[image.camera_id]
-        w2c = image.cam_from_world().matrix()
-        rotation = w2c[:, :3].T
-        out["names"].append(image.name)
-        out["c2w"].append(np.concatenate([rotation, (-rotation @ w2c[:, 3])[:, None]], axis=1))
-        model = camera.model.name
-        try:
-            values = colmap_to_values(model, camera.params)
-        except ValueError as error:
-            raise ValueError(f"camera {image.camera_id}: {error}") from error
-        out["models"].append(model)
-        for key in ("fx", "fy", "cx", "cy", *DISTORTION):
-            out[key].append(values[key])
-        out["width"].append(camera.width)
-        out["height"].append(camera.height)
-    return {
-        key: (value if key in ("names", "models") else np.asarray(value, dtype=np.float64))
-        for key, value in out.items()
-    }
+from s2camp_ns.camera_optimizer import group_identical_intrinsics
+from s2camp_ns.nerfstudio.colmap_reconstruction import CameraModel, export_cameras, read_points
 
 
 def refined_training_cameras(pipeline) -> Cameras:
@@ -209,69 +59,6 @@ def refined_training_cameras(pipeline) -> Cameras:
         distortion_params=refined.distortion_params,
         camera_type=refined.camera_type,
     )
-
-
-def _column(tensor: Tensor | None, n: int, index: int | None = None) -> np.ndarray:
-    if tensor is None:
-        return np.zeros(n)
-    array = tensor.detach().cpu().double().numpy()
-    return (array[:, index] if index is not None else array.reshape(n, -1)[:, 0]).astype(np.float64)
-
-
-def export_cameras(
-    cameras: Cameras,
-    dataparser_transform: Tensor,
-    dataparser_scale: float,
-    image_names: list[str],
-    full_image_size: Tensor | None = None,
-    points_xyz: np.ndarray | None = None,
-    points_rgb: np.ndarray | None = None,
-    camera_model: CameraModel = "auto",
-    camera_ids: Sequence[int] | None = None,
-) -> pycolmap.Reconstruction:
-    """Undo nerfstudio's normalization of (refined) training cameras and build the COLMAP reconstruction (one COLMAP
-    camera per ``camera_ids`` entry, or per image).
-
-    With ``full_image_size`` [N, 2] (width, height of the input model's cameras) the intrinsics are rescaled from
-    the training resolution to it, so the model matches the full-size images of the input model.
-    """
-    cameras = cameras.to("cpu")
-    n = cameras.shape[0]
-    c2w = c2w_to_colmap_world(cameras.camera_to_worlds, dataparser_transform, dataparser_scale)
-    width, height = _column(cameras.width, n), _column(cameras.height, n)
-    sx, sy = np.ones(n), np.ones(n)
-    if full_image_size is not None:
-        full = np.asarray(full_image_size, dtype=np.float64).reshape(n, 2)
-        sx, sy = full[:, 0] / width, full[:, 1] / height
-        width, height = full[:, 0], full[:, 1]
-    # nerfstudio's [k1, k2, k3, k4, p1, p2] are core.camera's coefficients for both projections (camera_optimizer's
-    # intrinsics_from_cameras); a perspective k4 (r^8) is refused by the COLMAP mapping.
-    distortion = {name: _column(cameras.distortion_params, n, i) for i, name in enumerate(DISTORTION)}
-    return cameras_to_reconstruction(
-        c2w,
-        fx=_column(cameras.fx, n) * sx,
-        fy=_column(cameras.fy, n) * sy,
-        cx=_column(cameras.cx, n) * sx,
-        cy=_column(cameras.cy, n) * sy,
-        width=width,
-        height=height,
-        image_names=image_names,
-        camera_model=camera_model,
-        points_xyz=points_xyz,
-        points_rgb=points_rgb,
-        projection=projection_of(cameras),
-        camera_ids=camera_ids,
-        **distortion,
-    )
-
-
-def read_points(model_path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """xyz [M, 3] and rgb [M, 3] of a COLMAP model's sparse points."""
-    reconstruction = pycolmap.Reconstruction(str(model_path))
-    ids = sorted(reconstruction.points3D)
-    xyz = np.array([reconstruction.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
-    rgb = np.array([reconstruction.points3D[i].color for i in ids], dtype=np.uint8).reshape(-1, 3)
-    return xyz, rgb
 
 
 @dataclass

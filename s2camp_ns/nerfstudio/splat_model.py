@@ -30,7 +30,7 @@ from torch import Tensor
 
 from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
 from s2camp_ns.core.track_fit import TrackEvidence
-from s2camp_ns.nerfstudio.dataparser import replace_cameras
+from s2camp_ns.nerfstudio.camera_fields import replace_cameras
 from s2camp_ns.nerfstudio.refinement import S2CampRefinementMixin, warn_lpips_unavailable
 from s2camp_ns.splat.intrinsics_view import corrected_viewmat, intrinsics_correction, intrinsics_matrix
 from s2camp_ns.splat.reference_rasterizer import rasterization as reference_rasterization

@@ -1,0 +1,78 @@
+"""A nerfstudio scene (``transforms.json``) read through nerfstudio's parser, validated: an empty scene and missing
+images named, the image sizes checked against the json's ``w`` x ``h`` and the intrinsics fitted to them
+(``scene_formats.fit_intrinsics_to_images``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
+
+from s2camp_ns.nerfstudio.scene_formats import (
+    ParsedSplit,
+    fit_intrinsics_to_images,
+    nerfstudio_parser_options,
+    resolve_downscale,
+)
+
+if TYPE_CHECKING:
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+
+
+def transforms_declared_sizes(source: Path, k: int) -> dict[str, tuple[int, int]]:
+    """Full-size (w, h) of every frame of a transforms.json, keyed by the image path nerfstudio's parser reads at
+    downscale factor k (``images_{k}/<name>`` beside the json for k > 1); the top-level ``w``/``h`` win over a
+    frame's, as in nerfstudio's parser."""
+    with open(source, encoding="utf8") as f:
+        meta = json.load(f)
+    data_dir = source.parent
+    sizes = {}
+    for frame in meta.get("frames", []):
+        file_path = Path(frame["file_path"])
+        path = data_dir / file_path if k == 1 else data_dir / f"images_{k}" / file_path.name
+        w, h = meta["w"] if "w" in meta else frame["w"], meta["h"] if "h" in meta else frame["h"]
+        sizes[os.path.normpath(path)] = (int(w), int(h))
+    return sizes
+
+
+def _transforms_frames(source: Path) -> list:
+    with open(source, encoding="utf8") as f:
+        return list(json.load(f).get("frames", []))
+
+
+def parse_transforms(config: S2CampDataParserConfig, source: Path, split: str) -> tuple[DataparserOutputs, ParsedSplit]:
+    """The split of the transforms.json ``source``: nerfstudio's outputs with the cameras fitted to the images read,
+    and what is known of its images."""
+    k = resolve_downscale(source.parent, config.images_path, config.downscale_factor)
+    ns_config = NerfstudioDataParserConfig(
+        data=source, downscale_factor=k, load_3D_points=False, **nerfstudio_parser_options(config)
+    )
+    try:
+        outputs = Nerfstudio(ns_config).get_dataparser_outputs(split=split)
+    except (AssertionError, IndexError, ValueError, StopIteration) as error:
+        if not _transforms_frames(source):
+            raise ValueError(f"{source} lists no frames: the scene is empty") from error
+        raise
+    missing = [p for p in outputs.image_filenames if not Path(p).is_file()]
+    if missing:
+        raise FileNotFoundError(
+            f"{source} lists image '{missing[0]}', which does not exist ({len(missing)} of "
+            f"{len(outputs.image_filenames)} {split} images missing)"
+        )
+    sizes = transforms_declared_sizes(source, k)
+    declared = [(*sizes[os.path.normpath(p)], f"the w x h in {source}") for p in outputs.image_filenames]
+    cameras = fit_intrinsics_to_images(outputs.cameras, outputs.image_filenames, declared, k)
+    # The frames' declared full size (the transforms.json's w x h): the export's "original" resolution.
+    full_size = torch.tensor([declared_size[:2] for declared_size in declared], dtype=torch.int64)
+    names = [Path(p).name for p in outputs.image_filenames]
+    parsed = ParsedSplit(image_names=names, full_image_size=full_size, downscale_factor=k)
+    return dataclasses.replace(outputs, cameras=cameras), parsed
+
+
+__all__ = ["parse_transforms", "transforms_declared_sizes"]

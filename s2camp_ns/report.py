@@ -1,0 +1,61 @@
+"""Markdown reports of measurements: tables and the report file (the benchmarks' and ``make gpu-check``'s).
+
+A report is ``<folder>/<name>.md``: a title, the command that regenerates it, the line naming the machine it ran on
+(``environment_line``), then its sections. The file is written under a temporary name and renamed, so a reader never
+sees half a report.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import torch
+
+
+def environment_line() -> str:
+    """One line naming the machine the numbers were measured on, and the date."""
+    threads = torch.get_num_threads()
+    device = torch.cuda.get_device_name() if torch.cuda.is_available() else f"CPU ({threads} threads)"
+    return (
+        f"measured {time.strftime('%Y-%m-%d')} on {device}, {platform.machine()}, Python {platform.python_version()}, "
+        f"torch {torch.__version__}"
+    )
+
+
+def format_value(value: object) -> str:
+    """A table cell: floats with 4 significant digits (scientific notation below 1e-3 or from 1e4 on, 0 as is),
+    anything else as ``str``."""
+    if isinstance(value, float):
+        if value == 0 or 1e-3 <= abs(value) < 1e4:
+            return f"{value:.4g}"
+        return f"{value:.3e}"
+    return str(value)
+
+
+def markdown_table(rows: Sequence[dict], columns: Sequence[str], headers: Sequence[str] | None = None) -> str:
+    """A markdown table of ``rows``, one line each, cells ``format_value(row[column])`` (empty where a row lacks
+    the column); ``headers`` name the columns (the column keys when None)."""
+    headers = list(headers or columns)
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    for row in rows:
+        lines.append("| " + " | ".join(format_value(row.get(column, "")) for column in columns) + " |")
+    return "\n".join(lines)
+
+
+def write_report(output_dir: Path, name: str, title: str, command: str, sections: Iterable[str]) -> Path:
+    """Write ``<output_dir>/<name>.md`` (the folder created if needed) and return its path: ``# title``, "Regenerate
+    with `command`." as given, ``environment_line``, then each section, separated by blank lines."""
+    output_dir.mkdir(parents=True, exist_ok=True)
+    path = output_dir / f"{name}.md"
+    body = [f"# {title}", "", f"Regenerate with `{command}`.", "", f"_{environment_line()}_", ""]
+    body.extend(section.rstrip() + "\n" for section in sections)
+    temporary = path.with_suffix(".md.tmp")
+    temporary.write_text("\n".join(body))
+    temporary.replace(path)
+    return path
+
+
+__all__ = ["environment_line", "format_value", "markdown_table", "write_report"]
