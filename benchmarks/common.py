@@ -44,7 +44,7 @@ class FrustumPreset:
 
 
 FRUSTA: dict[str, FrustumPreset] = {
-    # mip-NeRF 360 "room" at 1/4 resolution (docs/DESIGN-NOTES.md sec. 4): about 52 x 36 degrees.
+    # mip-NeRF 360 "room" at 1/4 resolution (docs/DESIGN-NOTES.md sec. 9): about 52 x 36 degrees.
     "room": FrustumPreset("room", "mip-NeRF 360 room, 1/4 res", 793.13, 793.49, 389.25, 259.375, 778, 518),
     # Outdoor-like wide field of view: 90 degrees horizontal, 3:2 aspect.
     "wide": FrustumPreset("wide", "90 deg horizontal, 3:2", 384.0, 384.0, 384.0, 256.0, 768, 512),

@@ -5,7 +5,7 @@ they differ only in the camera optimizer:
 
 - ``s2camp``: 500 deterministic Frolov-lattice points in each camera's frustum, P refreshed during training
   (paper sec. 4), the rotation all cameras share removed and the track prior on (``S2CAMP_CAMERA_OPTIMIZER``);
-- ``s2camp-camp``: the CamP baseline, 5000 random points, P computed once at the start (docs/DESIGN-NOTES.md sec. 3);
+- ``s2camp-camp``: the CamP baseline, 5000 random points, P computed once at the start (docs/DESIGN-NOTES.md sec. 5);
 - ``s2camp-so3xr3``: the nerfacto baseline, nerfstudio's stock SO3xR3 pose optimizer (no intrinsics) with
   nerfacto's camera learning rate, in the same pipeline (data manager, offline LPIPS, camera-error logging), so
   the three are compared with everything else equal.
@@ -100,7 +100,7 @@ S2CAMP_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig(fix_common_rotation=True, 
 """s2camp's camera optimizer: every parameter group, the rotation all cameras share removed after every step and the
 track prior on (a no-op for cameras without SfM tracks). Without these, in the regime real runs train in (each pixel
 seen about once), good SfM cameras ended 2.6x further off in rotation and 1.7x in position; with them they stay
-where SfM put them (docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 13-14). The baselines keep the config's
+where SfM put them (docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 6-7). The baselines keep the config's
 neutral defaults (both off), as their own code has neither."""
 
 s2camp_method = MethodSpecification(

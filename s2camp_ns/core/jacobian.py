@@ -162,7 +162,7 @@ def gram_matrix(
 ) -> tuple[Float[Tensor, "n k k"], Tensor]:
     """Sensitivity Gram matrix Sigma = J^T J (paper eq. 5) in float64, and the number of points used per camera.
 
-    Two choices that eq. 5 leaves open (docs/DESIGN-NOTES.md sec. 2 and 3): pixels are divided by max(W, H), so
+    Two choices that eq. 5 leaves open (docs/DESIGN-NOTES.md sec. 3 and 5): pixels are divided by max(W, H), so
     Sigma does not depend on the image resolution, and the sum is replaced by the mean over the points that project
     inside the image, so Sigma (and with it the effective learning rate) does not grow with the number of points L.
     A camera with no valid point gets Sigma = 0; the preconditioner's damping then keeps P finite.

@@ -34,7 +34,7 @@ Parameter choice
     covering ratio wins. The search cameras are deliberately not the benchmark frusta ("room", "wide"), so the
     benchmarks measure the lattice on cameras it was not tuned on. The choice matters: over 1024 candidates at
     L = 500 the Gram error spans more than a factor of ten, and a lattice chosen for dispersion alone integrates
-    about three times worse than scrambled Sobol points (docs/DESIGN-NOTES.md sec. 5). At run time this module only
+    about three times worse than scrambled Sobol points (docs/DESIGN-NOTES.md sec. 2). At run time this module only
     looks the parameters up in ``_TABLE``; a size without an entry takes the entry of the nearest tabulated size
     (``table_params``), so no search ever runs when training starts and this module imports nothing above
     ``validation``.

@@ -2,10 +2,10 @@
 transforms.json files), so that the track prior anchors their cameras as it anchors SfM's (``core.track_fit``).
 
 Without tracks the photometric loss alone determines a camera's focal length to 1-3 px of 114 in the regime real runs
-train in, from every start (docs/DESIGN-NOTES.md sec. 15), and a camera's focal length and forward motion trade
+train in, from every start (docs/DESIGN-NOTES.md sec. 6), and a camera's focal length and forward motion trade
 against each other. Keypoint tracks determine both: on the regime scene (49 training images of 320x240) the adjustment
 below ends 0.07 degrees and 0.4 px (of 228) from the true cameras, from the phone-pose start and from the true cameras
-alike, closer than pycolmap's own SfM (0.115 degrees, 0.8 px; docs/DESIGN-NOTES.md sec. 16; measured with recipe 2,
+alike, closer than pycolmap's own SfM (0.115 degrees, 0.8 px; docs/DESIGN-NOTES.md sec. 8; measured with recipe 2,
 whose first triangulation kept observations up to 4 px off, 8 px since). Cost: docs/IMAGE-TRACKS.md.
 
 The recipe (pycolmap; SIFT and matching on a CUDA device where pycolmap has CUDA, ``feature_device``, else on the
