@@ -125,7 +125,7 @@ class SceneData:
 
 
 def load_scene(directory: Path) -> SceneData:
-    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
+    from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
     from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 
     parser = S2CampDataParserConfig(data=directory, downscale_factor=1, eval_mode="all").setup()

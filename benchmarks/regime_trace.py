@@ -132,7 +132,7 @@ def camera_path_point(optimizer, reference_c2w_gl, reference_fx) -> dict[str, fl
 
 def trace_run(run: Path) -> list[dict]:
     """One row per checkpoint of ``run`` (module docstring); [] for a run without S2CamP's camera optimizer."""
-    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
+    from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 
     from .recovery_photometric import _load_pipeline
 

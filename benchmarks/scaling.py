@@ -203,7 +203,7 @@ def _one_step(optimizer, indices: torch.Tensor, pixels: torch.Tensor) -> None:
     """Forward and backward of the camera part of one training step for the rays ``indices`` / ``pixels``."""
     from nerfstudio.cameras.rays import RayBundle
 
-    from s2camp_ns.camera_optimizer import PIXEL_KEY
+    from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 
     rays = indices.shape[0]
     bundle = RayBundle(

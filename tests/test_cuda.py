@@ -19,8 +19,9 @@ import torch
 from nerfstudio.cameras.rays import RayBundle
 from test_camera_optimizer import HEIGHT, NUM_CAMERAS, WIDTH, make_cameras
 
-from s2camp_ns.camera_optimizer import PIXEL_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
+from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 
 pytestmark = pytest.mark.cuda
 

@@ -30,12 +30,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 from torch._subclasses.fake_tensor import FakeTensorDeviceMismatchError, FakeTensorMode
 
-from s2camp_ns.camera_optimizer import (
-    PIXEL_KEY,
-    TRAIN_CAMERA_KEY,
-    S2CampCameraOptimizerConfig,
-    intrinsics_from_cameras,
-)
+from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
 from s2camp_ns.core.alignment import camera_errors
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, opengl_to_opencv
 from s2camp_ns.core.drift import reprojection_drift
@@ -50,6 +45,8 @@ from s2camp_ns.core.preconditioner import (
     sample_proxy_points,
 )
 from s2camp_ns.core.proxy_range import proxy_ranges
+from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
+from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 
 NUM_CAMERAS, WIDTH, HEIGHT = 3, 64, 48
 CAMERA_MODELS = {

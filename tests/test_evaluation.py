@@ -11,8 +11,8 @@ import pytest
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
-from s2camp_ns.camera_optimizer import intrinsics_from_cameras
 from s2camp_ns.nerfstudio import evaluation
+from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 
 F64 = torch.float64

@@ -19,11 +19,12 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.plugins.types import MethodSpecification
 
 from s2camp_ns import method_config
-from s2camp_ns.camera_optimizer import PIXEL_KEY, TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
 from s2camp_ns.nerfstudio.model import S2CampModel, S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
+from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 from s2camp_ns.nerfstudio.trainer import S2CampTrainer, S2CampTrainerConfig
 
 

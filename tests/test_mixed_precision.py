@@ -21,8 +21,9 @@ from nerfstudio.cameras.rays import RayBundle
 from test_device_audit import HEIGHT, NUM_CAMERAS, WIDTH, make_cameras, scene_points
 from torch import nn
 
-from s2camp_ns.camera_optimizer import PIXEL_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
+from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 
 TOLERANCE = {torch.float16: 2e-2, torch.bfloat16: 1e-1}
 """Largest accepted relative error ||g_amp - g_32|| / ||g_32|| of each camera latent's gradient (pose and shared

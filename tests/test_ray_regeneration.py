@@ -8,9 +8,10 @@ import pytest
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
-from s2camp_ns.camera_optimizer import PIXEL_KEY, S2CampCameraOptimizer, S2CampCameraOptimizerConfig
+from s2camp_ns.camera_optimizer import S2CampCameraOptimizer, S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
+from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 
 NUM_CAMERAS = 2
 WIDTH, HEIGHT = 80, 60

@@ -96,9 +96,9 @@ def test_given_cameras_miss_their_tracks_by_the_full_size_noise_times_the_folder
 
 
 def test_the_anchor_keeps_the_given_intrinsics_of_a_rounded_folder(rounded_scene) -> None:
-    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
     from s2camp_ns.core.camera import ParameterLayout
     from s2camp_ns.core.track_fit import fit_anchor
+    from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
     from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 
     scene, _ = rounded_scene

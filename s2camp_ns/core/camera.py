@@ -289,6 +289,22 @@ class Intrinsics:
         check_distortion_monotonic(self)
 
 
+def camera_model_of(intrinsics: Intrinsics) -> str:
+    """The COLMAP camera model whose distortion groups the "all" preset refines: OPENCV_FISHEYE for fisheye
+    cameras; FULL_OPENCV when some camera has k3; OPENCV when some camera has p1 or p2; RADIAL otherwise.
+
+    Decided by the values (nerfstudio's cameras do not keep the model's name): an OPENCV camera with
+    p1 = p2 = 0 is a RADIAL camera, as COLMAP's models nest.
+    """
+    if intrinsics.is_fisheye:
+        return "OPENCV_FISHEYE"
+    if bool((intrinsics.k3 != 0).any()):
+        return "FULL_OPENCV"
+    if bool((intrinsics.p1 != 0).any() | (intrinsics.p2 != 0).any()):
+        return "OPENCV"
+    return "RADIAL"
+
+
 def distortion_factor(r2: Tensor, k1: Tensor, k2: Tensor, k3: Tensor | float = 0.0, k4: Tensor | float = 0.0) -> Tensor:
     """Radial polynomial 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 (COLMAP RADIAL / OPENCV; with theta^2 for r^2 the
     fisheye's theta_d / theta). Written so that k3 = k4 = 0 adds an exact zero to the two-coefficient value."""

@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
-from s2camp_ns.camera_optimizer import SUPPORTED_CAMERA_TYPES
 from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
+from s2camp_ns.nerfstudio.camera_conversion import SUPPORTED_CAMERA_TYPES
 from s2camp_ns.nerfstudio.camera_fields import replace_cameras
 
 

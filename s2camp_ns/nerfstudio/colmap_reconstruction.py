@@ -21,8 +21,8 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
-from s2camp_ns.camera_optimizer import projection_of
 from s2camp_ns.core.colmap_models import colmap_model_for, colmap_to_values, values_to_colmap
+from s2camp_ns.nerfstudio.camera_conversion import projection_of
 from s2camp_ns.nerfstudio.colmap_world import c2w_to_colmap_world
 
 CameraModel = Literal["auto", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"]

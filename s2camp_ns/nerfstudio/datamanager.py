@@ -24,7 +24,7 @@ from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils import comms
 from torch import Tensor
 
-from s2camp_ns.camera_optimizer import PIXEL_KEY
+from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 
 
 class PixelRayGenerator(RayGenerator):

@@ -42,10 +42,10 @@ from typing import Literal
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 
-from s2camp_ns.camera_optimizer import camera_model_of, group_identical_intrinsics
-from s2camp_ns.core.camera import Intrinsics
+from s2camp_ns.core.camera import Intrinsics, camera_model_of
 from s2camp_ns.core.perturbation import PerturbationConfig
 from s2camp_ns.core.validation import check_range
+from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics
 from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
 from s2camp_ns.nerfstudio.colmap_scene import parse_colmap
 from s2camp_ns.nerfstudio.reference_model import reference_cameras

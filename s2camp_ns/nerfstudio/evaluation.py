@@ -24,10 +24,10 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.camera_optimizer import intrinsics_from_cameras
 from s2camp_ns.core.alignment import camera_errors
 from s2camp_ns.core.camera import Intrinsics, opengl_to_opencv
 from s2camp_ns.core.drift import reprojection_drift
+from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_held_out_views
 
 

@@ -27,7 +27,7 @@ import torch
 import tyro
 from nerfstudio.cameras.cameras import Cameras
 
-from s2camp_ns.camera_optimizer import group_identical_intrinsics
+from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics
 from s2camp_ns.nerfstudio.colmap_reconstruction import CameraModel, export_cameras, read_points
 
 

@@ -13,9 +13,9 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat
 
-from s2camp_ns.camera_optimizer import projection_of
 from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, colmap_to_values
+from s2camp_ns.nerfstudio.camera_conversion import projection_of
 from s2camp_ns.nerfstudio.camera_fields import replace_cameras
 from s2camp_ns.nerfstudio.colmap_model import model_file, read_model_file
 from s2camp_ns.nerfstudio.colmap_scene import NERFSTUDIO_DISTORTION, distortion_of

@@ -16,8 +16,8 @@ from nerfstudio.cameras.cameras import Cameras
 from PIL import Image
 from torch import Tensor
 
-from s2camp_ns.camera_optimizer import intrinsics_from_cameras
 from s2camp_ns.core.camera import Intrinsics
+from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.nerfstudio.camera_fields import replace_cameras
 
 if TYPE_CHECKING:

@@ -252,7 +252,7 @@ def _ray_held_out_views(dataset) -> list[tuple[Tensor, Float[Tensor, "3 4"], Int
     """(image, OpenGL c2w, intrinsics) of every evaluation image for a ray model, in the reference cameras' frame:
     the evaluation split's reference cameras where the dataparser provides them (the true cameras of
     ``--reference-model``), else the evaluation cameras as given; images and distortion as in the dataset."""
-    from s2camp_ns.camera_optimizer import intrinsics_from_cameras
+    from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 
     cameras = (getattr(dataset, "metadata", None) or {}).get("reference_cameras")
     if cameras is None or cameras.shape[0] != len(dataset):

@@ -23,9 +23,9 @@ from rich.console import Console
 from rich.markup import escape
 from torch import Tensor
 
-from s2camp_ns.camera_optimizer import group_identical_intrinsics, intrinsics_from_cameras
 from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import track_reprojection_rms
+from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics, intrinsics_from_cameras
 from s2camp_ns.nerfstudio.colmap_model import model_file
 from s2camp_ns.nerfstudio.colmap_reconstruction import export_cameras
 from s2camp_ns.nerfstudio.colmap_scene import has_points

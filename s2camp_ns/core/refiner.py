@@ -1,0 +1,685 @@
+"""Preconditioned camera refinement in plain PyTorch (paper sec. 4): ``CameraRefiner``, free of any framework.
+
+The refiner holds whitened deltas phi_hat and maps them to camera-parameter deltas phi = P^-1 phi_hat (paper eq. 15),
+with P = (Sigma + damping)^(1/2) computed from deterministic proxy points in each camera's frustum (paper eq. 20).
+Cameras are the core's: ``Intrinsics``, OpenCV camera-to-world poses [n, 3, 4] and the physical camera of each image.
+Refined camera = base camera plus phi: the pose c2w' = c2w exp(xi) with the local twist xi in the OpenCV camera frame
+(``core.camera``), the intrinsics the additive residual update Phi' = Phi + dPhi (paper sec. 4) of the columns the
+``ParameterLayout`` enables (K = 12, 14 or 15 with the "all" preset, by the cameras' model, ``camera_model_of``).
+
+Two latent layouts share one interface (``PerImageIntrinsics``, ``PerCameraIntrinsics``): intrinsics refined per
+image (CamP's way, P the symmetric root per image, paper eq. 20), or shared by the images of one physical camera (a
+pose latent per image, an intrinsics latent per camera, P the block-triangular factor of ``core.shared_intrinsics``).
+
+P is recomputed (``refresh``) from the current refined intrinsics; the latent is re-expressed so the cameras do not
+move, phi_hat_new = P_new P_old^-1 phi_hat_old, and Adam's moments follow (``core.preconditioner.reexpress_latent``).
+The proxy points' radial range [t_near, t_far] is chosen once per physical camera from the scene's points
+(``core.proxy_range``) unless the sampling config sets it; every refresh uses that stored range.
+
+Checkpoints (``state_dict``) hold phi_hat, P, P^-1, the refresh schedule and the fingerprint of P: the base intrinsics
+and proxy range it was computed for. Loading onto the same cameras continues bit-identically; loading onto other
+cameras or another range flags P as stale (``check_fingerprint``), and ``recompute_stale_preconditioner`` recomputes it
+and re-expresses the latent and Adam's moments before the next step instead of using a stale P.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor, nn
+
+from s2camp_ns.core.camera import (
+    PARAMETER_NAMES,
+    TENSOR_FIELDS,
+    Intrinsics,
+    ParameterLayout,
+    camera_model_of,
+    opengl_to_opencv,
+    se3_exp,
+)
+from s2camp_ns.core.preconditioner import (
+    DampingConfig,
+    Preconditioner,
+    SamplingConfig,
+    compute_preconditioner,
+    reexpress_latent,
+)
+from s2camp_ns.core.proxy_range import ProxyRanges, proxy_ranges
+from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS, compute_shared_preconditioner, reexpress_shared_latents
+from s2camp_ns.core.track_prior import (
+    TrackPriorEvidence,
+    apply_track_prior,
+    place_at_anchor,
+    pooled_intrinsics_radius,
+    span,
+    whitened_anchor,
+)
+
+ROTATION_COLUMNS = [3, 4, 5]
+"""The twist's rotation columns: (rho_x, rho_y, rho_z, omega_x, omega_y, omega_z)."""
+
+
+@dataclass(frozen=True)
+class PriorBlock:
+    """One latent under the track prior: its rows, their anchor in the whitened latent and their radius."""
+
+    latent: nn.Parameter
+    anchor: Tensor
+    radius: Tensor
+
+
+class PerImageIntrinsics:
+    """Every image refines all K columns itself: the latent ``whitened_delta`` [n, K], P the symmetric root of
+    each image's damped Gram (paper eq. 20)."""
+
+    def pose_columns(self, k: int) -> int:
+        return k
+
+    def latent(self, refiner: CameraRefiner, images: Tensor | None) -> Float[Tensor, "m k"]:
+        latent = refiner.whitened_delta if images is None else refiner.whitened_delta[images]
+        return latent.to(torch.float64)
+
+    def base(self, refiner: CameraRefiner, base: Float[Tensor, "n 13"]) -> Float[Tensor, "n 13"]:
+        return base
+
+    def recompute(self, refiner: CameraRefiner, optimizer: torch.optim.Optimizer | None) -> None:
+        """P per image at its refined intrinsics, the latent and Adam's moments re-expressed (``reexpress_latent``)."""
+        device = refiner.precond.device
+        intrinsics = refiner.refined_intrinsics().detach()
+        result = compute_preconditioner(
+            intrinsics, refiner.layout, refiner.sampling, refiner.damping, ranges=refiner.sampling_ranges()
+        )
+        old = Preconditioner(matrix=refiner.precond, inverse=refiner.precond_inv, gram=refiner.gram, num_valid=None)
+        new = Preconditioner(
+            matrix=result.matrix.to(device), inverse=result.inverse.to(device), gram=result.gram, num_valid=None
+        )
+        latent = refiner.whitened_delta
+        state = optimizer.state.get(latent) if optimizer is not None else None
+        reexpress_latent(latent, old, new, state)
+        refiner.precond.copy_(new.matrix)
+        refiner.precond_inv.copy_(new.inverse)
+        refiner.gram.copy_(result.gram.to(device))
+
+    def anchor_mask(self, refiner: CameraRefiner, finite: Tensor) -> Tensor:
+        return finite[:, None].expand(refiner.num_images, refiner.layout.num_params).clone()
+
+    def intrinsics_radius(self, refiner: CameraRefiner, radius: Tensor, observations: Tensor | None) -> Tensor:
+        return refiner.prior_radius_intrinsics  # no intrinsics latent of their own: nothing to scale
+
+    def prior_blocks(self, refiner: CameraRefiner) -> list[PriorBlock]:
+        anchor = whitened_anchor(refiner.precond, refiner.prior_anchor)
+        return [PriorBlock(refiner.whitened_delta, anchor, refiner.prior_radius)]
+
+
+class PerCameraIntrinsics:
+    """The images of a physical camera share its intrinsics (``core.shared_intrinsics``): the pose latent
+    ``whitened_delta`` [n, 6] per image and the intrinsics latent ``whitened_intrinsics`` [C, K - 6] per camera;
+    P is the block upper-triangular T of the camera, stored per image (its images share it)."""
+
+    def pose_columns(self, k: int) -> int:
+        return NUM_POSE_PARAMS
+
+    def latent(self, refiner: CameraRefiner, images: Tensor | None) -> Float[Tensor, "m k"]:
+        """[z_i; w_c]: the pose latent of each image and the intrinsics latent of its camera."""
+        pose, camera_of_image = refiner.whitened_delta, refiner.camera_of_image
+        if images is not None:
+            pose, camera_of_image = pose[images], camera_of_image[images]
+        shared = refiner.whitened_intrinsics.to(torch.float64)[camera_of_image]
+        return torch.cat([pose.to(torch.float64), shared], dim=-1)
+
+    def base(self, refiner: CameraRefiner, base: Float[Tensor, "n 13"]) -> Float[Tensor, "n 13"]:
+        """One set of base intrinsics per physical camera: the mean over its images (they agree for SfM cameras;
+        a per-image perturbation averages out). Images of one camera must have the same size."""
+        index, count_cameras = refiner.camera_of_image, refiner.num_physical_cameras
+        count = torch.bincount(index, minlength=count_cameras).to(base)
+        mean = torch.zeros(count_cameras, base.shape[1], dtype=base.dtype, device=base.device)
+        mean = mean.index_add_(0, index, base) / count[:, None]
+        first = refiner.first_image_of_each_camera()
+        size_mismatch = (base[first][index, 7:9] != base[:, 7:9]).any(dim=-1)
+        if bool(size_mismatch.any()):
+            i = int(torch.nonzero(size_mismatch)[0])
+            j = int(first[index[i]])
+            raise ValueError(
+                f"training image {i} is {int(base[i, 7])}x{int(base[i, 8])} but image {j} of the same physical camera "
+                f"{int(index[i])} is {int(base[j, 7])}x{int(base[j, 8])}: shared intrinsics need one "
+                "image size per camera (or --pipeline.model.camera-optimizer.intrinsics per-image)"
+            )
+        return mean[index]
+
+    def recompute(self, refiner: CameraRefiner, optimizer: torch.optim.Optimizer | None) -> None:
+        """T per physical camera from its refined intrinsics, the latents and Adam's moments re-expressed without
+        moving any camera (``reexpress_shared_latents``)."""
+        device = refiner.precond.device
+        first = refiner.first_image_of_each_camera()
+        intrinsics = refiner.refined_intrinsics().detach()[first]
+        result = compute_shared_preconditioner(
+            intrinsics, refiner.layout, refiner.sampling, refiner.damping, ranges=refiner.sampling_ranges(first)
+        )
+        matrix, inverse = result.matrix.to(device), result.inverse.to(device)  # [C, K, K]
+        states = [None, None]
+        if optimizer is not None:
+            states = [optimizer.state.get(refiner.whitened_delta), optimizer.state.get(refiner.whitened_intrinsics)]
+        reexpress_shared_latents(
+            refiner.whitened_delta, refiner.whitened_intrinsics, refiner.camera_of_image, refiner.precond[first],
+            refiner.precond_inv[first], matrix, inverse, *states,
+        )  # fmt: skip
+        refiner.precond.copy_(matrix[refiner.camera_of_image])
+        refiner.precond_inv.copy_(inverse[refiner.camera_of_image])
+        refiner.gram.copy_(result.gram.to(device)[refiner.camera_of_image])
+
+    def anchor_mask(self, refiner: CameraRefiner, finite: Tensor) -> Tensor:
+        """The pose columns where the image has a prior; the intrinsics columns where any image of its camera has."""
+        keep = finite[:, None].expand(refiner.num_images, refiner.layout.num_params).clone()
+        tracked = torch.zeros(refiner.num_physical_cameras, dtype=torch.bool, device=finite.device)
+        tracked[refiner.camera_of_image[finite]] = True
+        keep[:, NUM_POSE_PARAMS:] = tracked[refiner.camera_of_image][:, None]
+        return keep
+
+    def intrinsics_radius(self, refiner: CameraRefiner, radius: Tensor, observations: Tensor | None) -> Tensor:
+        return pooled_intrinsics_radius(radius, observations, refiner.camera_of_image, refiner.num_physical_cameras)
+
+    def prior_blocks(self, refiner: CameraRefiner) -> list[PriorBlock]:
+        """P is block-triangular, so the images of one camera give the same intrinsics anchor: their first image's."""
+        anchor = whitened_anchor(refiner.precond, refiner.prior_anchor)
+        first = refiner.first_image_of_each_camera()
+        return [
+            PriorBlock(refiner.whitened_delta, anchor[:, :NUM_POSE_PARAMS], refiner.prior_radius),
+            PriorBlock(refiner.whitened_intrinsics, anchor[first, NUM_POSE_PARAMS:], refiner.prior_radius_intrinsics),
+        ]
+
+
+class CameraRefiner(nn.Module):
+    """Whitened camera-parameter deltas, their preconditioner P and its refresh, the track prior and the gauge fix.
+
+    ``parameters``: the refined groups (``ParameterLayout.from_preset``); ``per_camera_intrinsics``: share the
+    intrinsics among the images of a physical camera (``set_camera_groups``) when the layout refines any;
+    ``precondition`` False: P = I (the "no preconditioning" ablation); ``photometric`` False: the latent's gradient is
+    zeroed (the cameras stay at the track prior's anchor); ``enabled`` False: no latent, every delta zero;
+    ``frozen_images``: images whose deltas are held at zero. Call ``set_cameras`` before use.
+    """
+
+    def __init__(
+        self,
+        num_images: int,
+        parameters: str = "all",
+        *,
+        per_camera_intrinsics: bool = True,
+        precondition: bool = True,
+        sampling: SamplingConfig | None = None,
+        damping: DampingConfig | None = None,
+        photometric: bool = True,
+        enabled: bool = True,
+        frozen_images: Int[Tensor, " f"] | None = None,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        super().__init__()
+        self.num_images = num_images
+        self.preset = parameters
+        self.layout = ParameterLayout.from_preset(parameters)
+        self.sampling = sampling or SamplingConfig()
+        self.damping = damping or DampingConfig()
+        self.precondition = precondition
+        self.photometric = photometric
+        self.enabled = enabled
+        self.frozen_images = frozen_images
+        k = self.layout.num_params
+        self.shared = enabled and per_camera_intrinsics and k > NUM_POSE_PARAMS
+        self.latent_layout = PerCameraIntrinsics() if self.shared else PerImageIntrinsics()
+        if enabled:
+            self.whitened_delta = self._latent(torch.zeros(num_images, self.latent_layout.pose_columns(k)), device)
+        if self.shared:  # one physical camera per image until ``set_camera_groups`` says otherwise
+            self.whitened_intrinsics = self._latent(torch.zeros(num_images, k - NUM_POSE_PARAMS), device)
+        self._register_state(k, device)
+        self.projection = "perspective"
+        self.proxy_ranges: ProxyRanges | None = None
+        self.groups_known = False
+        self.has_cameras = False
+        self.has_track_prior = False
+        self.cameras_required = "CameraRefiner.set_cameras must be called before use"
+        """The RuntimeError's message when the cameras are needed and not set (a framework names its own call)."""
+        # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
+        # step (``recompute_stale_preconditioner``), once Adam's moments are loaded too.
+        self._stale_preconditioner: str | None = None
+
+    def _register_state(self, k: int, device: torch.device | str) -> None:
+        """The buffers: P, P^-1 and the schedule (saved: a resumed run continues identically); the base cameras, the
+        Gram, the proxy range and the track prior (from the scene on every run, not saved); P's fingerprint (saved)."""
+        n = self.num_images
+        eye = torch.eye(k, dtype=torch.float64, device=device).expand(n, k, k).clone()
+        self.register_buffer("precond", eye.clone())
+        self.register_buffer("precond_inv", eye.clone())
+        self.register_buffer("last_refresh_step", torch.tensor(-1, dtype=torch.long, device=device))
+        self.register_buffer("num_refreshes", torch.tensor(0, dtype=torch.long, device=device))
+        base_c2w = torch.zeros(n, 3, 4, dtype=torch.float64, device=device)
+        self.register_buffer("base_c2w_cv", base_c2w, persistent=False)
+        base = torch.zeros(n, len(TENSOR_FIELDS), dtype=torch.float64, device=device)
+        self.register_buffer("base_intrinsics", base, persistent=False)
+        # The base intrinsics P was computed for: P depends on the intrinsics only (the Jacobian is taken in the
+        # camera frame), so the base poses need no record.
+        self.register_buffer("precond_base_intrinsics", torch.zeros_like(self.base_intrinsics))
+        # Undamped Gram Sigma of the last refresh (zero until one computes it).
+        self.register_buffer("gram", torch.zeros_like(eye), persistent=False)
+        # Contracted proxy range [t_near, t_far] per image (equal for the images of a physical camera): this run's,
+        # and the one P was computed with (saved with P).
+        no_range = torch.zeros(n, 2, dtype=torch.float64, device=device)
+        self.register_buffer("proxy_range", no_range.clone(), persistent=False)
+        self.register_buffer("precond_proxy_range", no_range.clone())
+        # Physical camera of each image (0..C-1); one camera per image until ``set_camera_groups`` says otherwise.
+        self.register_buffer("camera_of_image", torch.arange(n, device=device), persistent=False)
+        # Track prior radius per image in whitened units and per physical camera (NaN = no prior), and its anchor:
+        # the deltas phi (the layout's columns) where the tracks put each camera; zero = the given camera.
+        no_prior = torch.full((n,), float("nan"), dtype=torch.float64, device=device)
+        self.register_buffer("prior_radius", no_prior, persistent=False)
+        self.register_buffer("prior_radius_intrinsics", no_prior.clone(), persistent=False)
+        anchor = torch.zeros(n, k, dtype=torch.float64, device=device)
+        self.register_buffer("prior_anchor", anchor, persistent=False)
+
+    # ----------------------------------------------------------------------------------------------------- setup
+    def _latent(self, values: Tensor, device: torch.device | str) -> nn.Parameter:
+        """A latent parameter on ``device``; with ``photometric`` False its gradient is zeroed (Adam steps by zero)."""
+        latent = nn.Parameter(values.to(device))
+        if not self.photometric:
+            latent.register_hook(torch.zeros_like)
+        return latent
+
+    @property
+    def num_physical_cameras(self) -> int:
+        return int(self.camera_of_image.max()) + 1 if self.num_images else 0
+
+    def first_image_of_each_camera(self) -> Int[Tensor, " c"]:
+        index = self.camera_of_image
+        first = torch.full((self.num_physical_cameras,), self.num_images, dtype=torch.long, device=index.device)
+        return first.scatter_reduce_(0, index, torch.arange(self.num_images, device=index.device), "amin")
+
+    def set_camera_groups(self, camera_ids: Tensor | list[int]) -> None:
+        """Which images share a physical camera (any integer ids, one per image; relabelled 0..C-1 in order of first
+        appearance). With shared intrinsics this sizes the intrinsics latent [C, m]; call it before the optimizers
+        are built."""
+        ids = torch.as_tensor(camera_ids).reshape(-1)
+        if ids.shape[0] != self.num_images:
+            raise ValueError(f"camera_ids must hold {self.num_images} entries (one per image), got {ids.shape[0]}")
+        _, first = torch.unique(ids, return_inverse=True)
+        order = {}
+        labels = [order.setdefault(int(value), len(order)) for value in first.tolist()]
+        self.camera_of_image = torch.tensor(labels, dtype=torch.long, device=self.precond.device)
+        self.groups_known = True
+        if self.shared:
+            m = self.layout.num_params - NUM_POSE_PARAMS
+            existing = getattr(self, "whitened_intrinsics", None)
+            if existing is None or existing.shape != (len(order), m):
+                self.whitened_intrinsics = self._latent(torch.zeros(len(order), m), self.precond.device)
+
+    def set_camera_model(self, camera_model: str) -> None:
+        """Use the layout of the cameras' COLMAP model (``camera_model_of``): the "all" preset refines its distortion
+        coefficients. Resizes the latents, P, P^-1 and Sigma to the layout's K; a no-op when the layout is unchanged
+        (RADIAL, the default). Call it before an optimizer sees the parameters; ``set_cameras`` calls it again."""
+        layout = ParameterLayout.from_preset(self.preset, camera_model)
+        if layout == self.layout:
+            return
+        self.layout = layout
+        k = layout.num_params
+        device = self.precond.device
+        if self.enabled and self.shared:
+            m = k - NUM_POSE_PARAMS
+            self.whitened_intrinsics = nn.Parameter(torch.zeros(self.num_physical_cameras, m, device=device))
+        elif self.enabled:
+            self.whitened_delta = nn.Parameter(torch.zeros(self.num_images, k, device=device))
+        eye = torch.eye(k, dtype=torch.float64, device=device).expand(self.num_images, k, k).clone()
+        self.precond, self.precond_inv, self.gram = eye.clone(), eye.clone(), torch.zeros_like(eye)
+
+    def set_cameras(
+        self,
+        c2w: Float[Tensor, "n 3 4"],
+        intrinsics: Intrinsics,
+        points: Float[Tensor, "m 3"] | None = None,
+        groups: Int[Tensor, " n"] | None = None,
+        stacklevel: int = 1,
+    ) -> ProxyRanges | None:
+        """Store the base cameras (OpenCV c2w, float64), choose the proxy range from the scene's ``points`` and
+        compute the initial P, or check a P loaded before (``check_fingerprint``).
+
+        ``groups``: physical-camera ids to use where ``set_camera_groups`` was not called (default: images with
+        identical intrinsics share one). Returns the proxy ranges chosen from the points (None: the fixed range).
+        A warning names the caller ``stacklevel`` frames up (1: the caller of ``set_cameras``).
+        """
+        if c2w.shape[0] != self.num_images:
+            raise ValueError(f"cameras must hold {self.num_images} training cameras, got {c2w.shape[0]}")
+        if groups is None:
+            groups = torch.unique(intrinsics.tensors().to(torch.float64), dim=0, return_inverse=True)[1]
+        device = self.precond.device
+        self.base_c2w_cv = c2w.to(torch.float64).to(device)
+        base = intrinsics.tensors().to(device)
+        self.projection = intrinsics.model
+        self.set_camera_model(camera_model_of(intrinsics))
+        if self.shared and not self.groups_known:
+            self.set_camera_groups(groups)
+        self.base_intrinsics = self.latent_layout.base(self, base)
+        chosen, per_image = self.choose_proxy_range(c2w, intrinsics, points, groups)
+        self.proxy_range = per_image.to(device)
+        self.has_cameras = True
+        if int(self.last_refresh_step) < 0:
+            self.refresh(step=0, stacklevel=stacklevel + 1)
+        else:  # a checkpoint was loaded before the cameras were known
+            self.check_fingerprint(stacklevel=stacklevel + 1)
+        return chosen
+
+    def choose_proxy_range(
+        self, c2w: Tensor, intrinsics: Intrinsics, points: Tensor | None, groups: Tensor
+    ) -> tuple[ProxyRanges | None, Float[Tensor, "n 2"]]:
+        """Contracted [t_near, t_far] per image: chosen per physical camera from the points it sees
+        (``core.proxy_range.proxy_ranges``, its images pooled) where the sampling config leaves an end unset, the
+        config's range otherwise. Physical cameras: ``camera_of_image`` when known, else ``groups``. Returns the
+        chosen per-camera ranges (None when fixed) and the range per image."""
+        sampling = self.sampling
+        n = self.num_images
+        if not (sampling.auto and self.enabled and self.precondition):  # P = I needs no range
+            return None, torch.tensor(sampling.fixed_range(), dtype=torch.float64).expand(n, 2).clone()
+        groups = (self.camera_of_image if self.groups_known or self.shared else groups).cpu()
+        c2w = c2w.detach().to(torch.float64).cpu()
+        points = None if points is None else torch.as_tensor(points).detach().to(torch.float64).cpu()
+        intrinsics = intrinsics.detach().to(device="cpu", dtype=torch.float64)
+        ranges = proxy_ranges(
+            points, c2w, intrinsics, groups, sampling.auto_range, sampling.t_near, sampling.t_far, sampling.radial
+        )
+        self.proxy_ranges = ranges
+        return ranges, ranges.stacked()[groups]
+
+    def require_cameras(self) -> None:
+        if not self.has_cameras:
+            raise RuntimeError(self.cameras_required)
+
+    def base_intrinsics_struct(self) -> Intrinsics:
+        return Intrinsics.from_tensors(self.base_intrinsics, model=self.projection)
+
+    # ------------------------------------------------------------------------------------------- refined cameras
+    def deltas(self, images: Int[Tensor, " m"] | None = None) -> Float[Tensor, "m 16"]:
+        """Camera-parameter deltas phi = P^-1 phi_hat (paper eq. 15), all 16 columns, float64, differentiable: of
+        every image, or of ``images`` only (a training step needs those its rays come from)."""
+        count = self.num_images if images is None else images.shape[0]
+        if not self.enabled:
+            return self.precond.new_zeros(count, len(PARAMETER_NAMES))
+        precond_inv = self.precond_inv
+        if images is not None:
+            images = images.to(self.precond.device)
+            precond_inv = precond_inv[images]
+        latent = self.latent_layout.latent(self, images)  # [m, K]
+        phi = (precond_inv @ latent[..., None])[..., 0]
+        if self.frozen_images is not None:
+            keep = torch.ones(self.num_images, 1, dtype=phi.dtype, device=phi.device)
+            keep[self.frozen_images.to(phi.device)] = 0.0
+            phi = phi * (keep if images is None else keep[images])
+        return self.layout.expand(phi)
+
+    def refined_intrinsics(self, deltas: Tensor | None = None, images: Int[Tensor, " m"] | None = None) -> Intrinsics:
+        """Intrinsics Phi' = Phi + dPhi (paper sec. 4), float64, differentiable: of every image, or of ``images``
+        (``deltas`` then holds theirs)."""
+        self.require_cameras()
+        deltas = self.deltas(images) if deltas is None else deltas
+        if images is None:
+            return self.base_intrinsics_struct().with_delta(deltas)
+        base = self.base_intrinsics[images.to(self.precond.device)]
+        return Intrinsics.from_tensors(base, model=self.projection).with_delta(deltas)
+
+    def refined_c2w(
+        self, deltas: Tensor | None = None, opengl: bool = False, images: Int[Tensor, " m"] | None = None
+    ) -> Float[Tensor, "m 3 4"]:
+        """Refined c2w' = c2w exp(xi), float64, OpenCV frame unless ``opengl``: of every image, or of ``images``
+        (``deltas`` then holds theirs)."""
+        self.require_cameras()
+        deltas = self.deltas(images) if deltas is None else deltas
+        base = self.base_c2w_cv if images is None else self.base_c2w_cv[images.to(self.precond.device)]
+        delta = se3_exp(deltas[:, :6])  # [m, 3, 4]
+        rotation = base[:, :, :3] @ delta[:, :, :3]
+        translation = base[:, :, 3:] + base[:, :, :3] @ delta[:, :, 3:]
+        c2w = torch.cat([rotation, translation], dim=-1)
+        return opengl_to_opencv(c2w) if opengl else c2w
+
+    # ------------------------------------------------------------------------------------- track prior, gauge
+    def set_track_prior(self, evidence: TrackPriorEvidence | None) -> None:
+        """The track prior's anchor and scale per image (``core.track_prior``); None: no prior. Scales are stored in
+        whitened units (pixels divided by max(W, H), the Gram matrix's pixel unit, paper eq. 5), the shared
+        intrinsics' as the standard error of their pooled fit. With ``photometric`` False the latent is placed at
+        the anchor."""
+        self.require_cameras()
+        device = self.precond.device
+        radius = torch.full((self.num_images,), float("nan"), dtype=torch.float64, device=device)
+        anchor = torch.zeros(self.num_images, self.layout.num_params, dtype=torch.float64, device=device)
+        observations = None
+        if evidence is not None:
+            anchor = evidence.anchor.to(device)
+            observations = None if evidence.observations is None else evidence.observations.to(device)
+            if evidence.rms_px is not None:
+                radius = evidence.rms_px.to(device) / self.base_intrinsics_struct().image_scale()
+        self.prior_radius = radius
+        finite = torch.isfinite(radius)
+        keep = self.latent_layout.anchor_mask(self, finite)
+        self.prior_anchor = torch.where(keep, anchor, torch.zeros_like(anchor))
+        self.has_track_prior = bool(finite.any())
+        self.prior_radius_intrinsics = self.latent_layout.intrinsics_radius(self, radius, observations)
+        if self.enabled and not self.photometric:
+            for block in self.latent_layout.prior_blocks(self):
+                place_at_anchor(block.latent, block.anchor, block.radius)
+
+    def prior_anchor_latents(self) -> tuple[Float[Tensor, "n j"], Float[Tensor, "c m"] | None]:
+        """The anchor in the whitened latent under the current P (phi_hat = P phi, paper eq. 15): the pose latent
+        per image (all K columns per image) and, with shared intrinsics, the intrinsics latent per physical camera."""
+        blocks = self.latent_layout.prior_blocks(self)
+        return blocks[0].anchor, blocks[1].anchor if len(blocks) > 1 else None
+
+    @torch.no_grad()
+    def apply_track_prior(self, lr: float) -> None:
+        """One proximal step of the track prior after an optimizer step of learning rate ``lr``
+        (``core.track_prior.apply_track_prior``); images without tracks are untouched."""
+        # A Python flag, not a look at the radii: no device synchronisation on the training step's path.
+        if not self.enabled or not self.has_track_prior or lr <= 0:
+            return
+        for block in self.latent_layout.prior_blocks(self):
+            apply_track_prior(block.latent, block.anchor, block.radius, lr)
+
+    @torch.no_grad()
+    def remove_common_motion(self) -> None:
+        """Subtract the mean over trainable images of the rotation part omega of the pose deltas phi, each in its
+        own camera frame, from every image's, in the latent: phi_hat += P[:, :, c] d for the rotation columns c
+        (paper eq. 15; with shared intrinsics the pose rows of the block-triangular P, so no intrinsics change).
+
+        A rotation every camera makes at once is the similarity gauge in disguise, which the photometric loss does
+        not see (docs/DESIGN-NOTES.md sec. 13). Everything else stays; a no-op when disabled or with fewer than
+        three trainable images. With the track prior the rotation is measured from the prior's anchor: the tracks
+        fix the world, so the rotation the anchors share is no gauge and stays."""
+        if not self.enabled:
+            return
+        trainable = torch.ones(self.num_images, dtype=torch.bool, device=self.precond.device)
+        if self.frozen_images is not None:
+            trainable[self.frozen_images.to(trainable.device)] = False
+        if int(trainable.sum()) < 3:
+            return
+        motion = self.deltas()[:, ROTATION_COLUMNS]  # [n, 3]
+        if self.has_track_prior:
+            motion = motion - self.layout.expand(self.prior_anchor)[:, ROTATION_COLUMNS]
+        correction = torch.zeros_like(motion)
+        correction[trainable] = -motion[trainable].mean(dim=0)
+        latent = self.whitened_delta
+        rows = self.precond[:, : latent.shape[1], ROTATION_COLUMNS].to(torch.float64)  # [n, pose columns, 3]
+        latent.add_((rows @ correction[..., None])[..., 0].to(latent.dtype))
+
+    # ------------------------------------------------------------------------------------------------- refresh
+    @torch.no_grad()
+    def refresh(self, step: int, optimizer: torch.optim.Optimizer | None = None, stacklevel: int = 1) -> None:
+        """Recompute P from the current refined intrinsics without moving the cameras (paper sec. 4).
+
+        The latent and Adam's moments are re-expressed in the new basis by ``core.preconditioner.reexpress_latent``
+        (phi = P^-1 phi_hat is unchanged; m_new = M^-T m_old exactly, v mapped with the elementwise square of M^-T,
+        the step count kept, so no full-size step follows a refresh as it would after a state reset).
+
+        The pose columns of the new P are the local-twist Jacobian at the refined pose; for the accumulated twist
+        xi the exact Jacobian differs by SE(3)'s right Jacobian, the identity up to O(|xi|) (small corrections).
+        If the refined intrinsics are invalid (e.g. distortion folding inside the image) P is kept and a warning
+        (naming the caller ``stacklevel`` frames up) says why, so a refresh never stops training.
+        """
+        self.require_cameras()
+        try:
+            self._recompute_preconditioner(optimizer)
+        except ValueError as error:
+            message = f"preconditioner refresh at step {step} skipped, P kept: {error}"
+            warnings.warn(message, stacklevel=stacklevel + 1)
+            return
+        self._stale_preconditioner = None
+        self.last_refresh_step.fill_(step)
+        self.num_refreshes.add_(1)
+
+    @torch.no_grad()
+    def _recompute_preconditioner(self, optimizer: torch.optim.Optimizer | None) -> None:
+        """P at the current refined intrinsics, the latents and Adam's moments re-expressed so that no camera moves;
+        ValueError (nothing changed) if the refined intrinsics admit no P. The fingerprint records the cameras."""
+        if self.precondition and self.enabled:
+            self.latent_layout.recompute(self, optimizer)
+        self.precond_base_intrinsics.copy_(self.base_intrinsics)
+        self.precond_proxy_range.copy_(self.proxy_range)
+
+    def sampling_ranges(self, images: Tensor | None = None) -> Tensor | None:
+        """The stored per-image proxy range for ``compute_preconditioner`` (of ``images`` only if given); None when
+        the config fixes the range (the sampling's own, so a fixed range computes P exactly as it always did)."""
+        if not self.sampling.auto:
+            return None
+        return (self.proxy_range if images is None else self.proxy_range[images]).cpu()
+
+    # ---------------------------------------------------------------------------------------------- checkpoints
+    def check_checkpoint_size(self, state_dict: dict, prefix: str) -> None:
+        saved = state_dict.get(prefix + "precond")
+        if saved is not None and saved.shape[0] != self.num_images:
+            # torch would list a size mismatch per tensor without saying why; the cause is another scene or split.
+            raise ValueError(
+                f"the camera optimizer's checkpoint holds {saved.shape[0]} training cameras, but this model has "
+                f"{self.num_images}: it is a checkpoint of another scene or of another train/eval split"
+            )
+
+    def mark_unrecorded_fingerprint(self, state_dict: dict, prefix: str, missing_keys: list[str]) -> bool:
+        """After loading: a checkpoint without the fingerprint of its P (written before it was recorded) leaves it
+        NaN, unknown. False when the checkpoint holds no P at all (the current one stands)."""
+        if prefix + "precond" not in state_dict:
+            return False
+        for name in ("precond_base_intrinsics", "precond_proxy_range"):
+            if prefix + name not in state_dict:
+                missing_keys.remove(prefix + name)
+                getattr(self, name).fill_(float("nan"))
+        return True
+
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ) -> None:
+        self.check_checkpoint_size(state_dict, prefix)
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+        if self.mark_unrecorded_fingerprint(state_dict, prefix, missing_keys) and self.has_cameras:
+            self.check_fingerprint(stacklevel=2)
+
+    def check_fingerprint(self, stacklevel: int = 1) -> None:
+        """Flag a loaded P that was computed for other base intrinsics or another proxy range; it is never used for
+        a step. The warning names the caller ``stacklevel`` frames up.
+
+        Same fingerprint (a resumed run): the saved P is kept, so the run continues with bit-identical camera
+        parameters. Otherwise the cameras themselves are right (phi = P_old^-1 phi_hat is what was learned), but P
+        does not whiten their Jacobian: ``recompute_stale_preconditioner`` recomputes P at the current refined
+        intrinsics and re-expresses the latents and Adam's moments, as a refresh does, before the next step.
+        """
+        self._stale_preconditioner = None
+        same_intrinsics = torch.equal(self.precond_base_intrinsics, self.base_intrinsics)
+        same_range = torch.equal(self.precond_proxy_range, self.proxy_range)
+        if same_intrinsics and same_range:
+            return
+        if not (self.precondition and self.enabled):  # P = I does not depend on the cameras
+            self.precond_base_intrinsics.copy_(self.base_intrinsics)
+            self.precond_proxy_range.copy_(self.proxy_range)
+            return
+        if not bool(torch.isfinite(self.precond_base_intrinsics).all()):
+            self._stale_preconditioner = "the intrinsics its P was computed for are not recorded (an older checkpoint)"
+        elif not same_intrinsics:
+            self._stale_preconditioner = (
+                f"the training cameras' intrinsics differ from those its P was computed for (largest change "
+                f"{self._largest_intrinsics_change()})"
+            )
+        elif not bool(torch.isfinite(self.precond_proxy_range).all()):
+            self._stale_preconditioner = "the proxy range its P was computed for is not recorded (an older checkpoint)"
+        else:
+            self._stale_preconditioner = (
+                f"the proxy range differs from the one its P was computed for ({self._largest_range_change()})"
+            )
+        warnings.warn(
+            f"loaded camera-optimizer state: {self._stale_preconditioner}; P is recomputed for these cameras before "
+            "the next training step, the latent and Adam's moments re-expressed (the learned camera deltas are kept)",
+            stacklevel=stacklevel + 1,
+        )
+
+    def _largest_intrinsics_change(self) -> str:
+        difference = (self.base_intrinsics - self.precond_base_intrinsics).abs()  # columns: TENSOR_FIELDS
+        camera, column = divmod(int(difference.argmax()), difference.shape[1])
+        return (
+            f"{TENSOR_FIELDS[column]} of camera {camera}: {float(self.precond_base_intrinsics[camera, column]):g} -> "
+            f"{float(self.base_intrinsics[camera, column]):g}"
+        )
+
+    def _largest_range_change(self) -> str:
+        difference = (self.proxy_range - self.precond_proxy_range).abs()
+        image, column = divmod(int(difference.argmax()), 2)
+        name = ("t_near", "t_far")[column]
+        return (
+            f"{name} of image {image}: {float(self.precond_proxy_range[image, column]):g} -> "
+            f"{float(self.proxy_range[image, column]):g}"
+        )
+
+    @property
+    def preconditioner_is_stale(self) -> bool:
+        """True between loading a checkpoint whose P was computed for other cameras and the next training step."""
+        return self._stale_preconditioner is not None
+
+    @torch.no_grad()
+    def recompute_stale_preconditioner(self, step: int, optimizer: torch.optim.Optimizer | None) -> None:
+        """Before a training step: if the loaded P was computed for other cameras, recompute it at the current refined
+        intrinsics and re-express the latents and Adam's (loaded) moments, exactly as a refresh does. Raises
+        ValueError, naming why, if no P exists for these cameras: a stale P is never used."""
+        if self._stale_preconditioner is None:
+            return
+        reason, self._stale_preconditioner = self._stale_preconditioner, None
+        try:
+            self._recompute_preconditioner(optimizer)
+        except ValueError as error:
+            raise ValueError(
+                f"checkpoint cannot be used with these training cameras: {reason}, and P cannot be recomputed for "
+                f"them: {error}"
+            ) from error
+        self.last_refresh_step.fill_(step)
+        self.num_refreshes.add_(1)
+
+
+def describe_proxy_ranges(ranges: ProxyRanges, num_points: int, sampling: SamplingConfig) -> str:
+    """The start-up note on the proxy ranges chosen from ``num_points`` scene points (``CameraRefiner.set_cameras``)."""
+    fixed = sampling.fixed_range()
+    if num_points == 0:
+        return (
+            "S2CamP proxy range: the scene has no points (dataparser metadata 'points3D_xyz'), so every camera "
+            f"uses the fixed contracted range ({fixed[0]:g}, {fixed[1]:g}) (sampling.t-near / t-far set it)"
+        )
+    count = ranges.t_near.shape[0]
+    fell_back = int(ranges.fallback.sum())
+    chosen = "t_near " + span(ranges.t_near) + ", t_far " + span(ranges.t_far)
+    message = f"S2CamP proxy range from {num_points} scene points, {count} physical cameras: {chosen} (contracted)"
+    if fell_back:
+        message += (
+            f"; {fell_back} camera(s) see fewer than {sampling.auto_range.min_points} points and use the fixed "
+            f"range ({fixed[0]:g}, {fixed[1]:g})"
+        )
+    return message
+
+
+__all__ = [
+    "describe_proxy_ranges",
+    "CameraRefiner",
+    "PerCameraIntrinsics",
+    "PerImageIntrinsics",
+    "PriorBlock",
+    "ROTATION_COLUMNS",
+]
