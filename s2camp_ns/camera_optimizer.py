@@ -89,7 +89,7 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     scenes without either through tracks made from their images, ``image_tracks``). On in the ``s2camp`` and
     ``s2camp-splat`` methods (``method_config``), off in this config (the baselines' setting: CamP's and
     nerfstudio's code have no prior); measured on the real-regime grid (``s2camp-bench robustness --preset regime``,
-    docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 12-16)."""
+    docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 6-8)."""
 
     photometric: bool = True
     """Let the photometric loss move the cameras. False (with ``track_prior``): every camera with tracks is placed at
@@ -104,7 +104,7 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     once is the similarity gauge in disguise: with a rotation-translation pair per camera that shifts the image of
     content at the scene's depth by nothing, a common pitch of cameras on a ring equals moving all of them up, and a
     common yaw of forward-facing cameras equals turning the world, neither of which the photometric loss sees
-    (docs/DESIGN-NOTES.md sec. 13). On in the ``s2camp`` and ``s2camp-splat`` methods, off in this config (the
+    (docs/DESIGN-NOTES.md sec. 6). On in the ``s2camp`` and ``s2camp-splat`` methods, off in this config (the
     baselines' setting)."""
 
     def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
@@ -155,7 +155,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         **kwargs,
     ) -> None:
         # Skip CameraOptimizer.__init__: it would create a pose_adjustment parameter that never gets a gradient
-        # and would sit in the "camera_opt" group (grad-scaler trouble, docs/DESIGN-NOTES.md sec. 6).
+        # and would sit in the "camera_opt" group (grad-scaler trouble, docs/DESIGN-NOTES.md sec. 9).
         nn.Module.__init__(self)
         config.validate()
         self.config = config

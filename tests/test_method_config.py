@@ -158,7 +158,7 @@ def tiny_model() -> S2CampModel:
 
 
 def test_every_param_group_receives_gradients(tiny_model: S2CampModel):
-    """The grad scaler needs a gradient in every group (docs/DESIGN-NOTES.md sec. 6), camera_opt included."""
+    """The grad scaler needs a gradient in every group (docs/DESIGN-NOTES.md sec. 9), camera_opt included."""
     tiny_model.train()
     generator = torch.Generator().manual_seed(0)
     num_rays = 64

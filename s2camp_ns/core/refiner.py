@@ -486,7 +486,7 @@ class CameraRefiner(nn.Module):
         (paper eq. 15; with shared intrinsics the pose rows of the block-triangular P, so no intrinsics change).
 
         A rotation every camera makes at once is the similarity gauge in disguise, which the photometric loss does
-        not see (docs/DESIGN-NOTES.md sec. 13). Everything else stays; a no-op when disabled or with fewer than
+        not see (docs/DESIGN-NOTES.md sec. 6). Everything else stays; a no-op when disabled or with fewer than
         three trainable images. With the track prior the rotation is measured from the prior's anchor: the tracks
         fix the world, so the rotation the anchors share is no gauge and stays."""
         if not self.enabled:

@@ -23,7 +23,7 @@ RMS of one, and so each of the O observations by about one; O of them with pixel
 coordinate) determine it to r / sqrt(2 O), r the pooled RMS, i.e. sqrt(sum_i O_i r_i^2) / (sqrt(2) sum_i O_i)
 (``pooled_intrinsics_radius``). The poses keep each image's own noise r_i as theirs (the photometric loss corrects
 poses within it), while the focal length's photometric evidence in the real regime is the biased pull of the dolly
-zoom (docs/DESIGN-NOTES.md sec. 12-14), which the pooled standard error holds to what the tracks determine. Without
+zoom (docs/DESIGN-NOTES.md sec. 6-7), which the pooled standard error holds to what the tracks determine. Without
 observation counts each image counts once.
 """
 

@@ -105,7 +105,7 @@ class S2CampDataParserConfig(DataParserConfig):
     similarity; built once, on the CPU, and cached). auto: where the scene has no SfM tracks (phone exports, hand-made
     or converted transforms.json files); always: in place of the scene's own tracks; never: only the scene's tracks.
     Without tracks the photometric loss leaves the focal length and forward motion barely determined
-    (docs/DESIGN-NOTES.md sec. 15)."""
+    (docs/DESIGN-NOTES.md sec. 6)."""
     image_tracks_cache: Path | None = None
     """Folder of the image tracks' cache (read and written; an error when a build is needed and it cannot be
     written); None: ``s2camp_image_tracks`` in the scene folder (beside the transforms.json), read where it exists,
