@@ -119,3 +119,21 @@ def test_the_core_refiner_imports_no_nerfstudio() -> None:
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "[]", result.stdout
+
+
+def test_without_the_photometric_loss_the_latents_of_another_camera_model_get_no_gradient() -> None:
+    """``photometric`` False zeroes the latents' gradients; an OPENCV model resizes them (its distortion columns), and
+    the resized latents must keep that: before, they were made without the hook and the loss moved the cameras."""
+    points, c2w, intrinsics, true_c2w, truth = scene()
+    observed, _ = project(world_to_camera(true_c2w, points), truth)
+    for per_camera in (True, False):
+        refiner = CameraRefiner(num_images=NUM_IMAGES, per_camera_intrinsics=per_camera, photometric=False)
+        refiner.set_camera_model("OPENCV")
+        assert refiner.layout.num_params > 12  # the OPENCV layout: more columns than RADIAL's
+        refiner.set_cameras(c2w, intrinsics)
+        latents = [refiner.whitened_delta] + ([refiner.whitened_intrinsics] if per_camera else [])
+        points_cam = apply_local_transform(points.expand(NUM_IMAGES, -1, -1), refiner.refined_c2w())
+        pixels, _ = project(points_cam, refiner.refined_intrinsics())
+        (pixels - observed).square().mean().backward()
+        for latent in latents:
+            assert latent.grad is not None and not bool(latent.grad.any()), per_camera

@@ -324,9 +324,9 @@ class CameraRefiner(nn.Module):
         device = self.precond.device
         if self.enabled and self.shared:
             m = k - NUM_POSE_PARAMS
-            self.whitened_intrinsics = nn.Parameter(torch.zeros(self.num_physical_cameras, m, device=device))
+            self.whitened_intrinsics = self._latent(torch.zeros(self.num_physical_cameras, m), device)
         elif self.enabled:
-            self.whitened_delta = nn.Parameter(torch.zeros(self.num_images, k, device=device))
+            self.whitened_delta = self._latent(torch.zeros(self.num_images, k), device)
         eye = torch.eye(k, dtype=torch.float64, device=device).expand(self.num_images, k, k).clone()
         self.precond, self.precond_inv, self.gram = eye.clone(), eye.clone(), torch.zeros_like(eye)
 
