@@ -2,8 +2,8 @@
 
 For each reference frustum ("room": mip-NeRF 360 room camera at 1/4 resolution; "wide": 90 degree horizontal
 field of view, 3:2), each transform ("pyramid", "spherical") and each L, the dispersion (radius of the largest
-empty ball with centre in the contracted frustum, computed by :func:`s2camp_ns.core.dispersion.dispersion` with
-an upper bound) is measured for
+empty ball with centre in the contracted frustum, computed by
+:func:`s2camp_ns.benchmarks.dispersion_bound.dispersion` with an upper bound) is measured for
 
 - ``deterministic``: the Frolov lattice of :func:`s2camp_ns.core.lattice.frolov_lattice` through the transform,
 - ``random``: uniform random points in the cube through the same transform (uniform in the frustum volume),
@@ -23,12 +23,12 @@ from pathlib import Path
 
 import torch
 
-from s2camp_ns.core.dispersion import covering_bound, dispersion, reference_tangent_bounds, transform_volume
 from s2camp_ns.core.frustum import sample_frustum
 from s2camp_ns.core.lattice import frolov_lattice, random_points
 from s2camp_ns.report import markdown_table
 
 from .common import DEFAULT_OUTPUT_DIR, log, write_report
+from .dispersion_bound import covering_bound, dispersion, reference_tangent_bounds, transform_volume
 
 
 @dataclass
@@ -238,7 +238,7 @@ def report(rows: list[dict], config: DispersionConfig) -> Path:
     protocol = (
         "Dispersion = radius of the largest empty ball whose centre lies in the contracted frustum of the transform "
         f"(contracted radius in [{config.t_near}, {config.t_far}]); the ball may stick out of the frustum. Computed "
-        "by branch and bound over frustum-parameter cells (s2camp_ns/core/dispersion.py); the true value lies in "
+        "by branch and bound over frustum-parameter cells (benchmarks/dispersion_bound.py); the true value lies in "
         "[dispersion, dispersion + error_bound] to first order in the final cell size. covering_bound = covering "
         "radius of the ideal body-centred cubic lattice with L points in the frustum volume (no boundary). "
         "'random' = uniform random points in the cube through the same transform, 'camp' = CamP-like random pixel and "

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from s2camp_ns.core.dispersion import (
+from s2camp_ns.benchmarks.dispersion_bound import (
     BCC_COVERING_DENSITY,
     covering_bound,
     dispersion,
