@@ -554,12 +554,12 @@ def summarize(rows: list[dict]) -> list[dict]:
     """One row per scene, start and variant: the metrics over seeds (``Spread``), the PSNR difference against "off"
     (labelled "no difference" when smaller than the larger of the two seed ranges) and, for perturbed starts, the
     fraction of the start error removed (1 - mean final / start; the start is the same for every seed)."""
-    groups: dict[tuple[str, str, str], list[dict]] = {}
+    groups: dict[tuple[str, str, str, str], list[dict]] = {}
     for row in rows:
-        groups.setdefault((row["scene"], row["start"], row["variant"]), []).append(row)
+        groups.setdefault((row["scene"], row["start"], row["variant"], _start_build(row)), []).append(row)
     summary = []
-    for (scene, start, variant), chosen in groups.items():
-        entry = {"scene": scene, "start": start, "variant": variant, "seeds": len(chosen)}
+    for (scene, start, variant, build), chosen in groups.items():
+        entry = {"scene": scene, "start": start, "variant": variant, "build": build, "seeds": len(chosen)}
         entry["seed_list"] = sorted(row["seed"] for row in chosen)
         entry["passes"] = statistics.fmean(row.get("passes", math.nan) for row in chosen)
         for key in METRICS:
@@ -572,11 +572,18 @@ def summarize(rows: list[dict]) -> list[dict]:
             )
         summary.append(entry)
     for entry in summary:
-        reference = (entry["scene"], OFF_REFERENCE_START.get(entry["start"], entry["start"]), "off")
-        off = next((e for e in summary if (e["scene"], e["start"], e["variant"]) == reference), None)
+        reference = (entry["scene"], OFF_REFERENCE_START.get(entry["start"], entry["start"]), "off", entry["build"])
+        off = next((e for e in summary if (e["scene"], e["start"], e["variant"], e["build"]) == reference), None)
         entry["psnr_vs_off"] = math.nan if off is None else entry["psnr"].mean - off["psnr"].mean
         entry["psnr_vs_off_label"] = _difference_label(entry, off)
     return summary
+
+
+def _start_build(row: dict) -> str:
+    """Which SfM reconstruction an sfm row started from (its start rotation error; pycolmap's builds differ between
+    work folders, and rows of different builds are different starts), "" for the other starts: their start is the
+    scene's (accurate, perturbed) or each seed's own draw (phone)."""
+    return f"{row['start_rot_err']:.4g}" if row["start"] == "sfm" else ""
 
 
 def _difference_label(entry: dict, off: dict | None) -> str:

@@ -199,6 +199,22 @@ def test_a_seed_run_twice_is_counted_as_a_run_and_named(tmp_path: Path) -> None:
     assert "| regime-wide | phone | s2camp | 3 | 1.50 |" in text
 
 
+def test_sfm_rows_of_different_reconstructions_are_different_starts() -> None:
+    # pycolmap's builds differ between work folders: rows that started from another build are summarized apart and
+    # compared with refinement off from their own build only; phone seeds, each its own draw, stay one row.
+    rows = [_row("sfm", "off", seed, 25.0 + 0.1 * seed, 0.115, 0.115) for seed in range(2)]
+    rows += [_row("sfm", "s2camp", seed, 25.0, 0.11, 0.115) for seed in range(2)]
+    rows += [_row("sfm", "s2camp", seed, 24.0, 0.129, 0.133) for seed in range(2)]
+    rows += [_row("phone", "s2camp", seed, 26.0, 0.1, 1.0 + seed) for seed in range(3)]
+    summary = summarize(rows)
+    sfm = {entry["start_rot_err"]: entry for entry in summary if entry["start"] == "sfm" and entry["variant"] != "off"}
+    assert sorted(sfm) == [0.115, 0.133] and [sfm[0.115]["seeds"], sfm[0.133]["seeds"]] == [2, 2]
+    assert sfm[0.115]["rot_err"].mean == pytest.approx(0.11) and sfm[0.133]["rot_err"].mean == pytest.approx(0.129)
+    assert sfm[0.115]["psnr_vs_off_label"] == "-0.05 dB (no difference)"
+    assert sfm[0.133]["psnr_vs_off_label"] == ""  # no refinement off from that build
+    assert [entry["seeds"] for entry in summary if entry["start"] == "phone"] == [3]
+
+
 def test_the_untracked_true_cameras_compare_with_refinement_off_from_the_tracked_ones() -> None:
     # Refinement off never reads the tracks: its rows from the true cameras are the untracked start's reference.
     rows = [_row("accurate", "off", seed, 25.0 + 0.1 * seed, 0.0, 0.0) for seed in range(2)]
