@@ -34,8 +34,7 @@ from s2camp_ns.core.validation import check_range
 from s2camp_ns.nerfstudio import camera_conversion, rays
 
 LOG = Console(stderr=True, width=120)
-"""Start-up notes of the optimizer (the chosen proxy range): on stderr, so a caller's stdout (JSON of
-``s2camp-bench``) stays clean."""
+"""Start-up notes (the chosen proxy range), on stderr: a caller's stdout (``s2camp-bench`` JSON) stays clean."""
 TRAIN_CAMERA_KEY = "s2camp_train_camera_index"
 """Cameras metadata key marking a camera as training camera i: the model then renders it fully refined."""
 
@@ -79,33 +78,26 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     rot_l2_penalty: float = 0.0
     """L2 penalty on the raw rotation delta (radians); 0 = none, as in the paper."""
     track_prior: bool = False
-    """Anchor each camera where the scene's SfM tracks put it, with a Gaussian prior in the whitened space whose scale
-    is the tracks' reprojection error there (``set_track_prior``, ``apply_track_prior``): a camera moves about that
-    far from its anchor at most, however long the field pulls. For cameras straight out of SfM the anchor is the
-    given camera and the scale SfM's own error; cameras changed after SfM are anchored where their tracks say they
-    are (a camera-only bundle adjustment against the fixed points, ``core.track_fit``), so the prior guides them
-    there instead of holding them in place. A camera without tracks has no prior. Needs the data parser's
-    ``track_evidence`` (COLMAP scenes with points, ns-process-data transforms.json with their ``colmap/sparse/0``, and
-    scenes without either through tracks made from their images, ``image_tracks``). On in the ``s2camp`` and
-    ``s2camp-splat`` methods (``method_config``), off in this config (the baselines' setting: CamP's and
-    nerfstudio's code have no prior); measured on the real-regime grid (``s2camp-bench robustness --preset regime``,
-    docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 6-8)."""
-
+    """Anchor each camera where the scene's SfM tracks put it: a Gaussian prior in the whitened space, scaled by the
+    tracks' reprojection error there (``set_track_prior``, ``apply_track_prior``), so a camera moves about that far
+    from its anchor at most. Cameras straight out of SfM are anchored at the given camera with SfM's own error;
+    cameras changed after SfM where their tracks put them (camera-only bundle adjustment against the fixed points,
+    ``core.track_fit``). No tracks, no prior. Needs the data parser's ``track_evidence`` (COLMAP scenes with points,
+    ns-process-data transforms.json with ``colmap/sparse/0``, else tracks from the images, ``image_tracks``). On in
+    the ``s2camp`` and ``s2camp-splat`` methods (``method_config``), off here (the baselines': CamP and nerfstudio
+    have no prior); measured in ``s2camp-bench robustness --preset regime`` (docs/benchmarks/regime.md)."""
     photometric: bool = True
     """Let the photometric loss move the cameras. False (with ``track_prior``): every camera with tracks is placed at
     its track prior's anchor (the camera-only adjustment to the tracks, ``core.track_fit``) and stays there, the
     others where they are given: the "tracks alone" baseline, what bundle adjustment gives a user without
     refinement. The latent keeps its gradient, zeroed (Adam then makes no step), so mixed-precision training with
     its gradient scaler runs as for the other settings."""
-
     fix_common_rotation: bool = False
-    """After every step, remove the rotation that all training cameras share (the mean over images of the pose
-    update's rotation, each in its own camera frame; ``remove_common_motion``). A rotation every camera makes at
-    once is the similarity gauge in disguise: with a rotation-translation pair per camera that shifts the image of
-    content at the scene's depth by nothing, a common pitch of cameras on a ring equals moving all of them up, and a
-    common yaw of forward-facing cameras equals turning the world, neither of which the photometric loss sees
-    (docs/DESIGN-NOTES.md sec. 6). On in the ``s2camp`` and ``s2camp-splat`` methods, off in this config (the
-    baselines' setting)."""
+    """After every step, remove the rotation all training cameras share (the mean over images of the pose update's
+    rotation, each in its own frame; ``remove_common_motion``): a common rotation is the similarity gauge in
+    disguise, unseen by the photometric loss (a common pitch of cameras on a ring equals moving them all up, a common
+    yaw of forward-facing cameras turning the world; docs/DESIGN-NOTES.md sec. 6). On in the ``s2camp`` and
+    ``s2camp-splat`` methods, off in this config (the baselines' setting)."""
 
     def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
         return ParameterLayout.from_preset(self.parameters, camera_model)
