@@ -18,11 +18,9 @@ CPU; COLMAP's log in ``colmap.log`` of the cache folder; each stage shown with i
    ``Thresholds``), between every pair of images up to ``EXHAUSTIVE_LIMIT`` images, else between each image and its
    ``NEIGHBOURS`` nearest given cameras that look within 90 degrees of it (``neighbour_pairs``).
 3. Points triangulated with the given cameras, keeping observations up to ``GIVEN_ANGLE_ERROR_DEG`` times the focal
-   length off (the given cameras' error: COLMAP's fixed 4 px drops the observations of cameras a degree off at
-   f 600 px and more, and then no point survives), then ``REFINEMENT_ROUNDS`` rounds of a bundle adjustment of
-   points, poses, focal lengths and distortion (the principal point stays) followed by a new triangulation with the
-   adjusted cameras (bound ``keypoint_px``), and a last bundle adjustment: the points are those of the adjusted
-   cameras.
+   length off (COLMAP's fixed 4 px drops every observation of cameras a degree off at f 600 px and more), then
+   ``REFINEMENT_ROUNDS`` rounds of a bundle adjustment of points, poses, focal lengths and distortion (the principal
+   point stays) and a new triangulation with the adjusted cameras (bound ``keypoint_px``), and a last adjustment.
 4. A similarity (Umeyama on the camera centres, ``core.alignment``) maps the adjusted reconstruction onto the given
    cameras: images do not fix the world's position, orientation and scale, so the tracks keep the given ones.
 
@@ -32,12 +30,10 @@ adjusted cameras become the anchor, each image's reprojection RMS its radius.
 
 Cache. The model is built once per set of images and given cameras, in ``<cache>/<key>``: the key hashes the recipe
 (``RECIPE_VERSION``, pycolmap's version), each image's name, size and modification time and the given cameras
-(intrinsics and poses, every bit). Later runs read it (COLMAP's matcher verifies pairs on several threads, so two
-builds can differ in their last digits; every run of one cache reads the same tracks). A build writes into a temporary
-sibling folder and renames it at the end, so processes that build at once never read half a model, and nothing in
-the cache is ever overwritten. The feature database is deleted once the model is written. Where the cache lives (a
-scene folder that cannot be written has its shipped entries read and new ones built in the user's cache folder) and
-the lock that lets one process build an entry while the others wait for it: ``track_cache``.
+(intrinsics and poses, every bit). Later runs read it (two builds can differ in their last digits: COLMAP verifies
+pairs on several threads). A build writes into a temporary sibling folder renamed at the end, so no process reads half
+a model and no entry is overwritten; the feature database is deleted once the model is written. Where the cache lives
+and the lock that lets one process build an entry while others wait: ``track_cache``.
 """
 
 from __future__ import annotations
@@ -83,23 +79,18 @@ PAIR_ROWS = 1024
 images (8 MB per 1000 images), not the full square (800 MB at 10000 images)."""
 KEYPOINT_ERROR_PX = 4.0
 """Reprojection error (px) a matched keypoint may have at the size SIFT sees its image: the geometric verification's
-RANSAC bound and that of the triangulations with adjusted cameras. COLMAP's default for both, which its pipeline is
-tuned with. SIFT locates keypoints to a fraction of a pixel of the image it is given whatever its size, so the bound
-does not shrink for small images; an image larger than ``MAX_IMAGE_SIZE`` is downsampled by max(W, H) /
-``MAX_IMAGE_SIZE`` for extraction and its keypoints, in full-size pixels, are that much less precise, so the bound
-grows by that factor (``Thresholds``: 4.8 px at 1920 px, 10 px at 4000 px)."""
+RANSAC bound and the adjusted cameras' triangulation bound (COLMAP's default for both). SIFT is sub-pixel at any
+size, so the bound does not shrink for small images; images downsampled for SIFT (``MAX_IMAGE_SIZE``) have keypoints
+that much less precise, so it grows by that factor (``Thresholds``: 4.8 px at 1920 px, 10 px at 4000 px)."""
 GIVEN_ANGLE_ERROR_DEG = 2.0
 """Angle (degrees) by which the given cameras' rays may be off, which the first triangulation (with the given
 cameras) admits as a reprojection error of this angle times the focal length (``Thresholds``). Phone poses are about
-a degree off (1.1 degrees is 25 px at 1920x1440, f 1300 px: six times COLMAP's 4 px, whose filter would drop the
-observations of the cameras the tracks are to correct); twice that, for a focal length a few percent off on top (2%
-turns a ray 40 degrees off the axis by 0.6 degrees). Also the angle COLMAP's triangulator admits between a track's
-rays (its default, 2 degrees)."""
+a degree off (1.1 degrees is 25 px at f 1300 px, six times COLMAP's 4 px); twice that, for a focal length a few
+percent off on top (2% turns a ray 40 degrees off the axis by 0.6 degrees). Also the angle COLMAP's triangulator
+admits between a track's rays (its default)."""
 REFINEMENT_ROUNDS = 3
 """Rounds of bundle adjustment and re-triangulation. On the regime scene, from cameras 0.94 degrees and 4.6 px (2%)
-off, the rotation error after each round was 0.079, 0.072, 0.072 degrees and stayed there for three more; the first
-triangulation keeps observations up to COLMAP's 4 px of the wrong cameras, the later ones refit the tracks to the
-adjusted cameras (4846 points, then 3553)."""
+off, the rotation error after each round was 0.079, 0.072, 0.072 degrees and stayed there for three more."""
 LOSS_SCALE_PX = 1.0
 """Scale (px) of the bundle adjustment's Cauchy loss: residuals beyond it count less than squared, so a few wrong
 matches do not pull the cameras. Against plain least squares, measured (24 images of 240x180 and the regime scene
@@ -119,8 +110,7 @@ cameras anywhere: 16 images of 160x120 gave 14 points, and the adjustment turned
 the focal length."""
 MAX_ROTATION_CHANGE_DEG = 10.0
 """Largest median rotation (degrees) between the adjusted and the given cameras. Phone poses are off by about a degree
-and SfM's by a tenth; beyond ten the images and the given cameras describe different scenes (or the matches are
-wrong), and neither can anchor the other."""
+and SfM's by a tenth; beyond ten the images and the given cameras describe different scenes (or wrong matches)."""
 MAX_CENTRE_CHANGE = 0.25
 """Largest median distance between the adjusted and the given camera centres after the similarity, as a fraction of
 the given centres' spread (RMS distance to their centroid); the phone-pose start: 2%."""
