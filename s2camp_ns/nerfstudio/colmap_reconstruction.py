@@ -69,6 +69,24 @@ def cameras_to_reconstruction(
     RADIAL (f, cx, cy, k1, k2) when fx = fy and p1 = p2 = 0 for every camera, OPENCV (+ fy, p1, p2), or FULL_OPENCV
     (+ k3) when some camera has k3.
     """
+    c2w = _checked_poses(c2w_opencv, image_names)
+    n = c2w.shape[0]
+    given = dict(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, k1=k1, k2=k2, k3=k3, k4=k4, p1=p1, p2=p2)
+    per_camera = _checked_intrinsics(given, n)
+    camera_model = _resolved_model(camera_model, per_camera, projection)
+    groups = list(range(n)) if camera_ids is None else [int(c) for c in camera_ids]
+    if len(groups) != n:
+        raise ValueError(f"camera_ids must have {n} entries (one per image), got {len(groups)}")
+    reconstruction = pycolmap.Reconstruction()
+    _add_cameras_and_images(reconstruction, c2w, per_camera, groups, image_names, camera_model, projection)
+    if points_xyz is not None:
+        _add_points(reconstruction, points_xyz, points_rgb)
+    return reconstruction
+
+
+def _checked_poses(c2w_opencv: Float[Tensor, "n 3 4"] | np.ndarray, image_names: list[str]) -> np.ndarray:
+    """``c2w_opencv`` as float64 numpy [N, 3, 4]; raises ``ValueError`` unless its shape is [N, 3, 4] and
+    ``image_names`` holds N unique names."""
     c2w = np.asarray(
         c2w_opencv.detach().cpu().double() if isinstance(c2w_opencv, Tensor) else c2w_opencv, dtype=np.float64
     )
@@ -79,29 +97,48 @@ def cameras_to_reconstruction(
         raise ValueError(f"image_names must have {n} entries (one per camera), got {len(image_names)}")
     if len(set(image_names)) != n:
         raise ValueError("image_names must be unique")
-    given = dict(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, k1=k1, k2=k2, k3=k3, k4=k4, p1=p1, p2=p2)
+    return c2w
+
+
+def _checked_intrinsics(given: dict, n: int) -> list[dict[str, float]]:
+    """Per camera, each of ``given``'s values (scalars or length-``n`` sequences) as a float, in ``given``'s order;
+    raises ``ValueError`` for non-finite values or fx, fy, width, height not positive."""
     values = {name: _as_numpy(name, v, n) for name, v in given.items()}
     for name in ("fx", "fy", "width", "height"):
         if (values[name] <= 0).any():
             raise ValueError(f"{name} must lie in (0, inf), got {values[name][values[name] <= 0][0]:g}")
+    return [{name: float(array[i]) for name, array in values.items()} for i in range(n)]
+
+
+def _resolved_model(camera_model: str, per_camera: list[dict[str, float]], projection: str) -> str:
+    """``camera_model``, checked, or for "auto" the simplest COLMAP model that holds every camera."""
     if camera_model not in CAMERA_MODELS:
         raise ValueError(f"camera_model must be one of {', '.join(map(repr, CAMERA_MODELS))}, got {camera_model!r}")
-    per_camera = [{name: float(array[i]) for name, array in values.items()} for i in range(n)]
     if camera_model == "auto":
         # The simplest model that holds every camera (the models nest: RADIAL < OPENCV < FULL_OPENCV).
         order = ("RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
         camera_model = max((colmap_model_for(v, projection) for v in per_camera), key=order.index)
+    return camera_model
 
-    groups = list(range(n)) if camera_ids is None else [int(c) for c in camera_ids]
-    if len(groups) != n:
-        raise ValueError(f"camera_ids must have {n} entries (one per image), got {len(groups)}")
+
+def _add_cameras_and_images(
+    reconstruction: pycolmap.Reconstruction,
+    c2w: np.ndarray,
+    per_camera: list[dict[str, float]],
+    groups: list[int],
+    image_names: list[str],
+    camera_model: str,
+    projection: str,
+) -> None:
+    """One COLMAP camera per distinct ``groups`` entry (ids 1.. in first-seen order; the images sharing one must
+    agree on every intrinsic, else ``ValueError``) and image i + 1 per camera i, posed by ``c2w[i]``."""
+    n = len(per_camera)
     colmap_id: dict[int, int] = {}
-    reconstruction = pycolmap.Reconstruction()
     for i in range(n):
         v = per_camera[i]
         if groups[i] in colmap_id:
             first = per_camera[next(j for j in range(n) if groups[j] == groups[i])]
-            differs = [name for name in values if not math.isclose(v[name], first[name], rel_tol=1e-6, abs_tol=1e-9)]
+            differs = [name for name in v if not math.isclose(v[name], first[name], rel_tol=1e-6, abs_tol=1e-9)]
             if differs:
                 raise ValueError(
                     f"image {i} ({image_names[i]}) shares physical camera {groups[i]} but its {differs[0]} is "
@@ -123,9 +160,6 @@ def cameras_to_reconstruction(
             reconstruction.add_camera_with_trivial_rig(camera)
         image = pycolmap.Image(name=image_names[i], camera_id=colmap_id[groups[i]], image_id=i + 1)
         reconstruction.add_image_with_trivial_frame(image, _cam_from_world(c2w[i], i, image_names[i]))
-    if points_xyz is not None:
-        _add_points(reconstruction, points_xyz, points_rgb)
-    return reconstruction
 
 
 def _cam_from_world(c2w: np.ndarray, i: int, name: str) -> pycolmap.Rigid3d:

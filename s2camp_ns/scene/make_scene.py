@@ -321,24 +321,28 @@ def config_record(config: MakeSceneConfig) -> dict:
     return json.loads(json.dumps(record))
 
 
-def make_scene(config: MakeSceneConfig) -> Path:
-    """Generate the scene described by ``config``; return its directory."""
-    camera = make_camera(config)
-    output_dir = Path(config.output_dir)
-    _prepare_output(output_dir)
-    rng = np.random.default_rng(config.seed)
-    poses = ring_poses(config, rng)
-    suffix = "png" if config.image_format == "png" else "jpg"
-    names = [f"frame_{i:05d}.{suffix}" for i in range(config.num_cameras)]
-
+def _write_images(
+    config: MakeSceneConfig, camera: pycolmap.Camera, names: list[str], poses: list[np.ndarray], output_dir: Path
+) -> None:
+    """Render each image at its pose into ``images/`` and its 2x2 box-averaged half into ``images_2/``."""
     for name, pose in zip(names, poses, strict=True):
         image = render_image(config, camera, pose)
         _save(image, output_dir / "images" / name, config.image_format)
         half = image.reshape(config.height // 2, 2, config.width // 2, 2, 3).mean(axis=(1, 3))
         _save(half, output_dir / "images_2" / name, config.image_format)
 
-    xyz, rgb, tracks = sample_points(config, camera, poses, rng)
 
+def _write_sparse(
+    camera: pycolmap.Camera,
+    names: list[str],
+    poses: list[np.ndarray],
+    xyz: np.ndarray,
+    rgb: np.ndarray,
+    tracks: list[list[tuple[int, np.ndarray]]],
+    output_dir: Path,
+) -> None:
+    """The COLMAP model (cameras, images with their keypoints, points3D with their tracks) in ``sparse/0``, binary,
+    image ids 1..n in ``names`` order; only the three files of the mip-NeRF 360 layout are kept."""
     reconstruction = pycolmap.Reconstruction()
     reconstruction.add_camera_with_trivial_rig(camera)
     keypoints: list[list[np.ndarray]] = [[] for _ in poses]
@@ -364,6 +368,17 @@ def make_scene(config: MakeSceneConfig) -> Path:
     for extra in ("rigs.bin", "frames.bin"):  # newer COLMAP extras; the mip-NeRF 360 layout has three files
         (sparse / extra).unlink(missing_ok=True)
 
+
+def _write_poses_bounds(
+    camera: pycolmap.Camera,
+    names: list[str],
+    poses: list[np.ndarray],
+    xyz: np.ndarray,
+    tracks: list[list[tuple[int, np.ndarray]]],
+    output_dir: Path,
+) -> None:
+    """``poses_bounds.npy`` (``llff_poses_bounds``) from the depths of the points each image sees; raises
+    ``RuntimeError`` if an image sees none."""
     depths = [[] for _ in poses]
     for point, track in zip(xyz, tracks, strict=True):
         for index, _ in track:
@@ -374,7 +389,12 @@ def make_scene(config: MakeSceneConfig) -> Path:
             raise RuntimeError(f"image {names[index]} sees no 3D point; raise points_per_image")
     np.save(output_dir / "poses_bounds.npy", llff_poses_bounds(camera, poses, [np.asarray(z) for z in depths]))
 
-    info = {
+
+def _scene_info(
+    config: MakeSceneConfig, camera: pycolmap.Camera, names: list[str], poses: list[np.ndarray], num_points: int
+) -> dict:
+    """The ``scene_info.json`` record: generator, config, world frame, camera, images and their poses."""
+    return {
         "generator": "s2camp_ns.scene.make_scene",
         "version": __version__,
         "config": config_record(config),
@@ -404,8 +424,24 @@ def make_scene(config: MakeSceneConfig) -> Path:
             }
             for index, (name, pose) in enumerate(zip(names, poses, strict=True))
         ],
-        "num_points3D": len(xyz),
+        "num_points3D": num_points,
     }
+
+
+def make_scene(config: MakeSceneConfig) -> Path:
+    """Generate the scene described by ``config``; return its directory."""
+    camera = make_camera(config)
+    output_dir = Path(config.output_dir)
+    _prepare_output(output_dir)
+    rng = np.random.default_rng(config.seed)
+    poses = ring_poses(config, rng)
+    suffix = "png" if config.image_format == "png" else "jpg"
+    names = [f"frame_{i:05d}.{suffix}" for i in range(config.num_cameras)]
+    _write_images(config, camera, names, poses, output_dir)
+    xyz, rgb, tracks = sample_points(config, camera, poses, rng)
+    _write_sparse(camera, names, poses, xyz, rgb, tracks, output_dir)
+    _write_poses_bounds(camera, names, poses, xyz, tracks, output_dir)
+    info = _scene_info(config, camera, names, poses, len(xyz))
     (output_dir / "scene_info.json").write_text(json.dumps(info, indent=2) + "\n")
     return output_dir
 
