@@ -7,9 +7,10 @@ Refined camera = base camera plus phi: the pose c2w' = c2w exp(xi) with the loca
 (``core.camera``), the intrinsics the additive residual update Phi' = Phi + dPhi (paper sec. 4) of the columns the
 ``ParameterLayout`` enables (K = 12, 14 or 15 with the "all" preset, by the cameras' model, ``camera_model_of``).
 
-Two latent layouts share one interface (``PerImageIntrinsics``, ``PerCameraIntrinsics``): intrinsics refined per
-image (CamP's way, P the symmetric root per image, paper eq. 20), or shared by the images of one physical camera (a
-pose latent per image, an intrinsics latent per camera, P the block-triangular factor of ``core.shared_intrinsics``).
+Two latent layouts share one interface (``core.latent_layout``: ``PerImageIntrinsics``, ``PerCameraIntrinsics``):
+intrinsics refined per image (CamP's way, P the symmetric root per image, paper eq. 20), or shared by the images of one
+physical camera (a pose latent per image, an intrinsics latent per camera, P the block-triangular factor of
+``core.shared_intrinsics``).
 
 P is recomputed (``refresh``) from the current refined intrinsics; the latent is re-expressed so the cameras do not
 move, phi_hat_new = P_new P_old^-1 phi_hat_old, and Adam's moments follow (``core.preconditioner.reexpress_latent``).
@@ -25,7 +26,6 @@ and re-expresses the latent and Adam's moments before the next step instead of u
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
 
 import torch
 from jaxtyping import Float, Int
@@ -40,155 +40,14 @@ from s2camp_ns.core.camera import (
     opengl_to_opencv,
     se3_exp,
 )
-from s2camp_ns.core.preconditioner import (
-    DampingConfig,
-    Preconditioner,
-    SamplingConfig,
-    compute_preconditioner,
-    reexpress_latent,
-)
+from s2camp_ns.core.latent_layout import LatentLayout, PerCameraIntrinsics, PerImageIntrinsics, PriorBlock
+from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig
 from s2camp_ns.core.proxy_range import ProxyRanges, proxy_ranges
-from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS, compute_shared_preconditioner, reexpress_shared_latents
-from s2camp_ns.core.track_prior import (
-    TrackPriorEvidence,
-    apply_track_prior,
-    place_at_anchor,
-    pooled_intrinsics_radius,
-    span,
-    whitened_anchor,
-)
+from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
+from s2camp_ns.core.track_prior import TrackPriorEvidence, apply_track_prior, place_at_anchor, span
 
 ROTATION_COLUMNS = [3, 4, 5]
 """The twist's rotation columns: (rho_x, rho_y, rho_z, omega_x, omega_y, omega_z)."""
-
-
-@dataclass(frozen=True)
-class PriorBlock:
-    """One latent under the track prior: its rows, their anchor in the whitened latent and their radius."""
-
-    latent: nn.Parameter
-    anchor: Tensor
-    radius: Tensor
-
-
-class PerImageIntrinsics:
-    """Every image refines all K columns itself: the latent ``whitened_delta`` [n, K], P the symmetric root of
-    each image's damped Gram (paper eq. 20)."""
-
-    def pose_columns(self, k: int) -> int:
-        return k
-
-    def latent(self, refiner: CameraRefiner, images: Tensor | None) -> Float[Tensor, "m k"]:
-        latent = refiner.whitened_delta if images is None else refiner.whitened_delta[images]
-        return latent.to(torch.float64)
-
-    def base(self, refiner: CameraRefiner, base: Float[Tensor, "n 13"]) -> Float[Tensor, "n 13"]:
-        return base
-
-    def recompute(self, refiner: CameraRefiner, optimizer: torch.optim.Optimizer | None) -> None:
-        """P per image at its refined intrinsics, the latent and Adam's moments re-expressed (``reexpress_latent``)."""
-        device = refiner.precond.device
-        intrinsics = refiner.refined_intrinsics().detach()
-        result = compute_preconditioner(
-            intrinsics, refiner.layout, refiner.sampling, refiner.damping, ranges=refiner.sampling_ranges()
-        )
-        old = Preconditioner(matrix=refiner.precond, inverse=refiner.precond_inv, gram=refiner.gram, num_valid=None)
-        new = Preconditioner(
-            matrix=result.matrix.to(device), inverse=result.inverse.to(device), gram=result.gram, num_valid=None
-        )
-        latent = refiner.whitened_delta
-        state = optimizer.state.get(latent) if optimizer is not None else None
-        reexpress_latent(latent, old, new, state)
-        refiner.precond.copy_(new.matrix)
-        refiner.precond_inv.copy_(new.inverse)
-        refiner.gram.copy_(result.gram.to(device))
-
-    def anchor_mask(self, refiner: CameraRefiner, finite: Tensor) -> Tensor:
-        return finite[:, None].expand(refiner.num_images, refiner.layout.num_params).clone()
-
-    def intrinsics_radius(self, refiner: CameraRefiner, radius: Tensor, observations: Tensor | None) -> Tensor:
-        return refiner.prior_radius_intrinsics  # no intrinsics latent of their own: nothing to scale
-
-    def prior_blocks(self, refiner: CameraRefiner) -> list[PriorBlock]:
-        anchor = whitened_anchor(refiner.precond, refiner.prior_anchor)
-        return [PriorBlock(refiner.whitened_delta, anchor, refiner.prior_radius)]
-
-
-class PerCameraIntrinsics:
-    """The images of a physical camera share its intrinsics (``core.shared_intrinsics``): the pose latent
-    ``whitened_delta`` [n, 6] per image and the intrinsics latent ``whitened_intrinsics`` [C, K - 6] per camera;
-    P is the block upper-triangular T of the camera, stored per image (its images share it)."""
-
-    def pose_columns(self, k: int) -> int:
-        return NUM_POSE_PARAMS
-
-    def latent(self, refiner: CameraRefiner, images: Tensor | None) -> Float[Tensor, "m k"]:
-        """[z_i; w_c]: the pose latent of each image and the intrinsics latent of its camera."""
-        pose, camera_of_image = refiner.whitened_delta, refiner.camera_of_image
-        if images is not None:
-            pose, camera_of_image = pose[images], camera_of_image[images]
-        shared = refiner.whitened_intrinsics.to(torch.float64)[camera_of_image]
-        return torch.cat([pose.to(torch.float64), shared], dim=-1)
-
-    def base(self, refiner: CameraRefiner, base: Float[Tensor, "n 13"]) -> Float[Tensor, "n 13"]:
-        """One set of base intrinsics per physical camera: the mean over its images (they agree for SfM cameras;
-        a per-image perturbation averages out). Images of one camera must have the same size."""
-        index, count_cameras = refiner.camera_of_image, refiner.num_physical_cameras
-        count = torch.bincount(index, minlength=count_cameras).to(base)
-        mean = torch.zeros(count_cameras, base.shape[1], dtype=base.dtype, device=base.device)
-        mean = mean.index_add_(0, index, base) / count[:, None]
-        first = refiner.first_image_of_each_camera()
-        size_mismatch = (base[first][index, 7:9] != base[:, 7:9]).any(dim=-1)
-        if bool(size_mismatch.any()):
-            i = int(torch.nonzero(size_mismatch)[0])
-            j = int(first[index[i]])
-            raise ValueError(
-                f"training image {i} is {int(base[i, 7])}x{int(base[i, 8])} but image {j} of the same physical camera "
-                f"{int(index[i])} is {int(base[j, 7])}x{int(base[j, 8])}: shared intrinsics need one "
-                "image size per camera (or --pipeline.model.camera-optimizer.intrinsics per-image)"
-            )
-        return mean[index]
-
-    def recompute(self, refiner: CameraRefiner, optimizer: torch.optim.Optimizer | None) -> None:
-        """T per physical camera from its refined intrinsics, the latents and Adam's moments re-expressed without
-        moving any camera (``reexpress_shared_latents``)."""
-        device = refiner.precond.device
-        first = refiner.first_image_of_each_camera()
-        intrinsics = refiner.refined_intrinsics().detach()[first]
-        result = compute_shared_preconditioner(
-            intrinsics, refiner.layout, refiner.sampling, refiner.damping, ranges=refiner.sampling_ranges(first)
-        )
-        matrix, inverse = result.matrix.to(device), result.inverse.to(device)  # [C, K, K]
-        states = [None, None]
-        if optimizer is not None:
-            states = [optimizer.state.get(refiner.whitened_delta), optimizer.state.get(refiner.whitened_intrinsics)]
-        reexpress_shared_latents(
-            refiner.whitened_delta, refiner.whitened_intrinsics, refiner.camera_of_image, refiner.precond[first],
-            refiner.precond_inv[first], matrix, inverse, *states,
-        )  # fmt: skip
-        refiner.precond.copy_(matrix[refiner.camera_of_image])
-        refiner.precond_inv.copy_(inverse[refiner.camera_of_image])
-        refiner.gram.copy_(result.gram.to(device)[refiner.camera_of_image])
-
-    def anchor_mask(self, refiner: CameraRefiner, finite: Tensor) -> Tensor:
-        """The pose columns where the image has a prior; the intrinsics columns where any image of its camera has."""
-        keep = finite[:, None].expand(refiner.num_images, refiner.layout.num_params).clone()
-        tracked = torch.zeros(refiner.num_physical_cameras, dtype=torch.bool, device=finite.device)
-        tracked[refiner.camera_of_image[finite]] = True
-        keep[:, NUM_POSE_PARAMS:] = tracked[refiner.camera_of_image][:, None]
-        return keep
-
-    def intrinsics_radius(self, refiner: CameraRefiner, radius: Tensor, observations: Tensor | None) -> Tensor:
-        return pooled_intrinsics_radius(radius, observations, refiner.camera_of_image, refiner.num_physical_cameras)
-
-    def prior_blocks(self, refiner: CameraRefiner) -> list[PriorBlock]:
-        """P is block-triangular, so the images of one camera give the same intrinsics anchor: their first image's."""
-        anchor = whitened_anchor(refiner.precond, refiner.prior_anchor)
-        first = refiner.first_image_of_each_camera()
-        return [
-            PriorBlock(refiner.whitened_delta, anchor[:, :NUM_POSE_PARAMS], refiner.prior_radius),
-            PriorBlock(refiner.whitened_intrinsics, anchor[first, NUM_POSE_PARAMS:], refiner.prior_radius_intrinsics),
-        ]
 
 
 class CameraRefiner(nn.Module):
@@ -227,7 +86,7 @@ class CameraRefiner(nn.Module):
         self.frozen_images = frozen_images
         k = self.layout.num_params
         self.shared = enabled and per_camera_intrinsics and k > NUM_POSE_PARAMS
-        self.latent_layout = PerCameraIntrinsics() if self.shared else PerImageIntrinsics()
+        self.latent_layout: LatentLayout = PerCameraIntrinsics() if self.shared else PerImageIntrinsics()
         if enabled:
             self.whitened_delta = self._latent(torch.zeros(num_images, self.latent_layout.pose_columns(k)), device)
         if self.shared:  # one physical camera per image until ``set_camera_groups`` says otherwise
