@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
 
 ALPHA_MAX = 0.999
@@ -253,6 +253,148 @@ def composite_tile(
     return weights @ features, transmittance
 
 
+def _check_arguments(
+    unsupported: dict, packed: bool, sparse_grad: bool, camera_model: str, render_mode: str, rasterize_mode: str
+) -> None:
+    """Raise ``ValueError`` for arguments outside the subset of gsplat's ``rasterization`` this reference covers."""
+    if unsupported:
+        raise ValueError(f"reference rasterization does not support the argument(s) {sorted(unsupported)}")
+    if packed:
+        raise ValueError("reference rasterization: packed=True is not supported (splatfacto passes packed=False)")
+    if sparse_grad:
+        raise ValueError("reference rasterization: sparse_grad=True is not supported")
+    if camera_model != "pinhole":
+        raise ValueError(f"reference rasterization: camera_model {camera_model!r} is not supported; allowed: 'pinhole'")
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if rasterize_mode not in ("classic", "antialiased"):
+        raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
+
+
+def _features(
+    means: Float[Tensor, "n 3"],
+    colors: Tensor,
+    viewmats: Float[Tensor, "c 4 4"],
+    projected: dict[str, Tensor],
+    sh_degree: int | None,
+    render_mode: str,
+) -> Float[Tensor, "c n d"]:
+    """Per camera and Gaussian the channels to composite: the colour (given, or evaluated from the SH coefficients
+    toward the camera; zero for culled Gaussians) for the RGB modes, then the depth for the depth modes."""
+    c = viewmats.shape[0]
+    features = []
+    if render_mode in ("RGB", "RGB+D", "RGB+ED"):
+        if sh_degree is None:
+            rgb = colors if colors.dim() == 3 else colors[None].expand(c, *colors.shape)
+        else:
+            campos = torch.linalg.inv(viewmats)[:, :3, 3]
+            directions = means[None] - campos[:, None]
+            coefficients = colors if colors.dim() == 4 else colors[None].expand(c, *colors.shape)
+            rgb = spherical_harmonics(sh_degree, directions, coefficients)
+            rgb = torch.where((projected["radii"] > 0)[..., None], rgb, torch.zeros_like(rgb))
+            rgb = torch.clamp_min(rgb + 0.5, 0.0)
+        features.append(rgb)
+    if render_mode != "RGB":
+        features.append(projected["depths"][..., None])
+    return torch.cat(features, dim=-1)
+
+
+def _sorted_tile_bounds(
+    means2d: Float[Tensor, "n 2"],
+    radius: Float[Tensor, " n"],
+    depths: Float[Tensor, " n"],
+    tile_size: int,
+    tiles_x: int,
+    tiles_y: int,
+) -> tuple[Int[Tensor, " m"], Float[Tensor, "m 2"], Float[Tensor, "m 2"]]:
+    """The visible Gaussians (radius > 0) front to back (stable depth order) and the tile range [min, max) in x, y
+    each covers, clamped to the image's tiles; no gradient."""
+    with torch.no_grad():
+        order = torch.argsort(depths, stable=True)
+        order = order[radius[order] > 0]
+        centre = means2d[order].detach() / tile_size
+        extent = (radius[order] / tile_size)[:, None]
+        upper = torch.tensor([tiles_x, tiles_y], dtype=centre.dtype, device=centre.device)
+        tile_min = torch.minimum(torch.floor(centre - extent).clamp_min(0), upper)
+        tile_max = torch.minimum(torch.ceil(centre + extent).clamp_min(0), upper)
+    return order, tile_min, tile_max
+
+
+def _render_camera(
+    projected: dict[str, Tensor],
+    opacities_cam: Float[Tensor, "c n"],
+    features: Float[Tensor, "c n d"],
+    camera: int,
+    width: int,
+    height: int,
+    tile_size: int,
+    camera_record: dict | None,
+) -> tuple[Float[Tensor, "h w d"], Float[Tensor, "h w"]]:
+    """Camera ``camera``'s composited channels and alpha, tile by tile (``composite_tile``); with ``camera_record``
+    each tile's Gaussian ids and record are appended to its "tiles" (for ``_attach_absgrad``)."""
+    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    means2d = projected["means2d"][camera]
+    radius = projected["radii"][camera].to(means2d.dtype)
+    order, tile_min, tile_max = _sorted_tile_bounds(
+        means2d, radius, projected["depths"][camera], tile_size, tiles_x, tiles_y
+    )
+    image = means2d.new_zeros(height, width, features.shape[-1])
+    alpha_image = means2d.new_zeros(height, width)
+    for ty in range(tiles_y):
+        for tx in range(tiles_x):
+            hits = (tile_min[:, 0] <= tx) & (tx < tile_max[:, 0]) & (tile_min[:, 1] <= ty) & (ty < tile_max[:, 1])
+            x0, y0 = tx * tile_size, ty * tile_size
+            x1, y1 = min(x0 + tile_size, width), min(y0 + tile_size, height)
+            ids = order[hits]
+            if ids.numel() == 0:
+                continue
+            ys, xs = torch.meshgrid(
+                torch.arange(y0, y1, dtype=means2d.dtype, device=means2d.device),
+                torch.arange(x0, x1, dtype=means2d.dtype, device=means2d.device),
+                indexing="ij",
+            )
+            pixels = torch.stack([xs + 0.5, ys + 0.5], dim=-1).reshape(-1, 2)
+            if camera_record is not None:
+                tile_record: dict = {}
+                camera_record.setdefault("tiles", []).append((ids, tile_record))
+            else:
+                tile_record = None
+            colour, transmittance = composite_tile(
+                means2d[ids],
+                projected["conics"][camera][ids],
+                opacities_cam[camera][ids],
+                features[camera][ids],
+                pixels,
+                tile_record,
+            )
+            image = image.index_put((ys.reshape(-1).long(), xs.reshape(-1).long()), colour)
+            alpha_image = alpha_image.index_put((ys.reshape(-1).long(), xs.reshape(-1).long()), 1.0 - transmittance)
+    return image, alpha_image
+
+
+def _over_background(
+    render_colors: Float[Tensor, "c h w d"],
+    render_alphas: Float[Tensor, "c h w 1"],
+    backgrounds: Tensor | None,
+    render_mode: str,
+) -> Float[Tensor, "c h w d"]:
+    """The channels composited over ``backgrounds`` (the depth channel over 0, as gsplat pads them), the expected
+    depth (ED modes) divided by the alpha."""
+    c = render_colors.shape[0]
+    if backgrounds is not None:
+        if render_mode != "RGB":  # the depth channel composites over 0 (gsplat pads the backgrounds so)
+            depth_background = backgrounds.new_zeros(c, 1)
+            if render_mode in ("D", "ED"):
+                backgrounds = depth_background
+            else:
+                backgrounds = torch.cat([backgrounds, depth_background], dim=-1)
+        render_colors = render_colors + (1.0 - render_alphas) * backgrounds[:, None, None, :]
+    if render_mode in ("ED", "RGB+ED"):
+        expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
+        render_colors = torch.cat([render_colors[..., :-1], expected], dim=-1)
+    return render_colors
+
+
 def rasterization(
     means: Float[Tensor, "n 3"],
     quats: Float[Tensor, "n 4"],
@@ -279,19 +421,10 @@ def rasterization(
     **unsupported,
 ) -> tuple[Float[Tensor, "c h w d"], Float[Tensor, "c h w 1"], dict]:
     """gsplat 1.4 ``rasterization`` for the subset splatfacto uses (see the module docstring); same arguments and
-    outputs: render_colors [C, H, W, D] (D = colour channels, + 1 with depth), render_alphas [C, H, W, 1], info."""
-    if unsupported:
-        raise ValueError(f"reference rasterization does not support the argument(s) {sorted(unsupported)}")
-    if packed:
-        raise ValueError("reference rasterization: packed=True is not supported (splatfacto passes packed=False)")
-    if sparse_grad:
-        raise ValueError("reference rasterization: sparse_grad=True is not supported")
-    if camera_model != "pinhole":
-        raise ValueError(f"reference rasterization: camera_model {camera_model!r} is not supported; allowed: 'pinhole'")
-    if render_mode not in RENDER_MODES:
-        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
-    if rasterize_mode not in ("classic", "antialiased"):
-        raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
+    outputs: render_colors [C, H, W, D] (D = colour channels, + 1 with depth), render_alphas [C, H, W, 1], info.
+    Stages: projection (``project_gaussians``), features (``_features``), per camera depth sorting and tiles
+    (``_sorted_tile_bounds``) and compositing (``_render_camera``), background (``_over_background``)."""
+    _check_arguments(unsupported, packed, sparse_grad, camera_model, render_mode, rasterize_mode)
     n = means.shape[0]
     c = viewmats.shape[0]
     projected = project_gaussians(
@@ -301,84 +434,18 @@ def rasterization(
     opacities_cam = opacities[None].expand(c, n)
     if rasterize_mode == "antialiased":
         opacities_cam = opacities_cam * projected["compensations"]
-    features = []
-    if render_mode in ("RGB", "RGB+D", "RGB+ED"):
-        if sh_degree is None:
-            rgb = colors if colors.dim() == 3 else colors[None].expand(c, *colors.shape)
-        else:
-            campos = torch.linalg.inv(viewmats)[:, :3, 3]
-            directions = means[None] - campos[:, None]
-            coefficients = colors if colors.dim() == 4 else colors[None].expand(c, *colors.shape)
-            rgb = spherical_harmonics(sh_degree, directions, coefficients)
-            rgb = torch.where((radii > 0)[..., None], rgb, torch.zeros_like(rgb))
-            rgb = torch.clamp_min(rgb + 0.5, 0.0)
-        features.append(rgb)
-    if render_mode != "RGB":
-        features.append(projected["depths"][..., None])
-    features = torch.cat(features, dim=-1)
-    dim = features.shape[-1]
-
-    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    features = _features(means, colors, viewmats, projected, sh_degree, render_mode)
     record: dict = {}
     images, alphas = [], []
     for camera in range(c):
-        means2d = projected["means2d"][camera]
-        radius = radii[camera].to(means2d.dtype)
-        with torch.no_grad():
-            order = torch.argsort(projected["depths"][camera], stable=True)
-            order = order[radii[camera][order] > 0]
-            centre = means2d[order].detach() / tile_size
-            extent = (radius[order] / tile_size)[:, None]
-            upper = torch.tensor([tiles_x, tiles_y], dtype=centre.dtype, device=centre.device)
-            tile_min = torch.minimum(torch.floor(centre - extent).clamp_min(0), upper)
-            tile_max = torch.minimum(torch.ceil(centre + extent).clamp_min(0), upper)
-        image = means2d.new_zeros(height, width, dim)
-        alpha_image = means2d.new_zeros(height, width)
         camera_record = record.setdefault(camera, {}) if absgrad else None
-        for ty in range(tiles_y):
-            for tx in range(tiles_x):
-                hits = (tile_min[:, 0] <= tx) & (tx < tile_max[:, 0]) & (tile_min[:, 1] <= ty) & (ty < tile_max[:, 1])
-                x0, y0 = tx * tile_size, ty * tile_size
-                x1, y1 = min(x0 + tile_size, width), min(y0 + tile_size, height)
-                ids = order[hits]
-                if ids.numel() == 0:
-                    continue
-                ys, xs = torch.meshgrid(
-                    torch.arange(y0, y1, dtype=means2d.dtype, device=means2d.device),
-                    torch.arange(x0, x1, dtype=means2d.dtype, device=means2d.device),
-                    indexing="ij",
-                )
-                pixels = torch.stack([xs + 0.5, ys + 0.5], dim=-1).reshape(-1, 2)
-                if camera_record is not None:
-                    tile_record: dict = {}
-                    camera_record.setdefault("tiles", []).append((ids, tile_record))
-                else:
-                    tile_record = None
-                colour, transmittance = composite_tile(
-                    means2d[ids],
-                    projected["conics"][camera][ids],
-                    opacities_cam[camera][ids],
-                    features[camera][ids],
-                    pixels,
-                    tile_record,
-                )
-                image = image.index_put((ys.reshape(-1).long(), xs.reshape(-1).long()), colour)
-                alpha_image = alpha_image.index_put((ys.reshape(-1).long(), xs.reshape(-1).long()), 1.0 - transmittance)
+        image, alpha_image = _render_camera(
+            projected, opacities_cam, features, camera, width, height, tile_size, camera_record
+        )
         images.append(image)
         alphas.append(alpha_image[..., None])
-    render_colors = torch.stack(images)
     render_alphas = torch.stack(alphas)
-    if backgrounds is not None:
-        if render_mode != "RGB":  # the depth channel composites over 0 (gsplat pads the backgrounds so)
-            depth_background = backgrounds.new_zeros(c, 1)
-            if render_mode in ("D", "ED"):
-                backgrounds = depth_background
-            else:
-                backgrounds = torch.cat([backgrounds, depth_background], dim=-1)
-        render_colors = render_colors + (1.0 - render_alphas) * backgrounds[:, None, None, :]
-    if render_mode in ("ED", "RGB+ED"):
-        expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
-        render_colors = torch.cat([render_colors[..., :-1], expected], dim=-1)
+    render_colors = _over_background(torch.stack(images), render_alphas, backgrounds, render_mode)
     info = {
         "means2d": projected["means2d"],
         "depths": projected["depths"],
@@ -389,8 +456,8 @@ def rasterization(
         "width": width,
         "height": height,
         "tile_size": tile_size,
-        "tile_width": tiles_x,
-        "tile_height": tiles_y,
+        "tile_width": math.ceil(width / tile_size),
+        "tile_height": math.ceil(height / tile_size),
         "n_cameras": c,
         "camera_ids": None,
         "gaussian_ids": None,
