@@ -293,3 +293,23 @@ def test_a_waiter_whose_builder_dies_builds_itself(given: pycolmap.Reconstructio
     assert f"{WAITING} {builder.pid} " in (tmp_path / "waiter.err").read_text()
     key = cache_key(given, tiny_scene / "images")
     assert [path.name for path in (tmp_path / "cache").iterdir()] == [key]  # the dead build's folder removed
+
+
+def test_a_waiter_names_a_holder_that_writes_its_name_after_taking_the_lock(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+):
+    """The holder writes its name just after it takes the lock: a waiter that reads the file in between (a loaded
+    machine) reads it again instead of naming the holder "?"."""
+    import threading
+
+    path = tmp_path / ".entry.lock"
+    handle = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    late = threading.Timer(0.3, lambda: path.write_text("4242 builder-host\n"))
+    late.start()
+    try:
+        track_cache._notice_wait(handle, tmp_path / "entry")
+    finally:
+        late.join()
+        os.close(handle)
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"{WAITING} 4242 on builder-host, which builds them in {tmp_path / 'entry'}" in err

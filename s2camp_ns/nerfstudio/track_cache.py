@@ -23,6 +23,7 @@ import os
 import shutil
 import socket
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -34,6 +35,8 @@ try:
 except ImportError:  # Windows: no inter-process lock (module docstring, Lock)
     fcntl = None
 
+HOLDER_NAME_WAIT_S = 5.0
+"""How long a waiter reads the lock file again for the holder's name before its notice names it "?"."""
 USER_CACHE_SUBFOLDER = Path("s2camp-ns") / "image_tracks"
 """The image tracks' folder in the user's cache folder (``XDG_CACHE_HOME``, else ``~/.cache``)."""
 LOG = Console(stderr=True, width=120)
@@ -159,10 +162,17 @@ def _is_file_at(handle: int, path: Path) -> bool:
 
 
 def _notice_wait(handle: int, entry: Path) -> None:
-    """One notice that this process waits for the build of ``entry`` by the process named in the lock file."""
+    """One notice that this process waits for the build of ``entry`` by the process named in the lock file. The
+    holder writes its name just after it takes the lock, so a waiter that finds the file still empty reads it again
+    for up to ``HOLDER_NAME_WAIT_S`` (a loaded machine can hold the holder between the two) before naming it "?"."""
     holder: list[str] = []
-    with contextlib.suppress(OSError):
-        holder = os.pread(handle, 200, 0).decode(errors="replace").split()
+    deadline = time.monotonic() + HOLDER_NAME_WAIT_S
+    while True:
+        with contextlib.suppress(OSError):
+            holder = os.pread(handle, 200, 0).decode(errors="replace").split()
+        if len(holder) == 2 or time.monotonic() >= deadline:
+            break
+        time.sleep(0.02)
     holder = holder if len(holder) == 2 else ["?", "?"]
     LOG.print(
         f"[dim]Image tracks: waiting for process {escape(holder[0])} on {escape(holder[1])}, which builds them in "
