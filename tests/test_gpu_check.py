@@ -433,9 +433,11 @@ def test_cpu_smoke_run_trains_and_evaluates_stock_nerfacto(tmp_path: Path) -> No
     row = next(line for line in text.splitlines() if line.startswith("| nerfacto |")).split(" | ")
     assert row[2] == "1.00x" and row[3] == "-"  # its own baseline; no CUDA memory on the CPU
     start_rot, final_rot = (float(value) for value in row[4].split(" → "))
-    assert start_rot > 0.05 and final_rot != start_rot  # perturbed start; the stock optimizer moved the cameras
+    assert start_rot > 0.05  # perturbed start (the table rounds to 1e-3 deg: seven steps may move less)
     assert 5.0 < float(row[7]) < 60.0  # held-out PSNR after test-time alignment
     assert row[8] == "passed |"
     measured = json.loads((output / "runs" / "nerfacto.json").read_text())
+    evaluation = measured["evaluation"]  # unrounded: the stock optimizer moved the cameras
+    assert evaluation["rot_err"] != evaluation["start_rot_err"] and round(evaluation["start_rot_err"], 3) == start_rot
     assert len(measured["step_seconds"]) == 7 and all(seconds > 0 for seconds in measured["step_seconds"])
     assert not list((output / "runs").glob("gpu-check/*/*/nerfstudio_models"))  # checkpoints removed
