@@ -22,6 +22,7 @@ from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig, compute
 from s2camp_ns.core.proxy_range import ProxyRangeConfig
 from s2camp_ns.core.shared_intrinsics import compute_shared_preconditioner
 from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras, nerfstudio_distortion
+from s2camp_ns.nerfstudio.camera_fields import replace_cameras
 from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 
 NUM_CAMERAS = 3
@@ -499,17 +500,8 @@ def test_param_group_is_camera_opt():
 
 def _with(cameras: Cameras, distortion: list[float], camera_type: CameraType = CameraType.PERSPECTIVE) -> Cameras:
     """``cameras`` with nerfstudio distortion_params [k1, k2, k3, k4, p1, p2] and one camera type."""
-    return Cameras(
-        camera_to_worlds=cameras.camera_to_worlds,
-        fx=cameras.fx,
-        fy=cameras.fy,
-        cx=cameras.cx,
-        cy=cameras.cy,
-        width=cameras.width,
-        height=cameras.height,
-        distortion_params=torch.tensor(distortion).expand(cameras.shape[0], 6).clone(),
-        camera_type=camera_type,
-    )
+    distortion_params = torch.tensor(distortion).expand(cameras.shape[0], 6).clone()
+    return replace_cameras(cameras, distortion_params=distortion_params, camera_type=camera_type)
 
 
 def test_nerfstudio_distortion_maps_explicitly_and_back():
