@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from s2camp_ns.core.camera import ParameterLayout, opengl_to_opencv, pixel_to_ray_direction
+from s2camp_ns.core.camera import ParameterLayout, opengl_to_opencv
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian, relative_gram_error
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
@@ -50,6 +50,7 @@ from s2camp_ns.core.proxy_range import (
     match_inverse_moments,
     proxy_ranges,
 )
+from s2camp_ns.core.unprojection import pixel_to_ray_direction
 from s2camp_ns.report import markdown_table
 from s2camp_ns.scene import procedural
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene

@@ -18,19 +18,14 @@ from s2camp_ns.core.camera import (
     Intrinsics,
     ParameterLayout,
     apply_pose_delta,
-    check_distortion_monotonic,
-    fisheye_fold_angle,
-    fisheye_terms,
-    image_grid,
     in_image,
     opengl_to_opencv,
-    pixel_to_ray_direction,
     project,
     project_with_delta,
     se3_exp,
-    tangent_bounds,
-    unproject,
 )
+from s2camp_ns.core.distortion import check_distortion_monotonic, fisheye_fold_angle, fisheye_terms, image_grid
+from s2camp_ns.core.unprojection import pixel_to_ray_direction, tangent_bounds, unproject
 
 ROOM_QUARTER = dict(fx=793.13, fy=793.49, cx=389.25, cy=259.375, width=778.0, height=518.0)
 
@@ -621,7 +616,7 @@ def test_tangential_distortion_just_inside_its_fold_is_accepted() -> None:
 
 def test_radial_helpers_default_to_the_two_coefficient_model() -> None:
     """Without k3, k4: D'(r^2) = k1 + 2 k2 r^2, and s = r / r_d solves s (1 + k1 r^2 + k2 r^4) = 1 (r = s r_d)."""
-    from s2camp_ns.core.camera import distortion_slope, undistort_scale
+    from s2camp_ns.core.distortion import distortion_slope, undistort_scale
 
     r2 = torch.tensor([0.0, 0.25, 1.0, 2.0], dtype=torch.float64)
     k1, k2 = torch.tensor(-0.05, dtype=torch.float64), torch.tensor(0.01, dtype=torch.float64)
@@ -645,7 +640,7 @@ def test_intrinsics_built_without_the_opencv_terms_get_zero_ones() -> None:
 def test_undistortion_takes_the_radial_path_exactly_when_there_is_no_tangential_term() -> None:
     """p1 = p2 = 0: the scalar radial inverse (undistort_scale with all four k) bit for bit; p1 or p2 alone: the 2-D
     inverse, which the forward distortion maps back onto the distorted tangents."""
-    from s2camp_ns.core.camera import distort_tangents, undistort_scale, undistort_tangents
+    from s2camp_ns.core.distortion import distort_tangents, undistort_scale, undistort_tangents
 
     a_d = torch.tensor([[0.3, -0.5, 0.7]], dtype=torch.float64)
     b_d = torch.tensor([[0.2, 0.4, -0.6]], dtype=torch.float64)

@@ -200,7 +200,7 @@ def test_a_batch_refines_only_its_own_cameras_with_the_same_rays_and_gradients(i
         latent.grad = None
 
     # Reference: every camera refined, then indexed per ray.
-    from s2camp_ns.core.camera import pixel_to_ray_direction
+    from s2camp_ns.core.unprojection import pixel_to_ray_direction
 
     deltas = optimizer.camera_deltas()
     intrinsics = optimizer.refined_intrinsics(deltas)[camera_indices]

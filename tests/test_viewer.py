@@ -38,8 +38,8 @@ from nerfstudio.viewer.utils import parse_object
 from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerElement
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
-from s2camp_ns.core.camera import vertical_field_of_view
 from s2camp_ns.core.preconditioner import SamplingConfig
+from s2camp_ns.core.unprojection import vertical_field_of_view
 from s2camp_ns.nerfstudio.model import S2CampModel
 from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, MAX_DRAWN_FOV, DisplayText, S2CampViewerPanel
 

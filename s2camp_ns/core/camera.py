@@ -20,17 +20,28 @@ local se(3) pose delta (rho, omega) applied on the right of the camera-to-world 
 added to fx and fy), principal point (pixels), skew (pixels) and the distortion coefficients k1, k2, k3, k4, p1, p2.
 The paper's K = 12 are the first twelve; which distortion columns a layout refines follows the COLMAP camera model
 (``CAMERA_MODEL_DISTORTION``).
+
+This module holds the intrinsics, the parameter layout, the forward projection and the se(3) pose update. The
+distortion maps, their inverses and the one-to-one check live in ``core.distortion`` (imported here, never the other
+way); pixels to rays (``unproject``, ``pixel_to_ray_direction``, ``tangent_bounds``) in ``core.unprojection``.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from s2camp_ns.core.distortion import (
+    check_distortion_monotonic,
+    distort_tangents,
+    distortion_factor,
+    fisheye_fold_angle,
+    fisheye_terms,
+    per_camera_columns,
+)
 from s2camp_ns.core.validation import check_choice, check_finite, check_range
 
 PARAMETER_NAMES: tuple[str, ...] = (
@@ -85,8 +96,6 @@ CAMERA_MODEL_PROJECTION: dict[str, str] = {
 }
 
 PRESETS: tuple[str, ...] = ("pose", "pose+focal", "pose+intrinsics", "all")
-
-UNDISTORT_ITERATIONS = 20
 
 
 @dataclass(frozen=True)
@@ -305,255 +314,6 @@ def camera_model_of(intrinsics: Intrinsics) -> str:
     return "RADIAL"
 
 
-def distortion_factor(r2: Tensor, k1: Tensor, k2: Tensor, k3: Tensor | float = 0.0, k4: Tensor | float = 0.0) -> Tensor:
-    """Radial polynomial 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 (COLMAP RADIAL / OPENCV; with theta^2 for r^2 the
-    fisheye's theta_d / theta). Written so that k3 = k4 = 0 adds an exact zero to the two-coefficient value."""
-    return 1.0 + r2 * (k1 + k2 * r2 + r2 * r2 * (k3 + k4 * r2))
-
-
-def distortion_slope(r2: Tensor, k1: Tensor, k2: Tensor, k3: Tensor | float = 0.0, k4: Tensor | float = 0.0) -> Tensor:
-    """d(distortion_factor)/d(r^2) = k1 + 2 k2 r^2 + 3 k3 r^4 + 4 k4 r^6."""
-    return k1 + 2.0 * k2 * r2 + r2 * r2 * (3.0 * k3 + 4.0 * k4 * r2)
-
-
-def _columns(intrinsics: Intrinsics, *names: str) -> tuple[Tensor, ...]:
-    """Per-camera fields as [N, 1] columns that broadcast against per-point [N, L] tensors."""
-    return tuple(getattr(intrinsics, name)[:, None] for name in names)
-
-
-def distort_tangents(a: Tensor, b: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
-    """Perspective distortion (a, b) -> (a_d, b_d): radial polynomial and OpenCV tangential terms (module doc)."""
-    k1, k2, k3, k4, p1, p2 = _columns(intrinsics, "k1", "k2", "k3", "k4", "p1", "p2")
-    r2 = a * a + b * b
-    factor = distortion_factor(r2, k1, k2, k3, k4)
-    a_d = a * factor + (2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a))
-    b_d = b * factor + (2.0 * p2 * a * b + p1 * (r2 + 2.0 * b * b))
-    return a_d, b_d
-
-
-FISHEYE_SERIES_BELOW = 1e-4
-"""Below this ratio sqrt(x^2 + y^2) / z the fisheye's theta / rho is taken from its Taylor series (exact to 1e-24)."""
-
-
-@dataclass(frozen=True)
-class FisheyeTerms:
-    """Per-point quantities of the equidistant projection, safe on the optical axis and behind the camera.
-
-    h = theta / rho (-> 1 / z on the axis), theta2 = theta^2, q = (z / R - h) / rho^2 (the derivative factor
-    dh/dx = x q, -> -2 / (3 z^3) on the axis), R = x^2 + y^2 + z^2, and the true angle theta (no gradient).
-    """
-
-    h: Tensor
-    theta2: Tensor
-    q: Tensor
-    norm2: Tensor
-    theta: Tensor
-
-
-def fisheye_terms(points_cam: Float[Tensor, "n l 3"]) -> FisheyeTerms:
-    """theta = atan2(rho, z), rho = sqrt(x^2 + y^2), with Taylor branches where rho << z (module doc)."""
-    x, y, z = points_cam.unbind(dim=-1)
-    rho2 = x * x + y * y
-    norm2 = rho2 + z * z
-    safe_norm2 = torch.where(norm2 > 0, norm2, torch.ones_like(norm2))
-    small = (z > 0) & (rho2 < (FISHEYE_SERIES_BELOW * z) ** 2)
-    # Series branch (t = rho / z): h = (1 - t^2/3 + t^4/5) / z, theta^2 = t^2 (1 - 2 t^2/3), q = (4 t^2/5 - 2/3) / z^3
-    zs = torch.where(small, z, torch.ones_like(z))
-    t2 = torch.where(small, rho2, torch.zeros_like(rho2)) / (zs * zs)
-    h_series = (1.0 - t2 / 3.0 + t2 * t2 / 5.0) / zs
-    theta2_series = t2 * (1.0 - 2.0 * t2 / 3.0)
-    q_series = (-2.0 / 3.0 + 0.8 * t2) / (zs * zs * zs)
-    # General branch; rho2 = 0 off the series branch (straight behind, or the centre) gets a finite stand-in.
-    safe_rho2 = torch.where(small | (rho2 <= 0), torch.ones_like(rho2), rho2)
-    rho = torch.sqrt(safe_rho2)
-    theta_general = torch.atan2(rho, z)
-    h_general = theta_general / rho
-    q_general = (z / safe_norm2 - h_general) / safe_rho2
-    with torch.no_grad():
-        theta = torch.atan2(torch.sqrt(rho2.detach()), z.detach())
-    return FisheyeTerms(
-        h=torch.where(small, h_series, h_general),
-        theta2=torch.where(small, theta2_series, theta_general * theta_general),
-        q=torch.where(small, q_series, q_general),
-        norm2=safe_norm2,
-        theta=theta,
-    )
-
-
-FOLD_SCAN_SAMPLES = 4097
-
-
-def fisheye_fold_angle(intrinsics: Intrinsics) -> tuple[Float[Tensor, " n"], Float[Tensor, " n"]]:
-    """Angle theta_fold in (0, pi] up to which theta_d(theta) increases, and theta_d there (no gradient).
-
-    theta_d' = 1 + 3 k1 theta^2 + 5 k2 theta^4 + 7 k3 theta^6 + 9 k4 theta^8 is scanned on a uniform grid of
-    [0, pi]; the first sample where it is not positive ends the one-to-one range (pi if there is none).
-    """
-    k1, k2, k3, k4 = (
-        getattr(intrinsics, name).detach().to(torch.float64)[:, None] for name in ("k1", "k2", "k3", "k4")
-    )
-    theta = torch.linspace(0.0, math.pi, FOLD_SCAN_SAMPLES, dtype=torch.float64, device=intrinsics.device)[None]
-    theta2 = theta * theta
-    slope = 1.0 + theta2 * (3.0 * k1 + theta2 * (5.0 * k2 + theta2 * (7.0 * k3 + 9.0 * k4 * theta2)))
-    increasing = slope > 0
-    folded = ~increasing.all(dim=-1)
-    first_bad = torch.where(
-        folded, (~increasing).to(torch.int64).argmax(dim=-1), torch.full_like(folded, 0, dtype=torch.int64)
-    )
-    last_good = torch.where(folded, (first_bad - 1).clamp(min=0), torch.full_like(first_bad, FOLD_SCAN_SAMPLES - 1))
-    theta_fold = theta[0, last_good]
-    theta_d = theta * distortion_factor(theta2, k1, k2, k3, k4)
-    theta_d_fold = theta_d.gather(-1, last_good[:, None])[:, 0]
-    return theta_fold.to(intrinsics.dtype), theta_d_fold.to(intrinsics.dtype)
-
-
-def _corner_distorted_radius(intrinsics: Intrinsics) -> Tensor:
-    """Largest distorted radius |(a_d, b_d)| over the four image corners, [N]."""
-    us = torch.stack([torch.zeros_like(intrinsics.width), intrinsics.width], dim=-1)
-    vs = torch.stack([torch.zeros_like(intrinsics.height), intrinsics.height], dim=-1)
-    b_d = (vs - intrinsics.cy[:, None]) / intrinsics.fy[:, None]
-    a_d = us[:, :, None] - intrinsics.cx[:, None, None] - intrinsics.skew[:, None, None] * b_d[:, None, :]
-    a_d = a_d / intrinsics.fx[:, None, None]
-    r_d = torch.sqrt(a_d**2 + b_d[:, None, :] ** 2)
-    return r_d.reshape(intrinsics.num_cameras, -1).amax(dim=-1)
-
-
-def _coefficients(intrinsics: Intrinsics, index: int, names: tuple[str, ...]) -> str:
-    return ", ".join(names) + " = (" + ", ".join(f"{getattr(intrinsics, n)[index].item():g}" for n in names) + ")"
-
-
-def check_distortion_monotonic(intrinsics: Intrinsics) -> None:
-    """Raise unless the distortion is one-to-one over the image, naming the coefficients and the camera.
-
-    - radial k1, k2 only: the analytic fold radius must exceed the image corners' radius (``_check_radial``);
-    - other perspective cameras (k3, k4, p1, p2): the distortion map's Jacobian must stay invertible and
-      undistortion must converge on a grid over the image (``_check_perspective_grid``);
-    - fisheye: theta_d(theta) must increase up to the image corners (``fisheye_fold_angle``).
-    """
-    if intrinsics.is_fisheye:
-        _check_fisheye(intrinsics)
-        return
-    extra = torch.stack([intrinsics.k3, intrinsics.k4, intrinsics.p1, intrinsics.p2]).detach()
-    if bool((extra == 0).all()):
-        _check_radial(intrinsics)
-    else:
-        _check_perspective_grid(intrinsics)
-
-
-def _check_radial(intrinsics: Intrinsics) -> None:
-    """The distorted radius r (1 + k1 r^2 + k2 r^4) must increase up to the image corners.
-
-    Its derivative 1 + 3 k1 r^2 + 5 k2 r^4 first vanishes at the smallest positive root s* of the quadratic in
-    s = r^2; beyond it the projection folds back and undistortion has two solutions. Require that the distorted
-    radius at that fold exceeds the corner radius of every image.
-    """
-    k1 = intrinsics.k1.detach().double()
-    k2 = intrinsics.k2.detach().double()
-    a, b = 5.0 * k2, 3.0 * k1
-    disc = b * b - 4.0 * a
-    sqrt_disc = torch.sqrt(torch.clamp(disc, min=0.0))
-    safe_a = torch.where(a == 0, torch.ones_like(a), a)
-    roots = torch.stack([(-b - sqrt_disc) / (2 * safe_a), (-b + sqrt_disc) / (2 * safe_a)], dim=-1)
-    linear_root = torch.where(b < 0, -1.0 / torch.where(b == 0, torch.ones_like(b), b), torch.full_like(b, torch.inf))
-    roots = torch.where(roots > 0, roots, torch.full_like(roots, torch.inf)).amin(dim=-1)
-    roots = torch.where(disc < 0, torch.full_like(roots, torch.inf), roots)
-    s_fold = torch.where(a == 0, linear_root, roots)
-    r_fold = torch.sqrt(s_fold)
-    rd_fold = r_fold * distortion_factor(s_fold, k1, k2)
-    rd_fold = torch.where(torch.isfinite(s_fold), rd_fold, torch.full_like(rd_fold, torch.inf))
-    corner = _corner_distorted_radius(intrinsics.detach().to(dtype=torch.float64))
-    bad = rd_fold <= corner
-    if bool(bad.any()):
-        i = int(torch.nonzero(bad)[0])
-        raise ValueError(
-            f"k1, k2 = ({k1[i].item():g}, {k2[i].item():g}) of camera {i} make the radial distortion non-monotonic "
-            f"inside the image: the distorted radius peaks at {rd_fold[i].item():.4g} but the image corners reach "
-            f"{corner[i].item():.4g}; allowed are k1, k2 whose fold radius exceeds the corner radius"
-        )
-
-
-def _check_fisheye(intrinsics: Intrinsics) -> None:
-    """theta_d(theta) must increase from the optical axis up to the image corners (no fold inside the image)."""
-    intrinsics64 = intrinsics.detach().to(dtype=torch.float64)
-    theta_fold, theta_d_fold = fisheye_fold_angle(intrinsics64)
-    corner = _corner_distorted_radius(intrinsics64)
-    bad = theta_d_fold <= corner
-    if bool(bad.any()):
-        i = int(torch.nonzero(bad)[0])
-        raise ValueError(
-            f"{_coefficients(intrinsics64, i, ('k1', 'k2', 'k3', 'k4'))} of fisheye camera {i} make theta_d(theta) "
-            f"stop increasing at theta = {math.degrees(theta_fold[i].item()):.4g} degrees (theta_d = "
-            f"{theta_d_fold[i].item():.4g}) but the image corners reach theta_d = {corner[i].item():.4g}; allowed "
-            "are coefficients with theta_d increasing up to the image corners"
-        )
-
-
-GRID_EDGE_SAMPLES = 65
-GRID_INTERIOR_SAMPLES = 17
-
-
-def image_grid(intrinsics: Intrinsics, edge: int = GRID_EDGE_SAMPLES, interior: int = GRID_INTERIOR_SAMPLES) -> Tensor:
-    """Pixels [N, L, 2] on the image border (``edge`` per side) and on an ``interior`` x ``interior`` grid."""
-    t = torch.linspace(0.0, 1.0, edge, dtype=intrinsics.dtype, device=intrinsics.device)
-    s = torch.linspace(0.0, 1.0, interior, dtype=intrinsics.dtype, device=intrinsics.device)
-    zeros, ones = torch.zeros_like(t), torch.ones_like(t)
-    border = torch.cat([torch.stack(pair, dim=-1) for pair in ((t, zeros), (t, ones), (zeros, t), (ones, t))], dim=0)
-    inner = torch.stack(torch.meshgrid(s, s, indexing="ij"), dim=-1).reshape(-1, 2)
-    unit = torch.cat([border, inner], dim=0)
-    size = torch.stack([intrinsics.width, intrinsics.height], dim=-1)
-    return unit[None] * size[:, None, :]
-
-
-def _check_perspective_grid(intrinsics: Intrinsics) -> None:
-    """Undistortion must converge with an invertible distortion Jacobian on a grid over the image (incl. border)."""
-    intrinsics64 = intrinsics.detach().to(dtype=torch.float64)
-    pixels = image_grid(intrinsics64)
-    a_d, b_d = distorted_coordinates(pixels, intrinsics64)
-    with torch.no_grad():
-        a, b = _newton_tangential(a_d, b_d, intrinsics64)
-        again_a, again_b = distort_tangents(a, b, intrinsics64)
-        residual = torch.maximum((again_a - a_d).abs(), (again_b - b_d).abs())
-        det = torch.linalg.det(tangent_distortion_jacobian(a, b, intrinsics64))
-    tolerance = 1e-9 * (1.0 + torch.maximum(a_d.abs(), b_d.abs()))
-    bad_point = ~(torch.isfinite(residual) & (residual <= tolerance) & (det > 0))
-    if bool(bad_point.any()):
-        i, j = (int(v) for v in torch.nonzero(bad_point)[0])
-        names = ("k1", "k2", "k3", "k4", "p1", "p2")
-        u, v = pixels[i, j].tolist()
-        raise ValueError(
-            f"{_coefficients(intrinsics64, i, names)} of camera {i} make the distortion fold inside the image: it "
-            f"is not invertible at pixel ({u:.1f}, {v:.1f}); allowed are coefficients whose distortion stays "
-            "one-to-one over the whole image"
-        )
-
-
-def tangent_distortion_jacobian(a: Tensor, b: Tensor, intrinsics: Intrinsics) -> Float[Tensor, "n l 2 2"]:
-    """d(a_d, b_d)/d(a, b) of the perspective distortion."""
-    k1, k2, k3, k4, p1, p2 = _columns(intrinsics, "k1", "k2", "k3", "k4", "p1", "p2")
-    r2 = a * a + b * b
-    factor = distortion_factor(r2, k1, k2, k3, k4)
-    slope = distortion_slope(r2, k1, k2, k3, k4)
-    return torch.stack(
-        [
-            torch.stack(
-                [
-                    factor + 2.0 * slope * a * a + (2.0 * p1 * b + 6.0 * p2 * a),
-                    2.0 * slope * a * b + (2.0 * p1 * a + 2.0 * p2 * b),
-                ],
-                dim=-1,
-            ),
-            torch.stack(
-                [
-                    2.0 * slope * a * b + (2.0 * p2 * b + 2.0 * p1 * a),
-                    factor + 2.0 * slope * b * b + (2.0 * p2 * a + 6.0 * p1 * b),
-                ],
-                dim=-1,
-            ),
-        ],
-        dim=-2,
-    )
-
-
 def project(
     points_cam: Float[Tensor, "n l 3"], intrinsics: Intrinsics
 ) -> tuple[Float[Tensor, "n l 2"], Float[Tensor, "n l"]]:
@@ -566,7 +326,7 @@ def project(
     """
     if intrinsics.is_fisheye:
         terms = fisheye_terms(points_cam)
-        k1, k2, k3, k4 = _columns(intrinsics, "k1", "k2", "k3", "k4")
+        k1, k2, k3, k4 = per_camera_columns(intrinsics, "k1", "k2", "k3", "k4")
         scale = terms.h * distortion_factor(terms.theta2, k1, k2, k3, k4)
         a_d, b_d = points_cam[..., 0] * scale, points_cam[..., 1] * scale
         theta_fold, _ = fisheye_fold_angle(intrinsics)
@@ -579,174 +339,10 @@ def project(
         b = points_cam[..., 1] / safe_z
         a_d, b_d = distort_tangents(a, b, intrinsics)
         margin = z
-    fx, fy, cx, cy, skew = _columns(intrinsics, "fx", "fy", "cx", "cy", "skew")
+    fx, fy, cx, cy, skew = per_camera_columns(intrinsics, "fx", "fy", "cx", "cy", "skew")
     u = fx * a_d + skew * b_d + cx
     v = fy * b_d + cy
     return torch.stack([u, v], dim=-1), margin
-
-
-def undistort_scale(
-    r_d2: Tensor,
-    k1: Tensor,
-    k2: Tensor,
-    k3: Tensor | float = 0.0,
-    k4: Tensor | float = 0.0,
-    iterations: int = UNDISTORT_ITERATIONS,
-) -> Tensor:
-    """Scale s = r / r_d solving s (1 + k1 r_d^2 s^2 + k2 r_d^4 s^4 + k3 r_d^6 s^6 + k4 r_d^8 s^8) = 1.
-
-    The inverse of the radial polynomial: r = s r_d for perspective cameras, theta = s theta_d for fisheye ones.
-    Newton's method runs without autograd to convergence; one more Newton step with autograd on then gives the
-    exact implicit-function gradient ds/dtheta = -(dg/dtheta) / g'(s), so undistortion stays differentiable
-    without back-propagating through the iterations.
-    """
-
-    def residual(s: Tensor) -> tuple[Tensor, Tensor]:
-        s2r = s * s * r_d2
-        cubic = s2r * s2r * s2r
-        g = s * (1.0 + k1 * s2r + k2 * s2r * s2r + cubic * (k3 + k4 * s2r)) - 1.0
-        dg = 1.0 + 3.0 * k1 * s2r + 5.0 * k2 * s2r * s2r + cubic * (7.0 * k3 + 9.0 * k4 * s2r)
-        return g, dg
-
-    with torch.no_grad():
-        s = torch.ones_like(r_d2)
-        for _ in range(iterations):
-            g, dg = residual(s)
-            s = s - g / dg
-    g, dg = residual(s)
-    return s - g / dg.detach()
-
-
-def _newton_tangential(
-    a_d: Tensor, b_d: Tensor, intrinsics: Intrinsics, iterations: int = UNDISTORT_ITERATIONS
-) -> tuple[Tensor, Tensor]:
-    """Undistorted tangents (a, b) with distort_tangents(a, b) = (a_d, b_d) by 2-D Newton from (a_d, b_d).
-
-    Runs without autograd; steps whose Jacobian is (nearly) singular are skipped, so a fold shows as a residual.
-    """
-    with torch.no_grad():
-        a, b = a_d.detach().clone(), b_d.detach().clone()
-        for _ in range(iterations):
-            fa, fb = distort_tangents(a, b, intrinsics)
-            jac = tangent_distortion_jacobian(a, b, intrinsics)
-            ra, rb = fa - a_d, fb - b_d
-            det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
-            ok = det.abs() > 1e-12
-            safe_det = torch.where(ok, det, torch.ones_like(det))
-            step_a = (jac[..., 1, 1] * ra - jac[..., 0, 1] * rb) / safe_det
-            step_b = (jac[..., 0, 0] * rb - jac[..., 1, 0] * ra) / safe_det
-            a = a - torch.where(ok, step_a, torch.zeros_like(step_a))
-            b = b - torch.where(ok, step_b, torch.zeros_like(step_b))
-    return a, b
-
-
-def undistort_tangents(a_d: Tensor, b_d: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
-    """Inverse of ``distort_tangents``, differentiable through the implicit-function theorem.
-
-    Radial-only cameras solve the scalar equation of ``undistort_scale``. With tangential terms, 2-D Newton converges
-    without autograd, then one Newton step with autograd and the Jacobian detached gives
-    d(a, b)/dtheta = -J^-1 dF/dtheta, the implicit-function gradient (F(a, b) = distortion - (a_d, b_d)).
-    """
-    if bool((intrinsics.p1.detach() == 0).all()) and bool((intrinsics.p2.detach() == 0).all()):
-        k1, k2, k3, k4 = _columns(intrinsics, "k1", "k2", "k3", "k4")
-        scale = undistort_scale(a_d * a_d + b_d * b_d, k1, k2, k3, k4)
-        return a_d * scale, b_d * scale
-    a, b = _newton_tangential(a_d, b_d, intrinsics)
-    fa, fb = distort_tangents(a, b, intrinsics)
-    jac = tangent_distortion_jacobian(a, b, intrinsics).detach()
-    ra, rb = fa - a_d, fb - b_d
-    det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
-    return (
-        a - (jac[..., 1, 1] * ra - jac[..., 0, 1] * rb) / det,
-        b - (jac[..., 0, 0] * rb - jac[..., 1, 0] * ra) / det,
-    )
-
-
-def distorted_coordinates(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
-    """(a_d, b_d) of pixels: the inverse of the affine map u = fx a_d + s b_d + cx, v = fy b_d + cy."""
-    fx, fy, cx, cy, skew = _columns(intrinsics, "fx", "fy", "cx", "cy", "skew")
-    b_d = (pixels[..., 1] - cy) / fy
-    a_d = (pixels[..., 0] - cx - skew * b_d) / fx
-    return a_d, b_d
-
-
-def _fisheye_directions(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 3"]:
-    """Unit directions of fisheye pixels: theta from theta_d = |(a_d, b_d)| by ``undistort_scale``."""
-    a_d, b_d = distorted_coordinates(pixels, intrinsics)
-    theta_d2 = a_d * a_d + b_d * b_d
-    k1, k2, k3, k4 = _columns(intrinsics, "k1", "k2", "k3", "k4")
-    scale = undistort_scale(theta_d2, k1, k2, k3, k4)  # theta / theta_d
-    theta = scale * torch.sqrt(torch.clamp(theta_d2, min=torch.finfo(theta_d2.dtype).tiny))
-    # sin(theta) / theta_d = scale * sinc(theta), finite on the optical axis.
-    lateral = scale * torch.sinc(theta / math.pi)
-    return torch.stack([a_d * lateral, b_d * lateral, torch.cos(theta)], dim=-1)
-
-
-def unproject(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 2"]:
-    """Undistorted tangents (a, b) = (x/z, y/z) of the rays through the given pixels (inverse of ``project``).
-
-    For fisheye cameras these are tan(theta) times the ray's azimuth direction, defined only below 90 degrees; use
-    ``pixel_to_ray_direction`` for rays at any angle.
-    """
-    if intrinsics.is_fisheye:
-        directions = _fisheye_directions(pixels, intrinsics)
-        return directions[..., :2] / directions[..., 2:]
-    a_d, b_d = distorted_coordinates(pixels, intrinsics)
-    a, b = undistort_tangents(a_d, b_d, intrinsics)
-    return torch.stack([a, b], dim=-1)
-
-
-def pixel_to_ray_direction(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 3"]:
-    """Unit ray directions in the camera frame through the given pixels (fisheye: also beyond 90 degrees)."""
-    if intrinsics.is_fisheye:
-        return _fisheye_directions(pixels, intrinsics)
-    tangents = unproject(pixels, intrinsics)
-    directions = torch.cat([tangents, torch.ones_like(tangents[..., :1])], dim=-1)
-    return directions / torch.linalg.norm(directions, dim=-1, keepdim=True)
-
-
-def vertical_field_of_view(intrinsics: Intrinsics) -> Float[Tensor, " n"]:
-    """Angle between the rays through the top and the bottom edge of the image at the principal point's column.
-
-    The sum of the two rays' angles to the optical axis, so distortion and an off-centre principal point count, and
-    a fisheye's field of view can exceed 180 degrees (pinhole with cy = h / 2: 2 atan(h / (2 fy))).
-    """
-    zeros = torch.zeros_like(intrinsics.cx)
-    edges = torch.stack([torch.stack([intrinsics.cx, zeros], -1), torch.stack([intrinsics.cx, intrinsics.height], -1)])
-    directions = pixel_to_ray_direction(edges.transpose(0, 1), intrinsics)
-    off_axis = torch.atan2(torch.linalg.norm(directions[..., :2], dim=-1), directions[..., 2])
-    return off_axis.sum(dim=-1)
-
-
-def tangent_bounds(intrinsics: Intrinsics, samples_per_edge: int = 129, inset: float = 1e-5) -> Float[Tensor, "n 4"]:
-    """Inner box (a_min, a_max, b_min, b_max) of undistorted tangents whose rays land inside the image.
-
-    The image border is unprojected at ``samples_per_edge`` points per edge. With barrel distortion the border
-    bends inwards in tangent space, so the box takes the innermost tangent of each edge; with pincushion
-    distortion it bends outwards and the box corners are the undistorted image corners. Between the border
-    samples the extreme tangent can lie slightly further in, so the box is inset by ``inset`` of its size.
-    Perspective cameras only: a fisheye's field of view need not fit a tangent box (none exists past 90 degrees).
-    """
-    if intrinsics.is_fisheye:
-        raise ValueError(
-            "tangent_bounds needs a perspective camera, got model 'fisheye': a fisheye's field of view has no "
-            "tangent box; sample its image instead (preconditioner.sample_proxy_points does)"
-        )
-    n = intrinsics.num_cameras
-    t = torch.linspace(0.0, 1.0, samples_per_edge, dtype=intrinsics.dtype, device=intrinsics.device)
-    w, h = intrinsics.width[:, None], intrinsics.height[:, None]
-    zeros = torch.zeros(n, samples_per_edge, dtype=intrinsics.dtype, device=intrinsics.device)
-    edges = {
-        "left": torch.stack([zeros, t * h], dim=-1),
-        "right": torch.stack([zeros + w, t * h], dim=-1),
-        "top": torch.stack([t * w, zeros], dim=-1),
-        "bottom": torch.stack([t * w, zeros + h], dim=-1),
-    }
-    tangents = {name: unproject(pixels, intrinsics) for name, pixels in edges.items()}
-    a_min, a_max = tangents["left"][..., 0].amax(dim=-1), tangents["right"][..., 0].amin(dim=-1)
-    b_min, b_max = tangents["top"][..., 1].amax(dim=-1), tangents["bottom"][..., 1].amin(dim=-1)
-    a_margin, b_margin = inset * (a_max - a_min), inset * (b_max - b_min)
-    return torch.stack([a_min + a_margin, a_max - a_margin, b_min + b_margin, b_max - b_margin], dim=-1)
 
 
 def opengl_to_opencv(c2w: Float[Tensor, "*batch 3 4"]) -> Float[Tensor, "*batch 3 4"]:

@@ -25,7 +25,7 @@ theta^2, Q = dP/d(theta^2); (a_d, b_d) = (x, y) m with m = h P):
     d(a_d, b_d)/d(x, y, z) = [[m + x^2 c, x y c, x dm/dz], [x y c, m + y^2 c, y dm/dz]]
     d(a_d, b_d)/dk_j = (x, y) h theta^(2j)
 
-(``camera.fisheye_terms`` evaluates h and q by their Taylor series near the optical axis.)
+(``distortion.fisheye_terms`` evaluates h and q by their Taylor series near the optical axis.)
 """
 
 from __future__ import annotations
@@ -34,17 +34,8 @@ import torch
 from jaxtyping import Bool, Float
 from torch import Tensor
 
-from s2camp_ns.core.camera import (
-    Intrinsics,
-    ParameterLayout,
-    distortion_factor,
-    distortion_slope,
-    fisheye_terms,
-    in_image,
-    project,
-    skew_matrix,
-    tangent_distortion_jacobian,
-)
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout, in_image, project, skew_matrix
+from s2camp_ns.core.distortion import distortion_factor, distortion_slope, fisheye_terms, tangent_distortion_jacobian
 
 
 def _perspective_terms(

@@ -19,7 +19,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics, ParameterLayout, pixel_to_ray_direction, tangent_bounds
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout
 from s2camp_ns.core.camp_sampling import CAMP_LADDER_P, CAMP_T_FAR, CAMP_T_NEAR, camp_frustum_points, validate_ladder
 from s2camp_ns.core.config_defaults import DefaultsOnLoad
 from s2camp_ns.core.contraction import uncontract_radius
@@ -33,6 +33,7 @@ from s2camp_ns.core.proxy_range import (
     fixed_range,
     validate_overrides,
 )
+from s2camp_ns.core.unprojection import pixel_to_ray_direction, tangent_bounds
 from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
 
 SamplerName = Literal["frolov", "sobol", "halton", "random", "camp-random"]

@@ -12,7 +12,8 @@ from jaxtyping import Float
 from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics, pixel_to_ray_direction
+from s2camp_ns.core.camera import Intrinsics
+from s2camp_ns.core.unprojection import pixel_to_ray_direction
 from s2camp_ns.nerfstudio.alignment_camera import HeldOutView, scale_focal, twisted_c2w
 
 
@@ -26,7 +27,7 @@ def camera_rays(
 ) -> RayBundle:
     """Rays through ``pixels`` of the camera c2w exp(twist) with focal lengths scaled by exp(log_focal), in float32.
 
-    Differentiable in ``twist`` and ``log_focal``; distortion is the camera's (iterative undistortion, core.camera).
+    Differentiable in ``twist`` and ``log_focal``; distortion is the camera's (iterative undistortion, core.distortion).
     """
     scaled = scale_focal(intrinsics.to(dtype=torch.float64), torch.exp(log_focal))
     directions_cam = pixel_to_ray_direction(pixels.double()[None], scaled)[0]

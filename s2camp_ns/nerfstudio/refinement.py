@@ -26,8 +26,9 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
-from s2camp_ns.core.camera import opengl_to_opencv, vertical_field_of_view
+from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.track_fit import TrackEvidence
+from s2camp_ns.core.unprojection import vertical_field_of_view
 from s2camp_ns.core.validation import check_positive_int
 from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.nerfstudio.distributed import any_rank, world_size

@@ -68,7 +68,7 @@ _POSE_TOLERANCE = 1e-6
 @dataclass(frozen=True)
 class CameraFrusta:
     """Cameras to draw: OpenCV camera-to-world [n, 3, 4] (nerfstudio's scene units), vertical field of view (radians,
-    ``s2camp_ns.core.camera.vertical_field_of_view``: distortion and fisheyes included), width and height [n]."""
+    ``s2camp_ns.core.unprojection.vertical_field_of_view``: distortion and fisheyes included), width and height [n]."""
 
     c2w_cv: Tensor
     vertical_fov: Tensor

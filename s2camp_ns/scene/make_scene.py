@@ -35,13 +35,10 @@ import tyro
 from PIL import Image as PILImage
 
 from s2camp_ns import __version__
-from s2camp_ns.core.camera import (
-    CAMERA_MODEL_PROJECTION,
-    Intrinsics,
-    check_distortion_monotonic,
-    pixel_to_ray_direction,
-)
+from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, values_to_colmap
+from s2camp_ns.core.distortion import check_distortion_monotonic
+from s2camp_ns.core.unprojection import pixel_to_ray_direction
 from s2camp_ns.core.validation import check_choice, check_range
 from s2camp_ns.scene import procedural
 
