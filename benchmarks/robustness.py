@@ -124,6 +124,13 @@ SCENES: dict[str, RobustnessScene] = {
         "512 rays see each training pixel 1.6 times (a nerfacto run about once)",
         downscale=2,
     ),
+    "regime-wide-full": RobustnessScene(
+        _scene(56, 320, 240, 70.0, 4.0, seed=3),
+        70.0,
+        3,
+        "regime-wide trained at its full 320x240 (4x the pixels per image); 3000 steps x 512 rays see each training "
+        "pixel 0.41 times: where the images gain on the keypoints",
+    ),
 }
 """The background sphere has radius 40 (``s2camp_ns.scene.procedural``); the foreground objects lie within 1.8 of
 the centre, so the ring radius sets the depth range each camera sees. The cameras sit on a full ring, so the number
@@ -149,16 +156,16 @@ RECOVERY_STARTS = ("perturbed", "phone", "phone-iid")
 "Names that no longer run")."""
 VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "tracks", "s2camp-photometric", "s2camp-camp-prior",
-    "s2camp-identity-prior",
+    "s2camp-identity-prior", "s2camp-fused", "s2camp-fused-prior",
 )  # fmt: skip
-EVIDENCE_VARIANTS = VARIANTS
+EVIDENCE_VARIANTS = VARIANTS[:8]
 """The ``--preset regime`` variants: what each evidence adds. Beside refinement off, the two baselines and the
 default, the tracks alone, the images alone (S2CamP without the prior), and the prior with CamP's P and with P = I,
 every row that uses a prior with the same tracks."""
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "tracks": "s2camp", "s2camp-photometric": "s2camp", "s2camp-camp-prior": "s2camp-camp",
-    "s2camp-identity-prior": "s2camp",
+    "s2camp-identity-prior": "s2camp", "s2camp-fused": "s2camp", "s2camp-fused-prior": "s2camp",
 }  # fmt: skip
 _ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
 _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
@@ -169,6 +176,8 @@ VARIANT_ARGUMENTS = {
     "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False"],
     "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True"],
     "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True"],
+    "s2camp-fused": [_ROTATION, "True", _PRIOR, "False", f"{_OPTIMIZER}.track-loss", "True"],
+    "s2camp-fused-prior": [_ROTATION, "True", _PRIOR, "True", f"{_OPTIMIZER}.track-loss", "True"],
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run, each stating every candidate option so that a variant keeps
 its meaning when a default changes. "s2camp" is the method's defaults (the common rotation removed and the track
@@ -176,9 +185,11 @@ prior on, ``S2CAMP_CAMERA_OPTIMIZER``); "off" disables camera refinement; "track
 its track prior's anchor, the images move none: ``photometric`` False), what bundle adjustment gives without
 refinement; "s2camp-photometric" the images alone (the defaults without the prior); "s2camp-camp-prior" the prior
 with CamP's P (the s2camp-camp method plus the defaults' prior and common-rotation removal); "s2camp-identity-prior"
-the prior with P = I (the defaults, ``precondition`` False). Committed rows under other variant names were recorded
-with settings that no longer run: the report lists them apart, and docs/RESULTS.md ("Names that no longer run")
-says what each ran."""
+the prior with P = I (the defaults, ``precondition`` False). Fused candidates (``s2camp_ns.core.track_loss``):
+"s2camp-fused" the tracks' robust reprojection cost as a loss beside the photometric loss, weighed as
+log-likelihoods, no prior; "s2camp-fused-prior" that loss beside the defaults' prior. Committed rows under other
+variant names were recorded with settings that no longer run: the report lists them apart, and docs/RESULTS.md
+("Names that no longer run") says what each ran."""
 PHONE_PROFILE = {
     "sigma_position": 0.0, "sigma_look_at": 0.0, "sigma_dolly_z": 0.0, "sigma_focal_length": 0.0,
     "drift.enabled": True, "drift.position_drift": 0.01, "drift.yaw_drift_deg": 1.5, "drift.tilt_deg": 0.3,

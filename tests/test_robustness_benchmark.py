@@ -48,12 +48,15 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     # changes; "s2camp" and the baselines take the method's own defaults.
     photometric = "--pipeline.model.camera-optimizer.photometric"
     precondition = "--pipeline.model.camera-optimizer.precondition"
+    track_loss = "--pipeline.model.camera-optimizer.track-loss"
     expected_options = {
         "off": {"--pipeline.model.camera-optimizer.mode": "off"},
         "tracks": {photometric: "False", rotation: "True", prior: "True"},
         "s2camp-photometric": {rotation: "True", prior: "False"},
         "s2camp-camp-prior": {rotation: "True", prior: "True"},
         "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True"},
+        "s2camp-fused": {rotation: "True", prior: "False", track_loss: "True"},
+        "s2camp-fused-prior": {rotation: "True", prior: "True", track_loss: "True"},
     }  # fmt: skip
     assert camera_options == expected_options.get(variant, {})
     tail = command[command.index("s2camp-data") :]
@@ -124,7 +127,17 @@ def test_the_scenes_differ_in_resolution_field_of_view_image_count_and_depth() -
         assert fov == pytest.approx(preset.fov_degrees, abs=1e-9)
     assert len({preset.scene.num_cameras for preset in chosen}) == len(chosen)
     assert len({preset.scene.ring_radius for preset in chosen}) == len(chosen)
-    assert len({preset.perturbation_seed for preset in SCENES.values()}) == len(SCENES)
+    # One perturbation seed per generated scene, another for each other scene (a scene trained at two resolutions
+    # keeps its own).
+    pairs = {(preset.scene.seed, preset.perturbation_seed) for preset in SCENES.values()}
+    assert len(pairs) == len({seed for seed, _ in pairs}) == len({seed for _, seed in pairs})
+
+
+def test_the_full_resolution_regime_scene_is_the_regime_scene_with_four_times_its_training_pixels() -> None:
+    low, full = SCENES["regime-wide"], SCENES["regime-wide-full"]
+    assert full.scene == low.scene and full.perturbation_seed == low.perturbation_seed
+    assert (low.downscale, full.downscale) == (2, 1)
+    assert full.training_pixels == 4 * low.training_pixels == 49 * 320 * 240
 
 
 def test_focal_for_fov_of_a_right_angle_is_half_the_width() -> None:

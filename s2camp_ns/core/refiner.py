@@ -44,6 +44,7 @@ from s2camp_ns.core.latent_layout import LatentLayout, PerCameraIntrinsics, PerI
 from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig
 from s2camp_ns.core.proxy_range import ProxyRanges, proxy_ranges
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
+from s2camp_ns.core.track_loss import TrackTerm, photometric_weight, track_cost
 from s2camp_ns.core.track_prior import TrackPriorEvidence, apply_track_prior, place_at_anchor, span
 
 ROTATION_COLUMNS = [3, 4, 5]
@@ -97,6 +98,7 @@ class CameraRefiner(nn.Module):
         self.groups_known = False
         self.has_cameras = False
         self.has_track_prior = False
+        self.track_term: TrackTerm | None = None
         self.cameras_required = "CameraRefiner.set_cameras must be called before use"
         """The RuntimeError's message when the cameras are needed and not set (a framework names its own call)."""
         # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
@@ -337,6 +339,25 @@ class CameraRefiner(nn.Module):
             return
         for block in self.latent_layout.prior_blocks(self):
             apply_track_prior(block.latent, block.anchor, block.radius, lr)
+
+    def set_track_term(self, term: TrackTerm | None) -> None:
+        """The tracks as a loss term (``core.track_loss``, a benchmark candidate); None: none."""
+        self.track_term = term
+
+    def track_loss(self, photometric_mse: Tensor) -> Float[Tensor, ""] | None:
+        """The track term in the photometric loss's units, w sum_obs rho(s_o) (``core.track_loss`` eq. 1), with
+        sigma_c^2 a running mean (100 steps) of the photometric loss ``photometric_mse``; differentiable in the
+        deltas; None without a term or when disabled."""
+        term = self.track_term
+        if term is None or not self.enabled:
+            return None
+        mse = photometric_mse.detach().to(self.precond)
+        running = getattr(self, "_photometric_mse", None)
+        self._photometric_mse = mse if running is None else 0.99 * running + 0.01 * mse
+        intrinsics = self.base_intrinsics_struct()
+        weight = photometric_weight(self._photometric_mse, int((intrinsics.width * intrinsics.height).sum()),
+                                    term.noise_variance)  # fmt: skip
+        return weight * track_cost(term, self.deltas(), intrinsics)
 
     @torch.no_grad()
     def remove_common_motion(self) -> None:
