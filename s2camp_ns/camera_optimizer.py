@@ -78,15 +78,15 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     """L2 penalty on the raw translation delta (scene units); 0 = none, as in the paper."""
     rot_l2_penalty: float = 0.0
     """L2 penalty on the raw rotation delta (radians); 0 = none, as in the paper."""
-    track_prior: bool = False
+    track_prior: bool = True
     """Anchor each camera where the scene's SfM tracks put it: a Gaussian prior in the whitened space, scaled by the
     tracks' reprojection error there (``set_track_prior``, ``apply_track_prior``), so a camera moves about that far
     from its anchor at most. Cameras straight out of SfM are anchored at the given camera with SfM's own error;
     cameras changed after SfM where their tracks put them (camera-only bundle adjustment against the fixed points,
     ``core.track_fit``). No tracks, no prior. Needs the data parser's ``track_evidence`` (COLMAP scenes with points,
-    ns-process-data transforms.json with ``colmap/sparse/0``, else tracks from the images, ``image_tracks``). On in
-    the ``s2camp`` and ``s2camp-splat`` methods (``method_config``), off here (the baselines': CamP and nerfstudio
-    have no prior); measured in ``s2camp-bench robustness --preset regime`` (docs/benchmarks/regime.md)."""
+    ns-process-data transforms.json with ``colmap/sparse/0``, else tracks from the images, ``image_tracks``). On by
+    default; the ``s2camp-camp`` baseline switches it off (CamP has no prior), as do the benchmarks' photometric-only
+    rows (``train_commands.PHOTOMETRIC_ONLY``); measured in ``s2camp-bench robustness --preset regime``."""
     track_loss: bool = False
     """Benchmark candidate: the tracks' robust reprojection cost as a loss term beside the photometric loss, the two
     weighed as log-likelihoods (``s2camp_ns.core.track_loss``); needs the data parser's ``track_evidence``."""
@@ -96,12 +96,12 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     others where they are given: the "tracks alone" baseline, what bundle adjustment gives a user without
     refinement. The latent keeps its gradient, zeroed (Adam then makes no step), so mixed-precision training with
     its gradient scaler runs as for the other settings."""
-    fix_common_rotation: bool = False
+    fix_common_rotation: bool = True
     """After every step, remove the rotation all training cameras share (the mean over images of the pose update's
     rotation, each in its own frame; ``remove_common_motion``): a common rotation is the similarity gauge in
     disguise, unseen by the photometric loss (a common pitch of cameras on a ring equals moving them all up, a common
-    yaw of forward-facing cameras turning the world; docs/DESIGN-NOTES.md sec. 6). On in the ``s2camp`` and
-    ``s2camp-splat`` methods, off in this config (the baselines' setting)."""
+    yaw of forward-facing cameras turning the world; docs/DESIGN-NOTES.md sec. 6). On by default;
+    off in the ``s2camp-camp`` baseline (CamP's code has no such step) and the photometric-only benchmark rows."""
 
     def layout(self, camera_model: str = "RADIAL") -> ParameterLayout:
         return ParameterLayout.from_preset(self.parameters, camera_model)

@@ -5,7 +5,8 @@ they differ only in the camera optimizer:
 
 - ``s2camp``: 500 deterministic Frolov-lattice points in each camera's frustum, P refreshed during training
   (paper sec. 4), the rotation all cameras share removed and the track prior on (``S2CAMP_CAMERA_OPTIMIZER``);
-- ``s2camp-camp``: the CamP baseline, 5000 random points, P computed once at the start (docs/DESIGN-NOTES.md sec. 5);
+- ``s2camp-camp``: the CamP baseline, 5000 random points, P computed once at the start, neither the track prior nor
+  the common-rotation removal (docs/DESIGN-NOTES.md sec. 5);
 - ``s2camp-so3xr3``: the nerfacto baseline, nerfstudio's stock SO3xR3 pose optimizer (no intrinsics) with
   nerfacto's camera learning rate, in the same pipeline (data manager, offline LPIPS, camera-error logging), so
   the three are compared with everything else equal.
@@ -96,12 +97,12 @@ def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfi
     )
 
 
-S2CAMP_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig(fix_common_rotation=True, track_prior=True)
-"""s2camp's camera optimizer: every parameter group, the rotation all cameras share removed after every step and the
-track prior on (a no-op for cameras without SfM tracks). Without these, in the regime real runs train in (each pixel
-seen about once), good SfM cameras ended 2.6x further off in rotation and 1.7x in position; with them they stay
-where SfM put them (docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 6-7). The baselines keep the config's
-neutral defaults (both off), as their own code has neither."""
+S2CAMP_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig()
+"""s2camp's camera optimizer, the config's defaults: every parameter group, the rotation all cameras share removed
+after every step and the track prior on (a no-op for cameras without SfM tracks). Without these, in the regime real
+runs train in (each pixel seen about once), good SfM cameras ended 2.6x further off in rotation and 1.7x in position;
+with them they stay where SfM put them (docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 6-7). The CamP baseline
+switches both off, as CamP's code has neither."""
 
 s2camp_method = MethodSpecification(
     config=make_trainer_config("s2camp", S2CAMP_CAMERA_OPTIMIZER),
@@ -113,14 +114,20 @@ s2camp_camp_method = MethodSpecification(
         "s2camp-camp",
         # CamP's published camera-optimisation configuration (docs/benchmarks/camp-check.md): 5000 random pixels
         # at power-ladder distances in [0.4, 1000], no contraction; damping 1e-8 / 0.1; P computed once; intrinsics
-        # per image with P the symmetric root per image, as CamP (not S2CamP's per-camera block factor).
+        # per image with P the symmetric root per image, as CamP (not S2CamP's per-camera block factor); no track
+        # prior and no common-rotation removal (CamP's code has neither).
         S2CampCameraOptimizerConfig(
-            sampling=CAMP_SAMPLING, damping=DampingConfig(), refresh_every=0, intrinsics="per-image"
+            sampling=CAMP_SAMPLING,
+            damping=DampingConfig(),
+            refresh_every=0,
+            intrinsics="per-image",
+            track_prior=False,
+            fix_common_rotation=False,
         ),
     ),
     description=(
         "CamP baseline: as s2camp, but P from CamP's published sampling (5000 random points), computed once, "
-        "intrinsics per image."
+        "intrinsics per image, no track prior, no common-rotation removal."
     ),
 )
 
@@ -183,13 +190,12 @@ def make_splat_trainer_config(method_name: str, camera_optimizer: CameraOptimize
     )
 
 
-SPLAT_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig(
-    parameters="pose+intrinsics", fix_common_rotation=True, track_prior=True
-)
-"""s2camp-splat's camera optimizer: distortion fixed (splatfacto trains on undistorted images); the rotation all
-cameras share removed after every step and the track prior on (splatfacto starts from SfM points, so its scenes have
-tracks). From the CamP perturbation without these the rotation error grew to 1.5 degrees in every seed, and from
-true or SfM cameras every refining variant moved them; docs/SPLAT.md sec. 6, docs/benchmarks/splat.md."""
+SPLAT_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig(parameters="pose+intrinsics")
+"""s2camp-splat's camera optimizer: distortion fixed (splatfacto trains on undistorted images), otherwise the config's
+defaults: the rotation all cameras share removed after every step and the track prior on (splatfacto starts from SfM
+points, so its scenes have tracks). From the CamP perturbation without these the rotation error grew to 1.5 degrees
+in every seed, and from true or SfM cameras every refining variant moved them; docs/SPLAT.md sec. 6,
+docs/benchmarks/splat.md."""
 
 s2camp_splat_method = MethodSpecification(
     config=make_splat_trainer_config("s2camp-splat", SPLAT_CAMERA_OPTIMIZER),

@@ -53,3 +53,16 @@ def test_a_camera_optimizer_config_saved_with_a_removed_field_still_loads() -> N
     loaded.validate()
     assert loaded == S2CampCameraOptimizerConfig(track_prior=True, fix_common_rotation=True, refresh_every=7)
     assert (loaded.track_prior, loaded.fix_common_rotation, loaded.refresh_every) == (True, True, 7)
+
+
+def test_a_camera_optimizer_config_saved_with_the_old_defaults_keeps_them() -> None:
+    """Both options were off by default before they became the shipped defaults; a run's config.yml writes every
+    field, so a run saved with them off (the old defaults, the CamP baseline, the photometric-only rows) loads with
+    them off, and one saved with them on with them on."""
+    for value in (False, True):
+        saved = yaml.dump(S2CampCameraOptimizerConfig(track_prior=value, fix_common_rotation=value))
+        assert f"track_prior: {str(value).lower()}\n" in saved
+        assert f"fix_common_rotation: {str(value).lower()}\n" in saved
+        loaded = yaml.load(saved, Loader=yaml.Loader)
+        assert (loaded.track_prior, loaded.fix_common_rotation) == (value, value)
+        loaded.validate()

@@ -42,6 +42,22 @@ def test_method_specifications():
         assert spec.config.machine.device_type == ("cuda" if torch.cuda.is_available() else "cpu")
 
 
+def test_shipped_camera_optimizers_are_the_config_defaults():
+    """s2camp ships the config's defaults (track prior on, common rotation removed); s2camp-splat changes only the
+    refined groups, as its model config's own default does; the CamP baseline switches both off."""
+    from s2camp_ns.nerfstudio.splat_model import S2CampSplatModelConfig
+
+    defaults = S2CampCameraOptimizerConfig()
+    assert (defaults.track_prior, defaults.fix_common_rotation, defaults.track_loss) == (True, True, False)
+    assert method_config.s2camp_method.config.pipeline.model.camera_optimizer == defaults
+    assert S2CampModelConfig().camera_optimizer == defaults
+    splat = S2CampCameraOptimizerConfig(parameters="pose+intrinsics")
+    assert method_config.s2camp_splat_method.config.pipeline.model.camera_optimizer == splat
+    assert S2CampSplatModelConfig().camera_optimizer == splat
+    camp = method_config.s2camp_camp_method.config.pipeline.model.camera_optimizer
+    assert (camp.track_prior, camp.fix_common_rotation) == (False, False)
+
+
 def test_camp_baseline_differs_only_in_camera_sampling():
     s2camp = method_config.s2camp_method.config
     camp = method_config.s2camp_camp_method.config

@@ -171,8 +171,9 @@ def test_shared_intrinsics_radius_is_the_standard_error_of_every_observation(mon
 
 
 def test_prior_off_or_without_tracks_changes_nothing() -> None:
-    # Off by default; on without tracks.
-    for optimizer, rms in ((make_optimizer(), torch.full((4,), 0.5)), (make_optimizer(track_prior=True), None)):
+    # Off; on without tracks.
+    off = make_optimizer(track_prior=False)
+    for optimizer, rms in ((off, torch.full((4,), 0.5)), (make_optimizer(track_prior=True), None)):
         with torch.no_grad():
             optimizer.whitened_delta.fill_(1.0)
         optimizer.set_track_prior(rms)
@@ -304,7 +305,8 @@ def test_tracks_alone_places_the_cameras_at_the_anchor_and_the_images_do_not_mov
         assert all(p.grad is not None and not bool(p.grad.any()) for p in optimizer.parameters())
         adam.step()
     assert all(torch.equal(p, q) for p, q in zip(optimizer.parameters(), before, strict=True))
-    with pytest.raises(ValueError, match=r"photometric False .* needs camera-optimizer.track-prior True"):
-        from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 
-        S2CampCameraOptimizerConfig(photometric=False).validate()
+    S2CampCameraOptimizerConfig(photometric=False).validate()  # the prior is on by default
+    with pytest.raises(ValueError, match=r"photometric False .* needs camera-optimizer.track-prior True"):
+        S2CampCameraOptimizerConfig(photometric=False, track_prior=False).validate()
