@@ -171,18 +171,17 @@ METHODS = {
 _ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
 _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
 _OPTIMIZER = "--pipeline.model.camera-optimizer"
+_LOSS = f"{_OPTIMIZER}.track-loss"
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
-    "tracks": [f"{_OPTIMIZER}.photometric", "False", _ROTATION, "True", _PRIOR, "True"],
-    "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False"],
-    "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True"],
-    "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True"],
-    "s2camp-fused": [_ROTATION, "True", _PRIOR, "False", f"{_OPTIMIZER}.track-loss", "True"],
-    "s2camp-fused-prior": [_ROTATION, "True", _PRIOR, "True", f"{_OPTIMIZER}.track-loss", "True"],
-    "s2camp-fused-camp": [_ROTATION, "True", _PRIOR, "False", f"{_OPTIMIZER}.track-loss", "True"],
-    "s2camp-fused-identity": [
-        f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "False", f"{_OPTIMIZER}.track-loss", "True"
-    ],
+    "tracks": [f"{_OPTIMIZER}.photometric", "False", _ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
+    "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False", _LOSS, "False"],
+    "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
+    "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
+    "s2camp-fused": [_ROTATION, "True", _PRIOR, "False", _LOSS, "True"],
+    "s2camp-fused-prior": [_ROTATION, "True", _PRIOR, "True", _LOSS, "True"],
+    "s2camp-fused-camp": [_ROTATION, "True", _PRIOR, "False", _LOSS, "True"],
+    "s2camp-fused-identity": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "False", _LOSS, "True"],
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run, each stating every candidate option so that a variant keeps
 its meaning when a default changes. "s2camp" is the method's defaults (the common rotation removed and the track

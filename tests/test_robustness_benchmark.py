@@ -52,10 +52,10 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     track_loss = "--pipeline.model.camera-optimizer.track-loss"
     expected_options = {
         "off": {"--pipeline.model.camera-optimizer.mode": "off"},
-        "tracks": {photometric: "False", rotation: "True", prior: "True"},
-        "s2camp-photometric": {rotation: "True", prior: "False"},
-        "s2camp-camp-prior": {rotation: "True", prior: "True"},
-        "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True"},
+        "tracks": {photometric: "False", rotation: "True", prior: "True", track_loss: "False"},
+        "s2camp-photometric": {rotation: "True", prior: "False", track_loss: "False"},
+        "s2camp-camp-prior": {rotation: "True", prior: "True", track_loss: "False"},
+        "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True", track_loss: "False"},
         "s2camp-fused": {rotation: "True", prior: "False", track_loss: "True"},
         "s2camp-fused-prior": {rotation: "True", prior: "True", track_loss: "True"},
         "s2camp-fused-camp": {rotation: "True", prior: "False", track_loss: "True"},
