@@ -157,6 +157,7 @@ RECOVERY_STARTS = ("perturbed", "phone", "phone-iid")
 VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "tracks", "s2camp-photometric", "s2camp-camp-prior",
     "s2camp-identity-prior", "s2camp-fused", "s2camp-fused-prior", "s2camp-fused-camp", "s2camp-fused-identity",
+    "s2camp-fused-intrinsics-prior",
 )  # fmt: skip
 EVIDENCE_VARIANTS = VARIANTS[:8]
 """The ``--preset regime`` variants: what each evidence adds. Beside refinement off, the two baselines and the
@@ -166,7 +167,7 @@ METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "tracks": "s2camp", "s2camp-photometric": "s2camp", "s2camp-camp-prior": "s2camp-camp",
     "s2camp-identity-prior": "s2camp", "s2camp-fused": "s2camp", "s2camp-fused-prior": "s2camp",
-    "s2camp-fused-camp": "s2camp-camp", "s2camp-fused-identity": "s2camp",
+    "s2camp-fused-camp": "s2camp-camp", "s2camp-fused-identity": "s2camp", "s2camp-fused-intrinsics-prior": "s2camp",
 }  # fmt: skip
 _ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
 _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
@@ -182,6 +183,9 @@ VARIANT_ARGUMENTS = {
     "s2camp-fused-prior": [_ROTATION, "True", _PRIOR, "True", _LOSS, "True"],
     "s2camp-fused-camp": [_ROTATION, "True", _PRIOR, "False", _LOSS, "True"],
     "s2camp-fused-identity": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "False", _LOSS, "True"],
+    "s2camp-fused-intrinsics-prior": [
+        _ROTATION, "True", _PRIOR, "True", f"{_OPTIMIZER}.track-prior-intrinsics-only", "True", _LOSS, "True"
+    ],
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run, each stating every candidate option so that a variant keeps
 its meaning when a default changes. "s2camp" is the method's defaults (the common rotation removed and the track

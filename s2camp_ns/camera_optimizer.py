@@ -90,6 +90,8 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     track_loss: bool = False
     """Benchmark candidate: the tracks' robust reprojection cost as a loss term beside the photometric loss, the two
     weighed as log-likelihoods (``s2camp_ns.core.track_loss``); needs the data parser's ``track_evidence``."""
+    track_prior_intrinsics_only: bool = False
+    """Benchmark candidate: the track prior holds the shared intrinsics only (per-camera intrinsics)."""
     photometric: bool = True
     """Let the photometric loss move the cameras. False (with ``track_prior``): every camera with tracks is placed at
     its track prior's anchor (the camera-only adjustment to the tracks, ``core.track_fit``) and stays there, the
@@ -173,6 +175,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
             "S2CampCameraOptimizer.set_train_cameras must be called before use (the pipeline does)"
         )
         # Not a submodule (its tensors would be listed twice, under "refiner."): its registries are this module's.
+        refiner.prior_intrinsics_only = config.track_prior_intrinsics_only
         object.__setattr__(self, "refiner", refiner)
         for registry in ("_parameters", "_buffers", "_non_persistent_buffers_set"):
             object.__setattr__(self, registry, getattr(refiner, registry))

@@ -100,3 +100,18 @@ def test_the_optimizers_track_loss_alone_brings_perturbed_cameras_to_their_ancho
         adam.step()
     torch.testing.assert_close(optimizer.whitened_delta.double(), pose, atol=2e-4, rtol=0)
     torch.testing.assert_close(optimizer.whitened_intrinsics.double(), intrinsics, atol=2e-4, rtol=0)
+
+
+def test_the_intrinsics_only_prior_moves_the_shared_intrinsics_latent_and_no_pose(tiny_scene) -> None:
+    # Benchmark candidate (``track_prior_intrinsics_only``): the proximal step on the per-camera intrinsics only.
+    from test_track_fit import _optimizer_from
+    from test_transforms_tracks import perturbed_with_scene_tracks
+
+    optimizer = _optimizer_from(perturbed_with_scene_tracks(tiny_scene), track_prior_intrinsics_only=True)
+    _, intrinsics = optimizer.prior_anchor_latents()
+    pose_before = optimizer.whitened_delta.detach().clone()
+    optimizer.prior_radius.fill_(0.01)
+    optimizer.prior_radius_intrinsics.fill_(0.01)
+    optimizer.apply_track_prior(lr=1e-3)
+    assert torch.equal(optimizer.whitened_delta.detach(), pose_before)
+    torch.testing.assert_close(optimizer.whitened_intrinsics.double(), intrinsics * (1e-3 / 0.011), rtol=1e-5, atol=1e-9)

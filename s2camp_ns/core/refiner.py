@@ -99,6 +99,8 @@ class CameraRefiner(nn.Module):
         self.has_cameras = False
         self.has_track_prior = False
         self.track_term: TrackTerm | None = None
+        self.prior_intrinsics_only = False
+        """Benchmark candidate: the prior's proximal step on the shared intrinsics' latent only."""
         self.cameras_required = "CameraRefiner.set_cameras must be called before use"
         """The RuntimeError's message when the cameras are needed and not set (a framework names its own call)."""
         # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
@@ -337,7 +339,8 @@ class CameraRefiner(nn.Module):
         # A Python flag, not a look at the radii: no device synchronisation on the training step's path.
         if not self.enabled or not self.has_track_prior or lr <= 0:
             return
-        for block in self.latent_layout.prior_blocks(self):
+        blocks = self.latent_layout.prior_blocks(self)
+        for block in blocks[1:] if self.prior_intrinsics_only and len(blocks) > 1 else blocks:
             apply_track_prior(block.latent, block.anchor, block.radius, lr)
 
     def set_track_term(self, term: TrackTerm | None) -> None:
