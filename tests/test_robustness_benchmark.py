@@ -60,6 +60,10 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
         "s2camp-fused-prior": {rotation: "True", prior: "True", track_loss: "True"},
         "s2camp-fused-camp": {rotation: "True", prior: "False", track_loss: "True"},
         "s2camp-fused-identity": {precondition: "False", rotation: "True", prior: "False", track_loss: "True"},
+        "s2camp-fused-intrinsics-prior": {
+            rotation: "True", prior: "True", "--pipeline.model.camera-optimizer.track-prior-intrinsics-only": "True",
+            track_loss: "True",
+        },
     }  # fmt: skip
     assert camera_options == expected_options.get(variant, {})
     tail = command[command.index("s2camp-data") :]

@@ -114,4 +114,6 @@ def test_the_intrinsics_only_prior_moves_the_shared_intrinsics_latent_and_no_pos
     optimizer.prior_radius_intrinsics.fill_(0.01)
     optimizer.apply_track_prior(lr=1e-3)
     assert torch.equal(optimizer.whitened_delta.detach(), pose_before)
-    torch.testing.assert_close(optimizer.whitened_intrinsics.double(), intrinsics * (1e-3 / 0.011), rtol=1e-5, atol=1e-9)
+    torch.testing.assert_close(
+        optimizer.whitened_intrinsics.double(), intrinsics * (1e-3 / 0.011), rtol=1e-5, atol=1e-9
+    )
