@@ -26,6 +26,7 @@ and re-expresses the latent and Adam's moments before the next step instead of u
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import torch
 from jaxtyping import Float, Int
@@ -99,6 +100,7 @@ class CameraRefiner(nn.Module):
         self.has_cameras = False
         self.has_track_prior = False
         self.track_term: TrackTerm | None = None
+        self._photometric_mse: Tensor | None = None  # the track loss's running photometric loss (not saved)
         self.prior_intrinsics_only = False
         """Benchmark candidate: the prior's proximal step on the shared intrinsics' latent only."""
         self.cameras_required = "CameraRefiner.set_cameras must be called before use"
@@ -344,8 +346,11 @@ class CameraRefiner(nn.Module):
             apply_track_prior(block.latent, block.anchor, block.radius, lr)
 
     def set_track_term(self, term: TrackTerm | None) -> None:
-        """The tracks as a loss term (``core.track_loss``, a benchmark candidate); None: none."""
-        self.track_term = term
+        """The tracks as a loss term (``core.track_loss``, a benchmark candidate), its tensors moved to the refiner's
+        device once; None: none."""
+        device = self.precond.device
+        on_device = {name: getattr(term, name).to(device) for name in ("image", "points_cam", "pixels")} if term else {}
+        self.track_term = None if term is None else replace(term, **on_device)
 
     def track_loss(self, photometric_mse: Tensor) -> Float[Tensor, ""] | None:
         """The track term in the photometric loss's units, w sum_obs rho(s_o) (``core.track_loss`` eq. 1), with
@@ -355,12 +360,10 @@ class CameraRefiner(nn.Module):
         if term is None or not self.enabled:
             return None
         mse = photometric_mse.detach().to(self.precond)
-        running = getattr(self, "_photometric_mse", None)
+        running = self._photometric_mse
         self._photometric_mse = mse if running is None else 0.99 * running + 0.01 * mse
-        intrinsics = self.base_intrinsics_struct()
-        weight = photometric_weight(self._photometric_mse, int((intrinsics.width * intrinsics.height).sum()),
-                                    term.noise_variance)  # fmt: skip
-        return weight * track_cost(term, self.deltas(), intrinsics)
+        weight = photometric_weight(self._photometric_mse, term.num_pixels, term.noise_variance)
+        return weight * track_cost(term, self.deltas(), self.base_intrinsics_struct())
 
     @torch.no_grad()
     def remove_common_motion(self) -> None:

@@ -39,9 +39,8 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
-from s2camp_ns.core.camera import NUM_CAMERA_PARAMS, Intrinsics, apply_pose_delta, project
-from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
-from s2camp_ns.core.track_fit import LOSS_SCALE_PX, TrackEvidence
+from s2camp_ns.core.camera import NUM_CAMERA_PARAMS, Intrinsics
+from s2camp_ns.core.track_fit import TrackEvidence, cauchy_loss, points_in_given_cameras, reprojection_residuals
 
 CHI2_2_MEDIAN = 2.0 * math.log(2.0)
 """Median of a chi-square with two degrees of freedom: s / sigma_t^2 of a 2D observation with isotropic noise."""
@@ -61,6 +60,8 @@ class TrackTerm:
     """Training-frame units per unit of the tracks' world."""
     noise_variance: float
     """sigma_t^2: the observations' noise variance per axis (px^2)."""
+    num_pixels: int
+    """N of eq. (1): the training pixels, all images at their intrinsics' size."""
 
 
 def noise_variance(squared: Float[Tensor, " o"]) -> float:
@@ -75,20 +76,20 @@ def track_term(evidence: TrackEvidence, intrinsics: Intrinsics, anchor: Float[Te
     """The track loss's data: ``evidence``'s observations in their given cameras' frames, keeping those in front of
     the camera, and sigma_t^2 from their residuals under the ``anchor`` deltas (tracks' world, as
     ``core.track_fit.fit_anchor`` returns them)."""
-    tracks, c2w = evidence.tracks, evidence.c2w.detach().to("cpu", torch.float64)
+    tracks, c2w = evidence.tracks, evidence.c2w
     tracks.validate(c2w.shape[0])
     image = tracks.image.to("cpu", torch.long)
-    points = tracks.points.detach().to("cpu", torch.float64)[tracks.point.to("cpu", torch.long)]
-    points_cam = (points - c2w[image, :, 3])[:, None, :] @ c2w[image, :, :3]  # [o, 1, 3]
+    points_cam = points_in_given_cameras(tracks, c2w)  # [o, 1, 3]
     pixels = tracks.pixels.detach().to("cpu", torch.float64)
-    base = intrinsics.detach().to(device="cpu", dtype=torch.float64)[image]
-    squared, valid = _squared_residuals(anchor.to("cpu", torch.float64)[image], points_cam, base, pixels)
+    intrinsics = intrinsics.detach().to(device="cpu", dtype=torch.float64)
+    squared, valid = _squared_residuals(anchor.to("cpu", torch.float64)[image], points_cam, intrinsics[image], pixels)
     return TrackTerm(
         image=image[valid],
         points_cam=points_cam[valid],
         pixels=pixels[valid],
         world_scale=float(evidence.world_scale),
         noise_variance=noise_variance(squared[valid]),
+        num_pixels=int((intrinsics.width * intrinsics.height).sum()),
     )
 
 
@@ -96,10 +97,9 @@ def _squared_residuals(
     deltas: Float[Tensor, "o 16"], points_cam: Float[Tensor, "o 1 3"], intrinsics: Intrinsics, pixels: Tensor
 ) -> tuple[Float[Tensor, " o"], Tensor]:
     """Squared pixel distance of each observation under its deltas (tracks' world) and whether it is valid (in
-    front of the camera, inside a fisheye's range)."""
-    moved = apply_pose_delta(points_cam, deltas[:, :NUM_POSE_PARAMS])  # [o, 1, 3]
-    projected, margin = project(moved, intrinsics.with_delta(deltas))  # [o, 1, 2], [o, 1]
-    return (projected[:, 0] - pixels).square().sum(dim=-1), margin[:, 0] > 0
+    front of the camera, inside a fisheye's range): ``core.track_fit.reprojection_residuals``."""
+    residual, margin = reprojection_residuals(deltas, points_cam, intrinsics, pixels)  # [o, 2], [o]
+    return residual.square().sum(dim=-1), margin > 0
 
 
 def track_cost(term: TrackTerm, deltas: Float[Tensor, "n 16"], intrinsics: Intrinsics) -> Float[Tensor, ""]:
@@ -116,8 +116,7 @@ def track_cost(term: TrackTerm, deltas: Float[Tensor, "n 16"], intrinsics: Intri
     squared, valid = _squared_residuals(
         per_observation, term.points_cam.to(device, deltas.dtype), base, term.pixels.to(device, deltas.dtype)
     )
-    c2 = LOSS_SCALE_PX**2
-    return torch.where(valid, c2 * torch.log1p(squared / c2), torch.zeros_like(squared)).sum()
+    return torch.where(valid, cauchy_loss(squared), torch.zeros_like(squared)).sum()
 
 
 def photometric_weight(mse: Tensor, num_pixels: int, noise_variance: float) -> Tensor:
