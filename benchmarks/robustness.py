@@ -156,7 +156,7 @@ RECOVERY_STARTS = ("perturbed", "phone", "phone-iid")
 "Names that no longer run")."""
 VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "tracks", "s2camp-photometric", "s2camp-camp-prior",
-    "s2camp-identity-prior", "s2camp-fused", "s2camp-fused-prior", "s2camp-fused-camp", "s2camp-fused-identity",
+    "s2camp-identity-prior", "s2camp-fused", "s2camp-fused-prior",
     "s2camp-fused-intrinsics-prior",
 )  # fmt: skip
 EVIDENCE_VARIANTS = VARIANTS[:8]
@@ -167,7 +167,7 @@ METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "tracks": "s2camp", "s2camp-photometric": "s2camp", "s2camp-camp-prior": "s2camp-camp",
     "s2camp-identity-prior": "s2camp", "s2camp-fused": "s2camp", "s2camp-fused-prior": "s2camp",
-    "s2camp-fused-camp": "s2camp-camp", "s2camp-fused-identity": "s2camp", "s2camp-fused-intrinsics-prior": "s2camp",
+    "s2camp-fused-intrinsics-prior": "s2camp",
 }  # fmt: skip
 _ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
 _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
@@ -181,8 +181,6 @@ VARIANT_ARGUMENTS = {
     "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
     "s2camp-fused": [_ROTATION, "True", _PRIOR, "False", _LOSS, "True"],
     "s2camp-fused-prior": [_ROTATION, "True", _PRIOR, "True", _LOSS, "True"],
-    "s2camp-fused-camp": [_ROTATION, "True", _PRIOR, "False", _LOSS, "True"],
-    "s2camp-fused-identity": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "False", _LOSS, "True"],
     "s2camp-fused-intrinsics-prior": [
         _ROTATION, "True", _PRIOR, "True", f"{_OPTIMIZER}.track-prior-intrinsics-only", "True", _LOSS, "True"
     ],
@@ -195,8 +193,8 @@ refinement; "s2camp-photometric" the images alone (the defaults without the prio
 with CamP's P (the s2camp-camp method plus the defaults' prior and common-rotation removal); "s2camp-identity-prior"
 the prior with P = I (the defaults, ``precondition`` False). Fused candidates (``s2camp_ns.core.track_loss``):
 "s2camp-fused" the tracks' robust reprojection cost as a loss beside the photometric loss, weighed as
-log-likelihoods, no prior; "s2camp-fused-prior" that loss beside the defaults' prior; "s2camp-fused-camp" and
-"s2camp-fused-identity" s2camp-fused with CamP's P and with P = I. Committed rows under other
+log-likelihoods, no prior; "s2camp-fused-prior" that loss beside the defaults' prior;
+"s2camp-fused-intrinsics-prior" that loss with the prior on the shared intrinsics only. Committed rows under other
 variant names were recorded with settings that no longer run: the report lists them apart, and docs/RESULTS.md
 ("Names that no longer run") says what each ran."""
 PHONE_PROFILE = {

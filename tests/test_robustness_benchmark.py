@@ -30,8 +30,7 @@ def _option(command: list[str], name: str) -> str:
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
     command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
-    methods = {"s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp-camp-prior": "s2camp-camp",
-               "s2camp-fused-camp": "s2camp-camp"}  # fmt: skip
+    methods = {"s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp-camp-prior": "s2camp-camp"}
     assert command[1] == methods.get(variant, "s2camp")
     assert _option(command, "--max-num-iterations") == "123"
     assert _option(command, "--machine.seed") == "2"
@@ -58,8 +57,6 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
         "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True", track_loss: "False"},
         "s2camp-fused": {rotation: "True", prior: "False", track_loss: "True"},
         "s2camp-fused-prior": {rotation: "True", prior: "True", track_loss: "True"},
-        "s2camp-fused-camp": {rotation: "True", prior: "False", track_loss: "True"},
-        "s2camp-fused-identity": {precondition: "False", rotation: "True", prior: "False", track_loss: "True"},
         "s2camp-fused-intrinsics-prior": {
             rotation: "True", prior: "True", "--pipeline.model.camera-optimizer.track-prior-intrinsics-only": "True",
             track_loss: "True",
