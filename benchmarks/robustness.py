@@ -156,34 +156,26 @@ RECOVERY_STARTS = ("perturbed", "phone", "phone-iid")
 "Names that no longer run")."""
 VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "tracks", "s2camp-photometric", "s2camp-camp-prior",
-    "s2camp-identity-prior", "s2camp-fused", "s2camp-fused-prior",
-    "s2camp-fused-intrinsics-prior",
+    "s2camp-identity-prior",
 )  # fmt: skip
-EVIDENCE_VARIANTS = VARIANTS[:8]
+EVIDENCE_VARIANTS = VARIANTS
 """The ``--preset regime`` variants: what each evidence adds. Beside refinement off, the two baselines and the
 default, the tracks alone, the images alone (S2CamP without the prior), and the prior with CamP's P and with P = I,
 every row that uses a prior with the same tracks."""
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "tracks": "s2camp", "s2camp-photometric": "s2camp", "s2camp-camp-prior": "s2camp-camp",
-    "s2camp-identity-prior": "s2camp", "s2camp-fused": "s2camp", "s2camp-fused-prior": "s2camp",
-    "s2camp-fused-intrinsics-prior": "s2camp",
+    "s2camp-identity-prior": "s2camp",
 }  # fmt: skip
 _ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
 _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
 _OPTIMIZER = "--pipeline.model.camera-optimizer"
-_LOSS = f"{_OPTIMIZER}.track-loss"
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
-    "tracks": [f"{_OPTIMIZER}.photometric", "False", _ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
-    "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False", _LOSS, "False"],
-    "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
-    "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
-    "s2camp-fused": [_ROTATION, "True", _PRIOR, "False", _LOSS, "True"],
-    "s2camp-fused-prior": [_ROTATION, "True", _PRIOR, "True", _LOSS, "True"],
-    "s2camp-fused-intrinsics-prior": [
-        _ROTATION, "True", _PRIOR, "True", f"{_OPTIMIZER}.track-prior-intrinsics-only", "True", _LOSS, "True"
-    ],
+    "tracks": [f"{_OPTIMIZER}.photometric", "False", _ROTATION, "True", _PRIOR, "True"],
+    "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False"],
+    "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True"],
+    "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True"],
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run, each stating every candidate option so that a variant keeps
 its meaning when a default changes. "s2camp" is the method's defaults (the common rotation removed and the track
@@ -191,12 +183,9 @@ prior on, ``S2CAMP_CAMERA_OPTIMIZER``); "off" disables camera refinement; "track
 its track prior's anchor, the images move none: ``photometric`` False), what bundle adjustment gives without
 refinement; "s2camp-photometric" the images alone (the defaults without the prior); "s2camp-camp-prior" the prior
 with CamP's P (the s2camp-camp method plus the defaults' prior and common-rotation removal); "s2camp-identity-prior"
-the prior with P = I (the defaults, ``precondition`` False). Fused candidates (``s2camp_ns.core.track_loss``):
-"s2camp-fused" the tracks' robust reprojection cost as a loss beside the photometric loss, weighed as
-log-likelihoods, no prior; "s2camp-fused-prior" that loss beside the defaults' prior;
-"s2camp-fused-intrinsics-prior" that loss with the prior on the shared intrinsics only. Committed rows under other
-variant names were recorded with settings that no longer run: the report lists them apart, and docs/RESULTS.md
-("Names that no longer run") says what each ran."""
+the prior with P = I (the defaults, ``precondition`` False). Committed rows under other variant names were
+recorded with settings that no longer run: the report lists them apart, and docs/RESULTS.md ("Names that no longer
+run") says what each ran."""
 PHONE_PROFILE = {
     "sigma_position": 0.0, "sigma_look_at": 0.0, "sigma_dolly_z": 0.0, "sigma_focal_length": 0.0,
     "drift.enabled": True, "drift.position_drift": 0.01, "drift.yaw_drift_deg": 1.5, "drift.tilt_deg": 0.3,

@@ -48,19 +48,12 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     # changes; "s2camp" and the baselines take the method's own defaults.
     photometric = "--pipeline.model.camera-optimizer.photometric"
     precondition = "--pipeline.model.camera-optimizer.precondition"
-    track_loss = "--pipeline.model.camera-optimizer.track-loss"
     expected_options = {
         "off": {"--pipeline.model.camera-optimizer.mode": "off"},
-        "tracks": {photometric: "False", rotation: "True", prior: "True", track_loss: "False"},
-        "s2camp-photometric": {rotation: "True", prior: "False", track_loss: "False"},
-        "s2camp-camp-prior": {rotation: "True", prior: "True", track_loss: "False"},
-        "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True", track_loss: "False"},
-        "s2camp-fused": {rotation: "True", prior: "False", track_loss: "True"},
-        "s2camp-fused-prior": {rotation: "True", prior: "True", track_loss: "True"},
-        "s2camp-fused-intrinsics-prior": {
-            rotation: "True", prior: "True", "--pipeline.model.camera-optimizer.track-prior-intrinsics-only": "True",
-            track_loss: "True",
-        },
+        "tracks": {photometric: "False", rotation: "True", prior: "True"},
+        "s2camp-photometric": {rotation: "True", prior: "False"},
+        "s2camp-camp-prior": {rotation: "True", prior: "True"},
+        "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True"},
     }  # fmt: skip
     assert camera_options == expected_options.get(variant, {})
     tail = command[command.index("s2camp-data") :]
