@@ -558,16 +558,19 @@ class Spread:
 
 
 def summarize(rows: list[dict]) -> list[dict]:
-    """One row per scene, start and variant: the metrics over seeds (``Spread``), the PSNR difference against "off"
-    (labelled "no difference" when smaller than the larger of the two seed ranges) and, for perturbed starts, the
-    fraction of the start error removed (1 - mean final / start; the start is the same for every seed)."""
-    groups: dict[tuple[str, str, str, str], list[dict]] = {}
+    """One row per scene, start, variant and passes per pixel (``--rays-per-batch`` and ``--iterations`` change them):
+    the metrics over seeds (``Spread``), the PSNR difference against "off" at the same passes (labelled "no difference"
+    when smaller than the larger of the two seed ranges) and, for perturbed starts, the fraction of the start error
+    removed (1 - mean final / start; the start is the same for every seed)."""
+    groups: dict[tuple[str, str, str, str, str], list[dict]] = {}
     for row in rows:
-        groups.setdefault((row["scene"], row["start"], row["variant"], _start_build(row)), []).append(row)
+        key = (row["scene"], row["start"], row["variant"], _start_build(row), f"{row.get('passes', math.nan):.3g}")
+        groups.setdefault(key, []).append(row)
     summary = []
-    for (scene, start, variant, build), chosen in groups.items():
+    for (scene, start, variant, build, passes), chosen in groups.items():
         entry = {"scene": scene, "start": start, "variant": variant, "build": build, "seeds": len(chosen)}
         entry["seed_list"] = sorted(row["seed"] for row in chosen)
+        entry["passes_key"] = passes
         entry["passes"] = statistics.fmean(row.get("passes", math.nan) for row in chosen)
         for key in METRICS:
             entry[key] = Spread.of([row[key] for row in chosen])
@@ -579,11 +582,16 @@ def summarize(rows: list[dict]) -> list[dict]:
             )
         summary.append(entry)
     for entry in summary:
-        reference = (entry["scene"], OFF_REFERENCE_START.get(entry["start"], entry["start"]), "off", entry["build"])
-        off = next((e for e in summary if (e["scene"], e["start"], e["variant"], e["build"]) == reference), None)
+        start = OFF_REFERENCE_START.get(entry["start"], entry["start"])
+        reference = (entry["scene"], start, "off", entry["build"], entry["passes_key"])
+        off = next((e for e in summary if _summary_key(e) == reference), None)
         entry["psnr_vs_off"] = math.nan if off is None else entry["psnr"].mean - off["psnr"].mean
         entry["psnr_vs_off_label"] = _difference_label(entry, off)
     return summary
+
+
+def _summary_key(entry: dict) -> tuple[str, str, str, str, str]:
+    return entry["scene"], entry["start"], entry["variant"], entry["build"], entry["passes_key"]
 
 
 def _start_build(row: dict) -> str:

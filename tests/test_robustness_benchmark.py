@@ -225,6 +225,20 @@ def test_sfm_rows_of_different_reconstructions_are_different_starts() -> None:
     assert [entry["seeds"] for entry in summary if entry["start"] == "phone"] == [3]
 
 
+def test_rows_of_different_passes_per_pixel_are_summarized_apart() -> None:
+    # More rays per step (or more steps) is another regime: its seeds are not pooled with the default's, and its PSNR
+    # compares with refinement off at its own passes only.
+    rows = [_row("perturbed", "off", seed, 25.0, 1.0, 1.0) for seed in range(2)]
+    rows += [_row("perturbed", "s2camp", seed, 25.5, 0.2, 1.0) for seed in range(2)]
+    rows += [_row("perturbed", "s2camp", 0, 27.0, 0.1, 1.0) | {"passes": 6.0}]
+    summary = {(entry["variant"], entry["passes"]): entry for entry in summarize(rows)}
+    assert sorted(summary) == [("off", 1.5), ("s2camp", 1.5), ("s2camp", 6.0)]
+    assert summary[("s2camp", 1.5)]["seeds"] == 2 and summary[("s2camp", 1.5)]["rot_err"].mean == pytest.approx(0.2)
+    assert summary[("s2camp", 6.0)]["seeds"] == 1 and summary[("s2camp", 6.0)]["rot_err"].mean == pytest.approx(0.1)
+    assert summary[("s2camp", 1.5)]["psnr_vs_off"] == pytest.approx(0.5)
+    assert math.isnan(summary[("s2camp", 6.0)]["psnr_vs_off"])  # no refinement off at 6 passes
+
+
 def test_the_untracked_true_cameras_compare_with_refinement_off_from_the_tracked_ones() -> None:
     # Refinement off never reads the tracks: its rows from the true cameras are the untracked start's reference.
     rows = [_row("accurate", "off", seed, 25.0 + 0.1 * seed, 0.0, 0.0) for seed in range(2)]
