@@ -108,12 +108,23 @@ RECOVERY_STARTS = ("perturbed",)
 it must do no harm (the report gives final - start)."""
 VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
 """The default grid's variants (issue 20's comparison)."""
-METHODS = {"splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat"}
-VARIANT_ARGUMENTS = {"splat-off": ["--pipeline.model.camera-optimizer.mode", "off"]}
+EVIDENCE_VARIANTS = ("s2camp-splat-tracks", "s2camp-splat-photometric")
+"""What each evidence gives alone, run by name (``--variants``): the tracks alone and the images alone."""
+METHODS = {
+    "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
+    "s2camp-splat-tracks": "s2camp-splat", "s2camp-splat-photometric": "s2camp-splat",
+}  # fmt: skip
+_OPTIMIZER = "--pipeline.model.camera-optimizer"
+VARIANT_ARGUMENTS = {
+    "splat-off": [f"{_OPTIMIZER}.mode", "off"],
+    "s2camp-splat-tracks": [f"{_OPTIMIZER}.photometric", "False", f"{_OPTIMIZER}.track-prior", "True"],
+    "s2camp-splat-photometric": [f"{_OPTIMIZER}.track-prior", "False"],
+}
 """Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat" its defaults
-(common rotation removed, track prior on: ``method_config.SPLAT_CAMERA_OPTIMIZER``). Committed rows under other
-variant names were recorded with settings that no longer run: the report lists them apart, and docs/RESULTS.md
-("Names that no longer run") says what each ran."""
+(common rotation removed, track prior on: ``method_config.SPLAT_CAMERA_OPTIMIZER``); "s2camp-splat-tracks" the
+tracks alone (every camera at its track prior's anchor, the images move none); "s2camp-splat-photometric" the images
+alone (the defaults without the prior). Committed rows under other variant names were recorded with settings that no
+longer run: the report lists them apart, and docs/RESULTS.md ("Names that no longer run") says what each ran."""
 BASELINE = "s2camp-splat-so3xr3"
 """The variant whose seconds per iteration the others are compared with."""
 REFERENCE_STEPS = 30000
@@ -190,7 +201,11 @@ class SplatBenchConfig:
         return replace(self, scenes=self.scenes[:1], alignment=alignment, **QUICK)
 
     def validate(self) -> None:
-        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", VARIANTS)):
+        for name, allowed in (
+            ("scenes", tuple(SCENES)),
+            ("starts", STARTS),
+            ("variants", VARIANTS + EVIDENCE_VARIANTS),
+        ):
             values = getattr(self, name)
             if not values:
                 raise ValueError(f"{name} must name at least one of {', '.join(allowed)}, got none")
@@ -577,7 +592,7 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         timing += f"; rows read from `{config.rows_from.name}` of an earlier run"
     elif minutes is not None:
         timing += f"; wall time of this run {minutes:.1f} minutes"
-    current, old = split_runnable(_summary_rows(summary), VARIANTS, STARTS)
+    current, old = split_runnable(_summary_rows(summary), VARIANTS + EVIDENCE_VARIANTS, STARTS)
     sections = [
         "s2camp-splat against splatfacto with SO3xR3 and without camera refinement (issue 20). Protocol and "
         "metrics: `benchmarks/splat_bench.py`.",

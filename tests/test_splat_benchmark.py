@@ -13,6 +13,7 @@ import pytest
 from hang_guard import HANG_GUARD_S
 
 from s2camp_ns.benchmarks.splat_bench import (
+    EVIDENCE_VARIANTS,
     SCENES,
     STARTS,
     VARIANTS,
@@ -38,7 +39,7 @@ def _command(variant: str, start: str, **config) -> list[str]:
 
 
 @pytest.mark.parametrize("start", STARTS)
-@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("variant", VARIANTS + EVIDENCE_VARIANTS)
 def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_options(variant: str, start: str) -> None:
     command = _command(variant, start, iterations=900)
     assert command[1] == ("s2camp-splat-so3xr3" if variant == "s2camp-splat-so3xr3" else "s2camp-splat")
@@ -51,11 +52,13 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     assert _option(command, "--machine.seed") == "2"
     assert _option(command, "--pipeline.model.camera-error-every") == "0"
     camera_options = [arg for arg in command if arg.startswith("--pipeline.model.camera-optimizer.")]
-    if variant == "splat-off":
-        assert camera_options == ["--pipeline.model.camera-optimizer.mode"]
-        assert _option(command, "--pipeline.model.camera-optimizer.mode") == "off"
-    else:
-        assert camera_options == []
+    optimizer = "--pipeline.model.camera-optimizer"
+    expected_options = {
+        "splat-off": {f"{optimizer}.mode": "off"},
+        "s2camp-splat-tracks": {f"{optimizer}.photometric": "False", f"{optimizer}.track-prior": "True"},
+        "s2camp-splat-photometric": {f"{optimizer}.track-prior": "False"},
+    }
+    assert {arg: _option(command, arg) for arg in camera_options} == expected_options.get(variant, {})
     # The compressed schedule: 900 of splatfacto's 30000 steps = 3 %.
     assert _option(command, "--pipeline.model.resolution-schedule") == "90"  # 3000 x 0.03
     assert _option(command, "--pipeline.model.sh-degree-interval") == "30"  # 1000 x 0.03
