@@ -158,10 +158,9 @@ VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "tracks", "s2camp-photometric", "s2camp-camp-prior",
     "s2camp-identity-prior",
 )  # fmt: skip
-EVIDENCE_VARIANTS = VARIANTS
-"""The ``--preset regime`` variants: what each evidence adds. Beside refinement off, the two baselines and the
-default, the tracks alone, the images alone (S2CamP without the prior), and the prior with CamP's P and with P = I,
-every row that uses a prior with the same tracks."""
+"""Every variant this code runs, and the ``--preset regime`` ones: what each evidence adds. Beside refinement off,
+the two baselines and the default, the tracks alone, the images alone (S2CamP without the prior), and the prior with
+CamP's P and with P = I, every row that uses a prior with the same tracks."""
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "tracks": "s2camp", "s2camp-photometric": "s2camp", "s2camp-camp-prior": "s2camp-camp",
@@ -207,7 +206,7 @@ SFM_FOCAL_PRIOR = 1.05
 METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim", "psnr_unaligned")
 ERRORS = ("rot_err", "pos_err", "focal_err", "drift_px")
 QUICK = {"iterations": 20, "seeds": 1, "variants": ("off", "s2camp")}
-REGIME = {"scenes": ("regime-wide",), "starts": REGIME_STARTS, "iterations": 3000, "variants": EVIDENCE_VARIANTS}
+REGIME = {"scenes": ("regime-wide",), "starts": REGIME_STARTS, "iterations": 3000, "variants": VARIANTS}
 """``--preset regime``: the regime real runs train in (the scene's ``varies``); passes per pixel in every row."""
 """``--quick``: the first scene only, both starts, these settings, 10 test-time alignment steps of 64 rays."""
 

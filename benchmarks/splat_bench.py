@@ -110,6 +110,8 @@ VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
 """The default grid's variants (issue 20's comparison)."""
 EVIDENCE_VARIANTS = ("s2camp-splat-tracks", "s2camp-splat-photometric")
 """What each evidence gives alone, run by name (``--variants``): the tracks alone and the images alone."""
+RUNNABLE_VARIANTS = VARIANTS + EVIDENCE_VARIANTS
+"""Every variant this code runs; committed rows under other names are reported apart."""
 METHODS = {
     "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
     "s2camp-splat-tracks": "s2camp-splat", "s2camp-splat-photometric": "s2camp-splat",
@@ -201,11 +203,7 @@ class SplatBenchConfig:
         return replace(self, scenes=self.scenes[:1], alignment=alignment, **QUICK)
 
     def validate(self) -> None:
-        for name, allowed in (
-            ("scenes", tuple(SCENES)),
-            ("starts", STARTS),
-            ("variants", VARIANTS + EVIDENCE_VARIANTS),
-        ):
+        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", RUNNABLE_VARIANTS)):
             values = getattr(self, name)
             if not values:
                 raise ValueError(f"{name} must name at least one of {', '.join(allowed)}, got none")
@@ -592,7 +590,7 @@ def report(rows: list[dict], config: SplatBenchConfig) -> Path:
         timing += f"; rows read from `{config.rows_from.name}` of an earlier run"
     elif minutes is not None:
         timing += f"; wall time of this run {minutes:.1f} minutes"
-    current, old = split_runnable(_summary_rows(summary), VARIANTS + EVIDENCE_VARIANTS, STARTS)
+    current, old = split_runnable(_summary_rows(summary), RUNNABLE_VARIANTS, STARTS)
     sections = [
         "s2camp-splat against splatfacto with SO3xR3 and without camera refinement (issue 20). Protocol and "
         "metrics: `benchmarks/splat_bench.py`.",

@@ -13,7 +13,7 @@ import pytest
 from hang_guard import HANG_GUARD_S
 
 from s2camp_ns.benchmarks.splat_bench import (
-    EVIDENCE_VARIANTS,
+    RUNNABLE_VARIANTS,
     SCENES,
     STARTS,
     VARIANTS,
@@ -39,7 +39,7 @@ def _command(variant: str, start: str, **config) -> list[str]:
 
 
 @pytest.mark.parametrize("start", STARTS)
-@pytest.mark.parametrize("variant", VARIANTS + EVIDENCE_VARIANTS)
+@pytest.mark.parametrize("variant", RUNNABLE_VARIANTS)
 def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_options(variant: str, start: str) -> None:
     command = _command(variant, start, iterations=900)
     assert command[1] == ("s2camp-splat-so3xr3" if variant == "s2camp-splat-so3xr3" else "s2camp-splat")
