@@ -574,3 +574,66 @@ def test_the_first_triangulation_admits_the_given_cameras_error(tmp_path: Path, 
     if colmap_default.model is not None:  # measured: none
         worse = _errors(pycolmap.Reconstruction(colmap_default.model), truth)
         assert worse["rot_err_mean"] > 1.5 * after["rot_err_mean"]
+
+
+def test_perturbed_cameras_are_tracked_as_the_refiner_models_them(tiny_scene: Path, tmp_path: Path, monkeypatch):
+    """CamP's perturbation gives every image its own focal length, but the images still come from one physical camera,
+    whose intrinsics the refiner shares (starting from their mean). The image tracks' adjustment must model the
+    cameras the same way: one COLMAP camera per physical camera at that mean, not one per image with a focal length
+    free to trade against its depth."""
+    from s2camp_ns.core.perturbation import PerturbationConfig
+    from s2camp_ns.nerfstudio import track_evidence
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+
+    seen = []
+
+    def capture(given, *args, **kwargs):
+        seen.append(given)
+        return module.ImageTracks(None, reason="captured")
+
+    monkeypatch.setattr(track_evidence, "image_tracks", capture)
+    config = S2CampDataParserConfig(
+        data=tiny_scene, perturbation=PerturbationConfig(enabled=True, seed=3), image_tracks_cache=tmp_path
+    )
+    outputs = config.setup().get_dataparser_outputs("train")
+    perturbed_fx = outputs.cameras.fx[:, 0].double()
+    assert float(perturbed_fx.max() - perturbed_fx.min()) > 0.1  # the perturbation gave each image its own focal
+    (given,) = seen
+    assert given.num_cameras() == 1 and given.num_images() == outputs.cameras.shape[0]
+    camera = next(iter(given.cameras.values()))
+    # The tiny scene's training images are full size: the model's focal length is theirs, unscaled.
+    assert camera.focal_length_x == pytest.approx(float(perturbed_fx.mean()), rel=1e-6)
+
+
+def test_physical_camera_means_average_each_cameras_intrinsics_and_keep_the_rest():
+    from nerfstudio.cameras.cameras import Cameras, CameraType
+
+    from s2camp_ns.nerfstudio.camera_fields import physical_camera_means
+
+    c2w = torch.eye(4)[:3].repeat(3, 1, 1)
+    c2w[:, 0, 3] = torch.tensor([0.0, 1.0, 2.0])
+    cameras = Cameras(
+        camera_to_worlds=c2w, fx=torch.tensor([[100.0], [300.0], [50.0]]), fy=torch.tensor([[110.0], [310.0], [60.0]]),
+        cx=torch.tensor([[20.0], [22.0], [30.0]]), cy=torch.tensor([[15.0], [17.0], [25.0]]), width=64, height=48,
+        distortion_params=torch.tensor([[0.1, 0, 0, 0, 0, 0], [0.3, 0, 0, 0, 0, 0], [0.5, 0, 0, 0, 0, 0]]),
+        camera_type=CameraType.PERSPECTIVE,
+    )  # fmt: skip
+    means = physical_camera_means(cameras, torch.tensor([7, 7, 2]))
+    assert means.fx[:, 0].tolist() == [200.0, 200.0, 50.0] and means.fy[:, 0].tolist() == [210.0, 210.0, 60.0]
+    assert means.cx[:, 0].tolist() == [21.0, 21.0, 30.0] and means.cy[:, 0].tolist() == [16.0, 16.0, 25.0]
+    assert means.distortion_params[:, 0].tolist() == pytest.approx([0.2, 0.2, 0.5])
+    assert torch.equal(means.camera_to_worlds, c2w) and means.width[:, 0].tolist() == [64, 64, 64]
+    with pytest.raises(ValueError, match="camera_ids must hold 3 entries"):
+        physical_camera_means(cameras, torch.tensor([0, 1]))
+
+
+def test_two_builds_of_the_same_images_and_cameras_are_bit_identical(textured_scene: Path, tmp_path: Path):
+    """COLMAP's stages run on one thread (``COLMAP_THREADS``): with several, two builds' keypoints, verified matches
+    and adjustments differed, and so did the cameras the tracks anchor."""
+    given = _given(pycolmap.Reconstruction(textured_scene / "sparse" / "0"))
+    first = image_tracks(given, textured_scene / "images", tmp_path / "first")
+    second = image_tracks(given, textured_scene / "images", tmp_path / "second")
+    assert first.model is not None and second.model is not None, (first.reason, second.reason)
+    assert first.model.name == second.model.name  # one key
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        assert (first.model / name).read_bytes() == (second.model / name).read_bytes(), name

@@ -1,8 +1,11 @@
-"""A copy of nerfstudio ``Cameras`` with some fields replaced (nerfstudio's Cameras has no such method)."""
+"""Copies of nerfstudio ``Cameras`` with some fields replaced (nerfstudio's Cameras has no such method)."""
 
 from __future__ import annotations
 
+import torch
+from jaxtyping import Int
 from nerfstudio.cameras.cameras import Cameras
+from torch import Tensor
 
 
 def replace_cameras(cameras: Cameras, **fields) -> Cameras:
@@ -24,4 +27,26 @@ def replace_cameras(cameras: Cameras, **fields) -> Cameras:
     return Cameras(**values)
 
 
-__all__ = ["replace_cameras"]
+def physical_camera_means(cameras: Cameras, camera_ids: Int[Tensor, " n"]) -> Cameras:
+    """A copy of ``cameras`` in which every image of a physical camera (``camera_ids``, one per image) holds the mean
+    over those images of fx, fy, cx, cy and the distortion: the intrinsics a refiner that shares them starts from
+    (``core.latent_layout``). Images that agree already (SfM's cameras) are unchanged up to rounding; a per-image
+    perturbation of the focal length (CamP's) averages out. Poses, sizes and types are kept."""
+    n = cameras.shape[0]
+    ids = torch.as_tensor(camera_ids, dtype=torch.long).reshape(-1).cpu()
+    if ids.shape[0] != n:
+        raise ValueError(f"camera_ids must hold {n} entries (one per image), got {ids.shape[0]}")
+    count = torch.bincount(ids).to(torch.float64)[:, None]  # [c, 1]
+
+    def mean(values: Tensor | None) -> Tensor | None:
+        if values is None:
+            return None
+        flat = values.reshape(n, -1).to("cpu", torch.float64)  # [n, d]
+        sums = torch.zeros(count.shape[0], flat.shape[1], dtype=torch.float64).index_add_(0, ids, flat)
+        return (sums / count.clamp(min=1.0))[ids].reshape(values.shape).to(values)
+
+    fields = {name: mean(getattr(cameras, name)) for name in ("fx", "fy", "cx", "cy", "distortion_params")}
+    return replace_cameras(cameras, **fields)
+
+
+__all__ = ["physical_camera_means", "replace_cameras"]

@@ -13,7 +13,10 @@ CPU; COLMAP's log in ``colmap.log`` of the cache folder; each stage shown with i
 ``build_progress``):
 
 1. SIFT features of the full-size images (longest side at most ``MAX_IMAGE_SIZE``), one COLMAP camera per physical
-   camera holding the given intrinsics.
+   camera holding the given intrinsics. The caller groups the images as the refiner does: the data parser passes
+   the physical cameras of the unperturbed scene, each at the mean of its images' given intrinsics
+   (``track_evidence.image_track_evidence``), so a per-image perturbation of the focal length does not give each
+   image a focal length of its own to trade against its depth.
 2. Matches, geometrically verified (RANSAC bound ``KEYPOINT_ERROR_PX``, grown for images SIFT sees downsampled:
    ``Thresholds``), between every pair of images up to ``EXHAUSTIVE_LIMIT`` images, else between each image and its
    ``NEIGHBOURS`` nearest given cameras that look within 90 degrees of it (``neighbour_pairs``).
@@ -30,8 +33,8 @@ adjusted cameras become the anchor, each image's reprojection RMS its radius.
 
 Cache. The model is built once per set of images and given cameras, in ``<cache>/<key>``: the key hashes the recipe
 (``RECIPE_VERSION``, pycolmap's version), each image's name, size and modification time and the given cameras
-(intrinsics and poses, every bit). Later runs read it (two builds can differ in their last digits: COLMAP verifies
-pairs on several threads). A build writes into a temporary sibling folder renamed at the end, so no process reads half
+(intrinsics and poses, every bit). Later runs read it. On the CPU two builds of one key are bit-identical
+(``COLMAP_THREADS``). A build writes into a temporary sibling folder renamed at the end, so no process reads half
 a model and no entry is overwritten; the feature database is deleted once the model is written. Where the cache lives
 and the lock that lets one process build an entry while others wait: ``track_cache``.
 """
@@ -62,9 +65,10 @@ from s2camp_ns.core.track_fit import MIN_OBSERVATIONS
 from s2camp_ns.nerfstudio.build_progress import BuildProgress, DatabaseCounter, database_count, duration_text
 from s2camp_ns.nerfstudio.track_cache import build_folder, entry_lock, remove_stale_builds, user_cache_folder
 
-RECIPE_VERSION = 3
+RECIPE_VERSION = 4
 """Part of the cache key: raise it when the recipe changes, so older caches are not read. 3: the thresholds scaled
-to the image size and the given cameras' error (``Thresholds``), neighbours that face alike (``neighbour_pairs``)."""
+to the image size and the given cameras' error (``Thresholds``), neighbours that face alike (``neighbour_pairs``).
+4: every stage on ``COLMAP_THREADS`` threads (deterministic)."""
 MAX_IMAGE_SIZE = 1600
 """Longest image side SIFT sees (px; larger images are downsampled for extraction, keypoints are in full-size
 pixels): phone photos of 4000 px hold 6x its pixels, keypoints the track prior does not need."""
@@ -98,6 +102,12 @@ of 56 images of 320x240, from noisy and from true cameras): rotation errors 0.28
 0.07 against 0.13-0.16, focal length errors no larger."""
 COLMAP_SEED = 0
 """COLMAP's random seed (RANSAC of the geometric verification)."""
+COLMAP_THREADS = 1
+"""Threads of every COLMAP stage on the CPU (extraction, matching and verification, triangulation, Ceres): with
+several, the order in which they finish changes the database's keypoints, the verified matches and the adjustment's
+sums, and two builds of the same images and cameras differed (on a 32-image scene, the anchor's rotation error
+spread over a quarter of its size); with one, builds are bit-identical. The cost is the build's wall time on a
+machine with more cores (docs/IMAGE-TRACKS.md)."""
 RESULT_FILE = "result.json"
 """Written last into a cache folder: the summary, or why no tracks could be made, and the build's wall seconds per
 kind of stage (``ImageTracks.stage_seconds``)."""
@@ -315,7 +325,7 @@ def _extract(
     by_camera: dict[int, list[str]] = {}
     for image in sorted(given.images.values(), key=lambda image: image.name):
         by_camera.setdefault(image.camera_id, []).append(image.name)
-    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_IMAGE_SIZE)
+    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_IMAGE_SIZE, num_threads=COLMAP_THREADS)
     count = DatabaseCounter(database, "keypoints", enabled=progress.live)
     with count, progress.stage("SIFT features", "SIFT", given.num_images(), "images", count) as stage:
         with colmap_log_to(database.parent / "colmap.log"):
@@ -343,6 +353,7 @@ def _match(
     geometrically verified with ``thresholds.keypoint_px``; each pair's count shown as COLMAP stores it."""
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.max_error = thresholds.keypoint_px
+    matching = pycolmap.FeatureMatchingOptions(num_threads=COLMAP_THREADS)
     count = given.num_images()
     exhaustive = count <= EXHAUSTIVE_LIMIT
     pairs = [] if exhaustive else neighbour_pairs(given)
@@ -352,12 +363,15 @@ def _match(
     with done, progress.stage(label, "matching", total, "pairs", done) as stage:
         with colmap_log_to(database.parent / "colmap.log"):
             if exhaustive:
-                pycolmap.match_exhaustive(database, verification_options=verification, device=device)
+                pycolmap.match_exhaustive(
+                    database, matching_options=matching, verification_options=verification, device=device
+                )
             else:
                 listed = database.parent / "pairs.txt"
                 listed.write_text("".join(f"{a} {b}\n" for a, b in pairs), encoding="utf8")
                 pycolmap.match_image_pairs(
-                    database, pairing_options=pycolmap.ImportedPairingOptions(match_list_path=listed),
+                    database, matching_options=matching,
+                    pairing_options=pycolmap.ImportedPairingOptions(match_list_path=listed),
                     verification_options=verification, device=device,
                 )  # fmt: skip
         verified = database_count(database, "two_view_geometries", "rows > 0")
@@ -390,6 +404,7 @@ def _triangulate_and_adjust(
     adjustment = pycolmap.BundleAdjustmentOptions(refine_principal_point=False)
     adjustment.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     adjustment.ceres.loss_function_scale = LOSS_SCALE_PX
+    adjustment.ceres.solver_options.num_threads = COLMAP_THREADS
     rounds = REFINEMENT_ROUNDS + 1
     reconstruction = _triangulate(reconstruction, database, image_root, thresholds.given_px, f"1/{rounds}", progress)
     for done in range(1, rounds + 1):
@@ -426,7 +441,7 @@ def _triangulate(
     """The points of ``reconstruction``'s cameras (the previous ones are dropped), keeping the observations within
     ``max_error_px`` (COLMAP's merge, completion and filter bounds); the first (``position`` 1/...) admits rays
     ``GIVEN_ANGLE_ERROR_DEG`` off."""
-    options = pycolmap.IncrementalPipelineOptions()
+    options = pycolmap.IncrementalPipelineOptions(num_threads=COLMAP_THREADS)
     options.triangulation.merge_max_reproj_error = max_error_px
     options.triangulation.complete_max_reproj_error = max_error_px
     options.mapper.filter_max_reproj_error = max_error_px

@@ -26,6 +26,7 @@ from torch import Tensor
 from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import track_reprojection_rms
 from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics, intrinsics_from_cameras
+from s2camp_ns.nerfstudio.camera_fields import physical_camera_means
 from s2camp_ns.nerfstudio.colmap_model import model_file
 from s2camp_ns.nerfstudio.colmap_reconstruction import export_cameras
 from s2camp_ns.nerfstudio.colmap_scene import has_points
@@ -184,9 +185,12 @@ def image_track_evidence(
         root = Path(os.path.commonpath([path.parent for path in paths]))
         names = [path.relative_to(root).as_posix() for path in paths]
     scale = float(outputs.dataparser_scale)
+    # The physical cameras the refiner shares intrinsics over (``camera_ids``: grouped before any perturbation),
+    # each holding its images' mean intrinsics, the refiner's shared base (``latent_layout``).
+    camera_ids = group_identical_intrinsics(outputs.cameras)
     given = export_cameras(
-        cameras, outputs.dataparser_transform, scale, names, full_image_size=parsed.full_image_size,
-        camera_ids=group_identical_intrinsics(cameras).tolist(),
+        physical_camera_means(cameras, camera_ids), outputs.dataparser_transform, scale, names,
+        full_image_size=parsed.full_image_size, camera_ids=camera_ids.tolist(),
     )  # fmt: skip
     cache = config.image_tracks_cache or scene / IMAGE_TRACKS_CACHE  # minutes for many large images, once
     result = image_tracks(given, root, cache, user_fallback=config.image_tracks_cache is None)
