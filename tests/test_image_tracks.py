@@ -628,8 +628,8 @@ def test_physical_camera_means_average_each_cameras_intrinsics_and_keep_the_rest
 
 
 def test_two_builds_of_the_same_images_and_cameras_are_bit_identical(textured_scene: Path, tmp_path: Path):
-    """COLMAP's stages run on one thread (``COLMAP_THREADS``): with several, two builds' keypoints, verified matches
-    and adjustments differed, and so did the cameras the tracks anchor."""
+    """Images numbered before SIFT and matching on one thread (``number_images``, ``MATCHING_THREADS``): otherwise two
+    builds' image numbers and verified matches differed, and so did the cameras the tracks anchor."""
     given = _given(pycolmap.Reconstruction(textured_scene / "sparse" / "0"))
     first = image_tracks(given, textured_scene / "images", tmp_path / "first")
     second = image_tracks(given, textured_scene / "images", tmp_path / "second")

@@ -33,10 +33,10 @@ adjusted cameras become the anchor, each image's reprojection RMS its radius.
 
 Cache. The model is built once per set of images and given cameras, in ``<cache>/<key>``: the key hashes the recipe
 (``RECIPE_VERSION``, pycolmap's version), each image's name, size and modification time and the given cameras
-(intrinsics and poses, every bit). Later runs read it. On the CPU two builds of one key are bit-identical
-(``COLMAP_THREADS``). A build writes into a temporary sibling folder renamed at the end, so no process reads half
-a model and no entry is overwritten; the feature database is deleted once the model is written. Where the cache lives
-and the lock that lets one process build an entry while others wait: ``track_cache``.
+(intrinsics and poses, every bit). Later runs read it. On one machine two builds of one key are bit-identical
+(``number_images``, ``MATCHING_THREADS``). A build writes into a temporary sibling folder renamed at the end, so no
+process reads half a model and no entry is overwritten; the feature database is deleted once the model is written.
+Where the cache lives and the lock that lets one process build an entry while others wait: ``track_cache``.
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ from s2camp_ns.nerfstudio.track_cache import build_folder, entry_lock, remove_st
 RECIPE_VERSION = 4
 """Part of the cache key: raise it when the recipe changes, so older caches are not read. 3: the thresholds scaled
 to the image size and the given cameras' error (``Thresholds``), neighbours that face alike (``neighbour_pairs``).
-4: every stage on ``COLMAP_THREADS`` threads (deterministic)."""
+4: deterministic (images numbered before extraction, ``number_images``; matching on ``MATCHING_THREADS``)."""
 MAX_IMAGE_SIZE = 1600
 """Longest image side SIFT sees (px; larger images are downsampled for extraction, keypoints are in full-size
 pixels): phone photos of 4000 px hold 6x its pixels, keypoints the track prior does not need."""
@@ -102,12 +102,12 @@ of 56 images of 320x240, from noisy and from true cameras): rotation errors 0.28
 0.07 against 0.13-0.16, focal length errors no larger."""
 COLMAP_SEED = 0
 """COLMAP's random seed (RANSAC of the geometric verification)."""
-COLMAP_THREADS = 1
-"""Threads of every COLMAP stage on the CPU (extraction, matching and verification, triangulation, Ceres): with
-several, the order in which they finish changes the database's keypoints, the verified matches and the adjustment's
-sums, and two builds of the same images and cameras differed (on a 32-image scene, the anchor's rotation error
-spread over a quarter of its size); with one, builds are bit-identical. The cost is the build's wall time on a
-machine with more cores (docs/IMAGE-TRACKS.md)."""
+MATCHING_THREADS = 1
+"""Threads of the matching and its geometric verification. On several threads the verification's RANSAC draws
+depend on which thread takes which pair, and two builds of the same images and cameras differed (on a 32-image
+scene the anchor's rotation error spread over a quarter of its size). The other stages keep COLMAP's threads: SIFT
+once the images are numbered before it (``number_images``), triangulation and Ceres' adjustment as they are (two
+builds on 2 threads were bit-identical)."""
 RESULT_FILE = "result.json"
 """Written last into a cache folder: the summary, or why no tracks could be made, and the build's wall seconds per
 kind of stage (``ImageTracks.stage_seconds``)."""
@@ -325,7 +325,8 @@ def _extract(
     by_camera: dict[int, list[str]] = {}
     for image in sorted(given.images.values(), key=lambda image: image.name):
         by_camera.setdefault(image.camera_id, []).append(image.name)
-    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_IMAGE_SIZE, num_threads=COLMAP_THREADS)
+    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_IMAGE_SIZE)
+    number_images(given, database)
     count = DatabaseCounter(database, "keypoints", enabled=progress.live)
     with count, progress.stage("SIFT features", "SIFT", given.num_images(), "images", count) as stage:
         with colmap_log_to(database.parent / "colmap.log"):
@@ -342,6 +343,32 @@ def _extract(
             stage.outcome = f"{db.num_keypoints()} keypoints"
 
 
+def number_images(given: pycolmap.Reconstruction, database: Path) -> None:
+    """Write ``given``'s cameras (one rig each) and images (one frame each) into the empty ``database`` before SIFT,
+    in the order one extraction thread would number them: cameras by id, each camera's images by name. SIFT on
+    several threads finds the same keypoints per image, but numbers new images in the order the threads finish
+    them, and the later stages follow the numbers; numbered first, the extractor keeps them. Each camera is marked as
+    having a prior focal length, as the extractor marks a camera it makes from given parameters (the verification
+    then estimates essential matrices)."""
+    by_camera: dict[int, list[str]] = {}
+    for image in sorted(given.images.values(), key=lambda image: image.name):
+        by_camera.setdefault(image.camera_id, []).append(image.name)
+    with _open(database) as db:
+        for camera_id, names in sorted(by_camera.items()):
+            camera = copy.copy(given.cameras[camera_id])
+            camera.has_prior_focal_length = True
+            stored = db.read_camera(db.write_camera(camera))
+            rig = pycolmap.Rig()
+            rig.add_ref_sensor(stored.sensor_id)
+            rig_id = db.write_rig(rig)
+            for name in names:
+                image_id = db.write_image(pycolmap.Image(name=name, camera_id=stored.camera_id))
+                frame = pycolmap.Frame()
+                frame.rig_id = rig_id
+                frame.add_data_id(db.read_image(image_id).data_id)
+                db.write_frame(frame)
+
+
 def _match(
     given: pycolmap.Reconstruction,
     database: Path,
@@ -353,7 +380,7 @@ def _match(
     geometrically verified with ``thresholds.keypoint_px``; each pair's count shown as COLMAP stores it."""
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.max_error = thresholds.keypoint_px
-    matching = pycolmap.FeatureMatchingOptions(num_threads=COLMAP_THREADS)
+    matching = pycolmap.FeatureMatchingOptions(num_threads=MATCHING_THREADS)
     count = given.num_images()
     exhaustive = count <= EXHAUSTIVE_LIMIT
     pairs = [] if exhaustive else neighbour_pairs(given)
@@ -404,7 +431,6 @@ def _triangulate_and_adjust(
     adjustment = pycolmap.BundleAdjustmentOptions(refine_principal_point=False)
     adjustment.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     adjustment.ceres.loss_function_scale = LOSS_SCALE_PX
-    adjustment.ceres.solver_options.num_threads = COLMAP_THREADS
     rounds = REFINEMENT_ROUNDS + 1
     reconstruction = _triangulate(reconstruction, database, image_root, thresholds.given_px, f"1/{rounds}", progress)
     for done in range(1, rounds + 1):
@@ -441,7 +467,7 @@ def _triangulate(
     """The points of ``reconstruction``'s cameras (the previous ones are dropped), keeping the observations within
     ``max_error_px`` (COLMAP's merge, completion and filter bounds); the first (``position`` 1/...) admits rays
     ``GIVEN_ANGLE_ERROR_DEG`` off."""
-    options = pycolmap.IncrementalPipelineOptions(num_threads=COLMAP_THREADS)
+    options = pycolmap.IncrementalPipelineOptions()
     options.triangulation.merge_max_reproj_error = max_error_px
     options.triangulation.complete_max_reproj_error = max_error_px
     options.mapper.filter_max_reproj_error = max_error_px
@@ -485,13 +511,11 @@ def _implausible(given: pycolmap.Reconstruction, reconstruction: pycolmap.Recons
 
 
 def _given_with_database_ids(given: pycolmap.Reconstruction, database: Path) -> pycolmap.Reconstruction:
-    """``given``'s cameras and poses under the camera, rig, frame and image ids the feature extractor gave them in
-    ``database`` (COLMAP's triangulator matches the two by id)."""
-    db = pycolmap.Database.open(database)
-    try:
-        stored = {image.name: image for image in db.read_all_images()}
-    finally:
-        db.close()
+    """``given``'s cameras and poses under the camera, rig, frame and image ids they have in ``database``
+    (``number_images``; COLMAP's triangulator matches the two by id), the images SIFT could not read (no keypoints)
+    left out."""
+    with _open(database) as db:
+        stored = {image.name: image for image in db.read_all_images() if db.exists_keypoints(image.image_id)}
     given_by_name = {image.name: image for image in given.images.values()}
     reconstruction = pycolmap.Reconstruction()
     added: set[int] = set()
