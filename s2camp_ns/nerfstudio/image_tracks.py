@@ -34,15 +34,14 @@ adjusted cameras become the anchor, each image's reprojection RMS its radius.
 Cache. The model is built once per set of images and given cameras, in ``<cache>/<key>``: the key hashes the recipe
 (``RECIPE_VERSION``, pycolmap's version), each image's name, size and modification time and the given cameras
 (intrinsics and poses, every bit). Later runs read it. On one machine two builds of one key are bit-identical
-(``number_images``, ``MATCHING_THREADS``). A build writes into a temporary sibling folder renamed at the end, so no
-process reads half a model and no entry is overwritten; the feature database is deleted once the model is written.
-Where the cache lives and the lock that lets one process build an entry while others wait: ``track_cache``.
+(``feature_database.number_images``, ``MATCHING_THREADS``). A build writes into a temporary sibling folder renamed
+at the end, so no process reads half a model and no entry is overwritten; the feature database is deleted once the
+model is written. Where the cache lives and the lock that lets one process build an entry while others wait:
+``track_cache``.
 """
 
 from __future__ import annotations
 
-import contextlib
-import copy
 import hashlib
 import json
 import math
@@ -50,7 +49,6 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -63,12 +61,19 @@ from s2camp_ns.colmap_log import colmap_log_to
 from s2camp_ns.core.alignment import MIN_CAMERAS_FOR_ALIGNMENT, rotation_angle, umeyama
 from s2camp_ns.core.track_fit import MIN_OBSERVATIONS
 from s2camp_ns.nerfstudio.build_progress import BuildProgress, DatabaseCounter, database_count, duration_text
+from s2camp_ns.nerfstudio.feature_database import (
+    given_with_database_ids,
+    names_by_camera,
+    number_images,
+    open_database,
+)
 from s2camp_ns.nerfstudio.track_cache import build_folder, entry_lock, remove_stale_builds, user_cache_folder
 
 RECIPE_VERSION = 4
 """Part of the cache key: raise it when the recipe changes, so older caches are not read. 3: the thresholds scaled
 to the image size and the given cameras' error (``Thresholds``), neighbours that face alike (``neighbour_pairs``).
-4: deterministic (images numbered before extraction, ``number_images``; matching on ``MATCHING_THREADS``)."""
+4: deterministic (images numbered before extraction, ``feature_database.number_images``; matching on
+``MATCHING_THREADS``)."""
 MAX_IMAGE_SIZE = 1600
 """Longest image side SIFT sees (px; larger images are downsampled for extraction, keypoints are in full-size
 pixels): phone photos of 4000 px hold 6x its pixels, keypoints the track prior does not need."""
@@ -106,8 +111,8 @@ MATCHING_THREADS = 1
 """Threads of the matching and its geometric verification. On several threads the verification's RANSAC draws
 depend on which thread takes which pair, and two builds of the same images and cameras differed (on a 32-image
 scene the anchor's rotation error spread over a quarter of its size). The other stages keep COLMAP's threads: SIFT
-once the images are numbered before it (``number_images``), triangulation and Ceres' adjustment as they are (two
-builds on 2 threads were bit-identical)."""
+once the images are numbered before it (``feature_database.number_images``), triangulation and Ceres' adjustment as
+they are (two builds on 2 threads were bit-identical)."""
 RESULT_FILE = "result.json"
 """Written last into a cache folder: the summary, or why no tracks could be made, and the build's wall seconds per
 kind of stage (``ImageTracks.stage_seconds``)."""
@@ -257,7 +262,7 @@ def _build_stages(
     thresholds = Thresholds.of(given)
     _extract(given, image_root, database, device, progress)
     _match(given, database, device, thresholds, progress)
-    reconstruction = _given_with_database_ids(given, database)
+    reconstruction = given_with_database_ids(given, database)
     unread = sorted(
         {image.name for image in given.images.values()} - {image.name for image in reconstruction.images.values()}
     )
@@ -322,15 +327,12 @@ def _extract(
 ) -> None:
     """Step 1: SIFT features of ``given``'s images into ``database``, one COLMAP camera per given camera, each
     image's count shown as COLMAP stores it."""
-    by_camera: dict[int, list[str]] = {}
-    for image in sorted(given.images.values(), key=lambda image: image.name):
-        by_camera.setdefault(image.camera_id, []).append(image.name)
     extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_IMAGE_SIZE)
     number_images(given, database)
     count = DatabaseCounter(database, "keypoints", enabled=progress.live)
     with count, progress.stage("SIFT features", "SIFT", given.num_images(), "images", count) as stage:
         with colmap_log_to(database.parent / "colmap.log"):
-            for camera_id, names in sorted(by_camera.items()):
+            for camera_id, names in names_by_camera(given).items():
                 camera = given.cameras[camera_id]
                 reader = pycolmap.ImageReaderOptions(
                     camera_model=camera.model.name, camera_params=",".join(repr(float(v)) for v in camera.params)
@@ -339,34 +341,8 @@ def _extract(
                     database, image_root, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                     reader_options=reader, extraction_options=extraction, device=device,
                 )  # fmt: skip
-        with _open(database) as db:
+        with open_database(database) as db:
             stage.outcome = f"{db.num_keypoints()} keypoints"
-
-
-def number_images(given: pycolmap.Reconstruction, database: Path) -> None:
-    """Write ``given``'s cameras (one rig each) and images (one frame each) into the empty ``database`` before SIFT,
-    in the order one extraction thread would number them: cameras by id, each camera's images by name. SIFT on
-    several threads finds the same keypoints per image, but numbers new images in the order the threads finish
-    them, and the later stages follow the numbers; numbered first, the extractor keeps them. Each camera is marked as
-    having a prior focal length, as the extractor marks a camera it makes from given parameters (the verification
-    then estimates essential matrices)."""
-    by_camera: dict[int, list[str]] = {}
-    for image in sorted(given.images.values(), key=lambda image: image.name):
-        by_camera.setdefault(image.camera_id, []).append(image.name)
-    with _open(database) as db:
-        for camera_id, names in sorted(by_camera.items()):
-            camera = copy.copy(given.cameras[camera_id])
-            camera.has_prior_focal_length = True
-            stored = db.read_camera(db.write_camera(camera))
-            rig = pycolmap.Rig()
-            rig.add_ref_sensor(stored.sensor_id)
-            rig_id = db.write_rig(rig)
-            for name in names:
-                image_id = db.write_image(pycolmap.Image(name=name, camera_id=stored.camera_id))
-                frame = pycolmap.Frame()
-                frame.rig_id = rig_id
-                frame.add_data_id(db.read_image(image_id).data_id)
-                db.write_frame(frame)
 
 
 def _match(
@@ -402,20 +378,10 @@ def _match(
                     verification_options=verification, device=device,
                 )  # fmt: skip
         verified = database_count(database, "two_view_geometries", "rows > 0")
-        with _open(database) as db:
+        with open_database(database) as db:
             stage.outcome = (
                 f"{verified} verified ({thresholds.keypoint_px:.1f} px), {db.num_inlier_matches()} inlier matches"
             )
-
-
-@contextlib.contextmanager
-def _open(database: Path) -> Iterator[pycolmap.Database]:
-    """The COLMAP database ``database``, closed when the block ends."""
-    db = pycolmap.Database.open(database)
-    try:
-        yield db
-    finally:
-        db.close()
 
 
 def _triangulate_and_adjust(
@@ -508,27 +474,6 @@ def _implausible(given: pycolmap.Reconstruction, reconstruction: pycolmap.Recons
             f"the given ones, more than {MAX_CENTRE_CHANGE:.0%}: the images and the cameras disagree"
         )
     return None
-
-
-def _given_with_database_ids(given: pycolmap.Reconstruction, database: Path) -> pycolmap.Reconstruction:
-    """``given``'s cameras and poses under the camera, rig, frame and image ids they have in ``database``
-    (``number_images``; COLMAP's triangulator matches the two by id), the images SIFT could not read (no keypoints)
-    left out."""
-    with _open(database) as db:
-        stored = {image.name: image for image in db.read_all_images() if db.exists_keypoints(image.image_id)}
-    given_by_name = {image.name: image for image in given.images.values()}
-    reconstruction = pycolmap.Reconstruction()
-    added: set[int] = set()
-    for name, stored_image in sorted(stored.items(), key=lambda item: item[1].image_id):
-        image = given_by_name[name]
-        if stored_image.camera_id not in added:
-            camera = copy.copy(given.cameras[image.camera_id])
-            camera.camera_id = stored_image.camera_id
-            reconstruction.add_camera_with_trivial_rig(camera)
-            added.add(stored_image.camera_id)
-        posed = pycolmap.Image(name=name, camera_id=stored_image.camera_id, image_id=stored_image.image_id)
-        reconstruction.add_image_with_trivial_frame(posed, image.cam_from_world())
-    return reconstruction
 
 
 def neighbour_pairs(given: pycolmap.Reconstruction) -> list[tuple[str, str]]:
