@@ -605,6 +605,53 @@ def test_perturbed_cameras_are_tracked_as_the_refiner_models_them(tiny_scene: Pa
     assert camera.focal_length_x == pytest.approx(float(perturbed_fx.mean()), rel=1e-6)
 
 
+def test_image_tracks_model_the_physical_cameras_the_refiner_shares(tiny_scene: Path, tmp_path: Path, monkeypatch):
+    """The refiner groups images into physical cameras by the reference model (``camera_ids``); the image tracks'
+    adjustment must model the same cameras, even where the scene's own model groups them otherwise. The reference
+    here is the scene's model with every second image on a second camera of 5% longer focal length; the scene's own
+    model has one camera."""
+    from s2camp_ns.nerfstudio import track_evidence
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+
+    seen = []
+
+    def capture(given, *args, **kwargs):
+        seen.append(given)
+        return module.ImageTracks(None, reason="captured")
+
+    monkeypatch.setattr(track_evidence, "image_tracks", capture)
+    reference = tmp_path / "reference"
+    reference.mkdir()
+    pycolmap.Reconstruction(tiny_scene / "sparse" / "0").write_text(reference)
+    cameras = (reference / "cameras.txt").read_text().splitlines()
+    (camera_line,) = [line for line in cameras if line and not line.startswith("#")]
+    fields = camera_line.split()
+    fields[0], fields[4] = "2", repr(1.05 * float(fields[4]))
+    (reference / "cameras.txt").write_text("\n".join([*cameras, " ".join(fields)]) + "\n")
+    lines = (reference / "images.txt").read_text().splitlines()
+    header = [line for line in lines if line.startswith("#")]
+    body = [line for line in lines if not line.startswith("#")]
+    for row in range(0, len(body), 4):  # every second image (two lines each)
+        fields = body[row].split()
+        fields[8] = "2"
+        body[row] = " ".join(fields)
+    (reference / "images.txt").write_text("\n".join(header + body) + "\n")
+    config = S2CampDataParserConfig(
+        data=tiny_scene, reference_model=reference, image_tracks="always", image_tracks_cache=tmp_path / "cache"
+    )
+    outputs = config.setup().get_dataparser_outputs("train")
+    camera_ids = outputs.metadata["camera_ids"]
+    assert len(set(camera_ids)) == 2  # the refiner's two physical cameras
+    (given,) = seen
+    assert given.num_cameras() == 2 and given.num_images() == len(camera_ids)
+    # Images share a COLMAP camera exactly when the refiner shares their intrinsics.
+    by_name = {image.name: image.camera_id for image in given.images.values()}
+    names = outputs.metadata["image_names"]
+    for i in range(len(names)):
+        for j in range(len(names)):
+            assert (by_name[names[i]] == by_name[names[j]]) == (camera_ids[i] == camera_ids[j])
+
+
 def test_physical_camera_means_average_each_cameras_intrinsics_and_keep_the_rest():
     from nerfstudio.cameras.cameras import Cameras, CameraType
 

@@ -154,11 +154,18 @@ class S2CampDataParser(DataParser):
         reference = reference_cameras(config, data_format, source, outputs, parsed)
         perturbed = split == "train" and config.perturbation.enabled
         cameras = perturb_nerfstudio_cameras(outputs.cameras, config.perturbation) if perturbed else outputs.cameras
-        evidence = track_evidence(config, data_format, source, cameras, outputs, parsed, split, perturbed)
+        # One id per physical camera: images whose reference intrinsics agree (COLMAP's camera_id in practice; the
+        # global intrinsics of a transforms.json), grouped before any perturbation. The refiner shares intrinsics
+        # over these groups and the image tracks' adjustment models the same cameras.
+        camera_ids = group_identical_intrinsics(reference)
+        evidence = track_evidence(
+            config, data_format, source, cameras, outputs, parsed, split, perturbed, camera_ids=camera_ids
+        )
         metadata = {**outputs.metadata, **parsed.metadata()}
         if evidence is not None:
             metadata["track_rms_px"], metadata["track_evidence"] = evidence
         metadata.update(self._split_metadata(data_format, source, outputs, reference, intrinsics, perturbed))
+        metadata["camera_ids"] = camera_ids.tolist()
         return dataclasses.replace(outputs, cameras=cameras, metadata=metadata)
 
     @staticmethod
@@ -170,12 +177,10 @@ class S2CampDataParser(DataParser):
         intrinsics: Intrinsics,
         perturbed: bool,
     ) -> dict:
-        """The metadata entries of the split that the camera optimizer, the model and the export read."""
+        """The metadata entries of the split that the camera optimizer, the model and the export read (beside
+        ``camera_ids``, which the track evidence shares)."""
         return dict(
             reference_cameras=reference,
-            # One id per physical camera: images whose given intrinsics agree (COLMAP's camera_id in practice; the
-            # global intrinsics of a transforms.json), grouped before any perturbation.
-            camera_ids=group_identical_intrinsics(reference).tolist(),
             # The COLMAP model whose distortion the camera optimizer's "all" preset refines (sizes its latent before
             # DDP wraps the model and before the optimizers are built).
             camera_model=camera_model_of(intrinsics),

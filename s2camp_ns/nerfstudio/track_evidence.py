@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from rich.console import Console
@@ -25,7 +25,7 @@ from torch import Tensor
 
 from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import track_reprojection_rms
-from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics, intrinsics_from_cameras
+from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.nerfstudio.camera_fields import physical_camera_means
 from s2camp_ns.nerfstudio.colmap_model import model_file
 from s2camp_ns.nerfstudio.colmap_reconstruction import export_cameras
@@ -69,9 +69,12 @@ def track_evidence(
     parsed: ParsedSplit,
     split: str,
     perturbed: bool,
+    *,
+    camera_ids: Int[Tensor, " n"],
 ) -> Evidence | None:
     """The evidence of the split's ``cameras`` (the given ones, perturbed or not; ``outputs`` holds the unperturbed
-    ones and nerfstudio's normalization), or None (no track prior)."""
+    ones and nerfstudio's normalization), or None (no track prior). ``camera_ids``: the physical camera of each image,
+    as the refiner groups them (the data parser's ``camera_ids``)."""
     # The scene's own tracks were made with the unperturbed cameras: a prior on them would lead the perturbed
     # cameras back to the reference the evaluation compares with. Perturbed cameras get tracks made from the
     # images with the perturbed cameras instead (image_tracks auto or always), or no prior (never).
@@ -82,7 +85,7 @@ def track_evidence(
         evidence = scene_track_evidence(config, data_format, source, cameras, outputs, parsed)
     made = config.tracks and config.image_tracks != "never" and evidence is None
     if made and split == "train":  # only the training cameras are refined
-        evidence = image_track_evidence(config, data_format, source, cameras, outputs, parsed)
+        evidence = image_track_evidence(config, data_format, source, cameras, outputs, parsed, camera_ids)
     return evidence
 
 
@@ -173,9 +176,12 @@ def image_track_evidence(
     cameras: Cameras,
     outputs: DataparserOutputs,
     parsed: ParsedSplit,
+    camera_ids: Int[Tensor, " n"],
 ) -> Evidence | None:
     """``track_rms_px`` and ``track_evidence`` from tracks made from the scene's full-size images with the given
-    ``cameras`` (``image_tracks``); None, with the reason shown once, when none could be made."""
+    ``cameras`` (``image_tracks``), one COLMAP camera per physical camera of ``camera_ids`` at its images' mean
+    intrinsics, the refiner's shared base (``latent_layout``); None, with the reason shown once, when none could be
+    made."""
     if data_format == "colmap":
         scene = Path(config.data)
         root, names = scene / config.images_path, parsed.image_names
@@ -185,9 +191,6 @@ def image_track_evidence(
         root = Path(os.path.commonpath([path.parent for path in paths]))
         names = [path.relative_to(root).as_posix() for path in paths]
     scale = float(outputs.dataparser_scale)
-    # The physical cameras the refiner shares intrinsics over (``camera_ids``: grouped before any perturbation),
-    # each holding its images' mean intrinsics, the refiner's shared base (``latent_layout``).
-    camera_ids = group_identical_intrinsics(outputs.cameras)
     given = export_cameras(
         physical_camera_means(cameras, camera_ids), outputs.dataparser_transform, scale, names,
         full_image_size=parsed.full_image_size, camera_ids=camera_ids.tolist(),
