@@ -158,23 +158,34 @@ VARIANTS = (
     "off", "s2camp-so3xr3", "s2camp-camp", "s2camp", "tracks", "s2camp-photometric", "s2camp-camp-prior",
     "s2camp-identity-prior",
 )  # fmt: skip
-"""Every variant this code runs, and the ``--preset regime`` ones: what each evidence adds. Beside refinement off,
-the two baselines and the default, the tracks alone, the images alone (S2CamP without the prior), and the prior with
-CamP's P and with P = I, every row that uses a prior with the same tracks."""
+"""The ``--preset regime`` variants: what each evidence adds. Beside refinement off, the two baselines and the
+default, the tracks alone, the images alone (S2CamP without the prior), and the prior with CamP's P and with P = I,
+every row that uses a prior with the same tracks."""
+CANDIDATE_VARIANTS = ("s2camp-fused-free-iprior",)
+"""Candidates run by name (``--variants``) while measured: "s2camp-fused-free-iprior" the tracks' robust reprojection
+cost as a loss beside the photometric loss with the 3D points free (a joint photometric and geometric adjustment,
+``s2camp_ns.core.track_loss``), the track prior holding the shared intrinsics only."""
+RUNNABLE_VARIANTS = VARIANTS + CANDIDATE_VARIANTS
+"""Every variant this code runs; committed rows under other names are reported apart."""
 METHODS = {
     "off": "s2camp", "s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp": "s2camp",
     "tracks": "s2camp", "s2camp-photometric": "s2camp", "s2camp-camp-prior": "s2camp-camp",
-    "s2camp-identity-prior": "s2camp",
+    "s2camp-identity-prior": "s2camp", "s2camp-fused-free-iprior": "s2camp",
 }  # fmt: skip
 _ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
 _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
 _OPTIMIZER = "--pipeline.model.camera-optimizer"
+_LOSS = f"{_OPTIMIZER}.track-loss"
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
-    "tracks": [f"{_OPTIMIZER}.photometric", "False", _ROTATION, "True", _PRIOR, "True"],
-    "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False"],
-    "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True"],
-    "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True"],
+    "tracks": [f"{_OPTIMIZER}.photometric", "False", _ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
+    "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False", _LOSS, "False"],
+    "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
+    "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
+    "s2camp-fused-free-iprior": [
+        _ROTATION, "True", _PRIOR, "True", f"{_OPTIMIZER}.track-prior-intrinsics-only", "True", _LOSS, "True",
+        f"{_LOSS}-points-free", "True",
+    ],
 }  # fmt: skip
 """Method options per variant beyond the CPU-sized run, each stating every candidate option so that a variant keeps
 its meaning when a default changes. "s2camp" is the method's defaults (the common rotation removed and the track
@@ -182,9 +193,9 @@ prior on, ``S2CAMP_CAMERA_OPTIMIZER``); "off" disables camera refinement; "track
 its track prior's anchor, the images move none: ``photometric`` False), what bundle adjustment gives without
 refinement; "s2camp-photometric" the images alone (the defaults without the prior); "s2camp-camp-prior" the prior
 with CamP's P (the s2camp-camp method plus the defaults' prior and common-rotation removal); "s2camp-identity-prior"
-the prior with P = I (the defaults, ``precondition`` False). Committed rows under other variant names were
-recorded with settings that no longer run: the report lists them apart, and docs/RESULTS.md ("Names that no longer
-run") says what each ran."""
+the prior with P = I (the defaults, ``precondition`` False); the candidates in ``CANDIDATE_VARIANTS``. Committed rows
+under other variant names were recorded with settings that no longer run: the report lists them apart, and
+docs/RESULTS.md ("Names that no longer run") says what each ran."""
 PHONE_PROFILE = {
     "sigma_position": 0.0, "sigma_look_at": 0.0, "sigma_dolly_z": 0.0, "sigma_focal_length": 0.0,
     "drift.enabled": True, "drift.position_drift": 0.01, "drift.yaw_drift_deg": 1.5, "drift.tilt_deg": 0.3,
@@ -260,7 +271,7 @@ class RobustnessConfig:
         return replace(self, scenes=self.scenes[:1], alignment=alignment, **QUICK)
 
     def validate(self) -> None:
-        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", VARIANTS)):
+        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", RUNNABLE_VARIANTS)):
             values = getattr(self, name)
             if not values:
                 raise ValueError(f"{name} must name at least one of {', '.join(allowed)}, got none")
@@ -762,7 +773,7 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
     elif minutes is not None:
         timing += f"; wall time of this run {minutes:.1f} minutes"
     name = config.preset or "robustness"
-    current, old = split_runnable(_summary_rows(summary), VARIANTS, STARTS)
+    current, old = split_runnable(_summary_rows(summary), RUNNABLE_VARIANTS, STARTS)
     sections = [
         "Does camera refinement with each method's default options help or hurt, from accurate and from perturbed "
         "cameras? Protocol and metrics: `benchmarks/robustness.py`. passes = steps x rays / training pixels.",

@@ -29,6 +29,7 @@ from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig
 from s2camp_ns.core.proxy_range import ProxyRanges
 from s2camp_ns.core.refiner import CameraRefiner, describe_proxy_ranges
 from s2camp_ns.core.track_fit import TrackEvidence, fit_anchor
+from s2camp_ns.core.track_loss import track_term
 from s2camp_ns.core.track_prior import checked_evidence, describe_anchor_fit, evidence_from_fit
 from s2camp_ns.core.validation import check_range
 from s2camp_ns.nerfstudio import camera_conversion, rays
@@ -86,6 +87,14 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     ns-process-data transforms.json with ``colmap/sparse/0``, else tracks from the images, ``image_tracks``). On by
     default; the ``s2camp-camp`` baseline switches it off (CamP has no prior), as do the benchmarks' photometric-only
     rows (``train_commands.PHOTOMETRIC_ONLY``); measured in ``s2camp-bench robustness --preset regime``."""
+    track_loss: bool = False
+    """Benchmark candidate: the tracks' robust reprojection cost as a loss term beside the photometric loss, the two
+    weighed as log-likelihoods (``s2camp_ns.core.track_loss``); needs the data parser's ``track_evidence``."""
+    track_loss_points_free: bool = False
+    """Benchmark candidate: the track loss with the 3D points free (each stepped to its optimum every step, so the
+    cameras see the joint adjustment's information, ``core.track_loss.refine_points``)."""
+    track_prior_intrinsics_only: bool = False
+    """Benchmark candidate: the track prior holds the shared intrinsics only (per-camera intrinsics)."""
     photometric: bool = True
     """Let the photometric loss move the cameras. False (with ``track_prior``): every camera with tracks is placed at
     its track prior's anchor (the camera-only adjustment to the tracks, ``core.track_fit``) and stays there, the
@@ -169,6 +178,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
             "S2CampCameraOptimizer.set_train_cameras must be called before use (the pipeline does)"
         )
         # Not a submodule (its tensors would be listed twice, under "refiner."): its registries are this module's.
+        refiner.prior_intrinsics_only = config.track_prior_intrinsics_only
         object.__setattr__(self, "refiner", refiner)
         for registry in ("_parameters", "_buffers", "_non_persistent_buffers_set"):
             object.__setattr__(self, registry, getattr(refiner, registry))
@@ -222,7 +232,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         (tracks per image) for the shared intrinsics' standard error. Call after ``set_train_cameras``."""
         self.refiner.require_cameras()
         prior = None
-        if self.config.track_prior and evidence is not None:
+        if (self.config.track_prior or self.config.track_loss) and evidence is not None:
             fit = fit_anchor(
                 evidence.tracks,
                 evidence.c2w,
@@ -230,7 +240,13 @@ class S2CampCameraOptimizer(CameraOptimizer):
                 free=self.layout.indices,
                 camera_of_image=self.camera_of_image if self.shared else None,
             )
-            prior = evidence_from_fit(fit, evidence.world_scale, self.layout)
+            prior = evidence_from_fit(fit, evidence.world_scale, self.layout) if self.config.track_prior else None
+            if self.config.track_loss:
+                self.refiner.set_track_term(
+                    track_term(
+                        evidence, self.refiner.base_intrinsics_struct(), fit.deltas, self.config.track_loss_points_free
+                    )
+                )
             if (note := describe_anchor_fit(fit)) is not None:
                 LOG.print(note)
         elif track_rms_px is not None and self.config.track_prior:
@@ -317,7 +333,12 @@ class S2CampCameraOptimizer(CameraOptimizer):
 
     # ---------------------------------------------------------------------------------------- losses, metrics
     def get_loss_dict(self, loss_dict: dict) -> None:
-        """Optional L2 penalties on the raw pose deltas (off by default)."""
+        """The track term (``track_loss``) and optional L2 penalties on the raw pose deltas (off by default)."""
+        # nerfacto's rgb_loss is an MSE (Gaussian pixels, eq. 1); splatfacto's main_loss is mostly L1, whose
+        # likelihood (Laplace, scale b = the mean absolute error) gives w = b / (6 N sigma_t^2): half eq. 1's factor.
+        key, factor = ("rgb_loss", 1.0) if "rgb_loss" in loss_dict else ("main_loss", 0.5)
+        if key in loss_dict and (term := self.refiner.track_loss(loss_dict[key], factor)) is not None:
+            loss_dict["track_loss"] = term.to(torch.float32)
         if not self.enabled or (self.config.trans_l2_penalty == 0 and self.config.rot_l2_penalty == 0):
             return
         phi = self.camera_deltas()

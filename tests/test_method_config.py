@@ -48,7 +48,7 @@ def test_shipped_camera_optimizers_are_the_config_defaults():
     from s2camp_ns.nerfstudio.splat_model import S2CampSplatModelConfig
 
     defaults = S2CampCameraOptimizerConfig()
-    assert (defaults.track_prior, defaults.fix_common_rotation) == (True, True)
+    assert (defaults.track_prior, defaults.fix_common_rotation, defaults.track_loss) == (True, True, False)
     assert method_config.s2camp_method.config.pipeline.model.camera_optimizer == defaults
     assert S2CampModelConfig().camera_optimizer == defaults
     splat = S2CampCameraOptimizerConfig(parameters="pose+intrinsics")

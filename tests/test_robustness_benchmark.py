@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from s2camp_ns.benchmarks.robustness import (
+    RUNNABLE_VARIANTS,
     SCENES,
     STARTS,
     VARIANTS,
@@ -26,7 +27,7 @@ def _option(command: list[str], name: str) -> str:
 
 
 @pytest.mark.parametrize("start", ["accurate", "perturbed", "phone", "accurate-untracked"])
-@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("variant", RUNNABLE_VARIANTS)
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
     command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
@@ -48,12 +49,17 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     # changes; "s2camp" and the baselines take the method's own defaults.
     photometric = "--pipeline.model.camera-optimizer.photometric"
     precondition = "--pipeline.model.camera-optimizer.precondition"
+    loss = "--pipeline.model.camera-optimizer.track-loss"
     expected_options = {
         "off": {"--pipeline.model.camera-optimizer.mode": "off"},
-        "tracks": {photometric: "False", rotation: "True", prior: "True"},
-        "s2camp-photometric": {rotation: "True", prior: "False"},
-        "s2camp-camp-prior": {rotation: "True", prior: "True"},
-        "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True"},
+        "tracks": {photometric: "False", rotation: "True", prior: "True", loss: "False"},
+        "s2camp-photometric": {rotation: "True", prior: "False", loss: "False"},
+        "s2camp-camp-prior": {rotation: "True", prior: "True", loss: "False"},
+        "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True", loss: "False"},
+        "s2camp-fused-free-iprior": {
+            rotation: "True", prior: "True", "--pipeline.model.camera-optimizer.track-prior-intrinsics-only": "True",
+            loss: "True", "--pipeline.model.camera-optimizer.track-loss-points-free": "True",
+        },
     }  # fmt: skip
     assert camera_options == expected_options.get(variant, {})
     tail = command[command.index("s2camp-data") :]
@@ -326,7 +332,7 @@ def test_every_committed_name_that_no_longer_runs_is_described_in_the_results() 
     text = (root / "docs" / "RESULTS.md").read_text(encoding="utf8").split("## Names that no longer run")[1]
     described = set(re.findall(r"^\| `([^`]+)` \|", text, flags=re.M))
     benchmarks = (
-        ("regime-rows.jsonl", VARIANTS, STARTS),
+        ("regime-rows.jsonl", RUNNABLE_VARIANTS, STARTS),
         ("splat-rows.jsonl", splat_bench.RUNNABLE_VARIANTS, splat_bench.STARTS),
     )
     for name, variants, starts in benchmarks:

@@ -26,6 +26,7 @@ and re-expresses the latent and Adam's moments before the next step instead of u
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import torch
 from jaxtyping import Float, Int
@@ -44,6 +45,7 @@ from s2camp_ns.core.latent_layout import LatentLayout, PerCameraIntrinsics, PerI
 from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig
 from s2camp_ns.core.proxy_range import ProxyRanges, proxy_ranges
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
+from s2camp_ns.core.track_loss import TrackTerm, photometric_weight, refine_points, track_cost
 from s2camp_ns.core.track_prior import TrackPriorEvidence, apply_track_prior, place_at_anchor, span
 
 ROTATION_COLUMNS = [3, 4, 5]
@@ -97,6 +99,11 @@ class CameraRefiner(nn.Module):
         self.groups_known = False
         self.has_cameras = False
         self.has_track_prior = False
+        self.track_term: TrackTerm | None = None
+        self._photometric_mse: Tensor | None = None  # the track loss's running photometric loss (not saved)
+        self._track_points: Tensor | None = None  # the track loss's free points (candidate; not saved)
+        self.prior_intrinsics_only = False
+        """Benchmark candidate: the prior's proximal step on the shared intrinsics' latent only."""
         self.cameras_required = "CameraRefiner.set_cameras must be called before use"
         """The RuntimeError's message when the cameras are needed and not set (a framework names its own call)."""
         # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
@@ -335,8 +342,34 @@ class CameraRefiner(nn.Module):
         # A Python flag, not a look at the radii: no device synchronisation on the training step's path.
         if not self.enabled or not self.has_track_prior or lr <= 0:
             return
-        for block in self.latent_layout.prior_blocks(self):
+        blocks = self.latent_layout.prior_blocks(self)
+        for block in blocks[1:] if self.prior_intrinsics_only and len(blocks) > 1 else blocks:
             apply_track_prior(block.latent, block.anchor, block.radius, lr)
+
+    def set_track_term(self, term: TrackTerm | None) -> None:
+        """The tracks as a loss term (``core.track_loss``, a benchmark candidate), its tensors moved to the refiner's
+        device once; None: none."""
+        device = self.precond.device
+        names = ("image", "points_cam", "pixels", "point", "points", "rotation", "center")
+        on_device = {name: getattr(term, name).to(device) for name in names if getattr(term, name) is not None}
+        self.track_term = None if term is None else replace(term, **on_device)
+        self._track_points = None if self.track_term is None else self.track_term.points
+
+    def track_loss(self, photometric_mse: Tensor, factor: float = 1.0) -> Float[Tensor, ""] | None:
+        """The track term in the photometric loss's units, w sum_obs rho(s_o) (``core.track_loss`` eq. 1), with
+        sigma_c^2 a running mean (100 steps) of the photometric loss ``photometric_mse``; differentiable in the
+        deltas; None without a term or when disabled."""
+        term = self.track_term
+        if term is None or not self.enabled:
+            return None
+        mse = photometric_mse.detach().to(self.precond)
+        running = self._photometric_mse
+        self._photometric_mse = mse if running is None else 0.99 * running + 0.01 * mse
+        weight = factor * photometric_weight(self._photometric_mse, term.num_pixels, term.noise_variance)
+        deltas, intrinsics = self.deltas(), self.base_intrinsics_struct()
+        if term.point is not None:
+            self._track_points = refine_points(term, self._track_points, deltas, intrinsics)
+        return weight * track_cost(term, deltas, intrinsics, self._track_points)
 
     @torch.no_grad()
     def remove_common_motion(self) -> None:

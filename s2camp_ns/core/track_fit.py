@@ -87,7 +87,7 @@ class TrackFit:
     ones (``INTRINSICS_REFIT_LEVEL``), so the fit kept them and moved only the poses."""
 
 
-def _cauchy_loss(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
+def cauchy_loss(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
     """rho(s) = c^2 log(1 + s / c^2) of squared pixel distances s, c = ``LOSS_SCALE_PX`` (Ceres' ``CauchyLoss``)."""
     c2 = LOSS_SCALE_PX**2
     return c2 * torch.log1p(squared / c2)
@@ -110,7 +110,7 @@ def _free_mask(free: Bool[Tensor, " 16"] | tuple[int, ...]) -> Bool[Tensor, " 16
     return free.to(device="cpu", dtype=torch.bool)
 
 
-def _residuals(
+def reprojection_residuals(
     deltas: Float[Tensor, "o 16"],
     points_cam: Float[Tensor, "o 1 3"],
     intrinsics: Intrinsics,
@@ -123,6 +123,15 @@ def _residuals(
         apply_pose_delta(points_cam, deltas[:, :NUM_POSE_PARAMS]), intrinsics.with_delta(deltas)
     )
     return projected[:, 0] - pixels, margin[:, 0]
+
+
+def points_in_given_cameras(tracks: Tracks, c2w: Float[Tensor, "n 3 4"]) -> Float[Tensor, "o 1 3"]:
+    """Each observation's point in its observing camera's frame, R^T (x - c) (float64, CPU): what the fits and the
+    track loss move by the deltas."""
+    c2w = c2w.detach().to("cpu", torch.float64)
+    image = tracks.image.to("cpu", torch.long)
+    points = tracks.points.detach().to("cpu", torch.float64)[tracks.point.to("cpu", torch.long)]
+    return (points - c2w[image, :, 3])[:, None, :] @ c2w[image, :, :3]
 
 
 @dataclass(frozen=True)
@@ -152,7 +161,9 @@ class _Problem:
         self, pose: Float[Tensor, "n p"], intr: Float[Tensor, "c m"]
     ) -> tuple[Float[Tensor, "o 2"], Float[Tensor, " o"]]:
         """Residuals (px) and validity (1: in front of the camera / inside a fisheye's range, 0: not)."""
-        residual, margin = _residuals(self.deltas(pose, intr), self.points_cam, self.intrinsics, self.pixels)
+        residual, margin = reprojection_residuals(
+            self.deltas(pose, intr), self.points_cam, self.intrinsics, self.pixels
+        )
         return residual, (margin > 0).to(torch.float64)
 
     def jacobian(self, pose: Float[Tensor, "n p"], intr: Float[Tensor, "c m"]) -> Float[Tensor, "o 2 k"]:
@@ -161,7 +172,7 @@ class _Problem:
         the [O, 16] rows is every observation's Jacobian row."""
         base = self.deltas(pose, intr).requires_grad_(True)
         with torch.enable_grad():
-            projected = _residuals(base, self.points_cam, self.intrinsics, self.pixels)[0]
+            projected = reprojection_residuals(base, self.points_cam, self.intrinsics, self.pixels)[0]
             rows = [torch.autograd.grad(projected[:, a].sum(), base, retain_graph=a == 0)[0] for a in range(2)]
         return torch.stack(rows, dim=1)[:, :, self.pose_columns + self.intrinsics_columns]
 
@@ -182,15 +193,13 @@ def _problem(
     groups = torch.arange(n) if camera_of_image is None else camera_of_image.to("cpu", torch.long)
     if groups.shape != (n,):
         raise ValueError(f"camera_of_image must hold one camera per image ({n}), got shape {tuple(groups.shape)}")
-    c2w = c2w.detach().to("cpu", torch.float64)
     image = tracks.image.to("cpu", torch.long)
-    points = tracks.points.detach().to("cpu", torch.float64)[tracks.point.to("cpu", torch.long)]
     return _Problem(
         image=image,
         group=groups[image],
         groups=groups,
         num_groups=int(groups.max()) + 1 if n else 0,
-        points_cam=(points - c2w[image, :, 3])[:, None, :] @ c2w[image, :, :3],
+        points_cam=points_in_given_cameras(tracks, c2w),
         intrinsics=intrinsics.detach().to(device="cpu", dtype=torch.float64)[image],
         pixels=tracks.pixels.detach().to("cpu", torch.float64),
         pose_columns=[j for j in range(NUM_POSE_PARAMS) if mask[j]],
@@ -208,7 +217,7 @@ def _levenberg_marquardt(
     def evaluate(pose: Tensor, intr: Tensor) -> tuple[Tensor, Tensor, float]:
         residual, valid = problem.residuals(pose, intr)
         valid = valid * fitted[problem.image]
-        return residual, valid, float((_cauchy_loss(residual.square().sum(-1)) * valid).sum())
+        return residual, valid, float((cauchy_loss(residual.square().sum(-1)) * valid).sum())
 
     pose = torch.zeros(n, p, dtype=torch.float64)
     intr = torch.zeros(problem.num_groups, m, dtype=torch.float64)
@@ -339,7 +348,7 @@ def fit_anchor(
     p = int(mask[:NUM_POSE_PARAMS].sum())
     count = per_group(full.observations, groups)
     dof = 2.0 * count - p * per_group((full.observations > 0).to(torch.float64), groups) - m
-    fall = per_group(_cauchy_loss(held_squared) * held_valid) - per_group(_cauchy_loss(full_squared) * full_valid)
+    fall = per_group(cauchy_loss(held_squared) * held_valid) - per_group(cauchy_loss(full_squared) * full_valid)
     fall = fall.clamp(min=0.0)
     # lambda's sample estimate; for the Cauchy loss rho' + s rho'' = rho'^2.
     weight_squared = _cauchy_weight(full_squared).square() * full_valid
@@ -419,6 +428,9 @@ __all__ = [
     "LOSS_SCALE_PX",
     "TrackEvidence",
     "TrackFit",
+    "cauchy_loss",
     "fit_anchor",
     "fit_cameras_to_tracks",
+    "points_in_given_cameras",
+    "reprojection_residuals",
 ]
