@@ -143,3 +143,25 @@ def test_free_points_step_to_where_their_observations_meet() -> None:
         points = refine_points(term, points, deltas, intrinsics)
     assert torch.allclose(points[0], truth, atol=1e-6)
     assert float(track_cost(term, deltas, intrinsics, points)) < 1e-9
+
+
+def test_splatfactos_l1_loss_weighs_the_tracks_half_and_free_points_move_with_the_cameras(tiny_scene) -> None:
+    # splatfacto's main_loss is mostly L1: its Laplace likelihood gives half eq. (1)'s weight for the same running
+    # loss (camera_optimizer.get_loss_dict). With the points free, every call steps the points towards their optimum
+    # at the current (perturbed) cameras, and the term stays differentiable in the cameras' latent.
+    from test_track_fit import _optimizer_from
+    from test_transforms_tracks import perturbed_with_scene_tracks
+
+    evidence = perturbed_with_scene_tracks(tiny_scene)
+    nerfacto, splat = ({"rgb_loss": torch.tensor(0.01)}, {"main_loss": torch.tensor(0.01)})
+    _optimizer_from(evidence, track_loss=True).get_loss_dict(nerfacto)
+    _optimizer_from(evidence, track_loss=True).get_loss_dict(splat)
+    assert float(splat["track_loss"]) == pytest.approx(0.5 * float(nerfacto["track_loss"]), rel=1e-6)
+
+    free = _optimizer_from(evidence, track_loss=True, track_loss_points_free=True)
+    start = free.refiner.track_term.points.clone()
+    losses = {"rgb_loss": torch.tensor(0.01)}
+    free.get_loss_dict(losses)
+    assert float((free.refiner._track_points - start).norm(dim=-1).max()) > 1e-6
+    losses["track_loss"].backward()
+    assert float(free.whitened_delta.grad.abs().max()) > 0.0
