@@ -357,8 +357,10 @@ class CameraRefiner(nn.Module):
 
     def track_loss(self, photometric_mse: Tensor, factor: float = 1.0) -> Float[Tensor, ""] | None:
         """The track term in the photometric loss's units, w sum_obs rho(s_o) (``core.track_loss`` eq. 1), with
-        sigma_c^2 a running mean (100 steps) of the photometric loss ``photometric_mse``; differentiable in the
-        deltas; None without a term or when disabled."""
+        sigma_c^2 a running mean (100 steps) of the photometric loss ``photometric_mse`` and ``factor`` its
+        likelihood's (1 for an MSE, 0.5 for an L1 loss); differentiable in the deltas; None without a term or when
+        disabled. With the points free each call first steps them to their optimum at the current deltas
+        (``core.track_loss.refine_points``; kept in memory, not in checkpoints)."""
         term = self.track_term
         if term is None or not self.enabled:
             return None
