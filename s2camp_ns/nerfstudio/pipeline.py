@@ -1,7 +1,9 @@
 """nerfstudio's VanillaPipeline that hands the training cameras to the S2CamP camera optimizer and owns DDP.
 
 The model is built before any camera is known to it (nerfstudio passes only num_train_data), but the
-preconditioner and the ray regeneration need the base cameras; the pipeline owns both data manager and model.
+preconditioner and the ray regeneration need the base cameras; the pipeline owns both data manager and model. Where a
+full-image data manager (splatfacto's) undistorted the training images, the model gets the pinhole cameras it wrote
+and the tracks' keypoints moved into those images (``undistorted_tracks``).
 
 With several processes (``--machine.num-devices``) the pipeline wraps the model in DDP itself instead of
 VanillaPipeline, for two reasons (docs/SCALING.md):
@@ -35,6 +37,9 @@ from torch.nn.parallel import DistributedDataParallel
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
 from s2camp_ns.nerfstudio import render_path
+from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
+from s2camp_ns.nerfstudio.camera_fields import replace_cameras
+from s2camp_ns.nerfstudio.undistorted_tracks import undistorted_track_evidence
 
 CAMERA_COUNT_KEYS = (
     "camera_optimizer.precond",  # S2CamP's P, one per training camera [N, K, K]
@@ -110,18 +115,25 @@ class S2CampPipeline(VanillaPipeline):
         super().__init__(config, device, test_mode, 1, local_rank, grad_scaler)
         assert self.datamanager.train_dataset is not None
         cameras = self.datamanager.train_dataset.cameras
-        distorted = cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
-        if distorted and hasattr(type(self.datamanager), "cached_train"):
-            # A full-image data manager (splatfacto's) undistorts the images when it first caches them and writes
-            # the undistorted K into the training cameras; the camera optimizer must start from those.
-            _ = self.datamanager.cached_train
-            if hasattr(self.model, "set_undistortion_scale"):
-                self.model.set_undistortion_scale(*undistortion_scale(self.datamanager))
         # The dataparser's sparse points (normalized world, as the cameras) choose the proxy range per camera.
         metadata = getattr(self.datamanager.train_dataset, "metadata", None) or {}
         points = metadata.get("points3D_xyz")
         # The SfM tracks give the optimizer's track prior its anchor and scale.
         tracks = {"track_rms_px": metadata.get("track_rms_px"), "track_evidence": metadata.get("track_evidence")}
+        distorted = cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
+        if distorted and hasattr(type(self.datamanager), "cached_train"):
+            # A full-image data manager (splatfacto's) undistorts the images when it first caches them and writes
+            # the undistorted K into the training cameras; the camera optimizer must start from those, and the
+            # tracks' keypoints move into the undistorted images with them.
+            given = intrinsics_from_cameras(self.datamanager.train_dataparser_outputs.cameras)
+            _ = self.datamanager.cached_train
+            if hasattr(self.model, "set_undistortion_scale"):
+                self.model.set_undistortion_scale(*undistortion_scale(self.datamanager))
+            cameras = replace_cameras(cameras, distortion_params=None)
+            if tracks["track_evidence"] is not None:
+                tracks["track_evidence"] = undistorted_track_evidence(
+                    tracks["track_evidence"], given, intrinsics_from_cameras(cameras)
+                )
         if hasattr(self.model, "set_train_cameras"):
             self.model.set_train_cameras(cameras, points=points, **tracks)
         elif isinstance(getattr(self.model, "camera_optimizer", None), S2CampCameraOptimizer):

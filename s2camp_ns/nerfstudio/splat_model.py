@@ -139,9 +139,10 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         track_evidence: TrackEvidence | None = None,
     ) -> None:
         pinhole = pinhole_cameras(cameras)
-        # The tracks' pixels are the distorted images'; the model refines the undistorted pinhole camera, which they
-        # do not fit: there the prior keeps its given-camera anchor and the reprojection error as its scale, with
-        # each image's number of tracks for the shared intrinsics' standard error.
+        # Distorted cameras here come with tracks in the distorted images (the pipeline passes the undistorted
+        # pinhole cameras with their keypoints moved, ``undistorted_tracks``); the model refines the undistorted
+        # pinhole camera, which they do not fit: there the prior keeps its given-camera anchor and the reprojection
+        # error as its scale, with each image's number of tracks for the shared intrinsics' standard error.
         undistorted = cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
         evidence, observations = track_evidence, None
         if undistorted and track_evidence is not None:
