@@ -93,7 +93,7 @@ def cauchy_loss(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
     return c2 * torch.log1p(squared / c2)
 
 
-def _cauchy_weight(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
+def cauchy_weight(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
     """rho'(s) = 1 / (1 + s / c^2): an observation's weight in the reweighted normal equations. For this loss
     rho'(s) + s rho''(s) = rho'(s)^2 (``fit_anchor``'s scale uses it)."""
     return 1.0 / (1.0 + squared / LOSS_SCALE_PX**2)
@@ -226,7 +226,7 @@ def _levenberg_marquardt(
     while iterations < max_iterations:
         iterations += 1
         # Reweighted least squares: rows scaled by sqrt(rho'(s)) at the current residuals (0 where invalid).
-        root = (valid * _cauchy_weight(residual.square().sum(-1))).sqrt()
+        root = (valid * cauchy_weight(residual.square().sum(-1))).sqrt()
         step_pose, step_intr = _solve_normal_equations(
             problem.jacobian(pose, intr) * root[:, None, None],
             residual * root[:, None],
@@ -351,7 +351,7 @@ def fit_anchor(
     fall = per_group(cauchy_loss(held_squared) * held_valid) - per_group(cauchy_loss(full_squared) * full_valid)
     fall = fall.clamp(min=0.0)
     # lambda's sample estimate; for the Cauchy loss rho' + s rho'' = rho'^2.
-    weight_squared = _cauchy_weight(full_squared).square() * full_valid
+    weight_squared = cauchy_weight(full_squared).square() * full_valid
     spread, curvature = per_group(full_squared * weight_squared), per_group(weight_squared)
     scale = count * spread / (curvature.clamp(min=1e-300) * dof.clamp(min=1.0))
     # Exact tracks leave no noise (scale 0): any fall of the cost is then evidence.
@@ -429,6 +429,7 @@ __all__ = [
     "TrackEvidence",
     "TrackFit",
     "cauchy_loss",
+    "cauchy_weight",
     "fit_anchor",
     "fit_cameras_to_tracks",
     "points_in_given_cameras",

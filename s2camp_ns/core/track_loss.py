@@ -51,9 +51,9 @@ from torch import Tensor
 
 from s2camp_ns.core.camera import NUM_CAMERA_PARAMS, Intrinsics
 from s2camp_ns.core.track_fit import (
-    LOSS_SCALE_PX,
     TrackEvidence,
     cauchy_loss,
+    cauchy_weight,
     points_in_given_cameras,
     reprojection_residuals,
 )
@@ -133,14 +133,19 @@ def track_term(
 
 def points_cam_of(term: TrackTerm, points: Float[Tensor, "p 3"]) -> Float[Tensor, "o 1 3"]:
     """Points free: each observation's point in its given camera's frame, R^T (x - c)."""
-    return (points[term.point] - term.center)[:, None, :] @ term.rotation
+    return _in_given_frames(term, points[term.point])
+
+
+def _in_given_frames(term: TrackTerm, observed: Float[Tensor, "o 3"]) -> Float[Tensor, "o 1 3"]:
+    """Points free: each observation's own copy of its point, ``observed``, in its given camera's frame."""
+    return (observed - term.center)[:, None, :] @ term.rotation
 
 
 def _tracks_world(term: TrackTerm, deltas: Float[Tensor, "n 16"]) -> Float[Tensor, "o 16"]:
     """Each observation's training-frame deltas in the tracks' world (translation divided by ``world_scale``)."""
     scale = torch.ones(NUM_CAMERA_PARAMS, dtype=deltas.dtype, device=deltas.device)
     scale[:3] = 1.0 / term.world_scale
-    return (deltas * scale)[term.image]
+    return (deltas * scale)[term.image.to(deltas.device)]
 
 
 @torch.no_grad()
@@ -157,12 +162,11 @@ def refine_points(
     pixels = term.pixels.to(torch.float64)
     with torch.enable_grad():
         x = points[term.point].clone().requires_grad_(True)  # [o, 3]
-        points_cam = (x - term.center)[:, None, :] @ term.rotation
-        residual, margin = reprojection_residuals(per_observation, points_cam, base, pixels)  # [o, 2], [o]
+        residual, margin = reprojection_residuals(per_observation, _in_given_frames(term, x), base, pixels)
         rows = [torch.autograd.grad(residual[:, k].sum(), x, retain_graph=k == 0)[0] for k in range(2)]
     jac = torch.stack(rows, dim=1)  # [o, 2, 3]
     residual = residual.detach()
-    weight = torch.where(margin > 0, 1.0 / (1.0 + residual.square().sum(-1) / LOSS_SCALE_PX**2), 0.0)  # [o]
+    weight = torch.where(margin > 0, cauchy_weight(residual.square().sum(-1)), 0.0)  # [o]
     wj = weight[:, None, None] * jac
     hessian = torch.zeros(points.shape[0], 3, 3, dtype=torch.float64, device=points.device)
     gradient = torch.zeros(points.shape[0], 3, dtype=torch.float64, device=points.device)
@@ -195,11 +199,8 @@ def track_cost(
     if deltas.shape[-1] != NUM_CAMERA_PARAMS:
         raise ValueError(f"deltas must hold the {NUM_CAMERA_PARAMS} camera parameters, got {deltas.shape[-1]}")
     device = deltas.device
-    image = term.image.to(device)
-    scale = torch.ones(NUM_CAMERA_PARAMS, dtype=deltas.dtype, device=device)
-    scale[:3] = 1.0 / term.world_scale  # translation: training frame -> tracks' world
-    per_observation = (deltas * scale)[image]  # [o, 16]
-    base = intrinsics.to(device=device, dtype=deltas.dtype)[image]
+    per_observation = _tracks_world(term, deltas)  # [o, 16]
+    base = intrinsics.to(device=device, dtype=deltas.dtype)[term.image.to(device)]
     points_cam = term.points_cam if points is None else points_cam_of(term, points.detach())
     squared, valid = _squared_residuals(
         per_observation, points_cam.to(device, deltas.dtype), base, term.pixels.to(device, deltas.dtype)

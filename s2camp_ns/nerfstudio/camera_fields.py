@@ -27,6 +27,11 @@ def replace_cameras(cameras: Cameras, **fields) -> Cameras:
     return Cameras(**values)
 
 
+def has_distortion(cameras: Cameras) -> bool:
+    """Whether any of ``cameras`` has a non-zero distortion coefficient (what a full-image data manager undistorts)."""
+    return cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
+
+
 def physical_camera_means(cameras: Cameras, camera_ids: Int[Tensor, " n"]) -> Cameras:
     """A copy of ``cameras`` in which every image of a physical camera (``camera_ids``, one per image) holds the mean
     over those images of fx, fy, cx, cy and the distortion: the intrinsics a refiner that shares them starts from
@@ -49,4 +54,4 @@ def physical_camera_means(cameras: Cameras, camera_ids: Int[Tensor, " n"]) -> Ca
     return replace_cameras(cameras, **fields)
 
 
-__all__ = ["physical_camera_means", "replace_cameras"]
+__all__ = ["has_distortion", "physical_camera_means", "replace_cameras"]

@@ -38,7 +38,7 @@ from torch.nn.parallel import DistributedDataParallel
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
 from s2camp_ns.nerfstudio import render_path
 from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
-from s2camp_ns.nerfstudio.camera_fields import replace_cameras
+from s2camp_ns.nerfstudio.camera_fields import has_distortion, replace_cameras
 from s2camp_ns.nerfstudio.undistorted_tracks import undistorted_track_evidence
 
 CAMERA_COUNT_KEYS = (
@@ -120,8 +120,7 @@ class S2CampPipeline(VanillaPipeline):
         points = metadata.get("points3D_xyz")
         # The SfM tracks give the optimizer's track prior its anchor and scale.
         tracks = {"track_rms_px": metadata.get("track_rms_px"), "track_evidence": metadata.get("track_evidence")}
-        distorted = cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
-        if distorted and hasattr(type(self.datamanager), "cached_train"):
+        if has_distortion(cameras) and hasattr(type(self.datamanager), "cached_train"):
             # A full-image data manager (splatfacto's) undistorts the images when it first caches them and writes
             # the undistorted K into the training cameras; the camera optimizer must start from those, and the
             # tracks' keypoints move into the undistorted images with them.

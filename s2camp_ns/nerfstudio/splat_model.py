@@ -30,7 +30,7 @@ from torch import Tensor
 
 from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
 from s2camp_ns.core.track_fit import TrackEvidence
-from s2camp_ns.nerfstudio.camera_fields import replace_cameras
+from s2camp_ns.nerfstudio.camera_fields import has_distortion, replace_cameras
 from s2camp_ns.nerfstudio.refinement import S2CampRefinementMixin, warn_lpips_unavailable
 from s2camp_ns.splat.intrinsics_view import corrected_viewmat, intrinsics_correction, intrinsics_matrix
 from s2camp_ns.splat.reference_rasterizer import rasterization as reference_rasterization
@@ -143,9 +143,8 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         # pinhole cameras with their keypoints moved, ``undistorted_tracks``); the model refines the undistorted
         # pinhole camera, which they do not fit: there the prior keeps its given-camera anchor and the reprojection
         # error as its scale, with each image's number of tracks for the shared intrinsics' standard error.
-        undistorted = cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
         evidence, observations = track_evidence, None
-        if undistorted and track_evidence is not None:
+        if has_distortion(cameras) and track_evidence is not None:
             image = track_evidence.tracks.image
             evidence, observations = None, torch.bincount(image, minlength=cameras.shape[0]).to(torch.float64)
         super().set_train_cameras(
