@@ -129,7 +129,7 @@ SCENES: dict[str, RobustnessScene] = {
         70.0,
         3,
         "regime-wide trained at its full 320x240 (4x the pixels per image); 3000 steps x 512 rays see each training "
-        "pixel 0.41 times: where the images gain on the keypoints",
+        "pixel 0.41 times: whether four times the pixels let the images gain on the keypoints",
     ),
 }
 """The background sphere has radius 40 (``s2camp_ns.scene.procedural``); the foreground objects lie within 1.8 of
