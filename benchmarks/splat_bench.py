@@ -99,9 +99,9 @@ SCENES: dict[str, RobustnessScene] = {
 }  # fmt: skip
 """The benchmark's scenes (``RobustnessScene``: generated, pinhole, SfM on the full-size images). Small enough for
 the reference rasterizer on one CPU thread: 64x48 training images (``images_4``, ``add_quarter_images``). SfM needs
-the larger full-size images: on this scene at 128x96 pycolmap registered 3 of 24 images, at 256x192 all 24
-(rotation 0.53 deg, focal 184.3 px against the true 182.8) with about 600 points: the sfm start's runs train 600
-Gaussians, the others 2.4k (compare PSNR between the variants of one start)."""
+the larger full-size images: on this scene at 128x96 pycolmap registered a few of the 24 images, at 256x192 all of
+them, with far fewer points than the generated scene's: the sfm start's runs train fewer Gaussians than the others
+(compare PSNR between the variants of one start). The SfM start's errors are in the report's rows (``start_*``)."""
 STARTS = ("accurate", "perturbed", "sfm")
 RECOVERY_STARTS = ("perturbed",)
 """Starts that refinement must correct (the report gives the fraction of the start error removed); from the others
