@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor, nn
 
 from s2camp_ns.core.preconditioner import Preconditioner, compute_preconditioner, reexpress_latent
@@ -105,6 +105,17 @@ class PerImageIntrinsics:
         return [PriorBlock(refiner.whitened_delta, anchor, refiner.prior_radius)]
 
 
+def mean_per_camera(
+    values: Float[Tensor, "n d"], camera_of_image: Int[Tensor, " n"], num_cameras: int
+) -> Float[Tensor, "n d"]:
+    """Each image's row replaced by the mean over the images of its physical camera (``camera_of_image``, one index
+    below ``num_cameras`` per image): the base intrinsics a shared layout starts from, in ``values``' dtype."""
+    count = torch.bincount(camera_of_image, minlength=num_cameras).to(values)  # [C]
+    sums = torch.zeros(num_cameras, values.shape[1], dtype=values.dtype, device=values.device)
+    sums = sums.index_add_(0, camera_of_image, values)  # [C, d]
+    return (sums / count.clamp(min=1.0)[:, None])[camera_of_image]
+
+
 class PerCameraIntrinsics:
     """The images of a physical camera share its intrinsics (``core.shared_intrinsics``): the pose latent
     ``whitened_delta`` [n, 6] per image and the intrinsics latent ``whitened_intrinsics`` [C, K - 6] per camera;
@@ -124,10 +135,7 @@ class PerCameraIntrinsics:
     def base(self, refiner: CameraRefiner, base: Float[Tensor, "n 13"]) -> Float[Tensor, "n 13"]:
         """One set of base intrinsics per physical camera: the mean over its images (they agree for SfM cameras;
         a per-image perturbation averages out). Images of one camera must have the same size."""
-        index, count_cameras = refiner.camera_of_image, refiner.num_physical_cameras
-        count = torch.bincount(index, minlength=count_cameras).to(base)
-        mean = torch.zeros(count_cameras, base.shape[1], dtype=base.dtype, device=base.device)
-        mean = mean.index_add_(0, index, base) / count[:, None]
+        index = refiner.camera_of_image
         first = refiner.first_image_of_each_camera()
         size_mismatch = (base[first][index, 7:9] != base[:, 7:9]).any(dim=-1)
         if bool(size_mismatch.any()):
@@ -138,7 +146,7 @@ class PerCameraIntrinsics:
                 f"{int(index[i])} is {int(base[j, 7])}x{int(base[j, 8])}: shared intrinsics need one "
                 "image size per camera (or --pipeline.model.camera-optimizer.intrinsics per-image)"
             )
-        return mean[index]
+        return mean_per_camera(base, index, refiner.num_physical_cameras)
 
     def recompute(self, refiner: CameraRefiner, optimizer: torch.optim.Optimizer | None) -> None:
         """T per physical camera from its refined intrinsics, the latents and Adam's moments re-expressed without
@@ -182,4 +190,4 @@ class PerCameraIntrinsics:
         ]
 
 
-__all__ = ["LatentLayout", "PerCameraIntrinsics", "PerImageIntrinsics", "PriorBlock"]
+__all__ = ["LatentLayout", "PerCameraIntrinsics", "PerImageIntrinsics", "PriorBlock", "mean_per_camera"]

@@ -7,6 +7,8 @@ from jaxtyping import Int
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
+from s2camp_ns.core.latent_layout import mean_per_camera
+
 
 def replace_cameras(cameras: Cameras, **fields) -> Cameras:
     """A copy of ``cameras`` with the given fields replaced (nerfstudio's Cameras has no such method)."""
@@ -41,14 +43,13 @@ def physical_camera_means(cameras: Cameras, camera_ids: Int[Tensor, " n"]) -> Ca
     ids = torch.as_tensor(camera_ids, dtype=torch.long).reshape(-1).cpu()
     if ids.shape[0] != n:
         raise ValueError(f"camera_ids must hold {n} entries (one per image), got {ids.shape[0]}")
-    count = torch.bincount(ids).to(torch.float64)[:, None]  # [c, 1]
+    num_cameras = int(ids.max()) + 1 if n else 0
 
     def mean(values: Tensor | None) -> Tensor | None:
         if values is None:
             return None
         flat = values.reshape(n, -1).to("cpu", torch.float64)  # [n, d]
-        sums = torch.zeros(count.shape[0], flat.shape[1], dtype=torch.float64).index_add_(0, ids, flat)
-        return (sums / count.clamp(min=1.0))[ids].reshape(values.shape).to(values)
+        return mean_per_camera(flat, ids, num_cameras).reshape(values.shape).to(values)
 
     fields = {name: mean(getattr(cameras, name)) for name in ("fx", "fy", "cx", "cy", "distortion_params")}
     return replace_cameras(cameras, **fields)
