@@ -95,6 +95,10 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     cameras see the joint adjustment's information, ``core.track_loss.refine_points``)."""
     track_prior_intrinsics_only: bool = False
     """Benchmark candidate: the track prior holds the shared intrinsics only (per-camera intrinsics)."""
+    track_start_at_anchor: bool = False
+    """Benchmark candidate: every camera with tracks starts where its tracks put it (the track prior's anchor,
+    ``core.track_fit``), the images then moving it, as ``photometric`` False places the tracks-alone cameras. Needs
+    ``track_prior`` (the anchor is the prior's)."""
     photometric: bool = True
     """Let the photometric loss move the cameras. False (with ``track_prior``): every camera with tracks is placed at
     its track prior's anchor (the camera-only adjustment to the tracks, ``core.track_fit``) and stays there, the
@@ -116,6 +120,11 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
         if not self.photometric and not self.track_prior:
             raise ValueError(
                 "camera-optimizer.photometric False places the cameras at the track prior's anchor and needs "
+                "camera-optimizer.track-prior True, got track_prior False"
+            )
+        if self.track_start_at_anchor and not self.track_prior:
+            raise ValueError(
+                "camera-optimizer.track-start-at-anchor True starts the cameras at the track prior's anchor and needs "
                 "camera-optimizer.track-prior True, got track_prior False"
             )
         self.sampling.validate()
@@ -179,6 +188,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         )
         # Not a submodule (its tensors would be listed twice, under "refiner."): its registries are this module's.
         refiner.prior_intrinsics_only = config.track_prior_intrinsics_only
+        refiner.start_at_anchor = config.track_start_at_anchor
         object.__setattr__(self, "refiner", refiner)
         for registry in ("_parameters", "_buffers", "_non_persistent_buffers_set"):
             object.__setattr__(self, registry, getattr(refiner, registry))

@@ -310,3 +310,23 @@ def test_tracks_alone_places_the_cameras_at_the_anchor_and_the_images_do_not_mov
     S2CampCameraOptimizerConfig(photometric=False).validate()  # the prior is on by default
     with pytest.raises(ValueError, match=r"photometric False .* needs camera-optimizer.track-prior True"):
         S2CampCameraOptimizerConfig(photometric=False, track_prior=False).validate()
+
+
+def test_start_at_anchor_places_the_cameras_at_the_anchor_and_the_images_still_move_them(tiny_scene) -> None:
+    # Benchmark candidate (``track_start_at_anchor``): the tracks-alone placement with the images left on. With exact
+    # tracks the anchor is the truth, so the cameras start there before any step; a loss then moves them.
+    optimizer, truth = _moved_cameras_with_exact_tracks(
+        tiny_scene, track_start_at_anchor=True, track_prior_intrinsics_only=True
+    )
+    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), truth.camera_to_worlds.double(), atol=1e-4, rtol=0)
+    torch.testing.assert_close(optimizer.refined_intrinsics().fx, truth.fx[:, 0].double(), atol=1e-2, rtol=0)
+    before = optimizer.whitened_delta.detach().clone()
+    adam = torch.optim.Adam([optimizer.whitened_delta], lr=1e-2)
+    adam.zero_grad()
+    (optimizer.whitened_delta - 1.0).square().sum().backward()
+    adam.step()
+    assert float((optimizer.whitened_delta.detach() - before).abs().min()) > 5e-3  # Adam's first step moves each by lr
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+
+    with pytest.raises(ValueError, match=r"track-start-at-anchor True .* needs camera-optimizer.track-prior True"):
+        S2CampCameraOptimizerConfig(track_start_at_anchor=True, track_prior=False).validate()

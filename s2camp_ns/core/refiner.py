@@ -104,6 +104,8 @@ class CameraRefiner(nn.Module):
         self._track_points: Tensor | None = None  # the track loss's free points (candidate; not saved)
         self.prior_intrinsics_only = False
         """Benchmark candidate: the prior's proximal step on the shared intrinsics' latent only."""
+        self.start_at_anchor = False
+        """Benchmark candidate: ``set_track_prior`` places the latent at the anchor with ``photometric`` True too."""
         self.cameras_required = "CameraRefiner.set_cameras must be called before use"
         """The RuntimeError's message when the cameras are needed and not set (a framework names its own call)."""
         # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
@@ -307,8 +309,8 @@ class CameraRefiner(nn.Module):
     def set_track_prior(self, evidence: TrackPriorEvidence | None) -> None:
         """The track prior's anchor and scale per image (``core.track_prior``); None: no prior. Scales are stored in
         whitened units (pixels divided by max(W, H), the Gram matrix's pixel unit, paper eq. 5), the shared
-        intrinsics' as the standard error of their pooled fit. With ``photometric`` False the latent is placed at
-        the anchor."""
+        intrinsics' as the standard error of their pooled fit. With ``photometric`` False or ``start_at_anchor`` the
+        latent is placed at the anchor (images without a prior at zero, the given camera)."""
         self.require_cameras()
         device = self.precond.device
         radius = torch.full((self.num_images,), float("nan"), dtype=torch.float64, device=device)
@@ -325,7 +327,7 @@ class CameraRefiner(nn.Module):
         self.prior_anchor = torch.where(keep, anchor, torch.zeros_like(anchor))
         self.has_track_prior = bool(finite.any())
         self.prior_radius_intrinsics = self.latent_layout.intrinsics_radius(self, radius, observations)
-        if self.enabled and not self.photometric:
+        if self.enabled and (not self.photometric or self.start_at_anchor):
             for block in self.latent_layout.prior_blocks(self):
                 place_at_anchor(block.latent, block.anchor, block.radius)
 
