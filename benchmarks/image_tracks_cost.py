@@ -1,16 +1,16 @@
 """``s2camp-bench image-tracks``: wall time of an image tracks build (``s2camp_ns.nerfstudio.image_tracks``) at
 several image counts of 1080p images, per stage.
 
-One generated scene (``scene``: 300 images of 1920x1080 on a ring, 80 degrees wide, JPEG) is made once in
-``scene_dir`` and kept there (its generation, about 8 s per image on one CPU core, is not timed). Each count takes
-evenly spaced images of it (every 6th of 300 for 50, every 2nd for 150), gives them the true cameras turned and moved
-as a phone's visual-inertial poses are (``rotation_deg``, ``centre_noise``; one focal length ``focal_error`` long)
+One generated scene (``scene``: 300 images of 1920x1080 on a ring, 80 degrees wide, JPEG) is made once in ``scene_dir``
+and kept there (its generation, slow on one CPU core, is not timed; its cost: docs/IMAGE-TRACKS.md, "Cost"). Each count
+takes evenly spaced images of it (every 6th of 300 for 50, every 2nd for 150), gives them the true cameras turned and
+moved as a phone's visual-inertial poses are (``rotation_deg``, ``centre_noise``; one focal length ``focal_error`` long)
 and builds their tracks into a fresh cache folder, as the data parser does before training. Up to ``EXHAUSTIVE_LIMIT``
 images every pair is matched, beyond it each image with its ``NEIGHBOURS`` (``neighbour_pairs``), so the matching's
 pairs grow quadratically up to 100 images and linearly after. A row records the build's wall time, its stages'
-(``ImageTracks.stage_seconds``), the pairs matched, the summary (points, observations, reprojection error, how far
-the adjusted cameras lie from the given ones) and the load average before and after: the build shares the machine
-with whatever else runs on it, and its CPU stages use every core.
+(``ImageTracks.stage_seconds``), the pairs matched, the summary (points, observations, reprojection error, how far the
+adjusted cameras lie from the given ones) and the load average before and after: the build shares the machine with
+whatever else runs on it, and its CPU stages use every core.
 """
 
 from __future__ import annotations

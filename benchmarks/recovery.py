@@ -33,7 +33,7 @@ QUICK_SCENE_SIZE = {"num_cameras": 8, "width": 64, "height": 48}
 
 QUICK_PHOTOMETRIC_VARIANTS = ("none", "so3xr3", "s2camp")
 """``--quick`` (CI) trains these in tier 2: no refinement, the baseline of the time ratios and S2CamP. Each ns-train
-start costs about 10 s of CI's CPU; every variant's ns-train command is checked without training
+start-up has a fixed cost on CI's CPU; every variant's ns-train command is checked without training
 (tests/test_recovery_seeds.py)."""
 QUICK_SFM_VARIANTS = ("none", "s2camp-per-camera")
 """``--quick`` trains these from the SfM start in tier 3 (the SfM reconstruction and its checks run in full)."""
@@ -145,7 +145,7 @@ def _run(config: RecoveryConfig, root: Path) -> list[dict]:
     began = time.perf_counter()
     if 1 in config.tiers:
         # Tier 1 is many small tensor operations: one thread keeps per-iteration times stable and comparable
-        # between variants (several threads on a busy 2-core machine made them vary tenfold).
+        # between variants (several threads on a busy 2-core machine made them vary widely).
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
         try:

@@ -437,7 +437,7 @@ def summarize_scene(scene_name: str, results: list[tuple[TrainedRun, dict]], tie
 def run_photometric(
     scenes: tuple[str, ...], variants: tuple[str, ...], config: PhotometricConfig, root: Path, quick: bool
 ) -> tuple[list[dict], dict]:
-    if quick:  # CI: every variant runs, on the first scene only (each ns-train start-up costs about 10 s)
+    if quick:  # CI: every variant runs, on the first scene only (each ns-train start-up has a fixed cost)
         config, scenes = config.quick(), scenes[:1]
     runs = [run for scene_name in scenes for run in train_scene(scene_name, variants, config, root, quick)]
     log(f"  evaluating {len(runs)} runs ({config.eval_workers} processes)")

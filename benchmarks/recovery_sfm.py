@@ -53,8 +53,9 @@ SFM_SCENES = {
 }
 """SIFT needs more pixels than tiers 1 and 2 use: SfM runs on 320x240, training on the 160x120 ``images_2``."""
 QUICK_SFM_SCENE = {"supersample": 1}
-"""CI: the same ring rendered with one ray per pixel (4x faster). Smaller rings fail SfM: 16 cameras at 240x180
-registered 10 images, 12 cameras 4, 10 cameras at 160x120 gave no model."""
+"""CI: the same ring rendered with one ray per pixel (a quarter of the default's rays). Smaller rings fail SfM: 16 or
+12 cameras at 240x180 registered only part of the images, 10 cameras at 160x120 made no model (such attempts at the
+default rendering: docs/benchmarks/recovery.md, tier 3)."""
 TRAINING_DOWNSCALE = 2
 SFM_VARIANTS = ("none", "so3xr3", "camp", "s2camp-per-image", "s2camp-per-camera")
 METHODS = {
@@ -86,7 +87,8 @@ class SfmRecoveryConfig:
     focal_prior: float | None = 1.05
     """SfM's initial focal length as a factor of the true one, as the EXIF focal length of a real capture gives it
     (the generated images carry no EXIF); None starts from COLMAP's guess without EXIF, 1.2 x max(W, H), from which
-    SfM ends 6-7x further from the truth on the wide scene (benchmarks/sfm.py)."""
+    SfM ends several times further from the truth on the wide scene (measured in docs/benchmarks/recovery.md,
+    tier 3; ``benchmarks/sfm.py``)."""
     sfm_only: bool = False
     """Run SfM and its checks on every scene (the quality table), train nothing."""
     check: SfmCheck = field(default_factory=SfmCheck)

@@ -135,8 +135,9 @@ SCENES: dict[str, RobustnessScene] = {
 """The background sphere has radius 40 (``s2camp_ns.scene.procedural``); the foreground objects lie within 1.8 of
 the centre, so the ring radius sets the depth range each camera sees. The cameras sit on a full ring, so the number
 of images times the field of view is how often the background is covered: the narrow scene gets the most images
-(with 8 images of 40 degrees a held-out view sees background no training view saw, and its PSNR stayed at 14.7 dB
-from 20 to 200 iterations while the training PSNR rose to 29.5), the wide one the fewest."""
+(with 8 images of 40 degrees a held-out view sees background no training view saw, and its PSNR stopped improving
+early in training while the training PSNR kept rising), the wide one the fewest. The scenes and their start errors:
+docs/benchmarks/robustness.md, "Scenes"."""
 STARTS = ("accurate", "perturbed", "sfm", "phone", "accurate-untracked")
 """accurate: the true cameras; perturbed: CamP's perturbation; sfm: pycolmap SfM on the full-size images with an
 EXIF-like focal prior (``benchmarks/sfm.py``); phone: ``PHONE_PROFILE`` (module docstring); accurate-untracked: the

@@ -5,9 +5,10 @@
 (``CameraMode.SINGLE``) of the chosen COLMAP model. COLMAP's log lines go to ``sfm.log`` in the output folder.
 
 ``focal_prior`` plays the EXIF focal length a real capture carries: the mapper starts from that factor times the true
-focal length instead of COLMAP's guess for images without EXIF (1.2 x max(W, H)). On the generated wide scene the
-guess (2x the true 190.7 px) ends at rotations 0.031 rad, centres 3.5% of the ring radius and the focal length 2.8% off;
-an EXIF-like prior 5% off gives 0.004 rad, 0.6% and 0.7% (docs/benchmarks/recovery.md, tier 3).
+focal length instead of COLMAP's guess for images without EXIF (1.2 x max(W, H), twice the generated wide scene's
+true focal length). From that guess SfM of the wide scene ends several times further from the truth in rotation,
+centres and focal length than from an EXIF-like prior 5% off (measured in docs/benchmarks/recovery.md, tier 3, "What
+the SfM table shows").
 
 ``local_refinement_check`` asks whether SfM's error is something local refinement can remove: bundle adjustment with
 the true camera model from SfM's result, and SfM's tracks reprojected under SfM's and under the true cameras.
@@ -35,8 +36,9 @@ SFM_CAMERA_MODELS = ("SIMPLE_RADIAL", "OPENCV")
 
 
 SFM_THREADS = 1
-"""One thread and a fixed seed: COLMAP's multi-threaded mapper registers images in a run-dependent order (one run of
-a 24-image scene registered 23 images, the next 24)."""
+"""One thread and a fixed seed: COLMAP's multi-threaded mapper registers images in a run-dependent order (two runs of
+one 24-image scene registered different numbers of images); with both, the SfM start is bit-identical from run to
+run (docs/SPLAT.md sec. 6)."""
 SFM_SEED = 0
 MIN_POSE_INLIERS = 15
 """Absolute-pose inliers needed to register an image (COLMAP's default 30 is meant for megapixel images; the
@@ -57,10 +59,12 @@ class SfmCheck:
 
     max_centre_error: float = 0.1
     """Largest camera-centre error after similarity alignment, as a fraction of the ring radius. Loose enough for an
-    inaccurate but consistent reconstruction (the wide scene mapped from COLMAP's focal-length guess without EXIF:
-    8% at worst, 3.5% on average), tight enough to reject a broken one (a mirrored or folded ring is off by ~100%)."""
+    inaccurate but consistent reconstruction (the wide scene mapped from COLMAP's focal-length guess without EXIF
+    stays below it in every camera), tight enough to reject a broken one (a mirrored or folded ring is off by ~100%).
+    The centre errors of both starts: docs/benchmarks/recovery.md, tier 3."""
     max_rotation_error: float = 0.1
-    """Largest rotation error after alignment (rad, about 6 degrees; the wide scene: 0.085 at worst)."""
+    """Largest rotation error after alignment (rad, about 6 degrees), above the worst camera of the wide scene mapped
+    from COLMAP's guess (docs/benchmarks/recovery.md, tier 3)."""
 
 
 @dataclass

@@ -18,10 +18,10 @@ s2camp-splat} x seeds. Every run is one ``ns-train`` FROM SCRATCH with the metho
   decay over 30k) and is scaled with the rest. ``--compress-schedule False`` keeps every default;
 - densification off unless ``--densify True`` (``--pipeline.model.stop-split-at 0``: gsplat's strategy then neither
   grows, prunes nor resets opacities): the Gaussians are those of the start's sparse points, trained in position,
-  shape, colour and opacity. Measured with it on (this scene, 1000 steps, refinement every 3 steps from step 17):
-  at splatfacto's initial 1/4 resolution (16x12 px) nearly every Gaussian passed the gradient threshold at every
-  refinement and their number doubled each time, 1.2k to 88k in 18 steps, at which the reference rasterizer's
-  step cost went from 0.05 s to 0.28 s and rising: beyond a CPU run. The same for every variant.
+  shape, colour and opacity. With it on (this scene, 1000 steps, refinement every 3 steps from step 17), at
+  splatfacto's initial 1/4 resolution (16x12 px) nearly every Gaussian passes the gradient threshold at every
+  refinement, so their number doubles each time and the reference rasterizer's step cost grows with it: beyond a CPU
+  run (measured in docs/SPLAT.md sec. 6, "Densification off"). The same for every variant.
 
 Variants: "splat-off" is ``ns-train s2camp-splat --pipeline.model.camera-optimizer.mode off``; the others are the
 ``ns-train`` methods of those names. Starts: robustness's (``benchmarks/robustness.py``): "accurate" the generated
@@ -211,7 +211,7 @@ class SplatBenchConfig:
     """Test-time alignment of the held-out views (every run alike; splat runs render whole images, so ``rays`` and
     ``chunk`` do not apply)."""
     quick: bool = False
-    """Small run for CI (``QUICK``, about a minute on 2 CPU cores)."""
+    """Small run for CI (``QUICK``, sized for CI's CPU cores)."""
     work_dir: Path | None = None
     """Where scenes and runs go (a temporary /tmp/splat-* folder by default, removed afterwards). Each finished run's
     row is appended to ``rows.jsonl`` there as soon as it is evaluated; a run whose row is already there is not run
@@ -497,8 +497,8 @@ def summarize(rows: list[dict]) -> list[dict]:
 
 def _time_ratio(rows: list[dict], baseline: list[dict]) -> float:
     """Mean seconds per iteration over the baseline's, from the rows of the invocations both have runs in: the
-    machine is shared, so seconds from different invocations are not comparable (the same settings ran at 0.04 and
-    0.3 s per step on different days). Rows from before invocations were recorded share the invocation ''."""
+    machine is shared, so seconds from different invocations are not comparable (the same settings ran several
+    times faster on one day than on another). Rows from before invocations were recorded share the invocation ''."""
     shared = {row.get("invocation", "") for row in rows} & {row.get("invocation", "") for row in baseline}
     mine = [row["sec_per_iter"] for row in rows if row.get("invocation", "") in shared]
     theirs = [row["sec_per_iter"] for row in baseline if row.get("invocation", "") in shared]

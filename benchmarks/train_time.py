@@ -57,7 +57,7 @@ class TrainTimeConfig:
         if not self.quick:
             return self
         scene = replace(self.scene, num_cameras=8, width=48, height=36)
-        methods = self.methods[:2]  # the baseline and s2camp: each ns-train start costs about 10 s of CI's CPU
+        methods = self.methods[:2]  # the baseline and s2camp: each ns-train start-up has a fixed cost on CI's CPU
         return replace(self, methods=methods, rounds=1, iterations=8, rays_per_batch=256, refresh_every=2, scene=scene)
 
 

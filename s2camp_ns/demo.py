@@ -7,11 +7,12 @@ COLMAP cameras and the sparse points with their tracks). Two recipes:
   perturbed training cameras (CamP's protocol: position, look-at, per-camera focal length and a shared dolly zoom,
   radial distortion zeroed). The scene's own tracks were made with the true cameras, so the data parser never gives
   them to perturbed cameras: the default's track prior gets tracks made from the images with the perturbed cameras
-  (the data parser's ``image_tracks``: SIFT matches, triangulated and bundle-adjusted, about 20 s here, then
-  cached), evidence that does not know the truth. Its anchor is where those tracks put each camera (a camera-only
-  adjustment against their points, ``s2camp_ns.core.track_fit``), its scale their reprojection error. The table
-  shows the start, that anchor (the tracks alone) and the cameras after refinement, all against the true cameras.
-  The scene is sized for that: with 16 images of 96x72 SIFT triangulates no point, with 24 of 192x144 too few.
+  (the data parser's ``image_tracks``: SIFT matches, triangulated and bundle-adjusted, built once, then cached; cost:
+  docs/IMAGE-TRACKS.md, "Cost"), evidence that does not know the truth. Its anchor is where those tracks put each
+  camera (a camera-only adjustment against their points, ``s2camp_ns.core.track_fit``), its scale their reprojection
+  error. The table shows the start, that anchor (the tracks alone) and the cameras after refinement, all against the
+  true cameras. The scene is sized for that: with 16 images of 96x72 SIFT triangulates no point, with 24 of 192x144
+  too few.
 - ``warm-start``: the photometric refinement alone, shown in a demo-length run. nerfacto (CPU-sized) is first fitted
   to the accurate cameras with the camera learning rate at zero; the run then resumes from that checkpoint on the
   perturbed cameras without the track prior or the common-rotation removal (``PHOTOMETRIC_ONLY``), with the camera

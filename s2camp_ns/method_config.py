@@ -100,9 +100,10 @@ def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfi
 S2CAMP_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig()
 """s2camp's camera optimizer, the config's defaults: every parameter group, the rotation all cameras share removed
 after every step and the track prior on (a no-op for cameras without SfM tracks). Without these, in the regime real
-runs train in (each pixel seen about once), good SfM cameras ended 2.6x further off in rotation and 1.7x in position;
-with them they stay where SfM put them (docs/benchmarks/regime.md, docs/DESIGN-NOTES.md sec. 6-7). The CamP baseline
-switches both off, as CamP's code has neither."""
+runs train in (each pixel seen about once), good SfM cameras ended much further off in rotation and further off
+in position; with them they stay where SfM put them (measured in docs/RESULTS.md, "The real-training regime";
+docs/benchmarks/regime.md; docs/DESIGN-NOTES.md sec. 6-7). The CamP baseline switches both off, as CamP's code has
+neither."""
 
 s2camp_method = MethodSpecification(
     config=make_trainer_config("s2camp", S2CAMP_CAMERA_OPTIMIZER),
@@ -193,9 +194,9 @@ def make_splat_trainer_config(method_name: str, camera_optimizer: CameraOptimize
 SPLAT_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig(parameters="pose+intrinsics")
 """s2camp-splat's camera optimizer: distortion fixed (splatfacto trains on undistorted images), otherwise the config's
 defaults: the rotation all cameras share removed after every step and the track prior on (splatfacto starts from SfM
-points, so its scenes have tracks). From the CamP perturbation without these the rotation error grew to 1.5 degrees
-in every seed, and from true or SfM cameras every refining variant moved them; docs/SPLAT.md sec. 6,
-docs/benchmarks/splat.md."""
+points, so its scenes have tracks). From the CamP perturbation without these the rotation error grew in every seed,
+and from true or SfM cameras every refining variant moved them (measured in docs/SPLAT.md sec. 6,
+docs/benchmarks/splat.md)."""
 
 s2camp_splat_method = MethodSpecification(
     config=make_splat_trainer_config("s2camp-splat", SPLAT_CAMERA_OPTIMIZER),

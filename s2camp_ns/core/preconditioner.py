@@ -5,9 +5,10 @@ the paper picks Q = I, the symmetric (Mahalanobis / ZCA) square root (eq. 20). T
 phi_hat = P phi and the camera uses phi = P^-1 phi_hat (eq. 15).
 
 Sigma is often nearly singular: focal length against forward translation and principal point against rotation
-are almost indistinguishable from projections alone (condition numbers near 1e8 on real frusta). A diagonal
-damping, diag(max(damping_abs, damping_rel * diag(Sigma))), is added before the square root, as in CamP; it also
-keeps P finite and invertible for parameters that the proxy points cannot observe at all.
+are almost indistinguishable from projections alone (Sigma's condition number on real frusta is measured in
+docs/DESIGN-NOTES.md sec. 3, "Damping is not optional"). A diagonal damping,
+diag(max(damping_abs, damping_rel * diag(Sigma))), is added before the square root, as in CamP; it also keeps P finite
+and invertible for parameters that the proxy points cannot observe at all.
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ TransformName = Literal["pyramid", "spherical", "pixel"]
 SAMPLERS: tuple[str, ...] = ("frolov", "sobol", "halton", "random", "camp-random")
 TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical", "pixel")
 DEFAULT_CHUNK_SIZE = 1024
-"""Cameras per chunk of ``compute_preconditioner``: about 0.5 GB of float64 intermediates at L = 500, all 12
-parameters (docs/benchmarks/scaling.md), whatever the number of cameras."""
+"""Cameras per chunk of ``compute_preconditioner``: bounds its float64 intermediates whatever the number of cameras
+(the peak memory at L = 500, all 12 parameters, measured in docs/benchmarks/scaling.md, "P for many cameras")."""
 
 
 @dataclass(frozen=True)

@@ -128,7 +128,7 @@ class ProxyRangeConfig:
     """Fewest visible points (pooled over a physical camera's images) for a chosen range; fewer: the defaults."""
     max_points: int = 50_000
     """Scene points used at most: a larger scene keeps every k-th point (k = ceil(M / max_points)), so the start-up
-    cost stays near images x max_points projections (about 0.5 us each on one CPU thread)."""
+    cost stays near images x max_points projections."""
     max_images: int = 100
     """Images used at most per physical camera (evenly spread over its images, in their order)."""
 

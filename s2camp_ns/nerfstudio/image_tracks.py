@@ -1,12 +1,12 @@
 """Tracks made from a scene's own images, for scenes that carry none (phone exports, hand-made or converted
 transforms.json files), so that the track prior anchors their cameras as it anchors SfM's (``core.track_fit``).
 
-Without tracks the photometric loss alone determines a camera's focal length to 1-3 px of 114 in the regime real runs
-train in, from every start (docs/DESIGN-NOTES.md sec. 6), and a camera's focal length and forward motion trade
-against each other. Keypoint tracks determine both: on the regime scene (49 training images of 320x240) the adjustment
-below ends 0.07 degrees and 0.4 px (of 228) from the true cameras, from the phone-pose start and from the true cameras
-alike, closer than pycolmap's own SfM (0.115 degrees, 0.8 px; docs/DESIGN-NOTES.md sec. 8; measured with recipe 2,
-whose first triangulation kept observations up to 4 px off, 8 px since). Cost: docs/IMAGE-TRACKS.md.
+Without tracks the photometric loss alone determines a camera's focal length only coarsely in the regime real runs
+train in, from every start (measured in docs/DESIGN-NOTES.md sec. 6, "What the images alone determine"), and a
+camera's focal length and forward motion trade against each other. Keypoint tracks determine both: on the regime scene
+the adjustment below ends as close to the true cameras from the phone-pose start as from the true cameras themselves,
+closer than pycolmap's own SfM of the same images (measured in docs/DESIGN-NOTES.md sec. 8, "Result"). Cost:
+docs/IMAGE-TRACKS.md.
 
 The recipe (pycolmap; SIFT and matching on a CUDA device where pycolmap has CUDA, ``feature_device``, else on the
 CPU; COLMAP's log in ``colmap.log`` of the cache folder; each stage shown with its counts and time as it runs,
@@ -98,21 +98,23 @@ a degree off (1.1 degrees is 25 px at f 1300 px, six times COLMAP's 4 px); twice
 percent off on top (2% turns a ray 40 degrees off the axis by 0.6 degrees). Also the angle COLMAP's triangulator
 admits between a track's rays (its default)."""
 REFINEMENT_ROUNDS = 3
-"""Rounds of bundle adjustment and re-triangulation. On the regime scene, from cameras 0.94 degrees and 4.6 px (2%)
-off, the rotation error after each round was 0.079, 0.072, 0.072 degrees and stayed there for three more."""
+"""Rounds of bundle adjustment and re-triangulation: re-triangulating with the adjusted cameras drops the
+observations the first triangulation kept from wrong cameras. On the regime scene the rotation error stopped improving
+after the second round and stayed there for three more (measured in docs/DESIGN-NOTES.md sec. 8, "Rounds")."""
 LOSS_SCALE_PX = 1.0
 """Scale (px) of the bundle adjustment's Cauchy loss: residuals beyond it count less than squared, so a few wrong
-matches do not pull the cameras. Against plain least squares, measured (24 images of 240x180 and the regime scene
-of 56 images of 320x240, from noisy and from true cameras): rotation errors 0.28-0.30 against 0.52-0.56 degrees and
-0.07 against 0.13-0.16, focal length errors no larger."""
+matches do not pull the cameras. Against plain least squares it ended with clearly smaller rotation errors on a
+small scene and on the regime scene, from noisy and from true cameras, and focal length errors no larger (measured in
+docs/DESIGN-NOTES.md sec. 8, "Cauchy loss")."""
 COLMAP_SEED = 0
 """COLMAP's random seed (RANSAC of the geometric verification)."""
 MATCHING_THREADS = 1
 """Threads of the matching and its geometric verification. On several threads the verification's RANSAC draws
-depend on which thread takes which pair, and two builds of the same images and cameras differed (on a 32-image
-scene the anchor's rotation error spread over a quarter of its size). The other stages keep COLMAP's threads: SIFT
-once the images are numbered before it (``feature_database.number_images``), triangulation and Ceres' adjustment as
-they are (two builds on 2 threads were bit-identical)."""
+depend on which thread takes which pair, and two builds of the same images and cameras differed in the anchor's
+rotation error (measured in docs/IMAGE-TRACKS.md, "Cost", and docs/DESIGN-NOTES.md sec. 8, "Deterministic
+builds"). The other stages keep COLMAP's threads: SIFT once the images are numbered before it
+(``feature_database.number_images``), triangulation and Ceres' adjustment as they are (two builds on 2 threads were
+bit-identical)."""
 RESULT_FILE = "result.json"
 """Written last into a cache folder: the summary, or why no tracks could be made, and the build's wall seconds per
 kind of stage (``ImageTracks.stage_seconds``)."""
@@ -121,14 +123,15 @@ STAGES_FILE = "stages.json"
 MIN_TRACKED_FRACTION = 0.5
 """Fraction of the images that must see at least ``MIN_OBSERVATIONS`` tracked points (the least the anchor fit uses,
 ``core.track_fit``) for the tracks to be used. Below it the bundle adjustment rests on a handful of points and moves
-cameras anywhere: 16 images of 160x120 gave 14 points, and the adjustment turned a camera by 62 degrees and halved
-the focal length."""
+cameras anywhere: on 16 images of 160x120 it turned a camera by tens of degrees and moved the focal length far off
+(the refusal: docs/IMAGE-TRACKS.md, "Refused, with the reason")."""
 MAX_ROTATION_CHANGE_DEG = 10.0
 """Largest median rotation (degrees) between the adjusted and the given cameras. Phone poses are off by about a degree
 and SfM's by a tenth; beyond ten the images and the given cameras describe different scenes (or wrong matches)."""
 MAX_CENTRE_CHANGE = 0.25
 """Largest median distance between the adjusted and the given camera centres after the similarity, as a fraction of
-the given centres' spread (RMS distance to their centroid); the phone-pose start: 2%."""
+the given centres' spread (RMS distance to their centroid), far above what phone-like given cameras move by (the
+"centre median" of docs/benchmarks/image-tracks.md)."""
 
 
 @dataclass(frozen=True)

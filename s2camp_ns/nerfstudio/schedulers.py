@@ -11,12 +11,12 @@ fraction with a floor in steps: CamP's camera schedule (warm-up over the first 2
 25k) applies as is to nerfacto's 30k steps, and a longer or shorter run gets its decay stretched or compressed
 (over 9/11 of the steps after the warm-up, as CamP's 22.5k of 27.5k, so it stays continuous in the run length). The
 warm-up is never shorter than ``min_warmup_steps`` (CamP's 2.5k): the field converges in its own number of steps,
-not in a fraction of the run, and a camera that moves before the field fits follows the field's errors. Measured
-(docs/DESIGN-NOTES.md sec. 4): a warm-up compressed to 1/12 of a 200-step run let accurate cameras drift 0.27-0.53 px
-and made perturbed ones worse on two of three scenes, where the 2.5k-step floor kept the drift at 0.02-0.08 px and
-removed 2-15% of the perturbed drift. A run shorter than the floor therefore refines its cameras very little; for
-short runs on tiny scenes that is the safe answer. ``S2CampTrainer`` fills in the run length (``run_steps``) before
-the optimizers are built.
+not in a fraction of the run, and a camera that moves before the field fits follows the field's errors: on tiny
+scenes a warm-up compressed to a fraction of a short run let accurate cameras drift and made most perturbed starts
+worse, where the floor kept accurate cameras nearly in place (measured in docs/DESIGN-NOTES.md sec. 4, "The warm-up
+floor"; docs/RESULTS.md, "Do no harm on tiny scenes"). A run shorter than the floor therefore refines its cameras
+very little; for short runs on tiny scenes that is the safe answer. ``S2CampTrainer`` fills in the run length
+(``run_steps``) before the optimizers are built.
 """
 
 from __future__ import annotations

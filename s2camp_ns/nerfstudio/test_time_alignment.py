@@ -46,8 +46,9 @@ class AlignmentConfig:
     steps: int = 100
     """Adam steps per test camera (CamP: 100); 0 evaluates the similarity-mapped camera as is."""
     rays: int = 256
-    """Random pixels of the test image per step, ray models (on a 96x72 recovery-benchmark run, 512 changed the
-    held-out PSNR by 0.06 dB or less and took 1.6x as long); splat models take every pixel (``splat_alignment``)."""
+    """Random pixels of the test image per step, ray models (on a 96x72 recovery-benchmark run, twice as many
+    barely changed the held-out PSNR and took markedly longer); splat models take every pixel (``splat_alignment``).
+    The protocol: docs/USAGE.md (``s2camp-eval``), docs/SPLAT.md sec. 5."""
     lr: float = 1e-3
     """Initial Adam learning rate of the twist (rad, scene units) and of the log focal scale."""
     lr_final: float = 1e-4

@@ -108,6 +108,6 @@ def perturbation_arguments(config) -> list[str]:
 
 def training_environment() -> dict[str, str]:
     environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    # Idle OpenMP threads must not spin: on a busy 2-core machine spinning makes each step 5-10x slower.
+    # Idle OpenMP threads must not spin: on a busy 2-core machine spinning makes each step several times slower.
     environment.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     return environment
