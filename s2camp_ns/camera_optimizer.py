@@ -81,12 +81,15 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     track_prior: bool = True
     """Anchor each camera where the scene's SfM tracks put it: a Gaussian prior in the whitened space, scaled by the
     tracks' reprojection error there (``set_track_prior``, ``apply_track_prior``), so a camera moves about that far
-    from its anchor at most. Cameras straight out of SfM are anchored at the given camera with SfM's own error;
-    cameras changed after SfM where their tracks put them (camera-only bundle adjustment against the fixed points,
-    ``core.track_fit``). No tracks, no prior. Needs the data parser's ``track_evidence`` (COLMAP scenes with points,
-    ns-process-data transforms.json with ``colmap/sparse/0``, else tracks from the images, ``image_tracks``). On by
-    default; the ``s2camp-camp`` baseline switches it off (CamP has no prior), as do the benchmarks' photometric-only
-    rows (``train_commands.PHOTOMETRIC_ONLY``); measured in ``s2camp-bench robustness --preset regime``."""
+    from its anchor at most. The anchor is where the tracks put each camera (a robust camera-only bundle adjustment
+    against the fixed points, ``core.track_fit``). A scene's own SfM model has its points re-adjusted first with the
+    same robust loss (``nerfstudio.robust_adjustment``: COLMAP's mapper ends in plain least squares, and its
+    mismatches hold the points off), so cameras straight out of SfM move by what the robust loss changes; cameras
+    changed after SfM are pulled to where their tracks put them. No tracks, no prior. Needs the data parser's
+    ``track_evidence`` (COLMAP scenes with points, ns-process-data transforms.json with ``colmap/sparse/0``, else
+    tracks from the images, ``image_tracks``). On by default; the ``s2camp-camp`` baseline switches it off (CamP has
+    no prior), as do the benchmarks' photometric-only rows (``train_commands.PHOTOMETRIC_ONLY``); measured in
+    ``s2camp-bench robustness --preset regime``."""
     track_loss: bool = False
     """Benchmark candidate: the tracks' robust reprojection cost as a loss term beside the photometric loss, the two
     weighed as log-likelihoods (``s2camp_ns.core.track_loss``); needs the data parser's ``track_evidence``."""

@@ -2,11 +2,12 @@
 points.
 
 The track prior (``S2CampCameraOptimizer.apply_track_prior``) anchors each camera where its tracks put it, with the
-tracks' own noise as its scale. For cameras straight out of SfM that is where they already are (SfM's bundle
-adjustment left them there) and the noise is SfM's reprojection error. For cameras changed after SfM (perturbed,
-edited, re-estimated elsewhere) the tracks still say where the camera is: anchoring at the given camera would hold
-a wrong camera in place with the strength of a large reprojection error, which blocks recovery instead of guiding
-it. This module finds the anchor.
+tracks' own noise as its scale. For cameras straight out of a bundle adjustment of the same robust cost, points
+included, that is where they already are and the noise is its reprojection error (a model adjusted in plain least
+squares, as COLMAP's mapper ends, has its points re-adjusted with this cost first by the nerfstudio data parser's
+``robust_adjustment``). For cameras changed after SfM (perturbed, edited, re-estimated elsewhere) the tracks still
+say where the camera is: anchoring at the given camera would hold a wrong camera in place with the strength of a
+large reprojection error, which blocks recovery instead of guiding it. This module finds the anchor.
 
 Unknowns are the camera optimizer's own deltas (``core.camera.PARAMETER_NAMES``, paper sec. 4): the twist xi of each
 image's pose, c2w' = c2w exp(xi) in its OpenCV camera frame, and the additive intrinsics deltas of each physical

@@ -77,11 +77,17 @@ def check_sfm_track_rms(
     )
 
 
-def read_colmap_tracks(model: Path, names: list[str], image_size: Float[Tensor, "n 2"] | None = None) -> Tracks:
+def read_colmap_tracks(
+    model: Path,
+    names: list[str],
+    image_size: Float[Tensor, "n 2"] | None = None,
+    points_xyz: dict[int, np.ndarray] | None = None,
+) -> Tracks:
     """The tracks of COLMAP model folder ``model`` seen by the images ``names`` (image ``i`` of the result is
     ``names[i]``; a name the model lacks is a ValueError naming it and the images file). With ``image_size`` (the
     width, height of each image as the cameras describe it) the keypoints are scaled from the size of the model's
-    camera of that image to it, per axis (module docstring); None keeps the model's pixels."""
+    camera of that image to it, per axis (module docstring); None keeps the model's pixels. ``points_xyz``: the
+    points' positions by id in place of the model's (``robust_adjustment``)."""
     images_file = model_file(model, "images")
     images = {image.name: image for image in read_model_file(images_file, "images").values()}
     points3d = read_model_file(model_file(model, "points3D"), "points3D")
@@ -94,20 +100,26 @@ def read_colmap_tracks(model: Path, names: list[str], image_size: Float[Tensor, 
         sizes = [(cameras[images[name].camera_id].width, cameras[images[name].camera_id].height) for name in names]
         size = torch.as_tensor(image_size, dtype=torch.float64).reshape(-1, 2)
         scale = pixel_scale_of(size[:, 0], size[:, 1], sizes)
-    return tracks_of_images(images, points3d, names, scale, images_file)
+    return tracks_of_images(images, points3d, names, scale, images_file, points_xyz)
 
 
 def tracks_of_images(
-    images: dict, points3d: dict, names: list[str], pixel_scale: Float[Tensor, "n 2"] | float, images_file: Path
+    images: dict,
+    points3d: dict,
+    names: list[str],
+    pixel_scale: Float[Tensor, "n 2"] | float,
+    images_file: Path,
+    points_xyz: dict[int, np.ndarray] | None = None,
 ) -> Tracks:
     """``read_colmap_tracks`` on a model already read: ``images`` by name, ``points3d`` by id (``images_file`` names
-    the source in errors)."""
+    the source in errors), ``points_xyz`` the points' positions by id in place of ``points3d``'s (None: theirs)."""
     scale = torch.as_tensor(pixel_scale, dtype=torch.float64)
     scale = scale.expand(len(names), 2) if scale.ndim == 0 else scale.reshape(-1, 2)
     if scale.shape[0] != len(names):
         raise ValueError(f"pixel_scale must hold one (sx, sy) per image ({len(names)}), got {scale.shape[0]}")
     ids = np.fromiter(points3d.keys(), dtype=np.int64, count=len(points3d))
-    xyz = np.stack([points3d[int(i)].xyz for i in ids]) if len(ids) else np.zeros((0, 3))
+    positions = {int(i): points3d[int(i)].xyz for i in ids} if points_xyz is None else points_xyz
+    xyz = np.stack([positions[int(i)] for i in ids]) if len(ids) else np.zeros((0, 3))
     row_of = {int(point_id): row for row, point_id in enumerate(ids)}
     image_index, point_index, pixels = [], [], []
     for index, name in enumerate(names):

@@ -33,6 +33,7 @@ from s2camp_ns.nerfstudio.colmap_scene import has_points
 from s2camp_ns.nerfstudio.colmap_tracks import check_sfm_track_rms, read_colmap_tracks
 from s2camp_ns.nerfstudio.colmap_world import c2w_to_colmap_world
 from s2camp_ns.nerfstudio.image_tracks import image_tracks
+from s2camp_ns.nerfstudio.robust_adjustment import robustly_adjusted_points
 from s2camp_ns.nerfstudio.scene_formats import ParsedSplit
 from s2camp_ns.nerfstudio.transforms_scene import transforms_declared_sizes
 from s2camp_ns.nerfstudio.transforms_tracks import colmap_model_of_transforms, full_size_images, transforms_track_rms
@@ -127,16 +128,23 @@ def scene_track_evidence(
     return evidence
 
 
-def colmap_track_evidence(cameras: Cameras, model: Path, names: list[str], outputs: DataparserOutputs) -> Evidence:
+def colmap_track_evidence(
+    cameras: Cameras, model: Path, names: list[str], outputs: DataparserOutputs, readjust: bool = True
+) -> Evidence:
     """Reprojection RMS (px, float64 [N]) of the COLMAP model's tracks under ``cameras`` (normalized, as the data parser
     returns them; image i is the model's image ``names[i]``), measured in COLMAP's world frame (``core.tracks``), and
-    the tracks with the cameras in that world (the track prior's anchor, ``core.track_fit``)."""
+    the tracks with the cameras in that world (the track prior's anchor, ``core.track_fit``), their points re-adjusted
+    with a robust loss (``robust_adjustment``) unless ``readjust`` is False (a model adjusted with that loss already,
+    the image tracks'). The RMS is against the points as the model gives them, which the cameras were adjusted with:
+    it checks the model (``check_sfm_track_rms``)."""
     # Keypoints from the model's camera size to the training images' (a rounded images_k folder included).
     size = torch.stack([cameras.width.reshape(-1), cameras.height.reshape(-1)], dim=-1)
     tracks = read_colmap_tracks(model, names, image_size=size)
     scale = float(outputs.dataparser_scale)
     c2w = c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, scale)
     rms = track_reprojection_rms(tracks, c2w, intrinsics_from_cameras(cameras))
+    if readjust:
+        tracks = read_colmap_tracks(model, names, image_size=size, points_xyz=robustly_adjusted_points(model))
     return rms, TrackEvidence(tracks, c2w, scale)
 
 
@@ -204,7 +212,8 @@ def image_track_evidence(
         (result.model, "summary"),
         f"[dim]Track prior from tracks made from the images of {root} ({result.model}): {escape(result.summary)}",
     )
-    return colmap_track_evidence(cameras, result.model, names, outputs)
+    # Built with the robust loss of ``robust_adjustment`` (``image_tracks``' last step): no second adjustment.
+    return colmap_track_evidence(cameras, result.model, names, outputs, readjust=False)
 
 
 __all__ = [

@@ -55,6 +55,7 @@ from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
 from s2camp_ns.nerfstudio.colmap_model import model_file, read_model_file
 from s2camp_ns.nerfstudio.colmap_tracks import pixel_scale_of, tracks_of_images
+from s2camp_ns.nerfstudio.robust_adjustment import robustly_adjusted_points
 
 COLMAP_MODEL_OF_TRANSFORMS = Path("colmap/sparse/0")
 """Where ``ns-process-data`` writes the COLMAP model, relative to the transforms.json's folder."""
@@ -261,8 +262,10 @@ def transforms_track_rms(
     rms = torch.full((len(names),), float("nan"), dtype=torch.float64)
     given = _world_from_json(c2w_given, rotation)
     rms[index] = track_reprojection_rms(tracks, given[index], intrinsics[index])
-    # The same tracks indexed by training image (not by registered image) for the anchor fit.
-    all_images = Tracks(tracks.points, index[tracks.image], tracks.point, tracks.pixels)
+    # The same tracks indexed by training image (not by registered image) for the anchor fit, their points
+    # re-adjusted with a robust loss (robust_adjustment); the RMS above is against the model's own, as a check.
+    adjusted = tracks_of_images(images, points3d, matched_names, scale, images_file, robustly_adjusted_points(model))
+    all_images = Tracks(adjusted.points, index[adjusted.image], adjusted.point, adjusted.pixels)
     return TransformsTracks(rms, evidence=TrackEvidence(all_images, given, world_scale))
 
 
