@@ -27,6 +27,7 @@ benchmarks' ``sfm`` rows.
 from __future__ import annotations
 
 import tempfile
+import time
 from functools import lru_cache
 from pathlib import Path
 
@@ -77,6 +78,7 @@ def _adjusted(key: tuple[tuple[str, int], ...]) -> dict[int, np.ndarray]:
     )
     options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     options.ceres.loss_function_scale = LOSS_SCALE_PX
+    began = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch, colmap_log_to(Path(scratch) / "colmap.log"):
         pycolmap.bundle_adjustment(reconstruction, options)
     back = umeyama(_centres(reconstruction, image_ids), centres_before)  # adjusted world -> the model's
@@ -84,7 +86,10 @@ def _adjusted(key: tuple[tuple[str, int], ...]) -> dict[int, np.ndarray]:
     xyz = torch.as_tensor(np.stack([reconstruction.points3D[i].xyz for i in ids]), dtype=torch.float64)  # [m, 3]
     mapped = back.apply_to_points(xyz).numpy()
     moved = np.linalg.norm(mapped - np.stack([given[i] for i in ids]), axis=-1)
-    LOG.print(f"[dim]Track prior: the points moved by {np.median(moved):.3g} (median, the model's units)")
+    LOG.print(
+        f"[dim]Track prior: the points moved by {np.median(moved):.3g} (median, the model's units) in "
+        f"{time.perf_counter() - began:.1f} s"
+    )
     return {point_id: mapped[row] for row, point_id in enumerate(ids)}
 
 
