@@ -64,6 +64,11 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
         "s2camp-splat-fused-iprior": intrinsics_prior,
         "s2camp-splat-fused-free": {prior: "False", loss: "True", free: "True"},
         "s2camp-splat-fused-free-iprior": {**intrinsics_prior, free: "True"},
+        "s2camp-splat-fused-free-iprior-anchored": {
+            **intrinsics_prior,
+            free: "True",
+            f"{optimizer}.track-start-at-anchor": "True",
+        },
     }
     assert {arg: _option(command, arg) for arg in camera_options} == expected_options.get(variant, {})
     # The compressed schedule: 900 of splatfacto's 30000 steps = 3 %.
