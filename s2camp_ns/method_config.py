@@ -100,10 +100,10 @@ def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfi
 S2CAMP_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig()
 """s2camp's camera optimizer, the config's defaults: every parameter group, the rotation all cameras share removed
 after every step and the track prior on (a no-op for cameras without SfM tracks). Without these, in the regime real
-runs train in (each pixel seen about once), good SfM cameras ended much further off in rotation and further off
-in position; with them they stay where SfM put them (measured in docs/RESULTS.md, "The real-training regime";
-docs/benchmarks/regime.md; docs/DESIGN-NOTES.md sec. 6-7). The CamP baseline switches both off, as CamP's code has
-neither."""
+runs train in (each pixel seen about once), good SfM cameras ended much further off in rotation and further off in
+position; with them they end where SfM's own tracks put them, re-adjusted with a robust loss, closer to the truth
+than SfM left them (measured in docs/RESULTS.md, "The real-training regime"; docs/benchmarks/regime.md;
+docs/DESIGN-NOTES.md sec. 6-7). The CamP baseline switches both off, as CamP's code has neither."""
 
 s2camp_method = MethodSpecification(
     config=make_trainer_config("s2camp", S2CAMP_CAMERA_OPTIMIZER),
