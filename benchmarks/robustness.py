@@ -3,11 +3,11 @@ accurate and from perturbed cameras, across scenes that differ in resolution, fi
 
 Protocol (every run alike): scenes x start {accurate, perturbed} x variant {off, s2camp-so3xr3, s2camp-camp,
 s2camp} x seeds. Every run is one ``ns-train`` FROM SCRATCH with the method's default options, except what a CPU
-run needs: a small nerfacto field (``train_commands.SMALL_MODEL``), ``--machine.device-type cpu``, the same
-``--max-num-iterations`` for every run, no evaluation during training, no camera-error logging during training
-(errors are computed afterwards, identically for every variant), tensorboard instead of the viewer. No camera
-learning rate, schedule or sampling option is given: the camera schedule is the method's default, whatever it is in
-this checkout. ``--machine.seed`` is the seed.
+run needs: a small nerfacto field (``train_commands.SMALL_MODEL``), ``--machine.device-type cpu`` (``--device cuda``:
+the method's own field on a CUDA device instead), the same ``--max-num-iterations`` for every run, no evaluation
+during training, no camera-error logging during training (errors are computed afterwards, identically for every
+variant), tensorboard instead of the viewer. No camera learning rate, schedule or sampling option is given: the
+camera schedule is the method's default, whatever it is in this checkout. ``--machine.seed`` is the seed.
 
 - start "accurate": the generated scene's true cameras; "perturbed": the data parser's CamP perturbation
   (``s2camp-data --perturbation.enabled True``, CamP's sigmas, one fixed perturbation seed per scene);
@@ -43,6 +43,7 @@ from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 from s2camp_ns.nerfstudio.train_commands import (
     DATAPARSER_SUBCOMMAND,
     ns_train_arguments,
+    ns_train_base_arguments,
     training_environment,
 )
 from s2camp_ns.report import markdown_table
@@ -222,9 +223,11 @@ SFM_FOCAL_PRIOR = 1.05
 METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim", "psnr_unaligned")
 ERRORS = ("rot_err", "pos_err", "focal_err", "drift_px")
 QUICK = {"iterations": 20, "seeds": 1, "variants": ("off", "s2camp")}
+"""``--quick``: the first scene only, both starts, these settings, 10 test-time alignment steps of 64 rays."""
+DEVICES = ("cpu", "cuda")
+"""``--device``: where every run trains (``RobustnessConfig.device``)."""
 REGIME = {"scenes": ("regime-wide",), "starts": REGIME_STARTS, "iterations": 3000, "variants": VARIANTS}
 """``--preset regime``: the regime real runs train in (the scene's ``varies``); passes per pixel in every row."""
-"""``--quick``: the first scene only, both starts, these settings, 10 test-time alignment steps of 64 rays."""
 
 
 @dataclass
@@ -264,6 +267,10 @@ class RobustnessConfig:
     drift. 0: none."""
     preset: str = ""
     """"regime": the real-training regime (``REGIME``): scene regime-wide, all four starts, 3000 steps."""
+    device: str = "cpu"
+    """"cpu": the CPU-sized run (the small nerfacto field ``SMALL_MODEL``, one CPU thread per run); "cuda": the
+    method's own nerfacto field on the CUDA device (``--machine.device-type cuda``), as ``ns-train s2camp`` trains on
+    a GPU. Rows record the device; rows of the two devices are different rows of the report."""
 
     def effective(self) -> RobustnessConfig:
         if self.preset == "regime":  # the preset's values where the command line left the defaults
@@ -289,6 +296,7 @@ class RobustnessConfig:
         if self.trace_every < 0:
             raise ValueError(f"trace_every must be >= 0 steps (0: no trace), got {self.trace_every}")
         check_choice("preset", self.preset, ("", "regime"))
+        check_choice("device", self.device, DEVICES)
         self.alignment.validate()
 
     def command(self) -> str:
@@ -303,7 +311,7 @@ class RobustnessConfig:
         for name in ("scenes", "starts", "variants"):
             if getattr(self, name) != getattr(default, name):
                 parts.append(f"--{name} " + " ".join(getattr(self, name)))
-        for name in ("seeds", "first_seed", "iterations", "rays_per_batch", "workers", "trace_every"):
+        for name in ("seeds", "first_seed", "iterations", "rays_per_batch", "workers", "trace_every", "device"):
             if getattr(self, name) != getattr(default, name):
                 parts.append(f"--{name.replace('_', '-')} {getattr(self, name)}")
         return " ".join(parts)
@@ -344,12 +352,17 @@ def train_command(
     """``ns-train`` of one run: the method's defaults plus the CPU-sized run (module docstring). ``truth``: the
     generated scene, the reference cameras of an sfm start (``scene_dir`` is then SfM's)."""
     save_every = config.trace_every or config.iterations
+    method = METHODS[spec.variant]
+    if config.device == "cuda":  # the method's own field, as on a user's GPU
+        base = ns_train_base_arguments(method, scene_dir, runs, spec.experiment, spec.timestamp, config.iterations,
+                                       save_every)  # fmt: skip
+        base += ["--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch)]
+    else:
+        base = ns_train_arguments(method, scene_dir, runs, spec.experiment, spec.timestamp, config.iterations,
+                                  save_every, config.rays_per_batch)  # fmt: skip
     command = [
-        *ns_train_arguments(
-            METHODS[spec.variant], scene_dir, runs, spec.experiment, spec.timestamp, config.iterations,
-            save_every, config.rays_per_batch,
-        ),
-        "--machine.device-type", "cpu",
+        *base,
+        "--machine.device-type", config.device,
         "--machine.seed", str(spec.seed),
         "--vis", "tensorboard",
         "--pipeline.model.camera-error-every", "0",
@@ -447,6 +460,7 @@ def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: RobustnessConfi
 
         result["trace"] = pool.submit(trace_run, folder).result()
     row = {"scene": spec.scene, "start": spec.start, "variant": spec.variant, "seed": spec.seed}
+    row["device"] = config.device
     row["passes"] = config.iterations * config.rays_per_batch / SCENES[spec.scene].training_pixels
     row |= {key: result[key] for key in (*METRICS, "drift_behind")}
     row |= {f"start_{key}": result[f"start_{key}"] for key in (*ERRORS, "drift_behind")}
@@ -510,11 +524,17 @@ def run(config: RobustnessConfig) -> list[dict]:
 
 def _run(config: RobustnessConfig, root: Path) -> list[dict]:
     began = time.perf_counter()
+    if config.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ValueError("device must be 'cpu' on a machine without CUDA (torch.cuda.is_available() is False), "
+                             "got 'cuda'")  # fmt: skip
     (root / "logs").mkdir(parents=True, exist_ok=True)
     scene_dirs = {
         name: generated_scene(replace(SCENES[name].scene, output_dir=root / "scenes" / name)) for name in config.scenes
     }
-    done, specs = resume(run_specs(config), root)
+    done, specs = resume(run_specs(config), root, config.device)
     log(
         f"robustness: {len(specs)} runs of {config.iterations} iterations, {config.workers} at a time (work: {root})"
         + (f"; {len(done)} already in {ROWS_FILE}" if done else "")
@@ -525,13 +545,13 @@ def _run(config: RobustnessConfig, root: Path) -> list[dict]:
     return done + rows
 
 
-def resume(specs: list[RunSpec], root: Path) -> tuple[list[dict], list[RunSpec]]:
-    """The rows of ``specs`` already in ``root``'s ``ROWS_FILE`` (a grid continued in its work folder, possibly by
-    another session) and the specs still to run. Rows of other runs stay in the file, untouched."""
+def resume(specs: list[RunSpec], root: Path, device: str = "cpu") -> tuple[list[dict], list[RunSpec]]:
+    """The rows of ``specs`` on ``device`` already in ``root``'s ``ROWS_FILE`` (a grid continued in its work folder,
+    possibly by another session) and the specs still to run. Rows of other runs stay in the file, untouched."""
     path = root / ROWS_FILE
     rows = read_rows(path) if path.exists() else []
-    finished = {(row["scene"], row["start"], row["variant"], row["seed"]): row for row in rows}
-    key = lambda spec: (spec.scene, spec.start, spec.variant, spec.seed)  # noqa: E731
+    finished = {(row["scene"], row["start"], row["variant"], row["seed"], row_device(row)): row for row in rows}
+    key = lambda spec: (spec.scene, spec.start, spec.variant, spec.seed, device)  # noqa: E731
     done = [finished[key(spec)] for spec in specs if key(spec) in finished]
     return done, [spec for spec in specs if key(spec) not in finished]
 
@@ -577,13 +597,15 @@ def summarize(rows: list[dict]) -> list[dict]:
     the metrics over seeds (``Spread``), the PSNR difference against "off" at the same passes (labelled "no difference"
     when smaller than the larger of the two seed ranges) and, for perturbed starts, the fraction of the start error
     removed (1 - mean final / start; the start is the same for every seed)."""
-    groups: dict[tuple[str, str, str, str, str], list[dict]] = {}
+    groups: dict[tuple[str, str, str, str, str, str], list[dict]] = {}
     for row in rows:
-        key = (row["scene"], row["start"], row["variant"], _start_build(row), f"{row.get('passes', math.nan):.3g}")
+        passes = f"{row.get('passes', math.nan):.3g}"
+        key = (row["scene"], row["start"], row["variant"], _start_build(row), passes, row_device(row))
         groups.setdefault(key, []).append(row)
     summary = []
-    for (scene, start, variant, build, passes), chosen in groups.items():
+    for (scene, start, variant, build, passes, device), chosen in groups.items():
         entry = {"scene": scene, "start": start, "variant": variant, "build": build, "seeds": len(chosen)}
+        entry["device"] = device
         entry["seed_list"] = sorted(row["seed"] for row in chosen)
         entry["passes_key"] = passes
         entry["passes"] = statistics.fmean(row.get("passes", math.nan) for row in chosen)
@@ -598,15 +620,20 @@ def summarize(rows: list[dict]) -> list[dict]:
         summary.append(entry)
     for entry in summary:
         start = OFF_REFERENCE_START.get(entry["start"], entry["start"])
-        reference = (entry["scene"], start, "off", entry["build"], entry["passes_key"])
+        reference = (entry["scene"], start, "off", entry["build"], entry["passes_key"], entry["device"])
         off = next((e for e in summary if _summary_key(e) == reference), None)
         entry["psnr_vs_off"] = math.nan if off is None else entry["psnr"].mean - off["psnr"].mean
         entry["psnr_vs_off_label"] = _difference_label(entry, off)
     return summary
 
 
-def _summary_key(entry: dict) -> tuple[str, str, str, str, str]:
-    return entry["scene"], entry["start"], entry["variant"], entry["build"], entry["passes_key"]
+def _summary_key(entry: dict) -> tuple[str, str, str, str, str, str]:
+    return entry["scene"], entry["start"], entry["variant"], entry["build"], entry["passes_key"], entry["device"]
+
+
+def row_device(row: dict) -> str:
+    """The device a row trained on; rows written before ``--device`` existed trained on the CPU."""
+    return row.get("device", "cpu")
 
 
 def _start_build(row: dict) -> str:
@@ -710,6 +737,8 @@ def _summary_rows(summary: list[dict]) -> list[dict]:
     table = []
     for entry in summary:
         row = {key: entry[key] for key in ("scene", "start", "variant")}
+        if entry["device"] == "cuda":
+            row["scene"] += " (CUDA, nerfacto's field)"
         row["seeds"] = seeds_cell(entry["seed_list"])
         row |= {key: entry[key].cell() for key in METRICS}
         row["psnr_vs_off"] = entry["psnr_vs_off_label"]
@@ -754,7 +783,9 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
         f"(every 8th image) after {a.steps} test-time alignment steps of {a.rays} rays. Cells: mean [min, max] over "
         f"the runs, one per seed unless the seeds cell names a seed run twice. 'PSNR vs off': difference of the "
         f"means, 'no difference' when smaller than the larger seed range of the two. 'removed': 1 - final / start "
-        f"error for perturbed and phone starts."
+        f"error for perturbed and phone starts. Rows whose scene says 'CUDA, nerfacto's field' trained with "
+        f"`--device cuda`: nerfacto's own field (no `SMALL_MODEL`) on a CUDA device (the machine in the timing line "
+        f"of their run), everything else alike."
     )
     columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]
     headers = [

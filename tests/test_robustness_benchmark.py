@@ -86,6 +86,46 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     assert "--save-only-latest-checkpoint" not in command
 
 
+def test_a_cuda_run_trains_the_methods_own_field_on_the_gpu_and_is_otherwise_the_same_run() -> None:
+    spec = RunSpec("regime-wide-full", "perturbed", "s2camp-photometric", 1)
+    cpu = train_command(spec, Path("scene"), Path("runs"), RobustnessConfig(iterations=3000, rays_per_batch=4096))
+    cuda = train_command(spec, Path("scene"), Path("runs"), RobustnessConfig(iterations=3000, rays_per_batch=4096,
+                                                                             device="cuda"))  # fmt: skip
+    assert _option(cpu, "--machine.device-type") == "cpu" and _option(cuda, "--machine.device-type") == "cuda"
+    assert _option(cuda, "--pipeline.datamanager.train-num-rays-per-batch") == "4096"
+    # The small field's options are the only other difference: nerfacto's own field (16 levels of 2^19 entries).
+    small = {"--pipeline.model.log2-hashmap-size": "15", "--pipeline.model.num-levels": "8",
+             "--pipeline.model.max-res": "128", "--pipeline.model.num-nerf-samples-per-ray": "32"}  # fmt: skip
+    assert all(_option(cpu, name) == value for name, value in small.items())
+    assert not [arg for arg in cuda if arg in small or arg == "--pipeline.model.num-proposal-samples-per-ray"]
+    stripped = [arg for arg in cpu if arg != "cpu"]
+    for name in [*small, "--pipeline.model.num-proposal-samples-per-ray"]:
+        index = stripped.index(name)
+        del stripped[index : index + (3 if name.endswith("proposal-samples-per-ray") else 2)]
+    assert stripped == [arg for arg in cuda if arg != "cuda"]
+    assert "--device cuda" in RobustnessConfig(device="cuda").command()
+    assert "--device" not in RobustnessConfig().command()
+    with pytest.raises(ValueError, match="device must be one of 'cpu', 'cuda', got 'gpu'"):
+        RobustnessConfig(device="gpu").validate()
+
+
+def test_rows_of_the_two_devices_are_summarized_and_resumed_apart(tmp_path: Path) -> None:
+    from s2camp_ns.benchmarks.robustness import record_row, resume
+
+    rows = [_row("perturbed", "off", seed, 25.0, 1.0, 1.0) for seed in range(2)]  # written before --device: the CPU
+    rows += [_row("perturbed", "s2camp", 0, 25.5, 0.2, 1.0) | {"device": "cpu"}]
+    rows += [_row("perturbed", "s2camp", 0, 27.0, 0.1, 1.0) | {"device": "cuda"}]
+    summary = {(entry["variant"], entry["device"]): entry for entry in summarize(rows)}
+    assert sorted(summary) == [("off", "cpu"), ("s2camp", "cpu"), ("s2camp", "cuda")]
+    assert summary[("s2camp", "cuda")]["rot_err"].mean == pytest.approx(0.1)
+    assert summary[("s2camp", "cpu")]["psnr_vs_off"] == pytest.approx(0.5)
+    assert math.isnan(summary[("s2camp", "cuda")]["psnr_vs_off"])  # no refinement off on the GPU
+    specs = [RunSpec("s", "perturbed", "s2camp", 0)]
+    record_row(rows[2], tmp_path / "gone", tmp_path)
+    assert resume(specs, tmp_path) == ([rows[2]], [])
+    assert resume(specs, tmp_path, "cuda") == ([], specs)  # a CPU row is no GPU run
+
+
 def test_sfm_start_trains_on_the_sfm_scene_against_the_generated_cameras() -> None:
     config = RobustnessConfig(iterations=3000, trace_every=250)
     spec = RunSpec("regime-wide", "sfm", "s2camp", 0)
