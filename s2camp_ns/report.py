@@ -45,12 +45,16 @@ def markdown_table(rows: Sequence[dict], columns: Sequence[str], headers: Sequen
     return "\n".join(lines)
 
 
-def write_report(output_dir: Path, name: str, title: str, command: str, sections: Iterable[str]) -> Path:
+def write_report(
+    output_dir: Path, name: str, title: str, command: str, sections: Iterable[str], measured_on: str | None = None
+) -> Path:
     """Write ``<output_dir>/<name>.md`` (the folder created if needed) and return its path: ``# title``, "Regenerate
-    with `command`." as given, ``environment_line``, then each section, separated by blank lines."""
+    with `command`." as given, the machine line (``measured_on``, else ``environment_line`` of this machine: pass it
+    when the numbers were measured elsewhere), then each section, separated by blank lines."""
     output_dir.mkdir(parents=True, exist_ok=True)
     path = output_dir / f"{name}.md"
-    body = [f"# {title}", "", f"Regenerate with `{command}`.", "", f"_{environment_line()}_", ""]
+    machine = environment_line() if measured_on is None else measured_on
+    body = [f"# {title}", "", f"Regenerate with `{command}`.", "", f"_{machine}_", ""]
     body.extend(section.rstrip() + "\n" for section in sections)
     temporary = path.with_suffix(".md.tmp")
     temporary.write_text("\n".join(body))

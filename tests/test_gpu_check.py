@@ -413,6 +413,46 @@ def test_the_report_file(tmp_path: Path) -> None:
     json.dumps(text)  # plain text, no objects
 
 
+def test_a_report_is_rebuilt_from_the_folder_of_a_check_that_was_stopped(tmp_path: Path) -> None:
+    """A check whose machine was lost before the report: --report-from writes it from what the check left, on a
+    machine without CUDA, and a method whose evaluation is missing is a failed row."""
+    from s2camp_ns.gpu_check.cli import run
+
+    folder = tmp_path / "check"
+    (folder / "runs").mkdir(parents=True)
+    (folder / "logs").mkdir()
+    (folder / "environment.txt").write_text("torch 2.11.0+cu130 (CUDA 13.0)\nCUDA devices: cuda:0 H100\n")
+    (folder / "logs" / "cuda-tests.xml").write_text(
+        '<testsuites><testsuite tests="5" failures="0" errors="0" skipped="0"/></testsuites>'
+    )
+    evaluation = {
+        "start_rot_err": 0.3, "rot_err": 0.25, "start_pos_err": 4.1e-3, "pos_err": 3e-3, "start_focal_err": 3.38,
+        "focal_err": 3.0, "psnr": 25.123,
+    }  # fmt: skip
+    steps = [9.0] * 30 + [0.04] * 270
+    (folder / "runs" / "nerfacto.json").write_text(
+        json.dumps({"step_seconds": steps, "peak_memory_bytes": 3 * 2**30, "evaluation": evaluation})
+    )
+    (folder / "runs" / "s2camp.json").write_text(json.dumps({"step_seconds": [0.05] * 299, "peak_memory_bytes": 1}))
+    config = GpuCheckConfig(report_from=folder, output_dir=tmp_path / "out")
+    assert run(config) is False  # s2camp has no evaluation
+    text = config.report_path.read_text()
+    assert f"Regenerate with `python -m s2camp_ns.gpu_check --report-from {folder.as_posix()}`." in text
+    assert "_measured on the machine listed below; report rebuilt " in text and "Python" not in text
+    assert "- torch 2.11.0+cu130 (CUDA 13.0)\n- CUDA devices: cuda:0 H100\n" in text
+    assert "| `pytest -m cuda` | passed | 5 passed |" in text
+    assert (
+        "| nerfacto | 40.0 | 1.00x | 3.00 | 0.300 → 0.250 | 4.10e-03 → 3.00e-03 | 3.38 → 3.00 | 25.12 | passed |"
+        in text
+    )
+    assert "| s2camp | 50.0 | 1.25x | 0.00 | - | - | - | - | FAILED: no evaluation written |" in text
+    # A method that left no measurements is not a row.
+    assert not [line for line in text.splitlines() if line.startswith("| s2camp-camp ")]
+    assert "Whole check: its wall time was not recorded" in text
+    with pytest.raises(ValueError, match="report_from must be the output folder of an earlier check"):
+        GpuCheckConfig(report_from=tmp_path / "out").validate()
+
+
 # ---------------------------------------------------------------------------------------------- end to end
 @pytest.mark.slow
 def test_cpu_smoke_run_trains_and_evaluates_stock_nerfacto(tmp_path: Path) -> None:
@@ -441,3 +481,7 @@ def test_cpu_smoke_run_trains_and_evaluates_stock_nerfacto(tmp_path: Path) -> No
     assert evaluation["rot_err"] != evaluation["start_rot_err"] and round(evaluation["start_rot_err"], 3) == start_rot
     assert len(measured["step_seconds"]) == 7 and all(seconds > 0 for seconds in measured["step_seconds"])
     assert not list((output / "runs").glob("gpu-check/*/*/nerfstudio_models"))  # checkpoints removed
+    # The machine is written first, for a report rebuilt from this folder (--report-from).
+    environment = (output / "environment.txt").read_text().splitlines()
+    assert environment[0].startswith("torch ") and environment[1] == "CUDA devices: none"
+    assert "- CUDA devices: none\n" in text

@@ -13,6 +13,7 @@ The exit status is 0 only if every stage that ran passed; 2 when the check canno
 
 from __future__ import annotations
 
+import json
 import shutil
 import time
 
@@ -22,7 +23,16 @@ from rich.console import Console
 from . import report
 from .config import DOCS_REPORT, GpuCheckConfig
 from .environment import GpuCheckError, describe, detect_environment, install_tinycudann, require_cuda
-from .runs import EXPERIMENT, generate_scene, run_cuda_tests, run_nccl, train_method
+from .runs import (
+    EXPERIMENT,
+    cuda_tests_result,
+    generate_scene,
+    junit_counts,
+    method_result,
+    run_cuda_tests,
+    run_nccl,
+    train_method,
+)
 
 CONSOLE = Console()
 
@@ -57,6 +67,8 @@ def run(config: GpuCheckConfig) -> bool:
     began = time.perf_counter()
     config = config.effective()
     config.validate()
+    if config.report_from is not None:
+        return rebuild_report(config)
     environment = detect_environment()
     if not config.cpu_smoke:
         require_cuda(environment)
@@ -68,6 +80,7 @@ def run(config: GpuCheckConfig) -> bool:
     lines = describe(environment)
     for line in lines:
         CONSOLE.print(line)
+    config.environment_path.write_text("\n".join(lines) + "\n", encoding="utf8")
     if "tests" in config.stages:
         stages.append(announced("pytest -m cuda", lambda: run_cuda_tests(config)))
     results: list[report.MethodResult] = []
@@ -83,6 +96,40 @@ def run(config: GpuCheckConfig) -> bool:
 
     minutes = (time.perf_counter() - began) / 60.0
     arguments = (lines, stages, results, setup_text(config), config.baseline, minutes, config.time_budget_minutes)
+    path = report.write(config.report_path, *arguments)
+    if config.write_docs:
+        report.write(DOCS_REPORT / "gpu-check.md", *arguments)
+    print(path.read_text(), flush=True)
+    CONSOLE.print(f"report: {path}")
+    return report.all_passed(stages, results)
+
+
+def rebuild_report(config: GpuCheckConfig) -> bool:
+    """The report of the check whose output folder is ``config.report_from``, from what it left there: the machine
+    (``environment.txt``), the ``cuda`` tests' JUnit file and each method's measurements (``runs/<method>.json``; a
+    run without its evaluation is a failed row). Written like a finished check's; True when all of it passed."""
+    folder = config.report_from
+    environment = folder / "environment.txt"
+    lines = environment.read_text(encoding="utf8").splitlines() if environment.is_file() else []
+    lines = lines or ["the machine is not recorded in this folder (no environment.txt)"]
+    lines.append(
+        f"Rebuilt from `{folder.as_posix()}` (`--report-from`): the stages that left nothing there (the scene, NCCL) "
+        "are not in the tables."
+    )
+    stages = []
+    junit = folder / "logs" / "cuda-tests.xml"
+    if junit.is_file():  # pytest's own counts: passed only if every collected test ran and passed
+        stages.append(cuda_tests_result(0, junit_counts(junit), junit.with_suffix(".log"), 0.0))
+    results = []
+    for method in config.methods:
+        path = folder / "runs" / f"{method}.json"
+        if path.is_file():
+            results.append(method_result(method, json.loads(path.read_text()), config.warmup_steps, None))
+    command = f"python -m s2camp_ns.gpu_check --report-from {folder.as_posix()}" + (
+        " --write-docs" if config.write_docs else ""
+    )
+    arguments = (lines, stages, results, setup_text(config), config.baseline, None, config.time_budget_minutes, command)
+    config.output_dir.mkdir(parents=True, exist_ok=True)
     path = report.write(config.report_path, *arguments)
     if config.write_docs:
         report.write(DOCS_REPORT / "gpu-check.md", *arguments)

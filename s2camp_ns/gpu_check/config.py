@@ -71,6 +71,10 @@ class GpuCheckConfig:
     it, a missing tiny-cuda-nn is reported and nerfacto runs on nerfstudio's pure-torch fallback."""
     tests_dir: Path = Path("tests")
     """Where ``pytest -m cuda`` looks for the ``cuda`` tests."""
+    report_from: Path | None = None
+    """Run nothing: rebuild the report from the output folder of an earlier check (its ``environment.txt``,
+    ``logs/cuda-tests.xml`` and ``runs/<method>.json``), for a check whose machine was lost or stopped before it wrote
+    the report. Stages that left nothing there are left out of the report."""
     cpu_smoke: bool = False
     """Test this script itself without a GPU: the training stage only, on the CPU, on a tiny scene with a small
     nerfacto for a few steps. Its numbers mean nothing and its report says it is no GPU check."""
@@ -114,6 +118,10 @@ class GpuCheckConfig:
             raise ValueError(
                 f"tcnn_source must be a tiny-cuda-nn checkout with bindings/torch/, got {str(self.tcnn_source)!r}"
             )
+        if self.report_from is not None and not (self.report_from / "runs").is_dir():
+            raise ValueError(
+                f"report_from must be the output folder of an earlier check (with runs/), got {str(self.report_from)!r}"
+            )
         validate_scene(self.scene)
         self.alignment.validate()
 
@@ -128,6 +136,11 @@ class GpuCheckConfig:
     @property
     def logs_dir(self) -> Path:
         return self.output_dir / "logs"
+
+    @property
+    def environment_path(self) -> Path:
+        """The machine as the check found it (``environment.describe``), written first: ``--report-from`` reads it."""
+        return self.output_dir / "environment.txt"
 
     @property
     def report_path(self) -> Path:
