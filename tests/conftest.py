@@ -39,6 +39,17 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         item.add_marker(pytest.mark.skip(reason=CUDA_SKIP_REASON))
 
 
+@pytest.fixture(scope="session", autouse=True)
+def user_cache_of_the_session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The user's cache folder (``XDG_CACHE_HOME``: the image tracks' fallback and the re-adjusted SfM points,
+    ``track_cache.user_cache_folder``) in a folder of the session, for the tests and the processes they start: the
+    suite writes nothing to the user's ~/.cache and reads no entry of another session."""
+    patch = pytest.MonkeyPatch()
+    patch.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("xdg_cache")))
+    yield
+    patch.undo()
+
+
 TINY_SCENE = {"num_cameras": 12, "width": 64, "height": 48, "points_per_image": 150, "seed": 0}
 """Config of the session scene: about a second to generate, small enough for CPU training smoke tests."""
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+import pytest
 import torch
 
 from s2camp_ns.core.alignment import umeyama
@@ -96,3 +97,38 @@ def test_tracks_of_images_take_positions_by_point_id(tiny_scene):
     offset = {i: points[i].xyz + 1.0 for i in points}
     shifted = read_colmap_tracks(model, names, points_xyz=offset)
     torch.testing.assert_close(shifted.points, own.points + 1.0, rtol=0, atol=1e-12)
+
+
+def test_the_adjusted_points_are_cached_for_the_next_process_by_the_models_content(tiny_scene, tmp_path, monkeypatch):
+    from s2camp_ns.nerfstudio import robust_adjustment
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    model = _least_squares_model(tiny_scene, tmp_path / "model")
+    first = robust_adjustment.robustly_adjusted_points(model)
+    cache = tmp_path / "xdg" / "s2camp-ns" / "readjusted_points"
+    entries = sorted(cache.iterdir())
+    assert len(entries) == 1 and entries[0].suffix == ".npz"  # no lock or temporary file left beside it
+
+    def no_adjustment(*args, **kwargs):
+        raise AssertionError("adjusted again")
+
+    robust_adjustment._cached.cache_clear()  # a new process
+    monkeypatch.setattr(pycolmap, "bundle_adjustment", no_adjustment)
+    again = robust_adjustment.robustly_adjusted_points(model)
+    assert list(again) == list(first) and all(np.array_equal(again[i], first[i]) for i in first)  # bit-identical
+    # Another model (one point moved) is another entry: it is adjusted, not read.
+    edited = pycolmap.Reconstruction(model)
+    point_id = next(iter(edited.points3D))
+    edited.points3D[point_id].xyz = edited.points3D[point_id].xyz + 0.01
+    (tmp_path / "edited").mkdir()
+    edited.write(tmp_path / "edited")
+    with pytest.raises(AssertionError, match="adjusted again"):
+        robust_adjustment.robustly_adjusted_points(tmp_path / "edited")
+    # A cache folder that cannot be written: adjusted in memory.
+    monkeypatch.undo()
+    (tmp_path / "blocked").write_text("a file, not a folder")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "blocked"))
+    robust_adjustment._cached.cache_clear()
+    in_memory = robust_adjustment.robustly_adjusted_points(model)
+    assert all(np.allclose(in_memory[i], first[i], rtol=0, atol=1e-9) for i in first)
+    assert sorted(cache.iterdir()) == entries

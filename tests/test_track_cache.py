@@ -307,7 +307,7 @@ def test_a_waiter_names_a_holder_that_writes_its_name_after_taking_the_lock(
     late = threading.Timer(0.3, lambda: path.write_text("4242 builder-host\n"))
     late.start()
     try:
-        track_cache._notice_wait(handle, tmp_path / "entry")
+        track_cache._notice_wait(handle, tmp_path / "entry", "Image tracks")
     finally:
         late.join()
         os.close(handle)

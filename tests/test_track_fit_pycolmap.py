@@ -19,7 +19,6 @@ from s2camp_ns.core.colmap_models import intrinsics_from_colmap
 from s2camp_ns.core.perturbation import look_at_rotation
 from s2camp_ns.core.track_fit import fit_cameras_to_tracks
 from s2camp_ns.core.tracks import Tracks
-from s2camp_ns.nerfstudio import image_tracks
 
 WIDTH, HEIGHT = 640, 480
 NUM_IMAGES = 6
@@ -130,7 +129,7 @@ def _pycolmap(scene: _Scene, params: list[float], refine_focal: bool, loss: pyco
         refine_focal_length=refine_focal, refine_principal_point=False, refine_extra_params=False, print_summary=False
     )
     options.ceres.loss_function_type = loss
-    options.ceres.loss_function_scale = image_tracks.LOSS_SCALE_PX
+    options.ceres.loss_function_scale = track_fit.LOSS_SCALE_PX
     solver = options.ceres.solver_options
     solver.function_tolerance, solver.gradient_tolerance, solver.parameter_tolerance = 1e-15, 1e-15, 1e-15
     solver.max_num_iterations = 500
@@ -160,8 +159,14 @@ OPENCV = [500.0, 490.0, 322.0, 236.0, -0.05, 0.01, 0.001, -0.0005]  # fx, fy, cx
 SIMPLE_RADIAL = [480.0, 318.0, 243.0, -0.04]  # f, cx, cy, k
 
 
-def test_the_core_loss_scale_is_the_image_tracks_bundle_adjustments() -> None:
-    assert track_fit.LOSS_SCALE_PX == image_tracks.LOSS_SCALE_PX
+def test_the_bundle_adjustments_of_tracks_use_the_anchor_fits_cauchy_loss() -> None:
+    from s2camp_ns.nerfstudio.robust_adjustment import cauchy_adjustment_options
+
+    options = cauchy_adjustment_options(refine_focal_length=False, refine_principal_point=False)
+    assert options.ceres.loss_function_type == pycolmap.LossFunctionType.CAUCHY
+    assert options.ceres.loss_function_scale == track_fit.LOSS_SCALE_PX == 1.0
+    assert (options.refine_focal_length, options.refine_principal_point) == (False, False)
+    assert options.refine_extra_params  # fields not given keep pycolmap's defaults
 
 
 def test_robust_pose_fit_agrees_with_pycolmaps_bundle_adjustment() -> None:

@@ -67,6 +67,7 @@ from s2camp_ns.nerfstudio.feature_database import (
     number_images,
     open_database,
 )
+from s2camp_ns.nerfstudio.robust_adjustment import cauchy_adjustment_options
 from s2camp_ns.nerfstudio.track_cache import build_folder, entry_lock, remove_stale_builds, user_cache_folder
 
 RECIPE_VERSION = 4
@@ -101,11 +102,6 @@ REFINEMENT_ROUNDS = 3
 """Rounds of bundle adjustment and re-triangulation: re-triangulating with the adjusted cameras drops the
 observations the first triangulation kept from wrong cameras. On the regime scene the rotation error stopped improving
 after the second round and stayed there for three more (measured in docs/DESIGN-NOTES.md sec. 8, "Rounds")."""
-LOSS_SCALE_PX = 1.0
-"""Scale (px) of the bundle adjustment's Cauchy loss: residuals beyond it count less than squared, so a few wrong
-matches do not pull the cameras. Against plain least squares it ended with clearly smaller rotation errors on a
-small scene and on the regime scene, from noisy and from true cameras, and focal length errors no larger (measured in
-docs/DESIGN-NOTES.md sec. 8, "Cauchy loss")."""
 COLMAP_SEED = 0
 """COLMAP's random seed (RANSAC of the geometric verification)."""
 MATCHING_THREADS = 1
@@ -397,9 +393,7 @@ def _triangulate_and_adjust(
     """Step 3: points triangulated with the given cameras (``thresholds.given_px``), then ``REFINEMENT_ROUNDS``
     rounds of bundle adjustment and triangulation with the adjusted cameras (``thresholds.keypoint_px``), and a last
     bundle adjustment; stops early when no point is left."""
-    adjustment = pycolmap.BundleAdjustmentOptions(refine_principal_point=False)
-    adjustment.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    adjustment.ceres.loss_function_scale = LOSS_SCALE_PX
+    adjustment = cauchy_adjustment_options(refine_principal_point=False)
     rounds = REFINEMENT_ROUNDS + 1
     reconstruction = _triangulate(reconstruction, database, image_root, thresholds.given_px, f"1/{rounds}", progress)
     for done in range(1, rounds + 1):

@@ -20,12 +20,22 @@ normalized, and the anchor moves each camera only by what the robust loss change
 these points by ``core.track_fit`` in the refiner's own parametrization, with its test on the intrinsics; a camera-only
 fit with the same loss at the adjusted points lands where the joint adjustment put that camera.
 
+Cache. The adjustment takes minutes on a model of hundreds of images and a million observations on a CPU of a few
+cores, and every process that loads the scene asks for it (training, each rank of a multi-device run, evaluation,
+rendering, export). Its points are kept in the user's cache folder (``track_cache.user_cache_folder`` of
+``CACHE_KIND``), one ``<key>.npz`` per model, the key a hash of the model's files and of this recipe (``RECIPE``), so
+an edited model gets a new entry and the scene folder is never written; processes that ask at once build it once
+(``track_cache.entry_lock``). Where the cache folder cannot be written the points are adjusted in memory, with a note.
+
 Measured against the tracks' points as SfM left them: docs/DESIGN-NOTES.md sec. 8 and the regime and splat
 benchmarks' ``sfm`` rows.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import os
 import tempfile
 import time
 from functools import lru_cache
@@ -42,24 +52,88 @@ from s2camp_ns.colmap_log import colmap_log_to
 from s2camp_ns.core.alignment import MIN_CAMERAS_FOR_ALIGNMENT, umeyama
 from s2camp_ns.core.track_fit import LOSS_SCALE_PX
 from s2camp_ns.nerfstudio.colmap_model import model_file
+from s2camp_ns.nerfstudio.track_cache import entry_lock, user_cache_folder, write_error
 
+RECIPE = 1
+"""Part of the cache key: raise it when the adjustment changes, so entries of the old one are not read."""
+CACHE_KIND = "readjusted_points"
+"""The cache's folder in the user's cache folder (``track_cache.user_cache_folder``)."""
 LOG = Console(stderr=True, width=120)
 """Start-up notes (the adjustment takes seconds to minutes on large models): on stderr, as the data parser's."""
 
 
+def cauchy_adjustment_options(**fields) -> pycolmap.BundleAdjustmentOptions:
+    """pycolmap's bundle adjustment options ``fields`` with Ceres' Cauchy loss of scale ``LOSS_SCALE_PX``: the loss of
+    every bundle adjustment of tracks here (this module's, the image tracks'), the anchor fit's own, so that the
+    anchor weighs the observations as the adjustments that placed their points did."""
+    options = pycolmap.BundleAdjustmentOptions(**fields)
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = LOSS_SCALE_PX
+    return options
+
+
 def robustly_adjusted_points(model: Path) -> dict[int, np.ndarray]:
     """The 3D points of the COLMAP model folder ``model`` (cameras, images, points3D; .bin or .txt) after a robust
-    bundle adjustment (module docstring), by point id, in the model's world; cached per folder and file times, so the
-    data parser's splits share one adjustment. A model with fewer than ``MIN_CAMERAS_FOR_ALIGNMENT`` registered images
-    has no similarity to map back with and keeps its points (a note says so)."""
+    bundle adjustment (module docstring), by point id, in the model's world; from the cache when an earlier process
+    adjusted the same model (module docstring, Cache), and kept in memory per folder and file times, so the data
+    parser's splits share one adjustment. A model with fewer than ``MIN_CAMERAS_FOR_ALIGNMENT`` registered images has
+    no similarity to map back with and keeps its points (a note says so)."""
     files = [model_file(model, kind) for kind in ("cameras", "images", "points3D")]
-    key = tuple((str(path.resolve()), path.stat().st_mtime_ns) for path in files)
-    return _adjusted(key)
+    return _cached(tuple((str(path.resolve()), path.stat().st_mtime_ns) for path in files))
 
 
 @lru_cache(maxsize=4)
-def _adjusted(key: tuple[tuple[str, int], ...]) -> dict[int, np.ndarray]:
-    folder = Path(key[0][0]).parent
+def _cached(files: tuple[tuple[str, int], ...]) -> dict[int, np.ndarray]:
+    folder = Path(files[0][0]).parent
+    cache = user_cache_folder(CACHE_KIND)
+    error = write_error(cache)
+    if error is not None:
+        LOG.print(f"[dim]Track prior: the cache folder {cache} cannot be written ({error}); adjusting in memory")
+        return _adjusted(folder)
+    entry = cache / f"{cache_key([Path(path) for path, _ in files])}.npz"
+    if entry.is_file():
+        return _read(entry)
+    with entry_lock(entry, "Re-adjusted SfM points"):
+        if entry.is_file():  # built by the process this one waited for
+            return _read(entry)
+        points = _adjusted(folder)
+        _write(entry, points)
+    return points
+
+
+def cache_key(files: list[Path]) -> str:
+    """The cache entry's name: a hash of ``RECIPE`` and of the model files' names and contents."""
+    digest = hashlib.sha256(f"{RECIPE} {LOSS_SCALE_PX!r}".encode())
+    for path in files:
+        digest.update(path.name.encode() + b"\0")
+        with open(path, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()[:24]
+
+
+def _read(entry: Path) -> dict[int, np.ndarray]:
+    with np.load(entry) as stored:
+        ids, xyz = stored["ids"], stored["xyz"]  # [m], [m, 3]
+    return {int(point_id): xyz[row] for row, point_id in enumerate(ids)}
+
+
+def _write(entry: Path, points: dict[int, np.ndarray]) -> None:
+    """Write the points to ``entry`` through a temporary file renamed into place: a reader never sees half a file."""
+    ids = np.fromiter(points, dtype=np.int64, count=len(points))
+    xyz = np.stack([points[int(i)] for i in ids]) if len(ids) else np.zeros((0, 3))
+    handle, temporary = tempfile.mkstemp(prefix=f".{entry.stem}.", suffix=".npz", dir=entry.parent)
+    try:
+        with os.fdopen(handle, "wb") as output:
+            np.savez(output, ids=ids, xyz=xyz.astype(np.float64))
+        os.replace(temporary, entry)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        raise
+
+
+def _adjusted(folder: Path) -> dict[int, np.ndarray]:
     reconstruction = pycolmap.Reconstruction(folder)
     given = {point_id: np.asarray(point.xyz, dtype=np.float64) for point_id, point in reconstruction.points3D.items()}
     image_ids = sorted(reconstruction.reg_image_ids())
@@ -73,11 +147,9 @@ def _adjusted(key: tuple[tuple[str, int], ...]) -> dict[int, np.ndarray]:
         f"[dim]Track prior: re-adjusting the {len(given)} points of {folder} with a robust loss (Cauchy, "
         f"{LOSS_SCALE_PX:g} px; pycolmap bundle adjustment of {len(image_ids)} images)..."
     )
-    options = pycolmap.BundleAdjustmentOptions(
+    options = cauchy_adjustment_options(
         refine_focal_length=False, refine_principal_point=False, refine_extra_params=False, print_summary=False
     )
-    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    options.ceres.loss_function_scale = LOSS_SCALE_PX
     began = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch, colmap_log_to(Path(scratch) / "colmap.log"):
         pycolmap.bundle_adjustment(reconstruction, options)
@@ -98,4 +170,4 @@ def _centres(reconstruction: pycolmap.Reconstruction, image_ids: list[int]) -> F
     return torch.as_tensor(np.stack(centres))
 
 
-__all__ = ["robustly_adjusted_points"]
+__all__ = ["cauchy_adjustment_options", "robustly_adjusted_points"]

@@ -37,19 +37,20 @@ except ImportError:  # Windows: no inter-process lock (module docstring, Lock)
 
 HOLDER_NAME_WAIT_S = 5.0
 """How long a waiter reads the lock file again for the holder's name before its notice names it "?"."""
-USER_CACHE_SUBFOLDER = Path("s2camp-ns") / "image_tracks"
-"""The image tracks' folder in the user's cache folder (``XDG_CACHE_HOME``, else ``~/.cache``)."""
+USER_CACHE_NAME = "s2camp-ns"
+"""This package's folder in the user's cache folder (``XDG_CACHE_HOME``, else ``~/.cache``)."""
 LOG = Console(stderr=True, width=120)
 """Notes of the cache: where a build goes when the scene folder cannot be written, and that a process waits for
 another's build (on stderr, as the data parser's)."""
 
 
-def user_cache_folder() -> Path:
-    """``$XDG_CACHE_HOME/s2camp-ns/image_tracks``, or ``~/.cache/s2camp-ns/image_tracks`` when ``XDG_CACHE_HOME`` is
-    unset, empty or relative (the XDG base directory specification ignores relative paths)."""
+def user_cache_folder(kind: str = "image_tracks") -> Path:
+    """``$XDG_CACHE_HOME/s2camp-ns/<kind>``, or ``~/.cache/s2camp-ns/<kind>`` when ``XDG_CACHE_HOME`` is unset, empty
+    or relative (the XDG base directory specification ignores relative paths); ``kind``: ``image_tracks``, or
+    ``readjusted_points`` (``robust_adjustment``)."""
     base = os.environ.get("XDG_CACHE_HOME", "")
     root = Path(base) if base and os.path.isabs(base) else Path.home() / ".cache"
-    return root / USER_CACHE_SUBFOLDER
+    return root / USER_CACHE_NAME / kind
 
 
 def write_error(folder: Path) -> OSError | None:
@@ -96,11 +97,11 @@ def build_folder(cache: Path, user_fallback: bool) -> Path:
 
 
 @contextlib.contextmanager
-def entry_lock(entry: Path) -> Iterator[None]:
+def entry_lock(entry: Path, what: str = "Image tracks") -> Iterator[None]:
     """Hold the exclusive inter-process lock of the cache entry ``entry`` (the file ``.<name>.lock`` beside it, in a
-    folder that can be written) for the body, waiting, with one notice, while another process holds it (module
-    docstring, Lock). The body must check whether ``entry`` was finished while this process waited. No lock without
-    ``fcntl``."""
+    folder that can be written) for the body, waiting, with one notice that names ``what`` is built, while another
+    process holds it (module docstring, Lock). The body must check whether ``entry`` was finished while this process
+    waited. No lock without ``fcntl``."""
     if fcntl is None:
         yield
         return
@@ -113,7 +114,7 @@ def entry_lock(entry: Path) -> Iterator[None]:
                 fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 if not noticed:
-                    _notice_wait(handle, entry)
+                    _notice_wait(handle, entry, what)
                     noticed = True
                 fcntl.flock(handle, fcntl.LOCK_EX)
             if _is_file_at(handle, path):
@@ -161,7 +162,7 @@ def _is_file_at(handle: int, path: Path) -> bool:
     return (here.st_dev, here.st_ino) == (mine.st_dev, mine.st_ino)
 
 
-def _notice_wait(handle: int, entry: Path) -> None:
+def _notice_wait(handle: int, entry: Path, what: str) -> None:
     """One notice that this process waits for the build of ``entry`` by the process named in the lock file. The
     holder writes its name just after it takes the lock, so a waiter that finds the file still empty reads it again
     for up to ``HOLDER_NAME_WAIT_S`` (a loaded machine can hold the holder between the two) before naming it "?"."""
@@ -175,14 +176,14 @@ def _notice_wait(handle: int, entry: Path) -> None:
         time.sleep(0.02)
     holder = holder if len(holder) == 2 else ["?", "?"]
     LOG.print(
-        f"[dim]Image tracks: waiting for process {escape(holder[0])} on {escape(holder[1])}, which builds them in "
-        f"{escape(str(entry))} (another rank, or another run of these images), to read them",
+        f"[dim]{what}: waiting for process {escape(holder[0])} on {escape(holder[1])}, which builds them in "
+        f"{escape(str(entry))} (another rank, or another run of the same data), to read them",
         soft_wrap=True,
     )
 
 
 __all__ = [
-    "USER_CACHE_SUBFOLDER",
+    "USER_CACHE_NAME",
     "build_folder",
     "entry_lock",
     "remove_stale_builds",
