@@ -95,10 +95,23 @@ def run(config: GpuCheckConfig) -> bool:
             stages.append(announced(command, lambda: run_nccl(config, scene, environment.device_count)))
 
     minutes = (time.perf_counter() - began) / 60.0
+    return write_reports(config, lines, stages, results, minutes, "make gpu-check")
+
+
+def write_reports(
+    config: GpuCheckConfig,
+    lines: list[str],
+    stages: list[report.StageResult],
+    results: list[report.MethodResult],
+    minutes: float | None,
+    command: str,
+) -> bool:
+    """Write the report (and with ``write_docs`` the committed one), print it; True when all of it passed."""
     arguments = (lines, stages, results, setup_text(config), config.baseline, minutes, config.time_budget_minutes)
-    path = report.write(config.report_path, *arguments)
+    config.output_dir.mkdir(parents=True, exist_ok=True)
+    path = report.write(config.report_path, *arguments, command)
     if config.write_docs:
-        report.write(DOCS_REPORT / "gpu-check.md", *arguments)
+        report.write(DOCS_REPORT / "gpu-check.md", *arguments, command)
     print(path.read_text(), flush=True)
     CONSOLE.print(f"report: {path}")
     return report.all_passed(stages, results)
@@ -128,14 +141,7 @@ def rebuild_report(config: GpuCheckConfig) -> bool:
     command = f"python -m s2camp_ns.gpu_check --report-from {folder.as_posix()}" + (
         " --write-docs" if config.write_docs else ""
     )
-    arguments = (lines, stages, results, setup_text(config), config.baseline, None, config.time_budget_minutes, command)
-    config.output_dir.mkdir(parents=True, exist_ok=True)
-    path = report.write(config.report_path, *arguments)
-    if config.write_docs:
-        report.write(DOCS_REPORT / "gpu-check.md", *arguments)
-    print(path.read_text(), flush=True)
-    CONSOLE.print(f"report: {path}")
-    return report.all_passed(stages, results)
+    return write_reports(config, lines, stages, results, None, command)
 
 
 def announced(what: str, stage) -> report.StageResult:
