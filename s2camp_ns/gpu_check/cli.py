@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from dataclasses import replace
 
 import tyro
 from rich.console import Console
@@ -122,7 +123,8 @@ def rebuild_report(config: GpuCheckConfig) -> bool:
     (``environment.txt``), the ``cuda`` tests' JUnit file and each method's measurements (``runs/<method>.json``; a
     run without its evaluation is a failed row). Written like a finished check's; True when all of it passed."""
     folder = config.report_from
-    environment = folder / "environment.txt"
+    earlier = replace(config, output_dir=folder)  # the layout of the earlier check's folder
+    environment = earlier.environment_path
     lines = environment.read_text(encoding="utf8").splitlines() if environment.is_file() else []
     lines = lines or ["the machine is not recorded in this folder (no environment.txt)"]
     lines.append(
@@ -130,12 +132,12 @@ def rebuild_report(config: GpuCheckConfig) -> bool:
         "are not in the tables."
     )
     stages = []
-    junit = folder / "logs" / "cuda-tests.xml"
+    junit = earlier.junit_path
     if junit.is_file():  # pytest's own counts: passed only if every collected test ran and passed
         stages.append(cuda_tests_result(0, junit_counts(junit), junit.with_suffix(".log"), 0.0))
     results = []
     for method in config.methods:
-        path = folder / "runs" / f"{method}.json"
+        path = earlier.measurements_path(method)
         if path.is_file():
             results.append(method_result(method, json.loads(path.read_text()), config.warmup_steps, None))
     command = f"python -m s2camp_ns.gpu_check --report-from {folder.as_posix()}" + (

@@ -143,6 +143,15 @@ class GpuCheckConfig:
         return self.output_dir / "environment.txt"
 
     @property
+    def junit_path(self) -> Path:
+        """pytest's JUnit file of the ``cuda`` tests."""
+        return self.logs_dir / "cuda-tests.xml"
+
+    def measurements_path(self, method: str) -> Path:
+        """``measured_train``'s JSON of one method's run."""
+        return self.runs_dir / f"{method}.json"
+
+    @property
     def report_path(self) -> Path:
         return self.output_dir / "gpu-check.md"
 

@@ -104,7 +104,7 @@ def cuda_tests_result(
 
 
 def run_cuda_tests(config: GpuCheckConfig) -> StageResult:
-    junit_path = config.logs_dir / "cuda-tests.xml"
+    junit_path = config.junit_path
     junit_path.unlink(missing_ok=True)
     log_path = config.logs_dir / "cuda-tests.log"
     timeout_s = 60 * config.run_timeout_minutes
@@ -214,7 +214,7 @@ def method_result(method: str, measured: dict | None, warmup_steps: int, failure
 
 
 def train_method(config: GpuCheckConfig, method: str, scene: Path) -> tuple[MethodResult, dict | None]:
-    result_path = config.runs_dir / f"{method}.json"
+    result_path = config.measurements_path(method)
     result_path.unlink(missing_ok=True)
     log_path = config.logs_dir / f"train-{method}.log"
     timeout_s = 60 * config.run_timeout_minutes
