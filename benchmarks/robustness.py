@@ -43,7 +43,6 @@ from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 from s2camp_ns.nerfstudio.train_commands import (
     DATAPARSER_SUBCOMMAND,
     ns_train_arguments,
-    ns_train_base_arguments,
     training_environment,
 )
 from s2camp_ns.report import markdown_table
@@ -352,16 +351,11 @@ def train_command(
     """``ns-train`` of one run: the method's defaults plus the CPU-sized run (module docstring). ``truth``: the
     generated scene, the reference cameras of an sfm start (``scene_dir`` is then SfM's)."""
     save_every = config.trace_every or config.iterations
-    method = METHODS[spec.variant]
-    if config.device == "cuda":  # the method's own field, as on a user's GPU
-        base = ns_train_base_arguments(method, scene_dir, runs, spec.experiment, spec.timestamp, config.iterations,
-                                       save_every)  # fmt: skip
-        base += ["--pipeline.datamanager.train-num-rays-per-batch", str(config.rays_per_batch)]
-    else:
-        base = ns_train_arguments(method, scene_dir, runs, spec.experiment, spec.timestamp, config.iterations,
-                                  save_every, config.rays_per_batch)  # fmt: skip
     command = [
-        *base,
+        *ns_train_arguments(
+            METHODS[spec.variant], scene_dir, runs, spec.experiment, spec.timestamp, config.iterations,
+            save_every, config.rays_per_batch, small_model=config.device == "cpu",  # CUDA: the method's own field
+        ),
         "--machine.device-type", config.device,
         "--machine.seed", str(spec.seed),
         "--vis", "tensorboard",

@@ -70,13 +70,15 @@ def ns_train_arguments(
     iterations: int,
     steps_per_save: int,
     rays_per_batch: int,
+    small_model: bool = True,
 ) -> list[str]:
     """``ns-train <method>`` of a nerfacto method with what every CPU-sized run here shares (demo, e2e tests,
-    benchmarks): ``ns_train_base_arguments``, the batch size and ``SMALL_MODEL``."""
+    benchmarks): ``ns_train_base_arguments``, the batch size and ``SMALL_MODEL`` (``small_model`` False: the method's
+    own field, as on a GPU)."""
     return [
         *ns_train_base_arguments(method, scene, output_dir, experiment, timestamp, iterations, steps_per_save),
         "--pipeline.datamanager.train-num-rays-per-batch", str(rays_per_batch),
-        *SMALL_MODEL,
+        *(SMALL_MODEL if small_model else []),
     ]  # fmt: skip
 
 
