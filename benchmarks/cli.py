@@ -22,6 +22,7 @@ from .scaling import ScalingConfig
 from .shared_intrinsics import SharedIntrinsicsConfig
 from .speed import SpeedConfig
 from .splat_bench import SplatBenchConfig
+from .step_cost import StepCostConfig
 from .train_time import TrainTimeConfig
 
 MODULES = {
@@ -35,6 +36,7 @@ MODULES = {
     ProxyRangeBenchConfig: "proxy_range",
     RobustnessConfig: "robustness",
     SplatBenchConfig: "splat_bench",
+    StepCostConfig: "step_cost",
     ImageTracksCostConfig: "image_tracks_cost",
 }
 """The benchmarks ``s2camp-bench all`` runs."""
@@ -62,6 +64,7 @@ Command = Union[
     Annotated[ProxyRangeBenchConfig, tyro.conf.subcommand("proxy-range")],
     Annotated[RobustnessConfig, tyro.conf.subcommand("robustness")],
     Annotated[SplatBenchConfig, tyro.conf.subcommand("splat")],
+    Annotated[StepCostConfig, tyro.conf.subcommand("step-cost")],
     Annotated[ImageTracksCostConfig, tyro.conf.subcommand("image-tracks")],
     Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],

@@ -196,6 +196,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         for registry in ("_parameters", "_buffers", "_non_persistent_buffers_set"):
             object.__setattr__(self, registry, getattr(refiner, registry))
         self._warned_no_pixels = False
+        self.metrics_due = True
+        """Whether ``get_metrics_dict`` computes the metrics: the model sets it before each training step to whether
+        the trainer logs that step."""
 
     non_trainable_camera_indices = _delegated("frozen_images")
     layout: ParameterLayout = _delegated("layout")
@@ -215,7 +218,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
     apply_track_prior = _on_refiner(CameraRefiner.apply_track_prior)
     recompute_stale_preconditioner = _on_refiner(CameraRefiner.recompute_stale_preconditioner)
     camera_deltas = _on_refiner(CameraRefiner.deltas)
-    regenerate_rays = _on_refiner(rays.regenerate_rays)
+    cast_rays = _on_refiner(rays.cast_rays)
     train_camera_raybundle = _on_refiner(rays.train_camera_raybundle)
     refine_cameras = _on_refiner(camera_conversion.refined_cameras)
 
@@ -279,7 +282,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         super()._load_from_state_dict(
             state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
         )
-        if self.refiner.mark_unrecorded_fingerprint(state_dict, prefix, missing_keys) and self.has_cameras:
+        recorded = self.refiner.mark_unrecorded_fingerprint(state_dict, prefix, missing_keys)
+        self.refiner.after_load()
+        if recorded and self.has_cameras:
             self.refiner.check_fingerprint()  # the warning names this line
 
     # ------------------------------------------------------------------------------------------- refined cameras
@@ -342,7 +347,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
 
     def should_refresh(self, step: int) -> bool:
         every = self.config.refresh_every
-        return every > 0 and step > 0 and step % every == 0 and step != int(self.last_refresh_step)
+        return every > 0 and step > 0 and step % every == 0 and step != self.refiner.last_refresh
 
     # ---------------------------------------------------------------------------------------- losses, metrics
     def get_loss_dict(self, loss_dict: dict) -> None:
@@ -361,8 +366,9 @@ class S2CampCameraOptimizer(CameraOptimizer):
         ).to(torch.float32)
 
     def get_metrics_dict(self, metrics_dict: dict) -> None:
-        """Size of the current deltas (raw units: scene units, degrees, pixels)."""
-        if not self.enabled or not self.has_cameras:
+        """Size of the current deltas (raw units: scene units, degrees, pixels), on the steps that log them
+        (``metrics_due``: nerfstudio computes a step's metrics every step and writes them every ``steps_per_log``)."""
+        if not self.enabled or not self.has_cameras or not self.metrics_due:
             return
         with torch.no_grad():
             phi = self.camera_deltas()

@@ -41,6 +41,7 @@ How it is built, and its limits:
 from __future__ import annotations
 
 import contextlib
+import weakref
 from collections import Counter
 from collections.abc import Iterator
 from typing import Any
@@ -223,6 +224,8 @@ def _common_device(func, tensors: list[torch.Tensor]) -> torch.device | None:
     common = None
     common_is_scalar = False
     for tensor in tensors:
+        if _is_backward_fill(tensor):
+            continue
         device = _device_of(tensor)
         scalar = _is_cpu_scalar(tensor)
         if common is None:
@@ -284,6 +287,28 @@ def _op_device(func, args: tuple, kwargs: dict) -> torch.device | None:
     return device
 
 
+def _in_backward() -> bool:
+    """Whether the autograd engine is running a backward node on this thread."""
+    return torch._C._current_autograd_node() is not None
+
+
+BACKWARD_FILL: dict[int, weakref.ref] = {}
+"""CPU tensors a backward formula built without a tensor argument, and their views (``unbind``'s and ``split``'s fill
+the gradients of their unused outputs with ``at::zeros(sizes, options).expand(...)``): their options come from a
+FakeCudaTensor's CPU metadata, where on CUDA they would be the graph's device. They take the device of the tensors
+they meet (``_is_backward_fill``; by identity: a tensor's ``==`` compares values)."""
+
+
+def _is_backward_fill(tensor: torch.Tensor) -> bool:
+    entry = BACKWARD_FILL.get(id(tensor))
+    return entry is not None and entry() is tensor
+
+
+def _mark_backward_fill(tensor: torch.Tensor) -> None:
+    key = id(tensor)
+    BACKWARD_FILL[key] = weakref.ref(tensor, lambda _: BACKWARD_FILL.pop(key, None))
+
+
 def _unwrap(value: Any) -> Any:
     return value.elem if isinstance(value, FakeCudaTensor) else value
 
@@ -300,6 +325,11 @@ def _run(func, args: tuple, kwargs: dict) -> Any:
     if "device" in kwargs and kwargs["device"] is not None and torch.device(kwargs["device"]).type == "cuda":
         kwargs["device"] = CPU
     out = func(*tree_map(_unwrap, args), **tree_map(_unwrap, kwargs))
+    inputs = [value for value in tree_flatten((args, kwargs))[0] if isinstance(value, torch.Tensor)]
+    if _in_backward() and all(_is_backward_fill(value) for value in inputs):  # a fill built, or viewed (expand)
+        for value in tree_flatten(out)[0]:
+            if isinstance(value, torch.Tensor) and value.device.type == "cpu":
+                _mark_backward_fill(value)
     if func in (aten.copy_.default, aten._foreach_copy_.default) or (
         isinstance(func, torch._ops.OpOverload) and func._schema.is_mutable and out is _unwrap(args[0])
     ):

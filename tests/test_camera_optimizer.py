@@ -706,6 +706,7 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "num_refreshes",
         "precond_base_intrinsics",  # what P was computed for: a resume onto other cameras recomputes it
         "precond_proxy_range",  # and the proxy range it was computed with
+        "undistortion_steps",  # the undistortion's Newton steps: a resumed run casts its rays as it did
     }
     # Buffers move with the module (.to(device)), the base cameras and the Gram included.
     assert {name for name, _ in optimizer.named_buffers()} == {
@@ -713,6 +714,7 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "precond_inv",
         "last_refresh_step",
         "num_refreshes",
+        "undistortion_steps",
         "base_c2w_cv",
         "base_intrinsics",
         "gram",
@@ -875,13 +877,14 @@ def test_pixel_area_and_directions_norm_follow_the_refined_intrinsics():
     fx, fy = cameras.fx[index, 0].double(), cameras.fy[index, 0].double()
     optimizer.apply_to_raybundle(bundle)
     assert bundle.origins.dtype == torch.float64 and bundle.directions.dtype == torch.float64
-    torch.testing.assert_close(bundle.pixel_area[:, 0].double(), 2.0 * fx * fy / ((fx + 3.0) * (fy + 3.0)))
+    # The solid angle of a pixel at the refined camera's principal point, whatever the bundle held.
+    torch.testing.assert_close(bundle.pixel_area[:, 0].double(), 1.0 / ((fx + 3.0) * (fy + 3.0)))
     rays = _pinhole_directions_cv(pixels, fx + 3.0, fy + 3.0, cameras.cx[index, 0] + 1.0, cameras.cy[index, 0] - 2.0)
     torch.testing.assert_close(bundle.metadata["directions_norm"][:, 0].double(), rays.norm(dim=-1), atol=1e-6, rtol=0)
     without_norm = random_ray_bundle(num_rays=8, seed=6)
     del without_norm.metadata["directions_norm"]
-    optimizer.apply_to_raybundle(without_norm)
-    assert "directions_norm" not in without_norm.metadata
+    optimizer.apply_to_raybundle(without_norm)  # the rays are cast anew: nerfstudio's rays always carry the norm
+    assert without_norm.metadata["directions_norm"].shape == (8, 1)
 
 
 def test_train_camera_raybundle_closed_form():
@@ -1404,7 +1407,7 @@ def test_pixel_area_of_rays_from_one_camera_uses_that_cameras_focal_length():
     bundle.camera_indices = torch.ones(16, 1, dtype=torch.long)
     bundle.pixel_area = torch.full((16, 1), 2.0)
     optimizer.apply_to_raybundle(bundle)
-    torch.testing.assert_close(bundle.pixel_area, torch.full((16, 1), 2.0 * 62.0 * 62.0 / (66.0 * 66.0)))
+    torch.testing.assert_close(bundle.pixel_area, torch.full((16, 1), 1.0 / (66.0 * 66.0)))
 
 
 def test_fisheye_cameras_stay_fisheye_in_every_intrinsics_view():
@@ -1417,12 +1420,13 @@ def test_rays_come_in_the_requested_dtype_whatever_the_pixels():
     cameras = make_cameras()
     optimizer = raw_optimizer(cameras)
     pixels = torch.tensor([[10.5, 20.5], [30.25, 5.5]], dtype=torch.float64)
-    origins, directions, norms = optimizer.regenerate_rays(torch.tensor([0, 2]), pixels, dtype=torch.float32)
-    assert origins.dtype == directions.dtype == norms.dtype == torch.float32
+    rays = optimizer.cast_rays(torch.tensor([0, 2]), pixels, dtype=torch.float32)
+    origins, directions, norms = rays.origins, rays.directions, rays.directions_norm
+    assert origins.dtype == directions.dtype == norms.dtype == rays.pixel_area.dtype == torch.float32
     index = torch.tensor([0, 2])
-    rays = _pinhole_directions_cv(pixels, cameras.fx[index, 0], cameras.fy[index, 0], cameras.cx[index, 0],
-                                  cameras.cy[index, 0])  # fmt: skip
-    torch.testing.assert_close(norms[:, 0].double(), rays.norm(dim=-1), atol=1e-6, rtol=0)
+    expected = _pinhole_directions_cv(pixels, cameras.fx[index, 0], cameras.fy[index, 0], cameras.cx[index, 0],
+                                      cameras.cy[index, 0])  # fmt: skip
+    torch.testing.assert_close(norms[:, 0].double(), expected.norm(dim=-1), atol=1e-6, rtol=0)
 
 
 @pytest.mark.parametrize(

@@ -220,9 +220,10 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
     gradients = torch.cat([p.grad.reshape(-1) for p in optimizer.parameters()])
     adam.step()
     optimizer.refresh(10, adam)  # P at the refined intrinsics, latent and Adam's moments re-expressed
-    origins, directions, norms = optimizer.regenerate_rays(
+    rays = optimizer.cast_rays(
         torch.tensor([0, 2, 1], device=device), torch.tensor([[0.5, 0.5], [40.0, 20.0], [63.5, 47.5]], device=device)
     )
+    origins, directions, norms = rays.origins, rays.directions, rays.directions_norm
     refined = optimizer.refine_cameras(cameras)
     camera = cameras[1:2]
     camera.metadata = {"cam_idx": 1}
@@ -252,9 +253,9 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
         "refined_fx": refined.fx,
         "refined_distortion": refined.distortion_params,
         "corrected": corrected.detach(),
-        "resumed_rays": resumed.regenerate_rays(torch.tensor([0, 2], device=device), torch.ones(2, 2, device=device))[
-            1
-        ].detach(),
+        "resumed_rays": resumed.cast_rays(
+            torch.tensor([0, 2], device=device), torch.ones(2, 2, device=device)
+        ).directions.detach(),
         "resumed_p": resumed.precond,
     }
 

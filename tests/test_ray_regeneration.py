@@ -103,19 +103,17 @@ def test_zero_delta_rays_equal_nerfstudio_rays(model: str):
 
 def test_pixel_area_follows_the_refined_focal_length():
     """Cone footprints: with the focal length refined from (fx, fy) to (fx + d, fy + d), every ray's pixel_area is
-    nerfstudio's for the base camera times fx fy / ((fx + d)(fy + d)), and at the principal point it is the one
-    nerfstudio computes for a camera with the refined focal lengths."""
+    the solid angle of a pixel at the refined camera's principal point, 1 / ((fx + d)(fy + d)), which there equals
+    the one nerfstudio computes for a camera with the refined focal lengths."""
     cameras = make_cameras(0.0, 0.0)
     d = 6.0  # pixels, raw focal delta (P = I)
     optimizer = make_optimizer(cameras, precondition=False)
     with torch.no_grad():
         optimizer.whitened_delta[:, 6] = d
-    stock = PixelRayGenerator(cameras)(all_ray_indices())
     bundle = PixelRayGenerator(cameras)(all_ray_indices())
     optimizer.apply_to_raybundle(bundle)
-    per_camera = torch.tensor([70.0 * 71.0 / (76.0 * 77.0), 75.0 * 74.0 / (81.0 * 80.0)])
-    expected = stock.pixel_area * per_camera[all_ray_indices()[:, 0]][:, None]
-    torch.testing.assert_close(bundle.pixel_area, expected, rtol=1e-6, atol=0)
+    per_camera = torch.tensor([1.0 / (76.0 * 77.0), 1.0 / (81.0 * 80.0)])
+    torch.testing.assert_close(bundle.pixel_area, per_camera[all_ray_indices()[:, 0]][:, None], rtol=1e-6, atol=0)
     refocused = make_cameras(0.0, 0.0)
     refocused.fx, refocused.fy = refocused.fx + d, refocused.fy + d
     centre = torch.tensor([[0, 30, 40]])  # camera 0's principal point (40, 30) is this pixel's corner
@@ -180,9 +178,9 @@ def test_train_camera_raybundle_matches_training_rays():
 
 
 @pytest.mark.parametrize("intrinsics", ["per-image", "per-camera"])
-def test_a_batch_refines_only_its_own_cameras_with_the_same_rays_and_gradients(intrinsics: str):
-    """A step computes the cameras its rays come from, not all N (O(rays) per step, docs/SCALING.md): same rays, same
-    gradients, and exact zeros for the cameras no ray came from."""
+def test_cast_rays_are_every_camera_refined_then_indexed_per_ray(intrinsics: str):
+    """A step refines every camera once and gathers each ray's: the rays and gradients of the camera-by-camera
+    reference, and exact zeros for the cameras no ray came from."""
     cameras = make_cameras(-0.05, 0.01)
     optimizer = make_optimizer(cameras, intrinsics=intrinsics)
     latents = [p for p in (optimizer.whitened_delta, getattr(optimizer, "whitened_intrinsics", None)) if p is not None]
@@ -193,7 +191,8 @@ def test_a_batch_refines_only_its_own_cameras_with_the_same_rays_and_gradients(i
     camera_indices = torch.tensor([1, 1, 1, 1])  # camera 0 is not in this batch
     pixels = torch.tensor([[3.5, 4.5], [40.0, 30.0], [79.5, 0.5], [10.25, 55.75]])
 
-    origins, directions, norms = optimizer.regenerate_rays(camera_indices, pixels, dtype=torch.float64)
+    rays = optimizer.cast_rays(camera_indices, pixels, dtype=torch.float64)
+    origins, directions, norms = rays.origins, rays.directions, rays.directions_norm
     (origins.sum() + directions.sum() + norms.sum()).backward()
     batch_gradients = [latent.grad.clone() for latent in latents]
     for latent in latents:

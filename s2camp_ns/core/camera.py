@@ -35,6 +35,8 @@ from jaxtyping import Float
 from torch import Tensor
 
 from s2camp_ns.core.distortion import (
+    DISTORTION_NAMES,
+    UNDISTORT_ITERATIONS,
     check_distortion_monotonic,
     distort_tangents,
     distortion_factor,
@@ -160,6 +162,42 @@ class ParameterLayout:
 TENSOR_FIELDS: tuple[str, ...] = ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "width", "height", "k3", "k4", "p1", "p2")
 """Per-camera tensor fields of ``Intrinsics`` in declaration order (the first nine are the historical layout)."""
 
+DELTA_FIELDS: dict[str, tuple[str, ...]] = {
+    "focal": ("fx", "fy"),
+    "cx": ("cx",),
+    "cy": ("cy",),
+    "skew": ("skew",),
+    "k1": ("k1",),
+    "k2": ("k2",),
+    "k3": ("k3",),
+    "k4": ("k4",),
+    "p1": ("p1",),
+    "p2": ("p2",),
+}
+"""The ``TENSOR_FIELDS`` each intrinsics delta adds to (the focal length to fx and fy alike)."""
+
+
+def full_delta(delta: Float[Tensor, "n k"]) -> Float[Tensor, "n 16"]:
+    """Deltas of all 16 ``PARAMETER_NAMES``: as given, or the paper's first 12 padded with zeros (k3, k4, p1, p2)."""
+    if delta.shape[-1] == PAPER_NUM_PARAMS:
+        delta = torch.cat([delta, delta.new_zeros(*delta.shape[:-1], NUM_CAMERA_PARAMS - PAPER_NUM_PARAMS)], dim=-1)
+    if delta.shape[-1] != NUM_CAMERA_PARAMS:
+        raise ValueError(
+            f"delta must have {NUM_CAMERA_PARAMS} columns (PARAMETER_NAMES) or the paper's {PAPER_NUM_PARAMS}, "
+            f"got {delta.shape[-1]}"
+        )
+    return delta
+
+
+def delta_field_map(dtype: torch.dtype, device: torch.device | str | None = None) -> Float[Tensor, "16 13"]:
+    """[16, 13] matrix M with Phi' = Phi + dPhi M on ``Intrinsics.tensors`` columns: ones where a delta of
+    ``PARAMETER_NAMES`` adds to a field (``DELTA_FIELDS``), zeros elsewhere, so the product adds each delta exactly."""
+    field_map = torch.zeros(NUM_CAMERA_PARAMS, len(TENSOR_FIELDS), dtype=dtype, device=device)
+    for name, fields in DELTA_FIELDS.items():
+        for field_name in fields:
+            field_map[PARAMETER_NAMES.index(name), TENSOR_FIELDS.index(field_name)] = 1.0
+    return field_map
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -167,6 +205,12 @@ class Intrinsics:
 
     ``model`` is the projection of the whole batch (``"perspective"`` or ``"fisheye"``); k3, k4, p1, p2 default to
     zero, so the nine leading fields alone describe a RADIAL camera as before.
+
+    ``distortion_terms`` declares the batch's form: the distortion coefficients that may be nonzero (a subset of
+    k1, k2, k3, k4, p1, p2; the others are left out of the arithmetic, not multiplied by zero), and
+    ``newton_iterations`` how many Newton steps invert it (``distortion.undistortion_iterations``). Declared where
+    the cameras are set (``refined_form``), they let the per-step path run without reading the coefficients on the
+    host; None (the default) reads the form from the values where an inverse needs it.
     """
 
     fx: Float[Tensor, " n"]
@@ -183,9 +227,13 @@ class Intrinsics:
     p1: Float[Tensor, " n"] | None = None
     p2: Float[Tensor, " n"] | None = None
     model: str = "perspective"
+    distortion_terms: tuple[str, ...] | None = None
+    newton_iterations: int = UNDISTORT_ITERATIONS
 
     def __post_init__(self) -> None:
         check_choice("model", self.model, PROJECTIONS)
+        if self.distortion_terms is not None and not set(self.distortion_terms) <= set(DISTORTION_NAMES):
+            raise ValueError(f"distortion_terms must be among {DISTORTION_NAMES}, got {self.distortion_terms}")
         for name in ("k3", "k4", "p1", "p2"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, torch.zeros_like(self.k1))
@@ -221,15 +269,21 @@ class Intrinsics:
         return intrinsics
 
     def _map(self, function) -> Intrinsics:
-        return Intrinsics(**{name: function(getattr(self, name)) for name in TENSOR_FIELDS}, model=self.model)
+        return replace(self, **{name: function(getattr(self, name)) for name in TENSOR_FIELDS})
 
     def tensors(self) -> Float[Tensor, "n 13"]:
         """The tensor fields stacked in ``TENSOR_FIELDS`` order (``from_tensors`` inverts it)."""
         return torch.stack([getattr(self, name) for name in TENSOR_FIELDS], dim=-1)
 
     @classmethod
-    def from_tensors(cls, values: Float[Tensor, "n 13"], model: str = "perspective") -> Intrinsics:
-        return cls(*values.unbind(dim=-1), model=model)
+    def from_tensors(cls, values: Float[Tensor, "n 13"], model: str = "perspective", **form) -> Intrinsics:
+        """Inverse of ``tensors``; ``form``: ``distortion_terms`` and ``newton_iterations``."""
+        return cls(*values.unbind(dim=-1), model=model, **form)
+
+    @property
+    def form(self) -> dict:
+        """The declared form (``distortion_terms``, ``newton_iterations``) as keywords of ``from_tensors``."""
+        return {"distortion_terms": self.distortion_terms, "newton_iterations": self.newton_iterations}
 
     @property
     def is_fisheye(self) -> bool:
@@ -261,31 +315,19 @@ class Intrinsics:
         return torch.maximum(self.width, self.height)
 
     def with_delta(self, delta: Float[Tensor, "n 16"]) -> Intrinsics:
-        """Intrinsics after the additive residual update Phi' = Phi + dPhi (paper sec. 4) of the last ten deltas.
+        """Intrinsics after the additive residual update Phi' = Phi + dPhi (paper sec. 4) of the last ten deltas
+        (``delta_field_map``).
 
         ``delta`` holds all 16 ``PARAMETER_NAMES``, or only the paper's first 12 (k3, k4, p1, p2 then stay).
         """
-        if delta.shape[-1] == PAPER_NUM_PARAMS:
-            delta = torch.cat([delta, delta.new_zeros(*delta.shape[:-1], NUM_CAMERA_PARAMS - PAPER_NUM_PARAMS)], dim=-1)
-        if delta.shape[-1] != NUM_CAMERA_PARAMS:
-            raise ValueError(
-                f"delta must have {NUM_CAMERA_PARAMS} columns (PARAMETER_NAMES) or the paper's {PAPER_NUM_PARAMS}, "
-                f"got {delta.shape[-1]}"
-            )
-        return replace(
-            self,
-            fx=self.fx + delta[:, 6],
-            fy=self.fy + delta[:, 6],
-            cx=self.cx + delta[:, 7],
-            cy=self.cy + delta[:, 8],
-            skew=self.skew + delta[:, 9],
-            k1=self.k1 + delta[:, 10],
-            k2=self.k2 + delta[:, 11],
-            k3=self.k3 + delta[:, 12],
-            k4=self.k4 + delta[:, 13],
-            p1=self.p1 + delta[:, 14],
-            p2=self.p2 + delta[:, 15],
-        )
+        delta = full_delta(delta)
+        fields = torch.addmm(self.tensors(), delta, delta_field_map(delta.dtype, delta.device))
+        return Intrinsics.from_tensors(fields, model=self.model, **self.form)
+
+    def general(self) -> Intrinsics:
+        """The same cameras with no declared form: every distortion term evaluated and the inverse run to convergence
+        (``UNDISTORT_ITERATIONS``), so what is computed from them (P, the checks) depends on their values only."""
+        return replace(self, distortion_terms=None, newton_iterations=UNDISTORT_ITERATIONS)
 
     def validate(self) -> None:
         """Positive focal lengths and image sizes, finite values, and distortion one-to-one inside the image."""
@@ -296,6 +338,17 @@ class Intrinsics:
         check_range("width", self.width, low=0.0, low_inclusive=False)
         check_range("height", self.height, low=0.0, low_inclusive=False)
         check_distortion_monotonic(self)
+
+
+def distortion_form(base: Intrinsics, layout: ParameterLayout | None) -> tuple[str, ...]:
+    """The distortion terms cameras refined with ``layout`` (None: not refined) from ``base`` can have
+    (``Intrinsics.distortion_terms``): those the layout refines and those some base camera has nonzero (read on the
+    host, once, where the cameras are set); k1 and k2 together wherever a radial term is."""
+    live = {name for name in (layout.names if layout is not None else ()) if name in DISTORTION_NAMES}
+    live |= {name for name in DISTORTION_NAMES if bool((getattr(base, name) != 0).any())}
+    if live & {"k1", "k2", "k3", "k4"}:
+        live |= {"k1", "k2"}
+    return tuple(name for name in DISTORTION_NAMES if name in live)
 
 
 def camera_model_of(intrinsics: Intrinsics) -> str:
@@ -375,21 +428,24 @@ def se3_exp(xi: Float[Tensor, "*batch 6"]) -> Float[Tensor, "*batch 3 4"]:
 
     R = I + A [w]x + B [w]x^2 and t = V rho with V = I + B [w]x + C [w]x^2, A = sin(th)/th,
     B = (1 - cos th)/th^2, C = (th - sin th)/th^3; Taylor series below th = 1e-3 keep it smooth at zero.
+    With [w]x^2 = w w^T - th^2 I, written as R = (1 - B th^2) I + A [w]x + B w w^T and
+    t = rho + B (w x rho) + C (w x (w x rho)): no 3 x 3 product, few kernels on a GPU.
     """
     rho, omega = xi[..., :3], xi[..., 3:]
-    theta2 = (omega * omega).sum(dim=-1)
+    theta2 = (omega * omega).sum(dim=-1, keepdim=True)  # [*, 1]
     small = theta2 < 1e-6
     safe_theta2 = torch.where(small, torch.ones_like(theta2), theta2)
     theta = torch.sqrt(safe_theta2)
-    coef_a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
+    sinc = torch.sin(theta) / theta
+    coef_a = torch.where(small, 1.0 - theta2 / 6.0, sinc)
     coef_b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / safe_theta2)
-    coef_c = torch.where(small, 1.0 / 6.0 - theta2 / 120.0, (theta - torch.sin(theta)) / (safe_theta2 * theta))
-    w = skew_matrix(omega)
-    w2 = w @ w
-    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand_as(w)
-    rotation = eye + coef_a[..., None, None] * w + coef_b[..., None, None] * w2
-    v = eye + coef_b[..., None, None] * w + coef_c[..., None, None] * w2
-    translation = (v @ rho[..., None])[..., 0]
+    coef_c = torch.where(small, 1.0 / 6.0 - theta2 / 120.0, (1.0 - sinc) / safe_theta2)
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand(*omega.shape[:-1], 3, 3)
+    w = torch.linalg.cross(eye, omega[..., None, :].expand_as(eye))  # rows e_i x w: [w]x
+    outer = omega[..., :, None] * omega[..., None, :]
+    rotation = (1.0 - coef_b * theta2)[..., None] * eye + coef_a[..., None] * w + coef_b[..., None] * outer
+    cross = torch.linalg.cross(omega, rho)
+    translation = rho + coef_b * cross + coef_c * torch.linalg.cross(omega, cross)
     return torch.cat([rotation, translation[..., None]], dim=-1)
 
 

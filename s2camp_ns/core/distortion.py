@@ -32,7 +32,7 @@ the image corners.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -45,14 +45,30 @@ if TYPE_CHECKING:
 UNDISTORT_ITERATIONS = 20
 
 
-def distortion_factor(r2: Tensor, k1: Tensor, k2: Tensor, k3: Tensor | float = 0.0, k4: Tensor | float = 0.0) -> Tensor:
+Coefficient = Tensor | float | None
+"""A distortion coefficient: a tensor, a number, or None where the camera's form has no such term (the term is then
+left out of the arithmetic, not multiplied by zero: ``distortion_columns``)."""
+
+
+def distortion_factor(r2: Tensor, k1: Tensor, k2: Tensor, k3: Coefficient = 0.0, k4: Coefficient = 0.0) -> Tensor:
     """Radial polynomial 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 (COLMAP RADIAL / OPENCV; with theta^2 for r^2 the
-    fisheye's theta_d / theta). Written so that k3 = k4 = 0 adds an exact zero to the two-coefficient value."""
+    fisheye's theta_d / theta). Written so that k3 = k4 = 0 adds an exact zero to the two-coefficient value; with both
+    None the two-coefficient value alone, with no term at all 1."""
+    if k1 is None:
+        return 1.0
+    if k3 is None and k4 is None:
+        return 1.0 + r2 * (k1 + k2 * r2)
+    k3, k4 = (0.0 if k is None else k for k in (k3, k4))
     return 1.0 + r2 * (k1 + k2 * r2 + r2 * r2 * (k3 + k4 * r2))
 
 
-def distortion_slope(r2: Tensor, k1: Tensor, k2: Tensor, k3: Tensor | float = 0.0, k4: Tensor | float = 0.0) -> Tensor:
-    """d(distortion_factor)/d(r^2) = k1 + 2 k2 r^2 + 3 k3 r^4 + 4 k4 r^6."""
+def distortion_slope(r2: Tensor, k1: Tensor, k2: Tensor, k3: Coefficient = 0.0, k4: Coefficient = 0.0) -> Tensor:
+    """d(distortion_factor)/d(r^2) = k1 + 2 k2 r^2 + 3 k3 r^4 + 4 k4 r^6 (k3, k4 None: k1 + 2 k2 r^2; no term: 0)."""
+    if k1 is None:
+        return 0.0
+    if k3 is None and k4 is None:
+        return k1 + 2.0 * k2 * r2
+    k3, k4 = (0.0 if k is None else k for k in (k3, k4))
     return k1 + 2.0 * k2 * r2 + r2 * r2 * (3.0 * k3 + 4.0 * k4 * r2)
 
 
@@ -61,19 +77,49 @@ def per_camera_columns(intrinsics: Intrinsics, *names: str) -> tuple[Tensor, ...
     return tuple(getattr(intrinsics, name)[:, None] for name in names)
 
 
+DISTORTION_NAMES: tuple[str, ...] = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+def distortion_columns(intrinsics: Intrinsics) -> tuple[Tensor | None, ...]:
+    """k1, k2, k3, k4, p1, p2 as [N, 1] columns (``per_camera_columns``), None for each term the cameras' form leaves
+    out (``Intrinsics.distortion_terms``; every term when the form is not declared)."""
+    terms = intrinsics.distortion_terms
+    return tuple(
+        getattr(intrinsics, name)[:, None] if terms is None or name in terms else None for name in DISTORTION_NAMES
+    )
+
+
+def _tangential_terms(a: Tensor, b: Tensor, r2: Tensor, p1: Coefficient, p2: Coefficient) -> tuple:
+    """The OpenCV tangential terms (2 p1 a b + p2 (r^2 + 2 a^2), 2 p2 a b + p1 (r^2 + 2 b^2)); (0, 0) without them."""
+    if p1 is None and p2 is None:
+        return 0.0, 0.0
+    p1, p2 = (0.0 if p is None else p for p in (p1, p2))
+    return 2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a), 2.0 * p2 * a * b + p1 * (r2 + 2.0 * b * b)
+
+
 def distort_tangents(a: Tensor, b: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
     """Perspective distortion (a, b) -> (a_d, b_d): radial polynomial and OpenCV tangential terms (module doc)."""
-    k1, k2, k3, k4, p1, p2 = per_camera_columns(intrinsics, "k1", "k2", "k3", "k4", "p1", "p2")
+    return _distort(a, b, distortion_columns(intrinsics))
+
+
+def _distort(a: Tensor, b: Tensor, columns: tuple) -> tuple[Tensor, Tensor]:
+    k1, k2, k3, k4, p1, p2 = columns
+    if all(column is None for column in columns):
+        return a, b
     r2 = a * a + b * b
     factor = distortion_factor(r2, k1, k2, k3, k4)
-    a_d = a * factor + (2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a))
-    b_d = b * factor + (2.0 * p2 * a * b + p1 * (r2 + 2.0 * b * b))
-    return a_d, b_d
+    tangential_a, tangential_b = _tangential_terms(a, b, r2, p1, p2)
+    return a * factor + tangential_a, b * factor + tangential_b
 
 
 def tangent_distortion_jacobian(a: Tensor, b: Tensor, intrinsics: Intrinsics) -> Float[Tensor, "n l 2 2"]:
     """d(a_d, b_d)/d(a, b) of the perspective distortion."""
-    k1, k2, k3, k4, p1, p2 = per_camera_columns(intrinsics, "k1", "k2", "k3", "k4", "p1", "p2")
+    return _distortion_jacobian(a, b, distortion_columns(intrinsics))
+
+
+def _distortion_jacobian(a: Tensor, b: Tensor, columns: tuple) -> Float[Tensor, "n l 2 2"]:
+    k1, k2, k3, k4, p1, p2 = columns
+    p1, p2 = (0.0 if p is None else p for p in (p1, p2))
     r2 = a * a + b * b
     factor = distortion_factor(r2, k1, k2, k3, k4)
     slope = distortion_slope(r2, k1, k2, k3, k4)
@@ -174,81 +220,166 @@ def fisheye_fold_angle(intrinsics: Intrinsics) -> tuple[Float[Tensor, " n"], Flo
     return theta_fold.to(intrinsics.dtype), theta_d_fold.to(intrinsics.dtype)
 
 
+def _radial_residual(
+    s: Tensor, r_d2: Tensor, k1: Tensor, k2: Tensor, k3: Coefficient, k4: Coefficient
+) -> tuple[Tensor, Tensor]:
+    """g(s) = s D(s^2 r_d^2) - 1 and g'(s) (``undistort_scale``); k3, k4 None leave their terms out."""
+    s2r = s * s * r_d2
+    if k3 is None and k4 is None:  # Horner in u = s^2 r_d^2: g = s (1 + u (k1 + k2 u)) - 1, g' = 1 + u (3 k1 + 5 k2 u)
+        u_poly = s2r * torch.addcmul(k1, k2, s2r)
+        return torch.addcmul(s, s, u_poly) - 1.0, 1.0 + s2r * torch.addcmul(3.0 * k1, 5.0 * k2, s2r)
+    k3, k4 = (0.0 if k is None else k for k in (k3, k4))
+    cubic = s2r * s2r * s2r
+    g = s * (1.0 + k1 * s2r + k2 * s2r * s2r + cubic * (k3 + k4 * s2r)) - 1.0
+    dg = 1.0 + 3.0 * k1 * s2r + 5.0 * k2 * s2r * s2r + cubic * (7.0 * k3 + 9.0 * k4 * s2r)
+    return g, dg
+
+
 def undistort_scale(
     r_d2: Tensor,
     k1: Tensor,
     k2: Tensor,
-    k3: Tensor | float = 0.0,
-    k4: Tensor | float = 0.0,
+    k3: Coefficient = 0.0,
+    k4: Coefficient = 0.0,
     iterations: int = UNDISTORT_ITERATIONS,
 ) -> Tensor:
     """Scale s = r / r_d solving s (1 + k1 r_d^2 s^2 + k2 r_d^4 s^4 + k3 r_d^6 s^6 + k4 r_d^8 s^8) = 1.
 
     The inverse of the radial polynomial: r = s r_d for perspective cameras, theta = s theta_d for fisheye ones.
-    Newton's method runs without autograd to convergence; one more Newton step with autograd on then gives the
-    exact implicit-function gradient ds/dtheta = -(dg/dtheta) / g'(s), so undistortion stays differentiable
-    without back-propagating through the iterations.
+    Newton's method from s = 1 runs ``iterations`` steps without autograd; one more Newton step with autograd on then
+    gives the exact implicit-function gradient ds/dtheta = -(dg/dtheta) / g'(s) at the converged s, so undistortion
+    stays differentiable without back-propagating through the iterations. k3 and k4 None leave their terms out.
     """
-
-    def residual(s: Tensor) -> tuple[Tensor, Tensor]:
-        s2r = s * s * r_d2
-        cubic = s2r * s2r * s2r
-        g = s * (1.0 + k1 * s2r + k2 * s2r * s2r + cubic * (k3 + k4 * s2r)) - 1.0
-        dg = 1.0 + 3.0 * k1 * s2r + 5.0 * k2 * s2r * s2r + cubic * (7.0 * k3 + 9.0 * k4 * s2r)
-        return g, dg
-
     with torch.no_grad():
         s = torch.ones_like(r_d2)
         for _ in range(iterations):
-            g, dg = residual(s)
+            g, dg = _radial_residual(s, r_d2, k1, k2, k3, k4)
             s = s - g / dg
-    g, dg = residual(s)
+    g, dg = _radial_residual(s, r_d2, k1, k2, k3, k4)
     return s - g / dg.detach()
 
 
-def _newton_tangential(
-    a_d: Tensor, b_d: Tensor, intrinsics: Intrinsics, iterations: int = UNDISTORT_ITERATIONS
-) -> tuple[Tensor, Tensor]:
-    """Undistorted tangents (a, b) with distort_tangents(a, b) = (a_d, b_d) by 2-D Newton from (a_d, b_d).
+def _tangential_newton_step(a: Tensor, b: Tensor, a_d: Tensor, b_d: Tensor, columns: tuple) -> tuple[Tensor, Tensor]:
+    """One 2-D Newton step on distort(a, b) = (a_d, b_d); a step whose Jacobian is (nearly) singular is skipped, so a
+    fold shows as a residual (``undistort_tangents``)."""
+    fa, fb = _distort(a, b, columns)
+    jac = _distortion_jacobian(a, b, columns)
+    ra, rb = fa - a_d, fb - b_d
+    det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+    ok = det.abs() > 1e-12
+    safe_det = torch.where(ok, det, torch.ones_like(det))
+    step_a = (jac[..., 1, 1] * ra - jac[..., 0, 1] * rb) / safe_det
+    step_b = (jac[..., 0, 0] * rb - jac[..., 1, 0] * ra) / safe_det
+    return a - torch.where(ok, step_a, torch.zeros_like(step_a)), b - torch.where(ok, step_b, torch.zeros_like(step_b))
 
-    Runs without autograd; steps whose Jacobian is (nearly) singular are skipped, so a fold shows as a residual.
-    """
+
+def _newton_tangential(
+    a_d: Tensor, b_d: Tensor, columns: tuple, iterations: int = UNDISTORT_ITERATIONS
+) -> tuple[Tensor, Tensor]:
+    """Undistorted tangents (a, b) with distort(a, b) = (a_d, b_d) by 2-D Newton from (a_d, b_d), without autograd
+    (``_tangential_newton_step``; ``columns``: ``distortion_columns``)."""
     with torch.no_grad():
         a, b = a_d.detach().clone(), b_d.detach().clone()
         for _ in range(iterations):
-            fa, fb = distort_tangents(a, b, intrinsics)
-            jac = tangent_distortion_jacobian(a, b, intrinsics)
-            ra, rb = fa - a_d, fb - b_d
-            det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
-            ok = det.abs() > 1e-12
-            safe_det = torch.where(ok, det, torch.ones_like(det))
-            step_a = (jac[..., 1, 1] * ra - jac[..., 0, 1] * rb) / safe_det
-            step_b = (jac[..., 0, 0] * rb - jac[..., 1, 0] * ra) / safe_det
-            a = a - torch.where(ok, step_a, torch.zeros_like(step_a))
-            b = b - torch.where(ok, step_b, torch.zeros_like(step_b))
+            a, b = _tangential_newton_step(a, b, a_d, b_d, columns)
     return a, b
+
+
+def _undistortion_form(intrinsics: Intrinsics) -> tuple[tuple[str, ...], int]:
+    """The distortion terms an inverse must handle and its Newton iterations: the declared form
+    (``Intrinsics.distortion_terms``, ``Intrinsics.newton_iterations``), or, undeclared, the terms read from the
+    values (a host read of the coefficients) and ``UNDISTORT_ITERATIONS``."""
+    if intrinsics.distortion_terms is not None:
+        return intrinsics.distortion_terms, intrinsics.newton_iterations
+    tangential = not (bool((intrinsics.p1.detach() == 0).all()) and bool((intrinsics.p2.detach() == 0).all()))
+    return DISTORTION_NAMES if tangential else DISTORTION_NAMES[:4], UNDISTORT_ITERATIONS
 
 
 def undistort_tangents(a_d: Tensor, b_d: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
     """Inverse of ``distort_tangents``, differentiable through the implicit-function theorem.
 
-    Radial-only cameras solve the scalar equation of ``undistort_scale``. With tangential terms, 2-D Newton converges
-    without autograd, then one Newton step with autograd and the Jacobian detached gives
-    d(a, b)/dtheta = -J^-1 dF/dtheta, the implicit-function gradient (F(a, b) = distortion - (a_d, b_d)).
+    No distortion term: the tangents are the distorted ones. Radial-only cameras solve the scalar equation of
+    ``undistort_scale``. With tangential terms, 2-D Newton converges without autograd, then one Newton step with
+    autograd and the Jacobian detached gives d(a, b)/dtheta = -J^-1 dF/dtheta, the implicit-function gradient
+    (F(a, b) = distortion - (a_d, b_d)). The form and the iteration count: ``_undistortion_form``.
     """
-    if bool((intrinsics.p1.detach() == 0).all()) and bool((intrinsics.p2.detach() == 0).all()):
-        k1, k2, k3, k4 = per_camera_columns(intrinsics, "k1", "k2", "k3", "k4")
-        scale = undistort_scale(a_d * a_d + b_d * b_d, k1, k2, k3, k4)
+    terms, iterations = _undistortion_form(intrinsics)
+    if not terms:
+        return a_d, b_d
+    if intrinsics.distortion_terms is None:  # undeclared: every radial term, as read (bit-for-bit the general path)
+        intrinsics = replace(intrinsics, distortion_terms=terms)
+    columns = distortion_columns(intrinsics)
+    k1, k2, k3, k4, p1, p2 = columns
+    if p1 is None and p2 is None:
+        scale = undistort_scale(a_d * a_d + b_d * b_d, k1, k2, k3, k4, iterations)
         return a_d * scale, b_d * scale
-    a, b = _newton_tangential(a_d, b_d, intrinsics)
-    fa, fb = distort_tangents(a, b, intrinsics)
-    jac = tangent_distortion_jacobian(a, b, intrinsics).detach()
+    a, b = _newton_tangential(a_d, b_d, columns, iterations)
+    fa, fb = _distort(a, b, columns)
+    jac = _distortion_jacobian(a, b, columns).detach()
     ra, rb = fa - a_d, fb - b_d
     det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
     return (
         a - (jac[..., 1, 1] * ra - jac[..., 0, 1] * rb) / det,
         b - (jac[..., 0, 0] * rb - jac[..., 1, 0] * ra) / det,
     )
+
+
+MIN_NEWTON_ITERATIONS = 2
+"""Fewest Newton steps a camera with distortion gets: from s = 1 the first error is about |k1| r^2, and two steps
+plus the final one bring |k1| r^2 = 0.15 (a strong wide-angle barrel) to about 1e-10."""
+NEWTON_TOLERANCE = 1e-10
+"""Largest relative error of the undistorted tangents the iteration count allows, far below float32's rounding."""
+COEFFICIENT_MARGIN = 2.0
+"""The count is taken with every declared coefficient this many times as large: room for the refinement to move the
+distortion before the count is taken again (at each refresh of P)."""
+
+
+def undistortion_iterations(intrinsics: Intrinsics) -> int:
+    """Newton steps that invert the distortion of every pixel of these cameras to ``NEWTON_TOLERANCE``.
+
+    Measured rather than bounded analytically: the iterates of ``undistort_tangents`` (fisheyes: of
+    ``undistort_scale`` on theta_d) on a grid over each image (``image_grid``: border and interior) are compared with
+    their limit after ``UNDISTORT_ITERATIONS`` steps, every coefficient of the declared form
+    (``Intrinsics.distortion_terms``) multiplied by ``COEFFICIENT_MARGIN`` (the given ones where that folds), and the
+    smallest count whose largest error is below the tolerance is returned, at least ``MIN_NEWTON_ITERATIONS``, at most
+    ``UNDISTORT_ITERATIONS``. The undistortion then adds one Newton step with autograd, which only shrinks the error.
+    No distortion term: 0.
+    """
+    terms = intrinsics.distortion_terms
+    if terms is not None and not terms:
+        return 0
+    cameras = intrinsics.detach().to(dtype=torch.float64)
+    if terms is None:
+        cameras = replace(cameras, distortion_terms=DISTORTION_NAMES)
+    scaled = replace(cameras, **{name: getattr(cameras, name) * COEFFICIENT_MARGIN for name in DISTORTION_NAMES})
+    try:
+        check_distortion_monotonic(scaled)
+        cameras = scaled
+    except ValueError:
+        pass
+    a_d, b_d = distorted_coordinates(image_grid(cameras), cameras)
+    columns = distortion_columns(cameras)
+    k1, k2, k3, k4, p1, p2 = columns
+    iterates: list[tuple[Tensor, ...]] = []
+    with torch.no_grad():
+        if (p1 is None and p2 is None) or cameras.is_fisheye:
+            r_d2, s = a_d * a_d + b_d * b_d, torch.ones_like(a_d)
+            for _ in range(UNDISTORT_ITERATIONS):
+                g, dg = _radial_residual(s, r_d2, k1, k2, k3, k4)
+                s = s - g / dg
+                iterates.append((s,))
+        else:
+            a, b = a_d.clone(), b_d.clone()
+            for _ in range(UNDISTORT_ITERATIONS):
+                a, b = _tangential_newton_step(a, b, a_d, b_d, columns)
+                iterates.append((a, b))
+    limit = iterates[-1]
+    scale = 1.0 + torch.stack([value.abs() for value in limit]).amax()
+    for count, values in enumerate(iterates, start=1):
+        error = torch.stack([(value - reference).abs() for value, reference in zip(values, limit, strict=True)]).amax()
+        if count >= MIN_NEWTON_ITERATIONS and bool(error <= NEWTON_TOLERANCE * scale):
+            return count
+    return UNDISTORT_ITERATIONS
 
 
 def distorted_coordinates(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
@@ -362,7 +493,7 @@ def _check_perspective_grid(intrinsics: Intrinsics) -> None:
     pixels = image_grid(intrinsics64)
     a_d, b_d = distorted_coordinates(pixels, intrinsics64)
     with torch.no_grad():
-        a, b = _newton_tangential(a_d, b_d, intrinsics64)
+        a, b = _newton_tangential(a_d, b_d, distortion_columns(intrinsics64))
         again_a, again_b = distort_tangents(a, b, intrinsics64)
         residual = torch.maximum((again_a - a_d).abs(), (again_b - b_d).abs())
         det = torch.linalg.det(tangent_distortion_jacobian(a, b, intrinsics64))

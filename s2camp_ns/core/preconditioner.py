@@ -13,7 +13,7 @@ and invertible for parameters that the proxy points cannot observe at all.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
@@ -291,7 +291,7 @@ def compute_preconditioner(
     damping.validate()
     if chunk_size is not None:
         check_positive_int("chunk_size", chunk_size)
-    intrinsics = intrinsics.detach().to(dtype=torch.float64)
+    intrinsics = intrinsics.detach().to(dtype=torch.float64).general()  # P depends on the values alone
     intrinsics.validate()
     if ranges is not None:
         ranges = _check_ranges(ranges, intrinsics.num_cameras, sampling)
@@ -341,14 +341,13 @@ def unique_intrinsics(
 ) -> tuple[Intrinsics, Tensor, Tensor | None]:
     """The distinct cameras (bitwise-equal intrinsics and, if given, proxy range), per camera the index of its
     distinct one, and the distinct cameras' ranges (None without ``ranges``)."""
-    names = [f.name for f in fields(intrinsics) if f.name != "model"]
-    stacked = torch.stack([getattr(intrinsics, name) for name in names], dim=-1)
+    stacked = intrinsics.tensors()
+    width = stacked.shape[-1]
     if ranges is not None:
         stacked = torch.cat([stacked, ranges.to(stacked)], dim=-1)
     unique, index = torch.unique(stacked, dim=0, return_inverse=True)
-    columns = dict(zip(names, unique[:, : len(names)].unbind(dim=-1), strict=True))
-    unique_ranges = None if ranges is None else unique[:, len(names) :]
-    return Intrinsics(**columns, model=intrinsics.model), index, unique_ranges
+    unique_ranges = None if ranges is None else unique[:, width:]
+    return Intrinsics.from_tensors(unique[:, :width], intrinsics.model, **intrinsics.form), index, unique_ranges
 
 
 def whitening_error(inverse: Float[Tensor, "n k k"], sigma: Float[Tensor, "n k k"]) -> Float[Tensor, " n"]:

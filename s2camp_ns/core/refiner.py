@@ -38,15 +38,25 @@ from s2camp_ns.core.camera import (
     Intrinsics,
     ParameterLayout,
     camera_model_of,
+    delta_field_map,
+    distortion_form,
+    full_delta,
     opengl_to_opencv,
     se3_exp,
 )
+from s2camp_ns.core.distortion import undistortion_iterations
 from s2camp_ns.core.latent_layout import LatentLayout, PerCameraIntrinsics, PerImageIntrinsics, PriorBlock
 from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig
 from s2camp_ns.core.proxy_range import ProxyRanges, proxy_ranges
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
 from s2camp_ns.core.track_loss import TrackTerm, photometric_weight, refine_points, track_cost
-from s2camp_ns.core.track_prior import TrackPriorEvidence, apply_track_prior, place_at_anchor, span
+from s2camp_ns.core.track_prior import (
+    TrackPriorEvidence,
+    apply_track_prior,
+    inverse_radius,
+    place_at_anchor,
+    span,
+)
 
 ROTATION_COLUMNS = [3, 4, 5]
 """The twist's rotation columns: (rho_x, rho_y, rho_z, omega_x, omega_y, omega_z)."""
@@ -77,6 +87,7 @@ class CameraRefiner(nn.Module):
         device: torch.device | str = "cpu",
     ) -> None:
         super().__init__()
+        self._caches: dict[str, tuple[tuple, object]] = {}
         self.num_images = num_images
         self.preset = parameters
         self.layout = ParameterLayout.from_preset(parameters)
@@ -85,7 +96,6 @@ class CameraRefiner(nn.Module):
         self.precondition = precondition
         self.photometric = photometric
         self.enabled = enabled
-        self.frozen_images = frozen_images
         k = self.layout.num_params
         self.shared = enabled and per_camera_intrinsics and k > NUM_POSE_PARAMS
         self.latent_layout: LatentLayout = PerCameraIntrinsics() if self.shared else PerImageIntrinsics()
@@ -94,7 +104,18 @@ class CameraRefiner(nn.Module):
         if self.shared:  # one physical camera per image until ``set_camera_groups`` says otherwise
             self.whitened_intrinsics = self._latent(torch.zeros(num_images, k - NUM_POSE_PARAMS), device)
         self._register_state(k, device)
+        self.frozen_images = frozen_images
         self.projection = "perspective"
+        self.distortion_terms: tuple[str, ...] = ()
+        """The refined cameras' distortion form (``core.camera.distortion_form``), decided in ``set_cameras``."""
+        self.newton_iterations = 0
+        """Newton steps that undistort them (``core.distortion.undistortion_iterations``), taken at every refresh."""
+        self.last_refresh = -1
+        """``last_refresh_step`` on the host: the refresh schedule reads it without a device synchronisation."""
+        self.gram_known = False
+        """Whether ``gram`` holds a computed Gram matrix (a refresh with preconditioning wrote it)."""
+        self.num_physical_cameras = num_images
+        """Physical cameras C (``camera_of_image`` holds 0..C-1), on the host."""
         self.proxy_ranges: ProxyRanges | None = None
         self.groups_known = False
         self.has_cameras = False
@@ -121,6 +142,9 @@ class CameraRefiner(nn.Module):
         self.register_buffer("precond_inv", eye.clone())
         self.register_buffer("last_refresh_step", torch.tensor(-1, dtype=torch.long, device=device))
         self.register_buffer("num_refreshes", torch.tensor(0, dtype=torch.long, device=device))
+        # The undistortion's Newton steps (``newton_iterations``), saved: a resumed run undistorts as it did (-1: not
+        # taken yet).
+        self.register_buffer("undistortion_steps", torch.tensor(-1, dtype=torch.long, device=device))
         base_c2w = torch.zeros(n, 3, 4, dtype=torch.float64, device=device)
         self.register_buffer("base_c2w_cv", base_c2w, persistent=False)
         base = torch.zeros(n, len(TENSOR_FIELDS), dtype=torch.float64, device=device)
@@ -153,10 +177,6 @@ class CameraRefiner(nn.Module):
             latent.register_hook(torch.zeros_like)
         return latent
 
-    @property
-    def num_physical_cameras(self) -> int:
-        return int(self.camera_of_image.max()) + 1 if self.num_images else 0
-
     def first_image_of_each_camera(self) -> Int[Tensor, " c"]:
         index = self.camera_of_image
         first = torch.full((self.num_physical_cameras,), self.num_images, dtype=torch.long, device=index.device)
@@ -173,6 +193,7 @@ class CameraRefiner(nn.Module):
         order = {}
         labels = [order.setdefault(int(value), len(order)) for value in first.tolist()]
         self.camera_of_image = torch.tensor(labels, dtype=torch.long, device=self.precond.device)
+        self.num_physical_cameras = len(order)
         self.groups_known = True
         if self.shared:
             m = self.layout.num_params - NUM_POSE_PARAMS
@@ -225,12 +246,14 @@ class CameraRefiner(nn.Module):
         if self.shared and not self.groups_known:
             self.set_camera_groups(groups)
         self.base_intrinsics = self.latent_layout.base(self, base)
+        self.distortion_terms = distortion_form(intrinsics, self.layout if self.enabled else None)
         chosen, per_image = self.choose_proxy_range(c2w, intrinsics, points, groups)
         self.proxy_range = per_image.to(device)
         self.has_cameras = True
         if int(self.last_refresh_step) < 0:
             self.refresh(step=0, stacklevel=stacklevel + 1)
         else:  # a checkpoint was loaded before the cameras were known
+            self.after_load()
             self.check_fingerprint(stacklevel=stacklevel + 1)
         return chosen
 
@@ -255,6 +278,17 @@ class CameraRefiner(nn.Module):
         self.proxy_ranges = ranges
         return ranges, ranges.stacked()[groups]
 
+    def _take_newton_iterations(self) -> None:
+        """The undistortion's Newton steps for the current refined cameras (``undistortion_iterations``, with room
+        for the refinement until the next refresh): taken when the cameras are set and at every refresh."""
+        self.newton_iterations = 0
+        if self.distortion_terms:
+            with torch.no_grad():
+                refined = self.refined_intrinsics().detach()
+            # Images of one physical camera share their refined intrinsics: one of each is enough.
+            self.newton_iterations = undistortion_iterations(refined[self.first_image_of_each_camera()])
+        self.undistortion_steps.fill_(self.newton_iterations)
+
     def require_cameras(self) -> None:
         if not self.has_cameras:
             raise RuntimeError(self.cameras_required)
@@ -263,45 +297,111 @@ class CameraRefiner(nn.Module):
         return Intrinsics.from_tensors(self.base_intrinsics, model=self.projection)
 
     # ------------------------------------------------------------------------------------------- refined cameras
-    def deltas(self, images: Int[Tensor, " m"] | None = None) -> Float[Tensor, "m 16"]:
+    def _cached(self, name: str, key: tuple, build):
+        """``build()``, kept under ``name`` until ``key`` changes: keys name the tensors a value is derived from by
+        identity and in-place version (``Tensor._version``), so a refresh, a load or a reassignment rebuilds it and a
+        training step reads it without recomputing or synchronising."""
+        entry = self._caches.get(name)
+        if entry is None or entry[0] != key:
+            entry = (key, build())
+            self._caches[name] = entry
+        return entry[1]
+
+    @staticmethod
+    def _key(*tensors: Tensor | None) -> tuple:
+        return tuple((id(t), t._version, t.device) if t is not None else None for t in tensors)
+
+    def _expansion(self) -> Float[Tensor, "k 16"]:
+        """[K, 16] selection matrix: phi @ E scatters the layout's K columns into ``PARAMETER_NAMES``' 16 (exactly)."""
+        layout, device = self.layout, self.precond.device
+
+        def build() -> Tensor:
+            return layout.expand(torch.eye(layout.num_params, dtype=torch.float64, device=device))
+
+        return self._cached("expansion", (layout, device), build)
+
+    @property
+    def frozen_images(self) -> Int[Tensor, " f"] | None:
+        """Images whose deltas are held at zero (None: none)."""
+        return self._frozen_images
+
+    @frozen_images.setter
+    def frozen_images(self, images: Int[Tensor, " f"] | None) -> None:
+        self._frozen_images = images
+        self._caches.pop("trainable", None)
+        mask = self._trainable_mask()
+        self.num_trainable = self.num_images if images is None else int(mask.sum())
+
+    def _trainable_mask(self) -> Float[Tensor, "n 1"]:
+        """1 for trainable images, 0 for frozen ones, float64 (cached per device)."""
+
+        def build() -> Tensor:
+            keep = torch.ones(self.num_images, 1, dtype=torch.float64, device=self.precond.device)
+            if self.frozen_images is not None:
+                keep[self.frozen_images.to(keep.device)] = 0.0
+            return keep
+
+        return self._cached("trainable", (self.precond.device,), build)
+
+    def deltas(self, images: Int[Tensor, " m"] | slice | None = None) -> Float[Tensor, "m 16"]:
         """Camera-parameter deltas phi = P^-1 phi_hat (paper eq. 15), all 16 columns, float64, differentiable: of
-        every image, or of ``images`` only (a training step needs those its rays come from)."""
-        count = self.num_images if images is None else images.shape[0]
+        every image, or of ``images`` (an index tensor or a slice). One batched product for every image: a training
+        step computes them once and gathers what its rays need."""
         if not self.enabled:
+            count = self.num_images if images is None else self.precond[images].shape[0]
             return self.precond.new_zeros(count, len(PARAMETER_NAMES))
         precond_inv = self.precond_inv
-        if images is not None:
+        if isinstance(images, Tensor):
             images = images.to(self.precond.device)
+        if images is not None:
             precond_inv = precond_inv[images]
         latent = self.latent_layout.latent(self, images)  # [m, K]
-        phi = (precond_inv @ latent[..., None])[..., 0]
+        phi = (precond_inv @ latent[..., None])[..., 0] @ self._expansion()  # [m, 16]
         if self.frozen_images is not None:
-            keep = torch.ones(self.num_images, 1, dtype=phi.dtype, device=phi.device)
-            keep[self.frozen_images.to(phi.device)] = 0.0
-            phi = phi * (keep if images is None else keep[images])
-        return self.layout.expand(phi)
+            mask = self._trainable_mask()
+            phi = phi * (mask if images is None else mask[images])
+        return phi
 
-    def refined_intrinsics(self, deltas: Tensor | None = None, images: Int[Tensor, " m"] | None = None) -> Intrinsics:
-        """Intrinsics Phi' = Phi + dPhi (paper sec. 4), float64, differentiable: of every image, or of ``images``
-        (``deltas`` then holds theirs)."""
+    @property
+    def intrinsics_form(self) -> dict:
+        """The refined cameras' declared form, ``Intrinsics`` keywords (``distortion_terms``, ``newton_iterations``)."""
+        return {"distortion_terms": self.distortion_terms, "newton_iterations": self.newton_iterations}
+
+    def refined_fields(
+        self, deltas: Tensor | None = None, images: Int[Tensor, " m"] | slice | None = None
+    ) -> Float[Tensor, "m 13"]:
+        """The refined intrinsics as ``Intrinsics.tensors`` columns, Phi' = Phi + dPhi (paper sec. 4) in one product
+        (``core.camera.delta_field_map``), float64, differentiable: of every image, or of ``images`` (``deltas`` then
+        holds theirs)."""
         self.require_cameras()
-        deltas = self.deltas(images) if deltas is None else deltas
-        if images is None:
-            return self.base_intrinsics_struct().with_delta(deltas)
-        base = self.base_intrinsics[images.to(self.precond.device)]
-        return Intrinsics.from_tensors(base, model=self.projection).with_delta(deltas)
+        deltas = self.deltas(images) if deltas is None else full_delta(deltas)
+        base = self.base_intrinsics
+        if images is not None:
+            base = base[images.to(base.device) if isinstance(images, Tensor) else images]
+        field_map = self._cached("field_map", (base.device,), lambda: delta_field_map(base.dtype, base.device))
+        return torch.addmm(base, deltas, field_map)
+
+    def refined_intrinsics(
+        self, deltas: Tensor | None = None, images: Int[Tensor, " m"] | slice | None = None
+    ) -> Intrinsics:
+        """Intrinsics Phi' = Phi + dPhi (paper sec. 4), float64, differentiable, with the refined cameras' declared
+        form (``intrinsics_form``): of every image, or of ``images`` (``deltas`` then holds theirs)."""
+        fields = self.refined_fields(deltas, images)
+        return Intrinsics.from_tensors(fields, model=self.projection, **self.intrinsics_form)
 
     def refined_c2w(
-        self, deltas: Tensor | None = None, opengl: bool = False, images: Int[Tensor, " m"] | None = None
+        self, deltas: Tensor | None = None, opengl: bool = False, images: Int[Tensor, " m"] | slice | None = None
     ) -> Float[Tensor, "m 3 4"]:
         """Refined c2w' = c2w exp(xi), float64, OpenCV frame unless ``opengl``: of every image, or of ``images``
         (``deltas`` then holds theirs)."""
         self.require_cameras()
         deltas = self.deltas(images) if deltas is None else deltas
-        base = self.base_c2w_cv if images is None else self.base_c2w_cv[images.to(self.precond.device)]
+        base = self.base_c2w_cv
+        if images is not None:
+            base = base[images.to(base.device) if isinstance(images, Tensor) else images]
         delta = se3_exp(deltas[:, :6])  # [m, 3, 4]
         rotation = base[:, :, :3] @ delta[:, :, :3]
-        translation = base[:, :, 3:] + base[:, :, :3] @ delta[:, :, 3:]
+        translation = torch.baddbmm(base[:, :, 3:], base[:, :, :3], delta[:, :, 3:])
         c2w = torch.cat([rotation, translation], dim=-1)
         return opengl_to_opencv(c2w) if opengl else c2w
 
@@ -337,6 +437,22 @@ class CameraRefiner(nn.Module):
         blocks = self.latent_layout.prior_blocks(self)
         return blocks[0].anchor, blocks[1].anchor if len(blocks) > 1 else None
 
+    def _prior_steps(self) -> list[tuple[nn.Parameter, Tensor, Tensor]]:
+        """(latent, its anchor in the latent's dtype, 1 / radius) of each latent under the prior, derived once per P
+        and prior (``_cached``): the training step's proximal step reads them as they are."""
+        # The latents by identity alone: every optimizer step changes them in place.
+        latents = (id(getattr(self, "whitened_delta", None)), id(getattr(self, "whitened_intrinsics", None)))
+        key = self._key(self.precond, self.prior_anchor, self.prior_radius, self.prior_radius_intrinsics) + latents
+
+        def build() -> list[tuple[nn.Parameter, Tensor, Tensor]]:
+            blocks = self.latent_layout.prior_blocks(self)
+            if self.prior_intrinsics_only and len(blocks) > 1:
+                blocks = blocks[1:]
+            dtype = blocks[0].latent.dtype
+            return [(b.latent, b.anchor.to(dtype), inverse_radius(b.radius).to(dtype)) for b in blocks]
+
+        return self._cached("prior_steps", key + (self.prior_intrinsics_only,), build)
+
     @torch.no_grad()
     def apply_track_prior(self, lr: float) -> None:
         """One proximal step of the track prior after an optimizer step of learning rate ``lr``
@@ -344,9 +460,8 @@ class CameraRefiner(nn.Module):
         # A Python flag, not a look at the radii: no device synchronisation on the training step's path.
         if not self.enabled or not self.has_track_prior or lr <= 0:
             return
-        blocks = self.latent_layout.prior_blocks(self)
-        for block in blocks[1:] if self.prior_intrinsics_only and len(blocks) > 1 else blocks:
-            apply_track_prior(block.latent, block.anchor, block.radius, lr)
+        for latent, anchor, inverse in self._prior_steps():
+            apply_track_prior(latent, anchor, inverse, lr)
 
     def set_track_term(self, term: TrackTerm | None) -> None:
         """The tracks as a loss term (``core.track_loss``, a benchmark candidate), its tensors moved to the refiner's
@@ -385,21 +500,30 @@ class CameraRefiner(nn.Module):
         not see (docs/DESIGN-NOTES.md sec. 6). Everything else stays; a no-op when disabled or with fewer than
         three trainable images. With the track prior the rotation is measured from the prior's anchor: the tracks
         fix the world, so the rotation the anchors share is no gauge and stays."""
-        if not self.enabled:
+        if not self.enabled or self.num_trainable < 3:
             return
-        trainable = torch.ones(self.num_images, dtype=torch.bool, device=self.precond.device)
-        if self.frozen_images is not None:
-            trainable[self.frozen_images.to(trainable.device)] = False
-        if int(trainable.sum()) < 3:
-            return
-        motion = self.deltas()[:, ROTATION_COLUMNS]  # [n, 3]
-        if self.has_track_prior:
-            motion = motion - self.layout.expand(self.prior_anchor)[:, ROTATION_COLUMNS]
-        correction = torch.zeros_like(motion)
-        correction[trainable] = -motion[trainable].mean(dim=0)
         latent = self.whitened_delta
-        rows = self.precond[:, : latent.shape[1], ROTATION_COLUMNS].to(torch.float64)  # [n, pose columns, 3]
-        latent.add_((rows @ correction[..., None])[..., 0].to(latent.dtype))
+        rows, weight, mask, anchor = self._gauge_terms()
+        motion = (self.precond_inv[:, ROTATION_COLUMNS, :] @ self.latent_layout.latent(self, None)[..., None])[..., 0]
+        if anchor is not None:
+            motion = motion - anchor  # [n, 3]
+        mean = weight @ motion  # [3]: the mean over trainable images
+        latent.sub_(((rows @ mean[:, None])[..., 0] * mask).to(latent.dtype))
+
+    def _gauge_terms(self) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+        """What ``remove_common_motion`` reads, derived once per P and prior (``_cached``): P's rotation columns on the
+        pose latent's rows [n, pose columns, 3], the trainable images' averaging weights [n], their mask [n, 1], and
+        the anchors' rotation [n, 3] (None without the prior)."""
+        key = self._key(self.precond, self.prior_anchor) + (self.has_track_prior,)
+
+        def build() -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+            columns = self.whitened_delta.shape[1]
+            rows = self.precond[:, :columns, ROTATION_COLUMNS].to(torch.float64)
+            mask = self._trainable_mask()
+            anchor = self.layout.expand(self.prior_anchor)[:, ROTATION_COLUMNS] if self.has_track_prior else None
+            return rows, mask[:, 0] / self.num_trainable, mask, anchor
+
+        return self._cached("gauge", key, build)
 
     # ------------------------------------------------------------------------------------------------- refresh
     @torch.no_grad()
@@ -423,8 +547,13 @@ class CameraRefiner(nn.Module):
             warnings.warn(message, stacklevel=stacklevel + 1)
             return
         self._stale_preconditioner = None
+        self._record_refresh(step)
+
+    def _record_refresh(self, step: int) -> None:
         self.last_refresh_step.fill_(step)
+        self.last_refresh = step
         self.num_refreshes.add_(1)
+        self._take_newton_iterations()
 
     @torch.no_grad()
     def _recompute_preconditioner(self, optimizer: torch.optim.Optimizer | None) -> None:
@@ -432,6 +561,7 @@ class CameraRefiner(nn.Module):
         ValueError (nothing changed) if the refined intrinsics admit no P. The fingerprint records the cameras."""
         if self.precondition and self.enabled:
             self.latent_layout.recompute(self, optimizer)
+            self.gram_known = True
         self.precond_base_intrinsics.copy_(self.base_intrinsics)
         self.precond_proxy_range.copy_(self.proxy_range)
 
@@ -461,6 +591,9 @@ class CameraRefiner(nn.Module):
             if prefix + name not in state_dict:
                 missing_keys.remove(prefix + name)
                 getattr(self, name).fill_(float("nan"))
+        if prefix + "undistortion_steps" not in state_dict:  # taken anew from the loaded cameras (``after_load``)
+            missing_keys.remove(prefix + "undistortion_steps")
+            self.undistortion_steps.fill_(-1)
         return True
 
     def _load_from_state_dict(
@@ -470,8 +603,20 @@ class CameraRefiner(nn.Module):
         super()._load_from_state_dict(
             state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
         )
-        if self.mark_unrecorded_fingerprint(state_dict, prefix, missing_keys) and self.has_cameras:
+        recorded = self.mark_unrecorded_fingerprint(state_dict, prefix, missing_keys)
+        self.after_load()
+        if recorded and self.has_cameras:
             self.check_fingerprint(stacklevel=2)
+
+    def after_load(self) -> None:
+        """The host's copies of loaded state (``last_refresh``, ``newton_iterations``) read once, after a checkpoint
+        is loaded; the Newton steps taken from the loaded cameras where the checkpoint has none."""
+        self.last_refresh = int(self.last_refresh_step)
+        steps = int(self.undistortion_steps)
+        if steps >= 0:
+            self.newton_iterations = steps
+        elif self.has_cameras:
+            self._take_newton_iterations()
 
     def check_fingerprint(self, stacklevel: int = 1) -> None:
         """Flag a loaded P that was computed for other base intrinsics or another proxy range; it is never used for
@@ -547,8 +692,7 @@ class CameraRefiner(nn.Module):
                 f"checkpoint cannot be used with these training cameras: {reason}, and P cannot be recomputed for "
                 f"them: {error}"
             ) from error
-        self.last_refresh_step.fill_(step)
-        self.num_refreshes.add_(1)
+        self._record_refresh(step)
 
 
 def describe_proxy_ranges(ranges: ProxyRanges, num_points: int, sampling: SamplingConfig) -> str:

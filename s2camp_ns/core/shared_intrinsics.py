@@ -115,7 +115,7 @@ def compute_shared_preconditioner(
     if not layout.pose:
         raise ValueError("shared intrinsics need the pose group in the layout: the pose is what stays per image")
     sampling = sampling or SamplingConfig()
-    intrinsics = intrinsics.detach().to(dtype=torch.float64)
+    intrinsics = intrinsics.detach().to(dtype=torch.float64).general()  # T depends on the values alone
     intrinsics.validate()
     points = sample_proxy_points(intrinsics, sampling, ranges=ranges)
     sigma, _ = gram_from_points(points, intrinsics, layout)

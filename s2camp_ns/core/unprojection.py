@@ -23,18 +23,22 @@ from torch import Tensor
 from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.core.distortion import (
     distorted_coordinates,
-    per_camera_columns,
+    distortion_columns,
     undistort_scale,
     undistort_tangents,
 )
 
 
 def _fisheye_directions(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 3"]:
-    """Unit directions of fisheye pixels: theta from theta_d = |(a_d, b_d)| by ``undistort_scale``."""
+    """Unit directions of fisheye pixels: theta from theta_d = |(a_d, b_d)| by ``undistort_scale`` (theta = theta_d
+    for a form without distortion terms)."""
     a_d, b_d = distorted_coordinates(pixels, intrinsics)
     theta_d2 = a_d * a_d + b_d * b_d
-    k1, k2, k3, k4 = per_camera_columns(intrinsics, "k1", "k2", "k3", "k4")
-    scale = undistort_scale(theta_d2, k1, k2, k3, k4)  # theta / theta_d
+    k1, k2, k3, k4, _, _ = distortion_columns(intrinsics)
+    if k1 is None:
+        scale = torch.ones_like(theta_d2)
+    else:  # theta / theta_d
+        scale = undistort_scale(theta_d2, k1, k2, k3, k4, intrinsics.newton_iterations)
     theta = scale * torch.sqrt(torch.clamp(theta_d2, min=torch.finfo(theta_d2.dtype).tiny))
     # sin(theta) / theta_d = scale * sinc(theta), finite on the optical axis.
     lateral = scale * torch.sinc(theta / math.pi)

@@ -1,10 +1,11 @@
-"""Data manager whose training rays carry their pixel coordinates, so the camera optimizer can regenerate them.
+"""Data manager whose training rays carry their pixel coordinates, so the camera optimizer can cast them.
 
 nerfstudio's ``RayGenerator`` turns sampled ``ray_indices`` [camera, y, x] into rays with fixed intrinsics; the
 stock camera optimizer can then only move origins and directions rigidly. ``PixelRayGenerator`` also stores the
 continuous pixel centre (u, v) = (x + 0.5, y + 0.5) (OpenCV/COLMAP convention) in
-``ray_bundle.metadata[PIXEL_KEY]``; ``S2CampCameraOptimizer.apply_to_raybundle`` rebuilds each ray from it with
-the refined intrinsics, distortion and pose.
+``ray_bundle.metadata[PIXEL_KEY]``. Where the model's camera optimizer casts the rays itself (S2CamP's, refining:
+``S2CampCameraOptimizer.apply_to_raybundle``, told so by the pipeline), the generator casts nothing: a ray is cast
+once per step, through the refined cameras, not first through the data parser's and then again.
 
 With several processes each rank draws its own rays: nerfstudio seeds every process with ``machine.seed`` plus its
 rank. ``global_batch_sampling`` instead makes a step's rays independent of the number of ranks (docs/SCALING.md).
@@ -28,18 +29,29 @@ from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 
 
 class PixelRayGenerator(RayGenerator):
-    """nerfstudio's ray generator plus each ray's pixel coordinates in the ray bundle's metadata."""
+    """nerfstudio's ray generator plus each ray's pixel coordinates in the ray bundle's metadata.
+
+    ``cast_by_model`` True: the bundle carries the camera indices and pixels only, its origins, directions and pixel
+    areas NaN until the model's camera optimizer casts them (any use before that shows as NaN, never as plausible
+    rays of the unrefined cameras).
+    """
+
+    cast_by_model: bool = False
 
     def forward(self, ray_indices: Int[Tensor, "num_rays 3"]) -> RayBundle:
-        ray_bundle = super().forward(ray_indices)
-        rows, cols = ray_indices[:, 1], ray_indices[:, 2]
         # The indices come from the pixel sampler, on the cached images' device (nerfstudio keeps images on the CPU);
         # the pixels go with the rays, on the model's device.
-        origins = ray_bundle.origins
-        pixels = torch.stack([cols, rows], dim=-1).to(device=origins.device, dtype=origins.dtype) + 0.5
+        device = self.image_coords.device
+        rows, cols = ray_indices[:, 1], ray_indices[:, 2]
+        pixels = torch.stack([cols, rows], dim=-1).to(device=device, dtype=torch.float32) + 0.5
+        if self.cast_by_model:
+            unset = torch.full((ray_indices.shape[0], 3), float("nan"), device=device)
+            camera_indices = ray_indices[:, :1].to(device)
+            return RayBundle(unset, unset, unset[:, :1], camera_indices, metadata={PIXEL_KEY: pixels})
+        ray_bundle = super().forward(ray_indices)
         if ray_bundle.metadata is None:
             ray_bundle.metadata = {}
-        ray_bundle.metadata[PIXEL_KEY] = pixels
+        ray_bundle.metadata[PIXEL_KEY] = pixels.to(ray_bundle.origins.dtype)
         return ray_bundle
 
 

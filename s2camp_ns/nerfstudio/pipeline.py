@@ -39,6 +39,7 @@ from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
 from s2camp_ns.nerfstudio import render_path
 from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.nerfstudio.camera_fields import has_distortion, replace_cameras
+from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
 from s2camp_ns.nerfstudio.undistorted_tracks import undistorted_track_evidence
 
 CAMERA_COUNT_KEYS = (
@@ -138,6 +139,12 @@ class S2CampPipeline(VanillaPipeline):
         elif isinstance(getattr(self.model, "camera_optimizer", None), S2CampCameraOptimizer):
             self.model.camera_optimizer.set_train_cameras(cameras, points=points)
             self.model.camera_optimizer.set_track_prior(tracks["track_rms_px"], tracks["track_evidence"])
+        # The S2CamP camera optimizer casts the training rays itself, through the refined cameras.
+        camera_optimizer = getattr(self.model, "camera_optimizer", None)
+        generator = getattr(self.datamanager, "train_ray_generator", None)
+        refining = isinstance(camera_optimizer, S2CampCameraOptimizer) and camera_optimizer.enabled
+        if refining and isinstance(generator, PixelRayGenerator):
+            generator.cast_by_model = True
         self.world_size = world_size
         if world_size > 1:
             on_cuda = torch.device(device).type == "cuda"

@@ -158,12 +158,17 @@ class S2CampRefinementMixin:
                 camera_optimizer.apply_track_prior(float(torch_optimizer.param_groups[0]["lr"]))
             camera_optimizer.remove_common_motion()
 
+        trainer = training_callback_attributes.trainer
+        steps_per_log = trainer.config.logging.steps_per_log if trainer is not None else 1
+
+        def before_camera_step(step: int) -> None:
+            # The camera metrics only where nerfstudio logs them; a stale P recomputed before the first step.
+            camera_optimizer.metrics_due = step % steps_per_log == 0
+            recompute_stale_preconditioner(step)
+
         if isinstance(camera_optimizer, S2CampCameraOptimizer) and camera_optimizer.enabled:
-            callbacks.append(
-                TrainingCallback(
-                    where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], func=recompute_stale_preconditioner
-                )
-            )
+            before = [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION]
+            callbacks.append(TrainingCallback(where_to_run=before, func=before_camera_step))
             callbacks.append(
                 TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=after_camera_step)
             )
@@ -193,12 +198,12 @@ class S2CampRefinementMixin:
         if not self.uses_s2camp_optimizer or not optimizer.has_cameras:
             return None
         preconditioned = optimizer.enabled and optimizer.config.precondition
-        computed = preconditioned and bool(optimizer.gram.abs().amax() > 0)
+        computed = preconditioned and optimizer.refiner.gram_known  # host state: the viewer's check reads no tensor
         return RefinementStatus(
             num_cameras=optimizer.num_cameras,
             refinement_enabled=optimizer.enabled,
             preconditioned=preconditioned,
-            last_refresh_step=int(optimizer.last_refresh_step),
+            last_refresh_step=optimizer.refiner.last_refresh,
             refresh_every=optimizer.config.refresh_every,
             gram=optimizer.gram if computed else None,
             precond_inverse=optimizer.precond_inv if computed else None,

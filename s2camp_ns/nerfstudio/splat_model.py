@@ -22,13 +22,14 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig, get_viewmat
 from torch import Tensor
 
 from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.core.refiner import CameraRefiner
 from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.nerfstudio.camera_fields import has_distortion, replace_cameras
 from s2camp_ns.nerfstudio.refinement import S2CampRefinementMixin, warn_lpips_unavailable
@@ -98,6 +99,21 @@ def world_to_camera(c2w: Float[Tensor, "n 3 4"]) -> Float[Tensor, "n 4 4"]:
     bottom = torch.zeros_like(c2w[:, :1, :])
     bottom[:, 0, 3] = 1.0
     return torch.cat([torch.cat([rotation, translation], dim=-1), bottom], dim=-2)
+
+
+def refined_view_matrix(
+    refiner: CameraRefiner, image: Int[Tensor, " 1"], base_k: Float[Tensor, "1 3 3"]
+) -> Float[Tensor, "1 4 4"]:
+    """World-to-camera matrix of training image ``image`` that, rendered with its given pinhole ``base_k``, renders as
+    its refined camera: [[A R', A t'], [0, 1]] from the refined pose and A = K^-1 K' (docs/SPLAT.md eq. S4), float64.
+    The splatting step's camera work: one graph, no host read (the index is a tensor on the refiner's device)."""
+    deltas = refiner.deltas()[image]  # [1, 16]
+    c2w = refiner.refined_c2w(deltas, images=image)
+    refined = refiner.refined_intrinsics(deltas, images=image)
+    refined_k = intrinsics_matrix(refined.fx, refined.fy, refined.cx, refined.cy, refined.skew)
+    # Both are pinhole matrices built here: no value check (it would synchronize with the GPU every step).
+    correction = intrinsics_correction(base_k.to(refined_k), refined_k, check=False)
+    return corrected_viewmat(world_to_camera(c2w), correction)
 
 
 class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
@@ -200,16 +216,9 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
             return get_viewmat(camera.camera_to_worlds)
         if not self.uses_s2camp_optimizer:
             return get_viewmat(self.camera_optimizer.apply_to_camera(camera))
-        optimizer = self.camera_optimizer
-        cameras = torch.tensor([int(index)], dtype=torch.long)
-        deltas = optimizer.camera_deltas(cameras)
-        c2w = optimizer.refined_c2w(deltas, cameras=cameras)
-        refined = optimizer.refined_intrinsics(deltas, cameras=cameras)
-        refined_k = intrinsics_matrix(refined.fx, refined.fy, refined.cx, refined.cy, refined.skew)
-        base_k = camera.get_intrinsics_matrices().reshape(1, 3, 3).to(refined_k)
-        # Both are pinhole matrices built here: no value check (it would synchronize with the GPU every step).
-        correction = intrinsics_correction(base_k, refined_k, check=False)
-        viewmat = corrected_viewmat(world_to_camera(c2w), correction)
+        refiner = self.camera_optimizer.refiner
+        image = torch.full((1,), int(index), dtype=torch.long, device=refiner.precond.device)
+        viewmat = refined_view_matrix(refiner, image, camera.get_intrinsics_matrices().reshape(1, 3, 3))
         return viewmat.to(device=camera.camera_to_worlds.device, dtype=camera.camera_to_worlds.dtype)
 
     def rasterize(self, means: Tensor, **kwargs):
