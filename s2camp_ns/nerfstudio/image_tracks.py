@@ -34,10 +34,11 @@ adjusted cameras become the anchor, each image's reprojection RMS its radius.
 Cache. The model is built once per set of images and given cameras, in ``<cache>/<key>``: the key hashes the recipe
 (``RECIPE_VERSION``, pycolmap's version), each image's name, size and modification time and the given cameras
 (intrinsics and poses, every bit). Later runs read it. On one machine two builds of one key are bit-identical
-(``feature_database.number_images``, ``MATCHING_THREADS``). A build writes into a temporary sibling folder renamed
-at the end, so no process reads half a model and no entry is overwritten; the feature database is deleted once the
-model is written. Where the cache lives and the lock that lets one process build an entry while others wait:
-``track_cache``.
+(``feature_database.number_images``, ``MATCHING_THREADS``). A build decodes every image first
+(``image_check.decoded_sizes``: a damaged image is named, not skipped by COLMAP) and writes into a temporary sibling
+folder renamed at the end, so no process reads half a model and no entry is overwritten; the feature database is
+deleted once the model is written. Where the cache lives and the lock that lets one process build an entry while
+others wait: ``track_cache``.
 """
 
 from __future__ import annotations
@@ -67,6 +68,7 @@ from s2camp_ns.nerfstudio.feature_database import (
     number_images,
     open_database,
 )
+from s2camp_ns.nerfstudio.image_check import decoded_sizes
 from s2camp_ns.nerfstudio.robust_adjustment import cauchy_adjustment_options
 from s2camp_ns.nerfstudio.track_cache import build_folder, entry_lock, remove_stale_builds, user_cache_folder
 
@@ -189,6 +191,7 @@ def image_tracks(
         if (final / RESULT_FILE).is_file():  # built by another process while this one waited
             return _cached(final)
         remove_stale_builds(final)
+        decoded_sizes([image_root / image.name for image in given.images.values()], "the scene (image tracks)")
         return _store(given, image_root, final)
 
 
