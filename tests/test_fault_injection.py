@@ -9,6 +9,7 @@ them, so the cases that must fail before the tracks are parsed with ``image_trac
 
 from __future__ import annotations
 
+import io
 import json
 import re
 import shutil
@@ -19,9 +20,10 @@ import pycolmap
 import pytest
 from conftest import write_transforms
 from PIL import Image
+from rich.console import Console
 
+from s2camp_ns.nerfstudio import image_check, robust_adjustment
 from s2camp_ns.nerfstudio import image_tracks as image_tracks_module
-from s2camp_ns.nerfstudio import robust_adjustment
 from s2camp_ns.nerfstudio.colmap_model import ColmapModelError
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 from s2camp_ns.nerfstudio.image_check import ImageFileError
@@ -215,6 +217,21 @@ def test_truncated_full_size_image_read_by_the_image_tracks_is_named(scene: Path
     cut_short(damaged)
     with pytest.raises(ImageFileError, match=rf"^image {re.escape(str(damaged))}, listed by the scene \(image tracks"):
         parse(scene, downscale_factor=2, image_tracks="always")
+
+
+def test_decoding_a_large_scene_shows_progress_and_keeps_the_order(scene: Path, monkeypatch: pytest.MonkeyPatch):
+    """From ``PROGRESS_MIN_IMAGES`` images on, a progress bar names the file whose images are decoded; the sizes come
+    back in the order asked, whatever thread decoded each."""
+    shown = io.StringIO()
+    monkeypatch.setattr(image_check, "LOG", Console(file=shown, force_terminal=True, width=120))
+    monkeypatch.setattr(image_check, "PROGRESS_MIN_IMAGES", 3)
+    paths = sorted((scene / "images").iterdir()) + sorted((scene / "images_2").iterdir())
+    sizes = image_check.decoded_sizes(paths, "the test's list")
+    assert sizes == [(64, 48)] * 12 + [(32, 24)] * 12
+    assert "Decoding the images of the test's list" in shown.getvalue()
+    shown.truncate(0)
+    image_check.decoded_sizes(paths[:2], "two images")
+    assert "Decoding" not in shown.getvalue()
 
 
 # -------------------------------------------------------------------------------------------------- damaged caches
