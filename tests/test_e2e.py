@@ -460,7 +460,8 @@ def test_resumed_run_records_its_checkpoint_and_is_exported_and_evaluated(resume
 
     run = resume_runs.runs / "resumed"
     config = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
-    assert config.load_checkpoint == (resume_runs.runs / "whole" / "nerfstudio_models" / "step-000000012.ckpt")
+    loaded = resume_runs.runs / "whole" / "nerfstudio_models" / f"step-{RESUME_AT:09d}.ckpt"
+    assert config.load_checkpoint == loaded.resolve()
     assert config.load_dir is None and config.load_step is None
     export = str(Path(sys.executable).with_name("s2camp-export-cameras"))
     output_dir = tmp_path / "sparse" / "0"
