@@ -7,6 +7,8 @@ not the collection of the whole suite.
 from __future__ import annotations
 
 import contextlib
+import json
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -14,6 +16,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 if TYPE_CHECKING:
+    import pycolmap
     from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 
     from s2camp_ns.nerfstudio.model import S2CampModelConfig
@@ -72,6 +75,21 @@ def tiny_scene(tiny_scene_config: MakeSceneConfig) -> Path:
     return make_scene(tiny_scene_config)
 
 
+@pytest.fixture
+def given(tiny_scene: Path) -> pycolmap.Reconstruction:
+    """The tiny scene's cameras and poses, no points: what the image tracks are asked for."""
+    import pycolmap
+
+    truth = pycolmap.Reconstruction(tiny_scene / "sparse" / "0")
+    cameras = pycolmap.Reconstruction()
+    for camera in truth.cameras.values():
+        cameras.add_camera_with_trivial_rig(camera)
+    for image in truth.images.values():
+        posed = pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id)
+        cameras.add_image_with_trivial_frame(posed, image.cam_from_world())
+    return cameras
+
+
 @contextlib.contextmanager
 def lpips_offline() -> Iterator[None]:
     """Make nerfacto's LPIPS fail to load, as it does offline without cached AlexNet weights."""
@@ -113,3 +131,25 @@ def tiny_model_config(
         camera_optimizer=camera_optimizer,
         **fields,
     )
+
+
+def write_transforms(scene: Path, data: Path, **meta) -> Path:
+    """A transforms.json in the folder ``data`` of the COLMAP scene ``scene``'s cameras (global intrinsics and w/h,
+    OPENCV), with a copy of its full-size images; ``meta`` overrides top-level keys."""
+    import numpy as np
+    import pycolmap
+
+    shutil.copytree(scene / "images", data / "images")
+    reconstruction = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    frames = []
+    for image_id in sorted(reconstruction.images):
+        image = reconstruction.images[image_id]
+        c2w = np.linalg.inv(np.vstack([image.cam_from_world().matrix(), [0, 0, 0, 1]]))
+        c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
+        frames.append({"file_path": f"images/{image.name}", "transform_matrix": c2w.tolist()})
+    camera = reconstruction.cameras[1]
+    f, cx, cy, k1, k2 = camera.params
+    content = {"camera_model": "OPENCV", "fl_x": f, "fl_y": f, "cx": cx, "cy": cy, "w": camera.width}
+    content.update(h=camera.height, k1=k1, k2=k2, p1=0.0, p2=0.0, frames=frames, **meta)
+    (data / "transforms.json").write_text(json.dumps(content))
+    return data / "transforms.json"

@@ -12,6 +12,7 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
+from conftest import write_transforms
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from PIL import Image
 
@@ -301,30 +302,8 @@ def test_empty_scenes(scene: Path, tmp_path: Path):
 
 def test_transforms_json_detected(generated_scene: Path, tmp_path: Path):
     data = tmp_path / "ns"
-    shutil.copytree(generated_scene / "images", data / "images")
-    reconstruction = input_model(generated_scene)
-    frames = []
-    for image_id in sorted(reconstruction.images):
-        image = reconstruction.images[image_id]
-        c2w = np.linalg.inv(np.vstack([image.cam_from_world().matrix(), [0, 0, 0, 1]]))
-        c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
-        frames.append({"file_path": f"images/{image.name}", "transform_matrix": c2w.tolist()})
-    f, cx, cy, k1, k2 = reconstruction.cameras[1].params
-    meta = {
-        "camera_model": "OPENCV",
-        "fl_x": f,
-        "fl_y": f,
-        "cx": cx,
-        "cy": cy,
-        "w": WIDTH,
-        "h": HEIGHT,
-        "k1": k1,
-        "k2": k2,
-        "p1": 0.0,
-        "p2": 0.0,
-        "frames": frames,
-    }
-    (data / "transforms.json").write_text(json.dumps(meta))
+    meta = json.loads(write_transforms(generated_scene, data).read_text())
+    frames, f = meta["frames"], meta["fl_x"]
     out = parse(data, eval_mode="interval")
     assert out.metadata["source_format"] == "nerfstudio"
     assert len(out.image_filenames) == 8 and float(out.cameras.fx[0]) == pytest.approx(f, rel=1e-6)
@@ -508,35 +487,17 @@ def test_reference_model_missing_image_is_named(scene: Path, tmp_path: Path):
         parse(scene, reference_model=tmp_path / "nowhere")
 
 
-def _write_transforms(generated_scene: Path, data: Path, **meta) -> Path:
-    """A transforms.json of the generated scene's cameras (global w/h, OPENCV) with its images, ``meta`` overriding
-    top-level keys."""
-    shutil.copytree(generated_scene / "images", data / "images")
-    reconstruction = input_model(generated_scene)
-    frames = []
-    for image_id in sorted(reconstruction.images):
-        image = reconstruction.images[image_id]
-        c2w = np.linalg.inv(np.vstack([image.cam_from_world().matrix(), [0, 0, 0, 1]]))
-        c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
-        frames.append({"file_path": f"images/{image.name}", "transform_matrix": c2w.tolist()})
-    f, cx, cy, k1, k2 = reconstruction.cameras[1].params
-    content = {"camera_model": "OPENCV", "fl_x": f, "fl_y": f, "cx": cx, "cy": cy, "w": WIDTH, "h": HEIGHT}
-    content.update(k1=k1, k2=k2, p1=0.0, p2=0.0, frames=frames, **meta)
-    (data / "transforms.json").write_text(json.dumps(content))
-    return data / "transforms.json"
-
-
 def test_transforms_size_that_disagrees_with_the_images_is_named(generated_scene: Path, tmp_path: Path):
     """transforms.json ``w`` twice the images' width (global, then per frame as ns-process-data writes it): refused
     with the image, the json file and both sizes, instead of training every ray through the wrong pixel."""
-    source = _write_transforms(generated_scene, tmp_path / "global", w=2 * WIDTH)
+    source = write_transforms(generated_scene, tmp_path / "global", w=2 * WIDTH)
     with pytest.raises(
         ValueError,
         match=rf"image .*/global/images/frame_\d+\.png is 50x38 but the w x h in {re.escape(str(source))} is 100x38: "
         r"every ray would go through the wrong pixel",
     ):
         parse(source)
-    source = _write_transforms(generated_scene, tmp_path / "per_frame")
+    source = write_transforms(generated_scene, tmp_path / "per_frame")
     meta = json.loads(source.read_text())
     del meta["w"], meta["h"]
     for i, frame in enumerate(meta["frames"]):
@@ -551,7 +512,7 @@ def test_transforms_size_that_disagrees_with_the_images_is_named(generated_scene
 def test_transforms_images_of_a_downscaled_folder_are_checked_and_fitted(generated_scene: Path, tmp_path: Path):
     """downscale_factor 4 reads images_4 beside the json: its rounded sizes (13 x 10 for 50 x 38) are the cameras'
     (nerfstudio alone floors them to 12 x 9 and keeps f / 4), and a folder of another size is refused by name."""
-    source = _write_transforms(generated_scene, tmp_path / "ns")
+    source = write_transforms(generated_scene, tmp_path / "ns")
     (source.parent / "images_4").mkdir()
     small = (13, 10)
     for path in (source.parent / "images").iterdir():

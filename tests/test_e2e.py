@@ -373,44 +373,110 @@ def test_camp_baseline_trains(tiny_scene: Path, tiny_scene_config, tmp_path: Pat
     assert "method_name: s2camp-camp" in (run_dir / "config.yml").read_text()
 
 
-def test_interrupted_run_resumes_bit_identically(tiny_scene: Path, tmp_path: Path):
-    """``ns-train s2camp`` resumed from its step-6 checkpoint (``--load-checkpoint``, as after a kill) runs steps 7-11
-    again, across the P refresh at step 8, and ends with the checkpoint of the uninterrupted run, bit for bit: camera
-    parameters, P, field and proposal weights. It relies on the checkpoint's random state (``nerfstudio/trainer.py``);
-    without it the resumed run redraws its rays and differs (measured: whitened deltas 3e-3 apart after 20 + 20
-    steps). Both runs use one CPU thread: with two, this test fails (the field's weights and the latent differ in the
-    last bits) and with one it passes, measured; the likely source is multi-threaded CPU reductions, whose order
-    torch does not fix."""
+RESUME_STEPS, RESUME_AT, REFRESH_EVERY = 20, 12, 8
+"""The resume runs: 20 steps, resumed after step 12 (past the proposal sampler's warm-up of 10 steps, in which it
+updates the proposal networks at every step whatever its counters say), P refreshed every 8 steps (0, 8 and 16: the
+resumed steps cross the refresh at 16)."""
+
+
+@dataclass
+class ResumeRuns:
+    runs: Path
+    """Folder of the two runs: ``whole`` (steps 0-19) and ``resumed`` (steps 13-19 from whole's step-12 checkpoint)."""
+
+    def checkpoint(self, timestamp: str, step: int) -> dict:
+        return torch.load(self.runs / timestamp / "nerfstudio_models" / f"step-{step:09d}.ckpt", map_location="cpu")
+
+
+@pytest.fixture(scope="module")
+def resume_runs(tiny_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> ResumeRuns:
+    """An uninterrupted run and the same run resumed from its step-12 checkpoint with ``--load-dir`` and
+    ``--load-step``, as after a kill, both on one CPU thread (module constants)."""
+    output = tmp_path_factory.mktemp("resume")
     perturbation = replace(demo.DemoConfig(), sigma_position=0.01, sigma_look_at=0.01)
-    runs = tmp_path / "resume" / "s2camp"
+    runs = output / "resume" / "s2camp"
 
     def train(timestamp: str, iterations: int, extra: list[str]) -> None:
         command = [
-            *train_commands.ns_train_arguments("s2camp", tiny_scene, tmp_path, "resume", timestamp, iterations, 6, 256),
+            *train_commands.ns_train_arguments("s2camp", tiny_scene, output, "resume", timestamp, iterations, 4, 256),
             "--save-only-latest-checkpoint", "False",
             "--vis", "tensorboard",
-            "--pipeline.model.camera-optimizer.refresh-every", "4",
-            *train_commands.camera_schedule_arguments(1e-3, 1e-4, 12),
+            "--pipeline.model.camera-optimizer.refresh-every", str(REFRESH_EVERY),
+            *train_commands.camera_schedule_arguments(1e-3, 1e-4, RESUME_STEPS),
             *extra,
             *train_commands.perturbation_arguments(perturbation),
         ]  # fmt: skip
         result = _run(command, OMP_NUM_THREADS="1")
         assert result.returncode == 0, _failure(result, f"ns-train s2camp ({timestamp})")
 
-    def pipeline_state(timestamp: str, step: int) -> dict:
-        return torch.load(runs / timestamp / "nerfstudio_models" / f"step-{step:09d}.ckpt", map_location="cpu")[
-            "pipeline"
-        ]
+    train("whole", RESUME_STEPS, [])  # checkpoints after steps 0, 4, 8, 12, 16 and 19
+    resumed_from = ["--load-dir", str(runs / "whole" / "nerfstudio_models"), "--load-step", str(RESUME_AT)]
+    train("resumed", RESUME_STEPS - 1 - RESUME_AT, resumed_from)  # steps 13-19
+    return ResumeRuns(runs)
 
-    train("whole", 12, [])  # steps 0-11, checkpoints after steps 0, 6 and 11
-    train("resumed", 5, ["--load-checkpoint", str(runs / "whole" / "nerfstudio_models" / "step-000000006.ckpt")])
-    whole, resumed = pipeline_state("whole", 11), pipeline_state("resumed", 11)
-    assert set(whole) == set(resumed)
-    different = [key for key, value in whole.items() if not torch.equal(value, resumed[key])]
-    assert not different, f"tensors that differ after resuming: {different}"
-    assert int(whole["_model.camera_optimizer.num_refreshes"]) == 3  # steps 0, 4 and 8
+
+def _tensors(value, prefix: str = "") -> dict:
+    """Every tensor and number in a checkpoint's nested dicts and lists, by its path."""
+    if isinstance(value, dict):
+        return {key: item for name, entry in value.items() for key, item in _tensors(entry, f"{prefix}/{name}").items()}
+    if isinstance(value, list | tuple):
+        return {key: item for i, entry in enumerate(value) for key, item in _tensors(entry, f"{prefix}/{i}").items()}
+    return {prefix: value}
+
+
+def test_interrupted_run_resumes_bit_identically(resume_runs: ResumeRuns):
+    """The run resumed from step 12 ends with the uninterrupted run's step-19 checkpoint, bit for bit: every tensor of
+    the field, the proposal networks, the camera optimizer (latent, P, P^-1, refresh counters), every optimizer's and
+    scheduler's state, and the proposal sampler's counters. It relies on the checkpoint's random state and sampler
+    counters (``nerfstudio/trainer.py``); without the counters the resumed sampler restarts its warm-up and the runs
+    split at the first resumed step (measured: 70 of 204 entries differed). Both runs use one CPU thread: with two,
+    multi-threaded CPU reductions, whose order torch does not fix, make the last bits differ."""
+    whole, resumed = resume_runs.checkpoint("whole", 19), resume_runs.checkpoint("resumed", 19)
+    compared = ("pipeline", "optimizers", "schedulers", "scalers", "sampler_state")
+    expected = _tensors({key: whole[key] for key in compared})
+    actual = _tensors({key: resumed[key] for key in compared})
+    assert set(expected) == set(actual)
+    tensors = [key for key, value in expected.items() if isinstance(value, torch.Tensor)]
+    assert len(tensors) > 100 and any("/optimizers/camera_opt/state/" in key for key in tensors)
+    for part in ("field.mlp_head", "proposal_networks.1", "camera_optimizer.whitened_delta", "optimizer.precond"):
+        assert any(part in key for key in tensors), part
+    different = [
+        key for key, value in expected.items()
+        if not (torch.equal(value, actual[key]) if isinstance(value, torch.Tensor) else value == actual[key])
+    ]  # fmt: skip
+    assert not different, f"{len(different)} of {len(expected)} entries differ after resuming: {different[:20]}"
+    assert int(whole["pipeline"]["_model.camera_optimizer.num_refreshes"]) == 3  # steps 0, 8 and 16
+    resumed_state = resume_runs.checkpoint("whole", RESUME_AT)
+    assert resumed_state["sampler_state"]["proposal_sampler"]["_step"] == RESUME_AT  # past the warm-up (< 10)
     delta = "_model.camera_optimizer.whitened_delta"
-    assert not torch.equal(whole[delta], pipeline_state("whole", 6)[delta])  # the resumed steps did move the cameras
+    assert not torch.equal(whole["pipeline"][delta], resumed_state["pipeline"][delta])  # the resumed steps moved it
+
+
+def test_resumed_run_records_its_checkpoint_and_is_exported_and_evaluated(resume_runs: ResumeRuns, tmp_path: Path):
+    """The resumed run's config.yml names the checkpoint it loaded (``load_checkpoint``; no ``load_dir`` and
+    ``load_step``, which nerfstudio's eval_setup would look for in the resumed run's own folder, where there is no
+    step 12); ``s2camp-export-cameras`` and ``s2camp-eval`` load its own last checkpoint."""
+    import yaml
+
+    run = resume_runs.runs / "resumed"
+    config = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+    loaded = resume_runs.runs / "whole" / "nerfstudio_models" / f"step-{RESUME_AT:09d}.ckpt"
+    assert config.load_checkpoint == loaded.resolve()
+    assert config.load_dir is None and config.load_step is None
+    export = str(Path(sys.executable).with_name("s2camp-export-cameras"))
+    output_dir = tmp_path / "sparse" / "0"
+    result = _run([export, "--load-config", str(run / "config.yml"), "--output-dir", str(output_dir)])
+    assert result.returncode == 0, _failure(result, "s2camp-export-cameras (resumed run)")
+    assert all((output_dir / name).is_file() for name in ("cameras.bin", "images.bin", "points3D.bin"))
+    evaluate = str(Path(sys.executable).with_name("s2camp-eval"))
+    output = tmp_path / "aligned.json"
+    result = _run(
+        [evaluate, "--load-config", str(run / "config.yml"), "--output-path", str(output),
+         "--alignment.steps", "2", "--alignment.rays", "64"],
+    )  # fmt: skip
+    assert result.returncode == 0, _failure(result, "s2camp-eval (resumed run)")
+    payload = json.loads(output.read_text())
+    assert payload["step"] == 19 and payload["checkpoint"] == str(run / "nerfstudio_models" / "step-000000019.ckpt")
 
 
 def test_demo_default_recipe_runs_the_method_defaults_from_scratch(tmp_path: Path):

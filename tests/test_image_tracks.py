@@ -18,6 +18,7 @@ import torch
 
 from s2camp_ns.core.alignment import camera_errors
 from s2camp_ns.nerfstudio import image_tracks as module
+from s2camp_ns.nerfstudio.image_check import ImageFileError
 from s2camp_ns.nerfstudio.image_tracks import cache_key, image_tracks, neighbour_pairs
 
 ROTATION_NOISE = 0.01
@@ -253,17 +254,19 @@ def test_a_transforms_json_without_tracks_gets_them_from_its_full_size_images(te
     assert bool(torch.isfinite(rms).all()) and float(rms.max()) < 1.0
 
 
-def test_an_image_colmap_cannot_read_is_named_instead_of_missing_from_the_tracks(tiny_scene: Path, tmp_path: Path):
+def test_an_image_that_cannot_be_decoded_is_named_before_the_build(tiny_scene: Path, tmp_path: Path):
+    """COLMAP skips an image it cannot decode (the scene then had no tracks, for a reason in a note): the build
+    decodes every image first and stops, naming it, and caches nothing."""
     images = tmp_path / "images"
     images.mkdir()
     for file in (tiny_scene / "images").iterdir():
         (images / file.name).write_bytes(file.read_bytes())
     (images / "frame_00003.png").write_bytes(b"not a png")
     truth = pycolmap.Reconstruction(tiny_scene / "sparse" / "0")
-    result = image_tracks(_given(truth, rotation=0.0, centre=0.0, focal=1.0), images, tmp_path / "cache")
-    assert result.model is None
-    expected = f"COLMAP could not read 1 of {truth.num_images()} images (first: 'frame_00003.png')"
-    assert result.reason.startswith(expected)
+    pattern = rf"^image {re.escape(str(images / 'frame_00003.png'))}, listed by the scene \(image tracks\), cannot be"
+    with pytest.raises(ImageFileError, match=pattern):
+        image_tracks(_given(truth, rotation=0.0, centre=0.0, focal=1.0), images, tmp_path / "cache")
+    assert not [path for path in (tmp_path / "cache").iterdir() if not path.name.startswith(".")]
 
 
 @pytest.mark.parametrize(

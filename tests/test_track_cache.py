@@ -80,19 +80,6 @@ def user_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 
 @pytest.fixture
-def given(tiny_scene: Path) -> pycolmap.Reconstruction:
-    """The tiny scene's cameras and poses, no points."""
-    truth = pycolmap.Reconstruction(tiny_scene / "sparse" / "0")
-    cameras = pycolmap.Reconstruction()
-    for camera in truth.cameras.values():
-        cameras.add_camera_with_trivial_rig(camera)
-    for image in truth.images.values():
-        posed = pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id)
-        cameras.add_image_with_trivial_frame(posed, image.cam_from_world())
-    return cameras
-
-
-@pytest.fixture
 def scene(tiny_scene: Path, tmp_path: Path) -> Iterator[Path]:
     """A scene folder of its own (links to the tiny scene's files, not to the image tracks' cache that other tests of
     the session may have built in the shared tiny scene), writable again after the test."""

@@ -18,18 +18,29 @@ import torch
 from hang_guard import HANG_GUARD_S
 from nerfstudio.configs.base_config import MachineConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig, Optimizers
+from nerfstudio.model_components.ray_samplers import ProposalNetworkSampler
 from nerfstudio.utils.eval_utils import eval_load_checkpoint
 
 from s2camp_ns.nerfstudio import trainer as trainer_module
-from s2camp_ns.nerfstudio.trainer import S2CampTrainer, S2CampTrainerConfig, partial_dir
+from s2camp_ns.nerfstudio.trainer import S2CampTrainer, S2CampTrainerConfig, partial_dir, set_sampler_state
 
 
-class TinyPipeline(torch.nn.Module):
-    """What the trainer and nerfstudio's checkpoint loader use of a pipeline: its state dict and load_pipeline."""
+class TinyModel(torch.nn.Module):
+    """A layer and nerfstudio's proposal sampler, whose step counters live outside the state dict."""
 
     def __init__(self) -> None:
         super().__init__()
         self.layer = torch.nn.Linear(3, 2)
+        self.proposal_sampler = ProposalNetworkSampler()
+
+
+class TinyPipeline(torch.nn.Module):
+    """What the trainer and nerfstudio's checkpoint loader use of a pipeline: its model, state dict and
+    load_pipeline."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.model = TinyModel()
         self.loaded_step: int | None = None
 
     def load_pipeline(self, state: dict, step: int) -> None:
@@ -52,7 +63,7 @@ def make_trainer(output_dir: Path) -> S2CampTrainer:
 def train_step(trainer: S2CampTrainer) -> None:
     adam = trainer.optimizers.optimizers["fields"]
     adam.zero_grad()
-    trainer.pipeline.layer(torch.ones(1, 3)).sum().backward()
+    trainer.pipeline.model.layer(torch.ones(1, 3)).sum().backward()
     adam.step()
 
 
@@ -87,6 +98,7 @@ def test_checkpoint_holds_the_state_and_replaces_older_ones(tmp_path: Path):
         "schedulers",
         "scalers",
         "random_state",
+        "sampler_state",
     }
     adam_state = state["optimizers"]["fields"]["state"]
     assert int(adam_state[0]["step"]) == 2  # Adam's moments after two steps, saved with the weights
@@ -153,10 +165,14 @@ def test_killed_write_keeps_the_previous_checkpoint(tmp_path: Path):
     assert not list(partial_dir(checkpoint_dir).iterdir())
 
 
-def test_resume_restores_weights_adam_step_and_random_state(tmp_path: Path):
+def test_resume_restores_weights_adam_step_random_state_and_sampler_counters(tmp_path: Path):
     """--load-dir: the highest step-N.ckpt is loaded (other files ignored), training continues at N + 1 with the
-    weights, Adam's state and the random generators' state of the save, so its next draws are the ones the
-    uninterrupted run makes."""
+    weights, Adam's state, the random generators' state and the proposal sampler's counters of the save, so its next
+    draws, and its choice of updating the proposal networks, are the ones the uninterrupted run makes. The resumed
+    run's config.yml names the checkpoint it loaded, without load_dir and load_step (which eval_setup would look for
+    in the resumed run's own folder)."""
+    import yaml
+
     torch.manual_seed(0)
     np.random.seed(0)  # noqa: NPY002 (the global generator nerfstudio seeds)
     random.seed(0)
@@ -164,6 +180,8 @@ def test_resume_restores_weights_adam_step_and_random_state(tmp_path: Path):
     train_step(trainer)
     trainer.save_checkpoint(10)
     train_step(trainer)
+    sampler = trainer.pipeline.model.proposal_sampler
+    sampler._step, sampler._steps_since_update = 20, 3
     trainer.save_checkpoint(20)
     weights = snapshot(trainer)
     adam_state = {k: v.clone() for k, v in trainer.optimizers.optimizers["fields"].state_dict()["state"][0].items()}
@@ -177,6 +195,11 @@ def test_resume_restores_weights_adam_step_and_random_state(tmp_path: Path):
     resumed.config.load_dir = trainer.checkpoint_dir
     resumed._load_checkpoint()
     assert resumed._start_step == 21
+    restored = resumed.pipeline.model.proposal_sampler
+    assert (restored._step, restored._steps_since_update) == (20, 3)
+    recorded = yaml.load((resumed.base_dir / "config.yml").read_text(), Loader=yaml.Loader)
+    assert recorded.load_checkpoint == (trainer.checkpoint_dir / "step-000000020.ckpt").resolve()
+    assert recorded.load_dir is None and recorded.load_step is None
     for name, value in weights.items():
         assert torch.equal(resumed.pipeline.state_dict()[name], value), name
     loaded_adam = resumed.optimizers.optimizers["fields"].state_dict()["state"][0]
@@ -184,6 +207,13 @@ def test_resume_restores_weights_adam_step_and_random_state(tmp_path: Path):
     draws = (torch.rand(4), np.random.rand(4), random.random())  # noqa: NPY002
     assert torch.equal(draws[0], uninterrupted_draws[0])
     assert np.array_equal(draws[1], uninterrupted_draws[1]) and draws[2] == uninterrupted_draws[2]
+
+
+def test_sampler_counters_of_another_model_are_refused():
+    """Counters saved for samplers the model does not have (another model's checkpoint) are refused by name."""
+    model = TinyModel()
+    with pytest.raises(ValueError, match=r"proposal samplers \['other'\] are not the model's \['proposal_sampler'\]"):
+        set_sampler_state(model, {"other": {"_step": 1, "_steps_since_update": 1}})
 
 
 def test_several_processes_keep_their_own_random_streams_on_resume(tmp_path: Path):

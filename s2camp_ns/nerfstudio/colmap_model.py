@@ -125,7 +125,9 @@ def _binary_size(kind: Kind, records: dict) -> int:
 
 
 def _check_records(kind: Kind, path: Path, records: dict) -> None:
-    """Values no valid model holds: parameter counts that do not match the model, non-finite numbers."""
+    """Values no valid model holds: parameter counts that do not match the model, non-finite numbers, an image name
+    given to two images."""
+    names: dict[str, int] = {}
     for record_id, record in records.items():
         if kind == "cameras":
             model = colmap_utils.CAMERA_MODEL_NAMES.get(record.model)
@@ -142,6 +144,12 @@ def _check_records(kind: Kind, path: Path, records: dict) -> None:
                 )
         elif kind == "images":
             values = [*record.qvec, *record.tvec]
+            if record.name in names:
+                raise ColmapModelError(
+                    f"{path}: images {names[record.name]} and {record_id} are both named '{record.name}': one image "
+                    "under two poses is ambiguous; image names must be unique"
+                )
+            names[record.name] = record_id
         else:
             values = list(record.xyz)
         if not all(math.isfinite(float(v)) for v in values):

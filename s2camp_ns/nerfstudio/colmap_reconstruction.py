@@ -95,8 +95,11 @@ def _checked_poses(c2w_opencv: Float[Tensor, "n 3 4"] | np.ndarray, image_names:
     n = c2w.shape[0]
     if len(image_names) != n:
         raise ValueError(f"image_names must have {n} entries (one per camera), got {len(image_names)}")
-    if len(set(image_names)) != n:
-        raise ValueError("image_names must be unique")
+    first: dict[str, int] = {}
+    for i, name in enumerate(image_names):
+        if name in first:
+            raise ValueError(f"image_names must be unique: '{name}' names images {first[name]} and {i}")
+        first[name] = i
     return c2w
 
 

@@ -197,7 +197,8 @@ def parse_colmap(
         raise ValueError(f"the {split} split of {model} is empty (eval_mode={config.eval_mode!r})")
     names = [Path(p).relative_to(image_folder).as_posix() for p in outputs.image_filenames]
     declared = [(*parser.full_sizes[name], parser.size_source[name]) for name in names]
-    cameras = fit_intrinsics_to_images(outputs.cameras, outputs.image_filenames, declared, k)
+    images_file = model_file(model, "images")
+    cameras = fit_intrinsics_to_images(outputs.cameras, outputs.image_filenames, declared, k, images_file)
     distortion = torch.tensor([parser.distortion[name] for name in names], dtype=torch.float32)
     cameras = replace_cameras(cameras, distortion_params=distortion)
     full_size = torch.tensor([parser.full_sizes[name] for name in names], dtype=torch.int64)

@@ -11,9 +11,11 @@ on the terminal and exit). Intrinsics are rescaled to the actual size of those i
 ``images_4`` round the sizes (3114 -> 779) where nerfstudio floors them (778), which would shift the principal
 point by half a pixel.
 
-Before training, the scene is validated (corrupt or truncated model files, images listed by the model but missing
-on disk, images whose size is not the one the COLMAP camera or the transforms.json ``w``/``h`` declare, unsupported
-camera models, empty scenes) with errors that name the file and what was expected. Both formats get the same image
+Before training, the scene is validated (corrupt or truncated model files, a transforms.json that is not valid JSON,
+lacks a key, holds a NaN or infinite number or lists an image in two frames (``transforms_file``), images listed but
+missing on disk or that cannot be decoded in full (``image_check``), images whose size is not the one the COLMAP
+camera or the transforms.json ``w``/``h`` declare, unsupported camera models, empty scenes) with errors that name the
+file (and the frame or image) and what was expected. Both formats get the same image
 size check and intrinsics fit (``scene_formats.fit_intrinsics_to_images``), against the images the parser actually uses.
 
 Camera models: COLMAP SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV (k4 = k5 = k6 = 0) and

@@ -34,10 +34,14 @@ adjusted cameras become the anchor, each image's reprojection RMS its radius.
 Cache. The model is built once per set of images and given cameras, in ``<cache>/<key>``: the key hashes the recipe
 (``RECIPE_VERSION``, pycolmap's version), each image's name, size and modification time and the given cameras
 (intrinsics and poses, every bit). Later runs read it. On one machine two builds of one key are bit-identical
-(``feature_database.number_images``, ``MATCHING_THREADS``). A build writes into a temporary sibling folder renamed
-at the end, so no process reads half a model and no entry is overwritten; the feature database is deleted once the
-model is written. Where the cache lives and the lock that lets one process build an entry while others wait:
-``track_cache``.
+(``feature_database.number_images``, ``MATCHING_THREADS``). A build decodes every image first
+(``image_check.decoded_sizes``: a damaged image is named, not skipped by COLMAP) and writes into a temporary sibling
+folder renamed at the end, so no process reads half a model and no entry is overwritten; the feature database is
+deleted once the model is written. ``RESULT_FILE`` holds the SHA-256 of each model file; an entry whose result does
+not parse, or whose files are missing or differ from their digests (or, in an entry written before the digests, do not
+read as a COLMAP model), is damaged: it is never used, a notice names it and why, and the tracks are built again in
+its place (``track_cache.notice_damaged``). Where the cache lives and the lock that lets one process build an entry
+while others wait: ``track_cache``.
 """
 
 from __future__ import annotations
@@ -61,14 +65,25 @@ from s2camp_ns.colmap_log import colmap_log_to
 from s2camp_ns.core.alignment import MIN_CAMERAS_FOR_ALIGNMENT, rotation_angle, umeyama
 from s2camp_ns.core.track_fit import MIN_OBSERVATIONS
 from s2camp_ns.nerfstudio.build_progress import BuildProgress, DatabaseCounter, database_count, duration_text
+from s2camp_ns.nerfstudio.colmap_model import ColmapModelError, read_model_file
 from s2camp_ns.nerfstudio.feature_database import (
     given_with_database_ids,
     names_by_camera,
     number_images,
     open_database,
 )
+from s2camp_ns.nerfstudio.image_check import decoded_sizes
 from s2camp_ns.nerfstudio.robust_adjustment import cauchy_adjustment_options
-from s2camp_ns.nerfstudio.track_cache import build_folder, entry_lock, remove_stale_builds, user_cache_folder
+from s2camp_ns.nerfstudio.track_cache import (
+    DamagedEntryError,
+    build_folder,
+    discard,
+    entry_lock,
+    file_digest,
+    notice_damaged,
+    remove_stale_builds,
+    user_cache_folder,
+)
 
 RECIPE_VERSION = 4
 """Part of the cache key: raise it when the recipe changes, so older caches are not read. 3: the thresholds scaled
@@ -112,8 +127,10 @@ builds"). The other stages keep COLMAP's threads: SIFT once the images are numbe
 (``feature_database.number_images``), triangulation and Ceres' adjustment as they are (two builds on 2 threads were
 bit-identical)."""
 RESULT_FILE = "result.json"
-"""Written last into a cache folder: the summary, or why no tracks could be made, and the build's wall seconds per
-kind of stage (``ImageTracks.stage_seconds``)."""
+"""Written last into a cache folder: the summary, or why no tracks could be made, the build's wall seconds per kind of
+stage (``ImageTracks.stage_seconds``) and the SHA-256 of each of the ``MODEL_FILES`` (``files``)."""
+MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
+"""The model of a cache entry that holds tracks."""
 STAGES_FILE = "stages.json"
 """The build's wall seconds per kind of stage, written by ``_build`` and moved into ``RESULT_FILE``."""
 MIN_TRACKED_FRACTION = 0.5
@@ -182,13 +199,20 @@ def image_tracks(
         return ImageTracks(None, reason=reason)
     key = cache_key(given, image_root)
     for folder in (cache, user_cache_folder()) if user_fallback else (cache,):
-        if (folder / key / RESULT_FILE).is_file():  # read even where it cannot be written (a shipped cache)
-            return _cached(folder / key)
+        if (folder / key).exists():  # read even where it cannot be written (a shipped cache)
+            try:
+                return _cached(folder / key)
+            except DamagedEntryError as error:
+                notice_damaged(folder / key, "Image tracks", str(error))
     final = build_folder(cache, user_fallback) / key
     with entry_lock(final):
-        if (final / RESULT_FILE).is_file():  # built by another process while this one waited
-            return _cached(final)
+        if final.exists():
+            try:  # built by another process while this one waited
+                return _cached(final)
+            except DamagedEntryError:  # noticed above: never used, built again in its place
+                discard(final)
         remove_stale_builds(final)
+        decoded_sizes([image_root / image.name for image in given.images.values()], "the scene (image tracks)")
         return _store(given, image_root, final)
 
 
@@ -207,6 +231,7 @@ def _store(given: pycolmap.Reconstruction, image_root: Path, final: Path) -> Ima
         if reason is None:
             result["summary"] = _summary(given, reconstruction, time.perf_counter() - started)
             reconstruction.write_binary(work)
+            result["files"] = {name: file_digest(work / name) for name in MODEL_FILES}
         (work / RESULT_FILE).write_text(json.dumps(result), encoding="utf8")
         (work / "database.db").unlink(missing_ok=True)
         shutil.rmtree(work / "triangulated", ignore_errors=True)
@@ -225,13 +250,40 @@ def _store(given: pycolmap.Reconstruction, image_root: Path, final: Path) -> Ima
 
 def _cached(folder: Path) -> ImageTracks:
     """The ``ImageTracks`` of a finished cache folder: its model, or why there is none (a failed build is cached too,
-    so that every run does not repeat it)."""
-    result = json.loads((folder / RESULT_FILE).read_text(encoding="utf8"))
+    so that every run does not repeat it). Raises ``DamagedEntryError`` saying why when the entry is damaged (module
+    docstring, Cache)."""
+    result = _result(folder)
     stage_seconds = result.get("stage_seconds", {})
     if result["reason"] is not None:
         reason = f"{result['reason']} (COLMAP's log: {folder / 'colmap.log'})"
         return ImageTracks(None, reason=reason, stage_seconds=stage_seconds)
+    digests = result.get("files")
+    for name, kind in zip(MODEL_FILES, ("cameras", "images", "points3D"), strict=True):
+        if not (folder / name).is_file():
+            raise DamagedEntryError(f"{name} is missing")
+        if digests is None:  # an entry from before the digests: its files must at least read as a model
+            try:
+                read_model_file(folder / name, kind)
+            except ColmapModelError as error:
+                raise DamagedEntryError(str(error)) from error
+        elif file_digest(folder / name) != digests.get(name):
+            raise DamagedEntryError(f"{name} is not the file the build wrote (its SHA-256 differs)")
     return ImageTracks(folder, result["summary"], stage_seconds=stage_seconds)
+
+
+def _result(folder: Path) -> dict:
+    """The parsed ``RESULT_FILE`` of a cache entry; ``DamagedEntryError`` when it is missing or malformed."""
+    path = folder / RESULT_FILE
+    try:
+        result = json.loads(path.read_text(encoding="utf8"))
+    except FileNotFoundError:
+        raise DamagedEntryError(f"it has no {RESULT_FILE}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DamagedEntryError(f"{RESULT_FILE} is not valid JSON ({error})") from None
+    valid = isinstance(result, dict) and (result.get("reason") is None or isinstance(result["reason"], str))
+    if not valid or "reason" not in result or (result["reason"] is None and not isinstance(result.get("summary"), str)):
+        raise DamagedEntryError(f"{RESULT_FILE} lacks its 'reason' or 'summary'")
+    return result
 
 
 def _build(given: pycolmap.Reconstruction, image_root: Path, work: Path) -> tuple[pycolmap.Reconstruction, str | None]:

@@ -26,6 +26,8 @@ rendering, export). Its points are kept in the user's cache folder (``track_cach
 ``CACHE_KIND``), one ``<key>.npz`` per model, the key a hash of the model's files and of this recipe (``RECIPE``), so
 an edited model gets a new entry and the scene folder is never written; processes that ask at once build it once
 (``track_cache.entry_lock``). Where the cache folder cannot be written the points are adjusted in memory, with a note.
+An entry that does not read back (a damaged file: zip's CRC, the arrays' names, shapes and finiteness) is never used:
+a notice names it (``track_cache.notice_damaged``) and the points are adjusted again and the entry rewritten.
 
 Measured against the tracks' points as SfM left them: docs/DESIGN-NOTES.md sec. 8 and the regime and splat
 benchmarks' ``sfm`` rows.
@@ -38,6 +40,7 @@ import hashlib
 import os
 import tempfile
 import time
+import zipfile
 from functools import lru_cache
 from pathlib import Path
 
@@ -52,12 +55,21 @@ from s2camp_ns.colmap_log import colmap_log_to
 from s2camp_ns.core.alignment import MIN_CAMERAS_FOR_ALIGNMENT, umeyama
 from s2camp_ns.core.track_fit import LOSS_SCALE_PX
 from s2camp_ns.nerfstudio.colmap_model import model_file
-from s2camp_ns.nerfstudio.track_cache import entry_lock, user_cache_folder, write_error
+from s2camp_ns.nerfstudio.track_cache import (
+    DamagedEntryError,
+    entry_lock,
+    hash_file,
+    notice_damaged,
+    user_cache_folder,
+    write_error,
+)
 
 RECIPE = 1
 """Part of the cache key: raise it when the adjustment changes, so entries of the old one are not read."""
 CACHE_KIND = "readjusted_points"
 """The cache's folder in the user's cache folder (``track_cache.user_cache_folder``)."""
+WHAT = "Re-adjusted SfM points"
+"""What the cache holds, in its notices (``track_cache``)."""
 LOG = Console(stderr=True, width=120)
 """Start-up notes (the adjustment takes seconds to minutes on large models): on stderr, as the data parser's."""
 
@@ -92,10 +104,16 @@ def _cached(files: tuple[tuple[str, int], ...]) -> dict[int, np.ndarray]:
         return _adjusted(folder)
     entry = cache / f"{cache_key([Path(path) for path, _ in files])}.npz"
     if entry.is_file():
-        return _read(entry)
-    with entry_lock(entry, "Re-adjusted SfM points"):
-        if entry.is_file():  # built by the process this one waited for
+        try:
             return _read(entry)
+        except DamagedEntryError as error:
+            notice_damaged(entry, WHAT, str(error))
+    with entry_lock(entry, WHAT):
+        if entry.is_file():
+            try:  # built by the process this one waited for
+                return _read(entry)
+            except DamagedEntryError:  # noticed above: adjusted again and rewritten
+                pass
         points = _adjusted(folder)
         _write(entry, points)
     return points
@@ -106,15 +124,23 @@ def cache_key(files: list[Path]) -> str:
     digest = hashlib.sha256(f"{RECIPE} {LOSS_SCALE_PX!r}".encode())
     for path in files:
         digest.update(path.name.encode() + b"\0")
-        with open(path, "rb") as handle:
-            for block in iter(lambda: handle.read(1 << 20), b""):
-                digest.update(block)
+        hash_file(digest, path)
     return digest.hexdigest()[:24]
 
 
 def _read(entry: Path) -> dict[int, np.ndarray]:
-    with np.load(entry) as stored:
-        ids, xyz = stored["ids"], stored["xyz"]  # [m], [m, 3]
+    """The points of a cache entry; ``DamagedEntryError`` saying why when it does not read back as written."""
+    try:
+        with np.load(entry) as stored:
+            ids, xyz = stored["ids"], stored["xyz"]  # [m], [m, 3]
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
+        raise DamagedEntryError(f"{type(error).__name__}: {error}") from error
+    shaped = ids.ndim == 1 and ids.dtype == np.int64 and xyz.shape == (len(ids), 3) and xyz.dtype == np.float64
+    if not shaped or not np.isfinite(xyz).all():
+        raise DamagedEntryError(
+            f"expected int64 ids [m] and finite float64 xyz [m, 3], found {ids.dtype} ids {list(ids.shape)} and "
+            f"{xyz.dtype} xyz {list(xyz.shape)}" + ("" if np.isfinite(xyz).all() else " with NaN or infinite values")
+        )
     return {int(point_id): xyz[row] for row, point_id in enumerate(ids)}
 
 

@@ -13,12 +13,12 @@ from typing import TYPE_CHECKING, Literal
 
 from jaxtyping import Int
 from nerfstudio.cameras.cameras import Cameras
-from PIL import Image
 from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.nerfstudio.camera_fields import replace_cameras
+from s2camp_ns.nerfstudio.image_check import decoded_sizes
 
 if TYPE_CHECKING:
     from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
@@ -137,24 +137,25 @@ def nerfstudio_parser_options(config: S2CampDataParserConfig) -> dict:
 
 
 def fit_intrinsics_to_images(
-    cameras: Cameras, image_filenames: list[Path], declared: list[tuple[int, int, str]], k: int
+    cameras: Cameras, image_filenames: list[Path], declared: list[tuple[int, int, str]], k: int, listed_by: Path
 ) -> Cameras:
-    """Check each image's size against the size its scene file declares and fit the cameras to the images.
+    """Decode each image, check its size against the size its scene file declares and fit the cameras to the images.
 
     ``declared[i]`` = (width, height, where it is declared) of image i at full size (the COLMAP camera's or the
     transforms.json ``w``/``h``). The image, read from the folder the parser uses (``images_{k}`` at downscale factor
     k), must be that size divided by k within a pixel (rounding of the downscaled folder); otherwise a ValueError
     names the image, the declaring file and both sizes: with a wrong size every ray would go through the wrong pixel.
     Each camera then gets its image's size, and its intrinsics (already divided by k) the true per-axis resize
-    ratio, so that a rounded folder (mip-NeRF 360's 3114 -> 779) does not shift the principal point. Only image
-    headers are read (PIL's ``Image.open`` decodes no pixels).
+    ratio, so that a rounded folder (mip-NeRF 360's 3114 -> 779) does not shift the principal point. Every image is
+    decoded in full first (``image_check.decoded_sizes``): one that cannot be is named with ``listed_by``, the scene
+    file that lists it.
     """
     fx, fy, cx, cy = (getattr(cameras, name).clone() for name in ("fx", "fy", "cx", "cy"))
     width, height = cameras.width.clone(), cameras.height.clone()
+    sizes = decoded_sizes(image_filenames, listed_by)
     for i, path in enumerate(image_filenames):
         full_w, full_h, declared_by = declared[i]
-        with Image.open(path) as image:
-            w, h = image.size
+        w, h = sizes[i]
         if abs(w - full_w / k) > 1.0 or abs(h - full_h / k) > 1.0:
             if k == 1:
                 expected, advice = "", "correct the size there"

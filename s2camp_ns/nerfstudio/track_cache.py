@@ -14,11 +14,17 @@ waiter is never stuck behind a dead builder: it finds no finished entry and buil
 file before it lets go, so a finished cache holds its entries only; a waiter whose lock file was removed locks the new
 one. Without ``fcntl`` (Windows) there is no lock: processes that build at once each build, and the entry of the
 first to finish is kept.
+
+Damage. A cache entry that cannot be read as it was written (a disk error, a copy cut short, an edit) is never used:
+its reader raises ``DamagedEntryError``, the caller shows one notice naming the entry and why (``notice_damaged``)
+and builds it again in its place, under the lock (``discard``). Files are compared with the digest their entry
+records (``file_digest``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import shutil
 import socket
@@ -26,6 +32,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 from rich.markup import escape
@@ -42,6 +49,45 @@ USER_CACHE_NAME = "s2camp-ns"
 LOG = Console(stderr=True, width=120)
 """Notes of the cache: where a build goes when the scene folder cannot be written, and that a process waits for
 another's build (on stderr, as the data parser's)."""
+
+
+class DamagedEntryError(ValueError):
+    """A cache entry that cannot be used as it is (module docstring, Damage); the message says why."""
+
+
+def notice_damaged(entry: Path, what: str, why: str) -> None:
+    """The notice that the cache entry ``entry`` of ``what`` is damaged (``why``), not used and built again."""
+    LOG.print(
+        f"[bold yellow]{what}: the cache entry {escape(str(entry))} is damaged ({escape(why)}); it is not used, and "
+        "is built again",
+        soft_wrap=True,
+    )
+
+
+def hash_file(digest: Any, path: Path) -> None:
+    """Feed the bytes of the file ``path`` to ``digest`` (a ``hashlib`` object), a block at a time."""
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+
+
+def discard(entry: Path) -> None:
+    """Remove the damaged cache entry ``entry`` (a folder or a file); only the holder of its ``entry_lock`` may call
+    it. It is first renamed out of sight (a name ``remove_stale_builds`` also clears), so that a process reading the
+    cache without the lock finds either the whole entry or none."""
+    hidden = entry.parent / f".{entry.name}.{os.getpid()}.damaged.building"
+    os.rename(entry, hidden)
+    if hidden.is_dir():
+        shutil.rmtree(hidden, ignore_errors=True)
+    else:
+        hidden.unlink(missing_ok=True)
+
+
+def file_digest(path: Path) -> str:
+    """The SHA-256 (hex) of the file ``path``."""
+    digest = hashlib.sha256()
+    hash_file(digest, path)
+    return digest.hexdigest()
 
 
 def user_cache_folder(kind: str = "image_tracks") -> Path:
@@ -184,8 +230,13 @@ def _notice_wait(handle: int, entry: Path, what: str) -> None:
 
 __all__ = [
     "USER_CACHE_NAME",
+    "DamagedEntryError",
     "build_folder",
+    "discard",
     "entry_lock",
+    "file_digest",
+    "hash_file",
+    "notice_damaged",
     "remove_stale_builds",
     "user_cache_folder",
     "write_error",

@@ -15,8 +15,20 @@ break both resuming and evaluation.
 nerfstudio's checkpoints do not hold the state of the random number generators, and its ``train.py`` seeds them
 afresh on every start: a resumed run then samples the rays and the proposal samples of its first steps again,
 and drifts from the uninterrupted run. The checkpoint also holds the state of torch's (CPU and CUDA), numpy's and
-Python's generators, restored after loading; with it a resumed CPU run is bit-identical to the uninterrupted one
-(tests/test_e2e.py checks it). Loading takes the highest ``step-N.ckpt`` and ignores other files in the folder.
+Python's generators, restored after loading. nerfstudio's proposal sampler (``ProposalNetworkSampler``) keeps the
+step counters of its update schedule in plain attributes, outside every state dict: a resumed run would restart them
+at 0, update the proposal networks at every step of its first ten (the sampler's warm-up) and split from the
+uninterrupted run at its first step. The checkpoint holds them too (``sampler_state``), restored after loading. With
+both, a resumed CPU run on one thread is bit-identical to the uninterrupted one: every tensor of the pipeline and of
+the optimizers (tests/test_e2e.py checks it past the sampler's warm-up and across a P refresh). Loading takes the
+highest ``step-N.ckpt`` and ignores other files in the folder.
+
+config.yml. nerfstudio's ``eval_setup`` (ns-eval, ns-render, s2camp-eval, s2camp-export-cameras) loads a run's own
+checkpoints: it replaces ``load_dir`` by the run's checkpoint folder but keeps ``load_step``, which for a run resumed
+with ``--load-dir D --load-step N`` names a step of D, not of the run. A resumed run therefore records the
+checkpoint it loaded as ``load_checkpoint`` in its config.yml, with ``load_dir`` and ``load_step`` cleared
+(``record_loaded_checkpoint``): the file says exactly where the run came from, ``ns-train --load-config`` resumes
+from the same checkpoint, and every tool that evaluates the run loads its latest checkpoint.
 """
 
 from __future__ import annotations
@@ -31,6 +43,8 @@ import numpy as np
 import torch
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.model_components.ray_samplers import ProposalNetworkSampler
+from nerfstudio.utils import comms
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -118,6 +132,33 @@ def set_random_state(state: dict[str, Any]) -> None:
     random.setstate((python_state["version"], tuple(python_state["state"].tolist()), python_state["gauss"]))
 
 
+SAMPLER_COUNTERS = ("_step", "_steps_since_update")
+"""The attributes of nerfstudio's ``ProposalNetworkSampler`` that decide whether a step updates the proposal networks
+(``generate_ray_samples``: always while ``_step < 10``, then when ``_steps_since_update`` exceeds the schedule)."""
+
+
+def sampler_state(model: torch.nn.Module) -> dict[str, dict[str, int]]:
+    """The counters (``SAMPLER_COUNTERS``) of every ``ProposalNetworkSampler`` in ``model``, by module name."""
+    return {
+        name: {counter: int(getattr(module, counter)) for counter in SAMPLER_COUNTERS}
+        for name, module in model.named_modules()
+        if isinstance(module, ProposalNetworkSampler)
+    }
+
+
+def set_sampler_state(model: torch.nn.Module, state: dict[str, dict[str, int]]) -> None:
+    """Restore what ``sampler_state`` returned; a sampler the state does not name (another model) is refused."""
+    samplers = {name: module for name, module in model.named_modules() if isinstance(module, ProposalNetworkSampler)}
+    if set(samplers) != set(state):
+        raise ValueError(
+            f"the checkpoint's proposal samplers {sorted(state)} are not the model's {sorted(samplers)}: the "
+            "checkpoint belongs to another model"
+        )
+    for name, counters in state.items():
+        for counter in SAMPLER_COUNTERS:
+            setattr(samplers[name], counter, int(counters[counter]))
+
+
 def latest_checkpoint(checkpoint_dir: Path) -> Path:
     """The ``step-N.ckpt`` with the highest N in ``checkpoint_dir``; other files are ignored."""
     steps = {}
@@ -176,6 +217,7 @@ class S2CampTrainer(Trainer):
             "schedulers": {name: scheduler.state_dict() for name, scheduler in self.optimizers.schedulers.items()},
             "scalers": self.grad_scaler.state_dict(),
             "random_state": random_state(),
+            "sampler_state": sampler_state(pipeline.model),
         }
         atomic_torch_save(state, path)
         if self.config.save_only_latest_checkpoint:
@@ -184,7 +226,8 @@ class S2CampTrainer(Trainer):
                     old.unlink()
 
     def _load_checkpoint(self) -> None:
-        """Load pipeline, optimizers, schedulers (unless ``--load-scheduler False``), grad scaler and random state."""
+        """Load pipeline, optimizers, schedulers (unless ``--load-scheduler False``), grad scaler, random state and
+        proposal sampler counters; a run resumed with ``--load-dir`` records the checkpoint in its config.yml."""
         config = self.config
         if config.load_dir is not None:
             path = (
@@ -214,7 +257,20 @@ class S2CampTrainer(Trainer):
         # keeps nerfstudio's own per-rank seeding (seed + rank) and the resumed run redraws its rays.
         if "random_state" in state and self.world_size == 1:
             set_random_state(state["random_state"])
+        pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+        if "sampler_state" in state:
+            set_sampler_state(pipeline.model, state["sampler_state"])
+        if config.load_dir is not None:
+            self.record_loaded_checkpoint(path)
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
+
+    def record_loaded_checkpoint(self, path: Path) -> None:
+        """Rewrite the run's config.yml with ``load_checkpoint`` = ``path`` (the checkpoint loaded) and no
+        ``load_dir`` / ``load_step`` (module docstring, config.yml); the main process only."""
+        config = self.config
+        config.load_checkpoint, config.load_dir, config.load_step = path.resolve(), None, None
+        if comms.is_main_process():
+            config.save_config()
 
 
 __all__ = [
@@ -223,5 +279,7 @@ __all__ = [
     "atomic_torch_save",
     "latest_checkpoint",
     "partial_dir",
+    "sampler_state",
+    "set_sampler_state",
     "with_run_length",
 ]

@@ -1,11 +1,11 @@
-"""A nerfstudio scene (``transforms.json``) read through nerfstudio's parser, validated: an empty scene and missing
-images named, the image sizes checked against the json's ``w`` x ``h`` and the intrinsics fitted to them
-(``scene_formats.fit_intrinsics_to_images``)."""
+"""A nerfstudio scene (``transforms.json``) read through nerfstudio's parser, validated: the file checked first
+(``transforms_file.read_transforms``: syntax, keys, finite numbers, each image in one frame), missing images named,
+the image sizes checked against the json's ``w`` x ``h`` and the intrinsics fitted to them
+(``scene_formats.fit_intrinsics_to_images``, which also decodes every image)."""
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -14,12 +14,14 @@ import torch
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 
+from s2camp_ns.nerfstudio.image_check import decoded_sizes
 from s2camp_ns.nerfstudio.scene_formats import (
     ParsedSplit,
     fit_intrinsics_to_images,
     nerfstudio_parser_options,
     resolve_downscale,
 )
+from s2camp_ns.nerfstudio.transforms_file import read_transforms
 
 if TYPE_CHECKING:
     from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
@@ -29,8 +31,7 @@ def transforms_declared_sizes(source: Path, k: int) -> dict[str, tuple[int, int]
     """Full-size (w, h) of every frame of a transforms.json, keyed by the image path nerfstudio's parser reads at
     downscale factor k (``images_{k}/<name>`` beside the json for k > 1); the top-level ``w``/``h`` win over a
     frame's, as in nerfstudio's parser."""
-    with open(source, encoding="utf8") as f:
-        meta = json.load(f)
+    meta = read_transforms(source)
     data_dir = source.parent
     sizes = {}
     for frame in meta.get("frames", []):
@@ -41,24 +42,15 @@ def transforms_declared_sizes(source: Path, k: int) -> dict[str, tuple[int, int]
     return sizes
 
 
-def _transforms_frames(source: Path) -> list:
-    with open(source, encoding="utf8") as f:
-        return list(json.load(f).get("frames", []))
-
-
 def parse_transforms(config: S2CampDataParserConfig, source: Path, split: str) -> tuple[DataparserOutputs, ParsedSplit]:
     """The split of the transforms.json ``source``: nerfstudio's outputs with the cameras fitted to the images read,
     and what is known of its images."""
+    read_transforms(source)  # the file's own errors named before nerfstudio's parser reads it
     k = resolve_downscale(source.parent, config.images_path, config.downscale_factor)
     ns_config = NerfstudioDataParserConfig(
         data=source, downscale_factor=k, load_3D_points=False, **nerfstudio_parser_options(config)
     )
-    try:
-        outputs = Nerfstudio(ns_config).get_dataparser_outputs(split=split)
-    except (AssertionError, IndexError, ValueError, StopIteration) as error:
-        if not _transforms_frames(source):
-            raise ValueError(f"{source} lists no frames: the scene is empty") from error
-        raise
+    outputs = Nerfstudio(ns_config).get_dataparser_outputs(split=split)
     missing = [p for p in outputs.image_filenames if not Path(p).is_file()]
     if missing:
         raise FileNotFoundError(
@@ -67,7 +59,9 @@ def parse_transforms(config: S2CampDataParserConfig, source: Path, split: str) -
         )
     sizes = transforms_declared_sizes(source, k)
     declared = [(*sizes[os.path.normpath(p)], f"the w x h in {source}") for p in outputs.image_filenames]
-    cameras = fit_intrinsics_to_images(outputs.cameras, outputs.image_filenames, declared, k)
+    cameras = fit_intrinsics_to_images(outputs.cameras, outputs.image_filenames, declared, k, source)
+    if outputs.mask_filenames:
+        decoded_sizes(outputs.mask_filenames, source, "masks")
     # The frames' declared full size (the transforms.json's w x h): the export's "original" resolution.
     full_size = torch.tensor([declared_size[:2] for declared_size in declared], dtype=torch.int64)
     names = [Path(p).name for p in outputs.image_filenames]

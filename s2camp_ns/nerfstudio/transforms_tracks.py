@@ -40,7 +40,6 @@ cameras would pin them to the wrong place.
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +55,7 @@ from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
 from s2camp_ns.nerfstudio.colmap_model import model_file, read_model_file
 from s2camp_ns.nerfstudio.colmap_tracks import pixel_scale_of, tracks_of_images
 from s2camp_ns.nerfstudio.robust_adjustment import robustly_adjusted_points
+from s2camp_ns.nerfstudio.transforms_file import read_transforms
 
 COLMAP_MODEL_OF_TRANSFORMS = Path("colmap/sparse/0")
 """Where ``ns-process-data`` writes the COLMAP model, relative to the transforms.json's folder."""
@@ -93,8 +93,7 @@ def _has_model(folder: Path) -> bool:
 def _frames_by_read_path(source: Path, downscale_factor: int) -> dict[str, tuple[str, dict]]:
     """Every frame of the transforms.json ``source`` by the image path nerfstudio reads for it at ``downscale_factor``
     (``images_k/<file name>`` beside the json for k > 1), with its full-size image path."""
-    with open(source, encoding="utf8") as f:
-        frames = json.load(f).get("frames", [])
+    frames = read_transforms(source)["frames"]
     data_dir = source.parent
     by_read_path = {}
     for frame in frames:
@@ -209,8 +208,7 @@ def transforms_track_rms(
     """
     if not _has_model(model):
         return TransformsTracks(None, "no-model", f"no COLMAP model with points (cameras, images, points3D) in {model}")
-    with open(source, encoding="utf8") as f:
-        meta = json.load(f)
+    meta = read_transforms(source)
     if "applied_scale" in meta:
         reason = f"{source} has an applied_scale, which COLMAP's frame does not undo"
         return TransformsTracks(None, "applied-scale", reason)
