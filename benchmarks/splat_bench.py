@@ -110,52 +110,23 @@ VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
 """The default grid's variants (issue 20's comparison)."""
 EVIDENCE_VARIANTS = ("s2camp-splat-tracks", "s2camp-splat-photometric")
 """What each evidence gives alone, run by name (``--variants``): the tracks alone and the images alone."""
-CANDIDATE_VARIANTS = (
-    "s2camp-splat-fused", "s2camp-splat-fused-norot", "s2camp-splat-fused-iprior", "s2camp-splat-fused-free",
-    "s2camp-splat-fused-free-iprior", "s2camp-splat-fused-free-iprior-anchored",
-)  # fmt: skip
-"""Fused candidates run by name while measured (``s2camp_ns.core.track_loss``: the tracks' robust reprojection cost as
-a loss beside the photometric loss, weighed as log-likelihoods): "s2camp-splat-fused" that loss, no prior, the
-common rotation removed as measured from the given cameras; "-fused-norot" the same with the common rotation kept;
-"-fused-iprior" that loss with the track prior on the shared intrinsics only (the common rotation then measured from
-the prior's anchor); "-fused-free" and "-fused-free-iprior" the first and third with the 3D points free (a joint
-photometric and geometric adjustment); "-fused-free-iprior-anchored" the last with every camera starting at its track
-prior's anchor (``track-start-at-anchor``)."""
-RUNNABLE_VARIANTS = VARIANTS + EVIDENCE_VARIANTS + CANDIDATE_VARIANTS
+RUNNABLE_VARIANTS = VARIANTS + EVIDENCE_VARIANTS
 """Every variant this code runs; committed rows under other names are reported apart."""
 METHODS = {
     "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
     "s2camp-splat-tracks": "s2camp-splat", "s2camp-splat-photometric": "s2camp-splat",
-    **dict.fromkeys(CANDIDATE_VARIANTS, "s2camp-splat"),
 }  # fmt: skip
 _OPTIMIZER = "--pipeline.model.camera-optimizer"
 _LOSS = f"{_OPTIMIZER}.track-loss"
-_FUSED = [f"{_OPTIMIZER}.track-prior", "False", _LOSS, "True"]
-_INTRINSICS_PRIOR = [
-    f"{_OPTIMIZER}.track-prior",
-    "True",
-    f"{_OPTIMIZER}.track-prior-intrinsics-only",
-    "True",
-    _LOSS,
-    "True",
-]
 VARIANT_ARGUMENTS = {
     "splat-off": [f"{_OPTIMIZER}.mode", "off"],
     "s2camp-splat-tracks": [f"{_OPTIMIZER}.photometric", "False", f"{_OPTIMIZER}.track-prior", "True", _LOSS, "False"],
     "s2camp-splat-photometric": [f"{_OPTIMIZER}.track-prior", "False", _LOSS, "False"],
-    "s2camp-splat-fused": _FUSED,
-    "s2camp-splat-fused-norot": [*_FUSED, f"{_OPTIMIZER}.fix-common-rotation", "False"],
-    "s2camp-splat-fused-iprior": _INTRINSICS_PRIOR,
-    "s2camp-splat-fused-free": [*_FUSED, f"{_LOSS}-points-free", "True"],
-    "s2camp-splat-fused-free-iprior": [*_INTRINSICS_PRIOR, f"{_LOSS}-points-free", "True"],
-    "s2camp-splat-fused-free-iprior-anchored": [
-        *_INTRINSICS_PRIOR, f"{_LOSS}-points-free", "True", f"{_OPTIMIZER}.track-start-at-anchor", "True",
-    ],
 }  # fmt: skip
 """Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat" its defaults
 (common rotation removed, track prior on: ``method_config.SPLAT_CAMERA_OPTIMIZER``); "s2camp-splat-tracks" the
 tracks alone (every camera at its track prior's anchor, the images move none); "s2camp-splat-photometric" the images
-alone (the defaults without the prior); the candidates in ``CANDIDATE_VARIANTS``. Committed rows under other variant
+alone (the defaults without the prior). Committed rows under other variant
 names were recorded with settings that no longer run: the report lists them apart, and docs/RESULTS.md ("Names that
 no longer run") says what each ran."""
 BASELINE = "s2camp-splat-so3xr3"

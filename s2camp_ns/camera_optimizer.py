@@ -79,17 +79,10 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     rot_l2_penalty: float = 0.0
     """L2 penalty on the raw rotation delta (radians); 0 = none, as in the paper."""
     track_prior: bool = True
-    """Anchor each camera where the scene's SfM tracks put it: a Gaussian prior in the whitened space, scaled by the
-    tracks' reprojection error there (``set_track_prior``, ``apply_track_prior``), so a camera moves about that far
-    from its anchor at most. The anchor is where the tracks put each camera (a robust camera-only bundle adjustment
-    against the fixed points, ``core.track_fit``). A scene's own SfM model has its points re-adjusted first with the
-    same robust loss (``nerfstudio.robust_adjustment``: COLMAP's mapper ends in plain least squares, and its
-    mismatches hold the points off), so cameras straight out of SfM move by what the robust loss changes; cameras
-    changed after SfM are pulled to where their tracks put them. No tracks, no prior. Needs the data parser's
-    ``track_evidence`` (COLMAP scenes with points, ns-process-data transforms.json with ``colmap/sparse/0``, else
-    tracks from the images, ``image_tracks``). On by default; the ``s2camp-camp`` baseline switches it off (CamP has
-    no prior), as do the benchmarks' photometric-only rows (``train_commands.PHOTOMETRIC_ONLY``); measured in
-    ``s2camp-bench robustness --preset regime``."""
+    """Start each camera where the scene's keypoint tracks put it (a robust camera-only bundle adjustment against their
+    points, ``core.track_fit``) and hold it there by what the tracks know of it (``core.track_prior``); cameras
+    without tracks start as given. Tracks: the scene's SfM points, re-adjusted with the same robust loss, or tracks
+    built from the images (``image_tracks``). ``s2camp-camp`` switches it off (CamP has no prior)."""
     track_loss: bool = False
     """Benchmark candidate: the tracks' robust reprojection cost as a loss term beside the photometric loss, the two
     weighed as log-likelihoods (``s2camp_ns.core.track_loss``); needs the data parser's ``track_evidence``."""
@@ -98,10 +91,10 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
     cameras see the joint adjustment's information, ``core.track_loss.refine_points``)."""
     track_prior_intrinsics_only: bool = False
     """Benchmark candidate: the track prior holds the shared intrinsics only (per-camera intrinsics)."""
-    track_start_at_anchor: bool = False
-    """Benchmark candidate: every camera with tracks starts where its tracks put it (the track prior's anchor,
-    ``core.track_fit``), the images then moving it, as ``photometric`` False places the tracks-alone cameras. Needs
-    ``track_prior`` (the anchor is the prior's)."""
+    pose_prior_exponent: float = 1.0
+    """The track prior's hold on each pose: its radius is r_i / (2 O_i)^(e / 2), r_i the image's reprojection error
+    and O_i its observations; 1: the standard error of its tracks' fit (the default), 0: the reprojection error r_i,
+    which lets the images move a pose sqrt(2 O_i) times further (``core.track_prior``)."""
     photometric: bool = True
     """Let the photometric loss move the cameras. False (with ``track_prior``): every camera with tracks is placed at
     its track prior's anchor (the camera-only adjustment to the tracks, ``core.track_fit``) and stays there, the
@@ -125,11 +118,7 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
                 "camera-optimizer.photometric False places the cameras at the track prior's anchor and needs "
                 "camera-optimizer.track-prior True, got track_prior False"
             )
-        if self.track_start_at_anchor and not self.track_prior:
-            raise ValueError(
-                "camera-optimizer.track-start-at-anchor True starts the cameras at the track prior's anchor and needs "
-                "camera-optimizer.track-prior True, got track_prior False"
-            )
+        check_range("pose_prior_exponent", self.pose_prior_exponent, low=0.0, high=1.0)
         self.sampling.validate()
         self.damping.validate()
         check_range("refresh_every", self.refresh_every, low=0)
@@ -191,7 +180,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         )
         # Not a submodule (its tensors would be listed twice, under "refiner."): its registries are this module's.
         refiner.prior_intrinsics_only = config.track_prior_intrinsics_only
-        refiner.start_at_anchor = config.track_start_at_anchor
+        refiner.pose_prior_exponent = config.pose_prior_exponent
         object.__setattr__(self, "refiner", refiner)
         for registry in ("_parameters", "_buffers", "_non_persistent_buffers_set"):
             object.__setattr__(self, registry, getattr(refiner, registry))

@@ -8,11 +8,12 @@ COLMAP cameras and the sparse points with their tracks). Two recipes:
   radial distortion zeroed). The scene's own tracks were made with the true cameras, so the data parser never gives
   them to perturbed cameras: the default's track prior gets tracks made from the images with the perturbed cameras
   (the data parser's ``image_tracks``: SIFT matches, triangulated and bundle-adjusted, built once, then cached; cost:
-  docs/IMAGE-TRACKS.md, "Cost"), evidence that does not know the truth. Its anchor is where those tracks put each
-  camera (a camera-only adjustment against their points, ``s2camp_ns.core.track_fit``), its scale their reprojection
-  error. The table shows the start, that anchor (the tracks alone) and the cameras after refinement, all against the
-  true cameras. The scene is sized for that: with 16 images of 96x72 SIFT triangulates no point, with 24 of 192x144
-  too few.
+  docs/IMAGE-TRACKS.md, "Cost"), evidence that does not know the truth. Every camera starts where those tracks put it
+  (a camera-only adjustment against their points, ``s2camp_ns.core.track_fit``) and is held there by what they know
+  of it (``s2camp_ns.core.track_prior``). The table shows the perturbed start, the tracks alone (where the run
+  starts) and the cameras after refinement, all against the true cameras, and each row's mean errors against the
+  start's and the tracks alone's as "N.Nx smaller" or "larger". The scene is sized for that: with 16 images of 96x72
+  SIFT triangulates no point, with 24 of 192x144 too few.
 - ``warm-start``: the photometric refinement alone, shown in a demo-length run. nerfacto (CPU-sized) is first fitted
   to the accurate cameras with the camera learning rate at zero; the run then resumes from that checkpoint on the
   perturbed cameras without the track prior or the common-rotation removal (``PHOTOMETRIC_ONLY``), with the camera
@@ -307,38 +308,50 @@ def camera_error_table(config_path: Path) -> dict[str, dict[str, float]]:
     rows = [("perturbed start", start)]
     if optimizer.has_track_prior:  # where the tracks alone put the cameras (no prior: the given camera)
         anchor = optimizer.layout.expand(optimizer.prior_anchor).to(zeros)
-        rows.append(("tracks alone (the prior's anchor)", (optimizer.refined_c2w(anchor, opengl=True),
-                                                           optimizer.refined_intrinsics(anchor).fx)))  # fmt: skip
+        rows.append(("tracks alone (where the run starts)", (optimizer.refined_c2w(anchor, opengl=True),
+                                                             optimizer.refined_intrinsics(anchor).fx)))  # fmt: skip
     rows.append(("after refinement", refined))
     return {
         label: camera_errors(c2w.cpu(), reference_c2w, fx.cpu(), reference_fx, align=True) for label, (c2w, fx) in rows
     }
 
 
+def change(before: float, after: float) -> str:
+    """``after`` against ``before`` as "N.Nx smaller" (green) or "N.Nx larger" (red), "same" within 1%."""
+    if before <= 0 or after <= 0:
+        return "n/a"
+    ratio = before / after
+    if abs(ratio - 1.0) < 0.01:
+        return "same"
+    if ratio > 1.0:
+        return f"[green]{ratio:.1f}x smaller[/green]"
+    return f"[red]{1.0 / ratio:.2f}x larger[/red]"
+
+
 def print_table(results: dict[str, dict[str, float]], title: str) -> None:
-    start, refined = results["perturbed start"], results["after refinement"]
+    """The rows of ``camera_error_table`` (mean / max per error), then each refined row's means against the start and,
+    where there are tracks, the last row's against the tracks alone."""
     table = Table(title=title, title_justify="left")
     table.add_column("training cameras")
     table.add_column("rotation (deg)\nmean / max", justify="right")
     table.add_column("position (scene units)\nmean / max", justify="right")
     table.add_column("focal length (px)\nmean / max", justify="right")
+    keys = ("rot_err", "pos_err", "focal_err")
     for label, errors in results.items():
         table.add_row(
             label,
             f"{math.degrees(errors['rot_err_mean']):.3f} / {math.degrees(errors['rot_err_max']):.3f}",
             f"{errors['pos_err_mean']:.4f} / {errors['pos_err_max']:.4f}",
             f"{errors['focal_err_mean']:.3f} / {errors['focal_err_max']:.3f}",
+            end_section=label == list(results)[-1],
         )
-
-    def change(key: str) -> str:
-        before, after = start[f"{key}_mean"], refined[f"{key}_mean"]
-        if before <= 0:
-            return "n/a"
-        ratio = after / before - 1.0
-        colour = "green" if ratio < 0 else "red"
-        return f"[{colour}]{100 * ratio:+.0f}%[/{colour}]"
-
-    table.add_row("change of the mean", change("rot_err"), change("pos_err"), change("focal_err"), end_section=True)
+    labels = list(results)
+    comparisons = [(label, labels[0]) for label in labels[1:]]
+    if len(labels) > 2:
+        comparisons.append((labels[-1], labels[1]))
+    for label, reference in comparisons:
+        cells = [change(results[reference][f"{key}_mean"], results[label][f"{key}_mean"]) for key in keys]
+        table.add_row(f"{label.split(' (')[0]} vs {reference.split(' (')[0]}", *cells)
     CONSOLE.print(table)
     CONSOLE.print(
         "[dim]Errors against the unperturbed cameras after a similarity alignment of the camera centres; position in "
@@ -359,10 +372,10 @@ def protocol_notice(config: DemoConfig) -> str:
     if config.recipe == "default":
         return (
             "s2camp with its default options, from scratch, on perturbed cameras. The scene's own tracks were made "
-            "with the true cameras and are not used: the default track prior gets tracks made from the images with "
-            "the perturbed cameras (SIFT, bundle-adjusted) and pulls each camera towards where they put it, by a step "
-            "that grows with the camera learning rate's warm-up (at least 2500 steps, longer than this demo). "
-            "Real-regime runs: docs/benchmarks/regime.md. `--recipe warm-start` shows the photometric refinement alone."
+            "with the true cameras and are not used: the default gets tracks made from the images with the perturbed "
+            "cameras (SIFT, bundle-adjusted), starts each camera where they put it and lets the images move it by "
+            "what the tracks leave uncertain. Real-regime runs: docs/benchmarks/regime.md. `--recipe warm-start` "
+            "shows the photometric refinement alone."
         )
     overrides = ["the track prior and the common-rotation removal are off: the photometric loss alone moves cameras"]
     if config.warm_start > 0:

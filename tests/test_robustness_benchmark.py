@@ -50,19 +50,15 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     photometric = "--pipeline.model.camera-optimizer.photometric"
     precondition = "--pipeline.model.camera-optimizer.precondition"
     loss = "--pipeline.model.camera-optimizer.track-loss"
-    start_at_anchor = "--pipeline.model.camera-optimizer.track-start-at-anchor"
-    fused_free_iprior = {
-        rotation: "True", prior: "True", "--pipeline.model.camera-optimizer.track-prior-intrinsics-only": "True",
-        loss: "True", "--pipeline.model.camera-optimizer.track-loss-points-free": "True",
-    }  # fmt: skip
+    exponent = "--pipeline.model.camera-optimizer.pose-prior-exponent"
     expected_options = {
         "off": {"--pipeline.model.camera-optimizer.mode": "off"},
         "tracks": {photometric: "False", rotation: "True", prior: "True", loss: "False"},
         "s2camp-photometric": {rotation: "True", prior: "False", loss: "False"},
         "s2camp-camp-prior": {rotation: "True", prior: "True", loss: "False"},
         "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True", loss: "False"},
-        "s2camp-fused-free-iprior": {**fused_free_iprior, start_at_anchor: "False"},
-        "s2camp-fused-free-iprior-anchored": {**fused_free_iprior, start_at_anchor: "True"},
+        "s2camp-pose-exp0": {exponent: "0"},
+        "s2camp-pose-exp0.5": {exponent: "0.5"},
     }  # fmt: skip
     assert camera_options == expected_options.get(variant, {})
     tail = command[command.index("s2camp-data") :]

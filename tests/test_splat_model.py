@@ -293,8 +293,9 @@ def test_camera_errors_of_undistorted_training_cameras_use_the_undistorted_refer
 
 def test_undistorted_cameras_keep_the_given_anchor_and_the_tracks_standard_error():
     """Distorted SfM cameras: the model refines the undistorted pinhole camera, which the tracks' (distorted) pixels
-    do not fit, so no refit anchor; the shared intrinsics still count each image's tracks for their standard error,
-    sqrt(sum O_i r_i^2) / (sqrt(2) sum O_i) (here 30 and 10 tracks of RMS 0.4 and 0.8 px, width 40)."""
+    do not fit, so no refit anchor; the poses and the shared intrinsics still count each image's tracks for their
+    standard errors, r_i / sqrt(2 O_i) and sqrt(sum O_i r_i^2) / (sqrt(2) sum O_i) (here 30 and 10 tracks of RMS
+    0.4 and 0.8 px, width 40)."""
     from test_splat_alignment import splat_model
 
     from s2camp_ns.core.track_fit import TrackEvidence
@@ -315,7 +316,9 @@ def test_undistorted_cameras_keep_the_given_anchor_and_the_tracks_standard_error
     model.set_train_cameras(cameras, track_rms_px=rms, track_evidence=evidence)
     optimizer = model.camera_optimizer
     assert bool((optimizer.prior_anchor == 0).all())  # the given cameras: no refit against the distorted pixels
-    assert optimizer.prior_radius.tolist() == pytest.approx([0.4 / 40, 0.8 / 40], rel=1e-12)
+    # Each pose the standard error of its own tracks, r_i / sqrt(2 O_i).
+    poses = [0.4 / 40 / math.sqrt(2 * 30), 0.8 / 40 / math.sqrt(2 * 10)]
+    assert optimizer.prior_radius.tolist() == pytest.approx(poses, rel=1e-12)
     expected = math.sqrt(30 * 0.4**2 + 10 * 0.8**2) / (math.sqrt(2) * 40) / 40
     assert optimizer.prior_radius_intrinsics.tolist() == pytest.approx([expected], rel=1e-12)
 

@@ -283,6 +283,10 @@ def test_proximal_step_pulls_towards_the_anchor_not_the_given_camera(tiny_scene:
     outputs = perturbed_with_scene_tracks(tiny_scene)
     optimizer = _optimizer_from(outputs)
     pose, intrinsics = optimizer.prior_anchor_latents()
+    torch.testing.assert_close(optimizer.whitened_delta.double(), pose, rtol=1e-6, atol=1e-9)  # started there
+    with torch.no_grad():  # back at the given cameras
+        for latent in optimizer.parameters():
+            latent.zero_()
     optimizer.prior_radius.fill_(0.01)  # a finite radius: one step closes lr / (r + lr) of the gap
     optimizer.prior_radius_intrinsics.fill_(0.01)
     optimizer.apply_track_prior(lr=1e-3)

@@ -109,6 +109,9 @@ def test_the_intrinsics_only_prior_moves_the_shared_intrinsics_latent_and_no_pos
 
     optimizer = _optimizer_from(perturbed_with_scene_tracks(tiny_scene), track_prior_intrinsics_only=True)
     _, intrinsics = optimizer.prior_anchor_latents()
+    with torch.no_grad():  # back at the given cameras (every camera with tracks starts at its anchor)
+        for latent in optimizer.parameters():
+            latent.zero_()
     pose_before = optimizer.whitened_delta.detach().clone()
     optimizer.prior_radius.fill_(0.01)
     optimizer.prior_radius_intrinsics.fill_(0.01)

@@ -127,13 +127,14 @@ def test_data_parser_measures_exact_tracks_at_zero_and_moved_cameras_above(tiny_
 
 def test_prior_step_shrinks_each_latent_by_its_radius_and_leaves_untracked_images() -> None:
     optimizer = make_optimizer(track_prior=True)  # 4 images of width 64, two physical cameras: images 0, 2 and 1, 3
+    optimizer.set_track_prior(torch.tensor([0.64, 6.4, float("nan"), 1.28]))
     with torch.no_grad():
         optimizer.whitened_delta.fill_(1.0)
         optimizer.whitened_intrinsics.fill_(1.0)
-    optimizer.set_track_prior(torch.tensor([0.64, 6.4, float("nan"), 1.28]))
     optimizer.apply_track_prior(lr=1e-3)
-    # Radii in whitened units: 0.01, 0.1, none, 0.02; factor 1 / (1 + lr / r): 1 / 1.1, 1 / 1.01, 1, 1 / 1.05.
-    expected = [1 / 1.1, 1 / 1.01, 1.0, 1 / 1.05]
+    # Errors in whitened units 0.01, 0.1, none, 0.02; without observation counts each image counts once, so the poses'
+    # radii are the standard errors r / sqrt(2); factor 1 / (1 + lr / r) towards the anchor (zero: the given cameras).
+    expected = [1 / (1 + 1e-3 * math.sqrt(2) / r) if r else 1.0 for r in (0.01, 0.1, None, 0.02)]
     assert optimizer.whitened_delta[:, 0].tolist() == pytest.approx(expected, rel=1e-6)
     assert bool((optimizer.whitened_delta == optimizer.whitened_delta[:, :1]).all())  # every coordinate alike
     # Shared intrinsics: the standard error r / sqrt(2 O) of a fit to O observations of pooled RMS r. Without the
@@ -147,9 +148,10 @@ def test_prior_step_shrinks_each_latent_by_its_radius_and_leaves_untracked_image
 
 
 def test_shared_intrinsics_radius_is_the_standard_error_of_every_observation(monkeypatch) -> None:
-    # The anchor's fit (stubbed: its RMS and observation counts per image) sets the radii: each image's pose keeps
-    # its own RMS, each physical camera's intrinsics the standard error of the pooled fit, sqrt(sum O_i r_i^2) /
-    # (sqrt(2) sum O_i). Camera A holds images 0 and 2, camera B images 1 and 3 (``make_optimizer``), width 64.
+    # The anchor's fit (stubbed: its RMS and observation counts per image) sets the radii: each image's pose the
+    # standard error of its own fit, r_i / sqrt(2 O_i), each physical camera's intrinsics that of the pooled fit,
+    # sqrt(sum O_i r_i^2) / (sqrt(2) sum O_i). Camera A holds images 0 and 2, camera B images 1 and 3
+    # (``make_optimizer``), width 64.
     import s2camp_ns.camera_optimizer as module
     from s2camp_ns.core.track_fit import TrackEvidence, TrackFit
 
@@ -162,7 +164,8 @@ def test_shared_intrinsics_radius_is_the_standard_error_of_every_observation(mon
     tracks = Tracks(torch.zeros(1, 3), index, index, torch.zeros(1, 2))
     evidence = TrackEvidence(tracks, IDENTITY_C2W.expand(4, 3, 4), 1.0)
     optimizer.set_track_prior(None, evidence)
-    assert optimizer.prior_radius.tolist() == pytest.approx([0.01, 0.1, 0.02, 0.05], rel=1e-12)
+    expected = [r / math.sqrt(2 * o) for r, o in zip((0.01, 0.1, 0.02, 0.05), (100, 300, 50, 20), strict=True)]
+    assert optimizer.prior_radius.tolist() == pytest.approx(expected, rel=1e-12)
     camera_a = math.sqrt(100 * 0.01**2 + 50 * 0.02**2) / (math.sqrt(2) * 150)
     camera_b = math.sqrt(300 * 0.1**2 + 20 * 0.05**2) / (math.sqrt(2) * 320)
     labels = optimizer.camera_of_image.tolist()
@@ -196,7 +199,9 @@ def test_adam_with_the_prior_settles_within_the_radius(noise: bool) -> None:
     # A gradient of constant sign: Adam's |m / sqrt(v)| -> 1, every coordinate settles at r. Pure noise of the same
     # size: a fraction of r (Adam's |m / sqrt(v)| is about 0.23 for beta1 0.9).
     optimizer = make_optimizer(parameters="pose", track_prior=True)
-    optimizer.set_track_prior(torch.full((4,), 3.2))  # 0.05 in whitened units (width 64)
+    # 0.05 in whitened units (width 64) from 2 observations each: radius 0.05 / sqrt(4) = 0.025, far above lr.
+    optimizer.set_track_prior(torch.full((4,), 3.2), track_observations=torch.full((4,), 2.0))
+    radius = 0.05 / 2.0
     adam = torch.optim.Adam([optimizer.whitened_delta], lr=1e-3)
     generator = torch.Generator().manual_seed(0)
     for _ in range(3000):
@@ -207,10 +212,10 @@ def test_adam_with_the_prior_settles_within_the_radius(noise: bool) -> None:
         optimizer.apply_track_prior(lr=1e-3)
     latent = optimizer.whitened_delta.detach()
     if noise:
-        assert float(latent.abs().max()) < 0.5 * 0.05
-        assert float(latent.abs().max()) > 0.02 * 0.05  # noise does move it: the bound above is not vacuous
+        assert float(latent.abs().max()) < 0.5 * radius
+        assert float(latent.abs().max()) > 0.02 * radius  # noise does move it: the bound above is not vacuous
     else:
-        assert latent.flatten().tolist() == pytest.approx([0.05] * 24, rel=0.05)
+        assert latent.flatten().tolist() == pytest.approx([radius] * 24, rel=0.05)
 
 
 def test_perturbed_cameras_never_get_the_tracks_of_the_unperturbed_ones(tiny_scene, monkeypatch, capsys) -> None:
@@ -312,12 +317,10 @@ def test_tracks_alone_places_the_cameras_at_the_anchor_and_the_images_do_not_mov
         S2CampCameraOptimizerConfig(photometric=False, track_prior=False).validate()
 
 
-def test_start_at_anchor_places_the_cameras_at_the_anchor_and_the_images_still_move_them(tiny_scene) -> None:
-    # Benchmark candidate (``track_start_at_anchor``): the tracks-alone placement with the images left on. With exact
-    # tracks the anchor is the truth, so the cameras start there before any step; a loss then moves them.
-    optimizer, truth = _moved_cameras_with_exact_tracks(
-        tiny_scene, track_start_at_anchor=True, track_prior_intrinsics_only=True
-    )
+def test_the_default_starts_at_the_anchor_and_the_images_still_move_the_cameras(tiny_scene) -> None:
+    # The tracks-alone placement with the images left on. With exact tracks the anchor is the truth, so the cameras
+    # start there before any step; a loss then moves them.
+    optimizer, truth = _moved_cameras_with_exact_tracks(tiny_scene)
     torch.testing.assert_close(optimizer.refined_c2w(opengl=True), truth.camera_to_worlds.double(), atol=1e-4, rtol=0)
     torch.testing.assert_close(optimizer.refined_intrinsics().fx, truth.fx[:, 0].double(), atol=1e-2, rtol=0)
     before = optimizer.whitened_delta.detach().clone()
@@ -328,5 +331,5 @@ def test_start_at_anchor_places_the_cameras_at_the_anchor_and_the_images_still_m
     assert float((optimizer.whitened_delta.detach() - before).abs().min()) > 5e-3  # Adam's first step moves each by lr
     from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 
-    with pytest.raises(ValueError, match=r"track-start-at-anchor True .* needs camera-optimizer.track-prior True"):
-        S2CampCameraOptimizerConfig(track_start_at_anchor=True, track_prior=False).validate()
+    with pytest.raises(ValueError, match=r"pose_prior_exponent must lie in \[0, 1\], got 1.5"):
+        S2CampCameraOptimizerConfig(pose_prior_exponent=1.5).validate()

@@ -55,6 +55,7 @@ from s2camp_ns.core.track_prior import (
     apply_track_prior,
     inverse_radius,
     place_at_anchor,
+    pose_radius,
     span,
 )
 
@@ -125,8 +126,8 @@ class CameraRefiner(nn.Module):
         self._track_points: Tensor | None = None  # the track loss's free points (candidate; not saved)
         self.prior_intrinsics_only = False
         """Benchmark candidate: the prior's proximal step on the shared intrinsics' latent only."""
-        self.start_at_anchor = False
-        """Benchmark candidate: ``set_track_prior`` places the latent at the anchor with ``photometric`` True too."""
+        self.pose_prior_exponent = 1.0
+        """The pose prior's radius r_i / (2 O_i)^(e / 2) (``core.track_prior.pose_radius``): 1 the standard error."""
         self.cameras_required = "CameraRefiner.set_cameras must be called before use"
         """The RuntimeError's message when the cameras are needed and not set (a framework names its own call)."""
         # Why a loaded P does not fit the base cameras (None when it does): it is recomputed before the next training
@@ -409,8 +410,9 @@ class CameraRefiner(nn.Module):
     def set_track_prior(self, evidence: TrackPriorEvidence | None) -> None:
         """The track prior's anchor and scale per image (``core.track_prior``); None: no prior. Scales are stored in
         whitened units (pixels divided by max(W, H), the Gram matrix's pixel unit, paper eq. 5), the shared
-        intrinsics' as the standard error of their pooled fit. With ``photometric`` False or ``start_at_anchor`` the
-        latent is placed at the anchor (images without a prior at zero, the given camera)."""
+        intrinsics' as the standard error of their pooled fit, the poses' as the standard error of each image's fit
+        (``core.track_prior.pose_radius``). Every image with a prior starts at its anchor (``place_at_anchor``), the
+        others where they are (the given camera at set-up)."""
         self.require_cameras()
         device = self.precond.device
         radius = torch.full((self.num_images,), float("nan"), dtype=torch.float64, device=device)
@@ -421,13 +423,13 @@ class CameraRefiner(nn.Module):
             observations = None if evidence.observations is None else evidence.observations.to(device)
             if evidence.rms_px is not None:
                 radius = evidence.rms_px.to(device) / self.base_intrinsics_struct().image_scale()
-        self.prior_radius = radius
+        self.prior_radius = pose_radius(radius, observations, self.pose_prior_exponent)
         finite = torch.isfinite(radius)
         keep = self.latent_layout.anchor_mask(self, finite)
         self.prior_anchor = torch.where(keep, anchor, torch.zeros_like(anchor))
         self.has_track_prior = bool(finite.any())
         self.prior_radius_intrinsics = self.latent_layout.intrinsics_radius(self, radius, observations)
-        if self.enabled and (not self.photometric or self.start_at_anchor):
+        if self.enabled:  # every camera with tracks starts where they put it, the others as given
             for block in self.latent_layout.prior_blocks(self):
                 place_at_anchor(block.latent, block.anchor, block.radius)
 

@@ -2,10 +2,19 @@
 
 Derivation. The prior anchors each camera at a, the deltas phi where its tracks put it (``core.track_fit``'s
 camera-only bundle adjustment against the fixed SfM points; zero, the given camera, without a fit), expressed in the
-whitened latent as a_hat = P a (paper eq. 15). Its scale r is the tracks' reprojection error there in whitened units:
-RMS pixels divided by max(W, H), the Gram matrix's pixel unit (paper eq. 5, docs/EQUATIONS.md eq. 5), because the
-distance |phi_hat - a_hat| is the RMS displacement of the camera's proxy points in exactly those units (paper eqs. 5
-and 20; damping only adds to it).
+whitened latent as a_hat = P a (paper eq. 15); every camera with tracks starts there (``place_at_anchor``). Its scale
+is what the tracks know of the camera, in whitened units: pixels divided by max(W, H), the Gram matrix's pixel unit
+(paper eq. 5, docs/EQUATIONS.md eq. 5), in which |phi_hat - a_hat| is the RMS displacement of the camera's proxy
+points (paper eqs. 5 and 20; damping only adds to it).
+
+How far the tracks leave a camera uncertain. A unit step of a whitened coordinate moves the camera's proxy points by
+an RMS of one, and so each of its O track observations by about one; O observations with pixel noise of RMS r (2-D:
+r^2 / 2 per coordinate) determine the camera, in every whitened coordinate, to the standard error r / sqrt(2 O) of
+that least-squares fit. Image i's pose therefore gets r_i / sqrt(2 O_i) (``pose_radius``; r_i its reprojection
+error at the anchor, O_i its observations), and the intrinsics a physical camera's images share get the standard error
+of the fit to all their observations, sqrt(sum_i O_i r_i^2) / (sqrt(2) sum_i O_i) (``pooled_intrinsics_radius``).
+Without observation counts each image counts once. The tracks' points are not spread like the proxy points, so a
+camera is pinned more tightly than this along some directions and less along others; the radius is their average.
 
 The prior's proximal map with Adam's step size lr is
 
@@ -13,18 +22,10 @@ The prior's proximal map with Adam's step size lr is
 
 (decoupled weight decay, as AdamW, towards a_hat). It balances Adam's step lr m / sqrt(v) where each coordinate has
 |phi_hat_j - a_hat_j| = r |m_j / sqrt(v_j)| <= r: evidence of constant sign (|m / sqrt(v)| near 1) moves a whitened
-coordinate at most r from the anchor, the tracks' noise; gradient noise (|m / sqrt(v)| near 0.23 for Adam's beta1
-0.9) about a quarter of that. Once the field stops pulling, the camera relaxes back towards the anchor within about
-r / lr steps instead of staying where early field errors pushed it. Images without tracks (r NaN) are untouched.
-
-Shared intrinsics (``core.shared_intrinsics``) are fitted to every observation of their images at once, so their
-scale is the standard error of that pooled fit: a unit step of the shared latent moves each image's proxy points by an
-RMS of one, and so each of the O observations by about one; O of them with pixel noise of RMS r (2D: r^2 / 2 per
-coordinate) determine it to r / sqrt(2 O), r the pooled RMS, i.e. sqrt(sum_i O_i r_i^2) / (sqrt(2) sum_i O_i)
-(``pooled_intrinsics_radius``). The poses keep each image's own noise r_i as theirs (the photometric loss corrects
-poses within it), while the focal length's photometric evidence in the real regime is the biased pull of the dolly
-zoom (docs/DESIGN-NOTES.md sec. 6-7), which the pooled standard error holds to what the tracks determine. Without
-observation counts each image counts once.
+coordinate at most r from the anchor, what the tracks leave uncertain; gradient noise (|m / sqrt(v)| near 0.23 for
+Adam's beta1 0.9) about a quarter of that. Once the field stops pulling, the camera relaxes back towards the anchor
+within about r / lr steps instead of staying where early field errors pushed it. Images without tracks (r NaN) are
+untouched.
 """
 
 from __future__ import annotations
@@ -84,6 +85,16 @@ def checked_evidence(
     return TrackPriorEvidence(anchor, rms, observations)
 
 
+def pose_radius(
+    radius: Float[Tensor, " n"], observations: Float[Tensor, " n"] | None, exponent: float = 1.0
+) -> Float[Tensor, " n"]:
+    """Radius of each image's pose latent: the standard error r_i / sqrt(2 O_i) of its fit to its O_i observations
+    (module docstring; ``observations`` None: each image counts once). ``exponent`` e in [0, 1] gives
+    r_i / (2 O_i)^(e / 2): 1 the standard error, 0 the reprojection error r_i itself, looser by sqrt(2 O_i)."""
+    counts = torch.ones_like(radius) if observations is None else observations.to(radius).clamp(min=1.0)
+    return radius / (2.0 * counts) ** (0.5 * exponent)
+
+
 def pooled_intrinsics_radius(
     radius: Float[Tensor, " n"],
     observations: Float[Tensor, " n"] | None,
@@ -126,9 +137,10 @@ def apply_track_prior(
 
 @torch.no_grad()
 def place_at_anchor(latent: Float[Tensor, "r j"], anchor: Float[Tensor, "r j"], radius: Float[Tensor, " r"]) -> None:
-    """The latent at the anchor where there is a prior, at zero (the given camera) where there is none."""
+    """The rows with a prior (finite radius) at the anchor; the others are left where they are (the given camera at
+    set-up)."""
     finite = torch.isfinite(radius)[:, None]
-    latent.copy_(torch.where(finite, anchor, torch.zeros_like(anchor)).to(latent.dtype))
+    latent.copy_(torch.where(finite, anchor.to(latent.dtype), latent))
 
 
 def describe_anchor_fit(fit: TrackFit) -> str | None:
@@ -162,5 +174,6 @@ __all__ = [
     "evidence_from_fit",
     "place_at_anchor",
     "pooled_intrinsics_radius",
+    "pose_radius",
     "whitened_anchor",
 ]
