@@ -53,7 +53,7 @@ from s2camp_ns.core.preconditioner import (
 from s2camp_ns.core.shared_intrinsics import (
     compute_shared_preconditioner,
     deltas_from_latents,
-    reexpress_shared_latents,
+    reexpress_latents,
 )
 
 VARIANTS = ("none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once", "s2camp-per-camera")
@@ -186,7 +186,7 @@ class Refinement:
                 current[0].detach(), self.layout, self.sampling, self.config.damping
             )
             state = self.optimizer.state
-            reexpress_shared_latents(
+            reexpress_latents(
                 self.latent.data, self.shared_latent.data, self.camera_of_image, self.factor.matrix,
                 self.factor.inverse, new_factor.matrix, new_factor.inverse, state.get(self.latent),
                 state.get(self.shared_latent),

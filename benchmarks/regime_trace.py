@@ -102,10 +102,11 @@ def camera_path_point(optimizer, reference_c2w_gl, reference_fx) -> dict[str, fl
     from s2camp_ns.core.camera import opengl_to_opencv
 
     with torch.no_grad():
-        given = optimizer.base_c2w_cv.cpu()
-        refined = optimizer.refined_c2w().cpu()
-        given_fx = optimizer.base_intrinsics[:, 0].cpu()
-        refined_fx = optimizer.refined_intrinsics().fx.detach().cpu()
+        refiner = optimizer.refiner
+        given = refiner.base_c2w_cv.cpu()
+        refined = refiner.refined_c2w().cpu()
+        given_fx = refiner.base_intrinsics[:, 0].cpu()
+        refined_fx = refiner.refined_intrinsics().fx.detach().cpu()
     errors = camera_errors(opengl_to_opencv(refined), reference_c2w_gl, refined_fx, reference_fx, align=True)
     reference_cv = opengl_to_opencv(reference_c2w_gl.to(torch.float64))
     structure = error_structure(align_cameras(refined, reference_cv).apply_to_poses(refined), reference_cv)

@@ -175,13 +175,12 @@ METHODS = {
 _ROTATION = "--pipeline.model.camera-optimizer.fix-common-rotation"
 _PRIOR = "--pipeline.model.camera-optimizer.track-prior"
 _OPTIMIZER = "--pipeline.model.camera-optimizer"
-_LOSS = f"{_OPTIMIZER}.track-loss"
 VARIANT_ARGUMENTS = {
     "off": ["--pipeline.model.camera-optimizer.mode", "off"],
-    "tracks": [f"{_OPTIMIZER}.photometric", "False", _ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
-    "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False", _LOSS, "False"],
-    "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
-    "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True", _LOSS, "False"],
+    "tracks": [f"{_OPTIMIZER}.photometric", "False", _ROTATION, "True", _PRIOR, "True"],
+    "s2camp-photometric": [_ROTATION, "True", _PRIOR, "False"],
+    "s2camp-camp-prior": [_ROTATION, "True", _PRIOR, "True"],
+    "s2camp-identity-prior": [f"{_OPTIMIZER}.precondition", "False", _ROTATION, "True", _PRIOR, "True"],
     "s2camp-pose-exp0": [f"{_OPTIMIZER}.pose-prior-exponent", "0"],
     "s2camp-pose-exp0.5": [f"{_OPTIMIZER}.pose-prior-exponent", "0.5"],
 }  # fmt: skip

@@ -192,10 +192,11 @@ def _step_optimizer(cameras: int):
         camera_type=CameraType.PERSPECTIVE,
     )
     optimizer = S2CampCameraOptimizer(S2CampCameraOptimizerConfig(), num_cameras=cameras, device="cpu")
-    optimizer.last_refresh_step.fill_(0)  # skip the initial P: part 1 measures it
+    optimizer.refiner.last_refresh_step.fill_(0)  # skip the initial P: part 1 measures it
     optimizer.set_train_cameras(nerfstudio_cameras)
     with torch.no_grad():
-        optimizer.whitened_delta.normal_(0.0, 1e-3, generator=generator)
+        for latent in optimizer.parameters():
+            latent.normal_(0.0, 1e-3, generator=generator)
     return optimizer
 
 
@@ -213,7 +214,7 @@ def _one_step(optimizer, indices: torch.Tensor, pixels: torch.Tensor) -> None:
         camera_indices=indices,
         metadata={PIXEL_KEY: pixels, "directions_norm": torch.ones(rays, 1)},
     )
-    optimizer.whitened_delta.grad = None
+    optimizer.zero_grad(set_to_none=True)
     optimizer.apply_to_raybundle(bundle)
     (bundle.origins.sum() + bundle.directions.sum()).backward()
 

@@ -117,11 +117,10 @@ METHODS = {
     "s2camp-splat-tracks": "s2camp-splat", "s2camp-splat-photometric": "s2camp-splat",
 }  # fmt: skip
 _OPTIMIZER = "--pipeline.model.camera-optimizer"
-_LOSS = f"{_OPTIMIZER}.track-loss"
 VARIANT_ARGUMENTS = {
     "splat-off": [f"{_OPTIMIZER}.mode", "off"],
-    "s2camp-splat-tracks": [f"{_OPTIMIZER}.photometric", "False", f"{_OPTIMIZER}.track-prior", "True", _LOSS, "False"],
-    "s2camp-splat-photometric": [f"{_OPTIMIZER}.track-prior", "False", _LOSS, "False"],
+    "s2camp-splat-tracks": [f"{_OPTIMIZER}.photometric", "False", f"{_OPTIMIZER}.track-prior", "True"],
+    "s2camp-splat-photometric": [f"{_OPTIMIZER}.track-prior", "False"],
 }  # fmt: skip
 """Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat" its defaults
 (common rotation removed, track prior on: ``method_config.SPLAT_CAMERA_OPTIMIZER``); "s2camp-splat-tracks" the

@@ -156,6 +156,7 @@ def attach_viewer_stand_in(trainer) -> bool:
         return False
     panel._viewer = SimpleNamespace(trainer=trainer)
     panel._last_update = float("inf")
+    panel._shown_refresh_step = trainer.pipeline.model.refinement_status().last_refresh_step
     attributes = TrainingCallbackAttributes(
         optimizers=trainer.optimizers, grad_scaler=trainer.grad_scaler, pipeline=trainer.pipeline, trainer=trainer
     )

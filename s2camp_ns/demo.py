@@ -296,20 +296,20 @@ def camera_error_table(config_path: Path) -> dict[str, dict[str, float]]:
         CONSOLE.print(captured.getvalue(), highlight=False, markup=False)
         raise
     model = pipeline.model
-    optimizer = model.camera_optimizer
     reference = model.reference_cameras()
     if reference is None:
         raise RuntimeError(f"the run {config_path} has no reference cameras: was the perturbation enabled?")
     reference_c2w = reference.camera_to_worlds.to(torch.float64).cpu()
     reference_fx = reference.fx.reshape(-1).to(torch.float64).cpu()
-    zeros = torch.zeros_like(optimizer.camera_deltas())
-    start = (optimizer.refined_c2w(zeros, opengl=True), optimizer.refined_intrinsics(zeros).fx)
-    refined = (optimizer.refined_c2w(opengl=True), optimizer.refined_intrinsics().fx)
+    refiner = model.camera_optimizer.refiner
+    zeros = torch.zeros_like(refiner.deltas())
+    start = (refiner.refined_c2w(zeros, opengl=True), refiner.refined_intrinsics(zeros).fx)
+    refined = (refiner.refined_c2w(opengl=True), refiner.refined_intrinsics().fx)
     rows = [("perturbed start", start)]
-    if optimizer.has_track_prior:  # where the tracks alone put the cameras (no prior: the given camera)
-        anchor = optimizer.layout.expand(optimizer.prior_anchor).to(zeros)
-        rows.append(("tracks alone (where the run starts)", (optimizer.refined_c2w(anchor, opengl=True),
-                                                             optimizer.refined_intrinsics(anchor).fx)))  # fmt: skip
+    if refiner.has_track_prior:  # where the tracks alone put the cameras (no prior: the given camera)
+        anchor = refiner.layout.expand(refiner.prior_anchor).to(zeros)
+        rows.append(("tracks alone (where the run starts)", (refiner.refined_c2w(anchor, opengl=True),
+                                                             refiner.refined_intrinsics(anchor).fx)))  # fmt: skip
     rows.append(("after refinement", refined))
     return {
         label: camera_errors(c2w.cpu(), reference_c2w, fx.cpu(), reference_fx, align=True) for label, (c2w, fx) in rows

@@ -52,13 +52,13 @@ def train_and_dump(
     pipeline.datamanager.next_train = recording_next_train
 
     refresh_steps: list[int] = []
-    refresh = camera_optimizer.refresh
+    refresh = camera_optimizer.refiner.refresh
 
     def recording_refresh(step: int, *args, **kwargs):
         refresh_steps.append(step)
         return refresh(step, *args, **kwargs)
 
-    camera_optimizer.refresh = recording_refresh
+    camera_optimizer.refiner.refresh = recording_refresh
     if request_refresh_at is not None and global_rank == 0:
         trainer.callbacks.append(
             TrainingCallback(
@@ -78,7 +78,7 @@ def train_and_dump(
         }
 
     def snapshot(step: int) -> None:
-        snapshots[step] = {**latents(), "camera_deltas": camera_optimizer.camera_deltas().detach().cpu().clone()}
+        snapshots[step] = {**latents(), "camera_deltas": camera_optimizer.refiner.deltas().detach().cpu().clone()}
 
     if snapshot_steps:  # after the step's other callbacks, the refresh of P included
         trainer.callbacks.append(
@@ -103,10 +103,10 @@ def train_and_dump(
         "snapshots": snapshots,
         "latents": latents(),
         "camera_state": {name: value.cpu().clone() for name, value in camera_optimizer.state_dict().items()},
-        "precond": camera_optimizer.precond.cpu().clone(),
-        "precond_inv": camera_optimizer.precond_inv.cpu().clone(),
-        "camera_deltas": camera_optimizer.camera_deltas().detach().cpu().clone(),
-        "num_refreshes": int(camera_optimizer.num_refreshes),
+        "precond": camera_optimizer.refiner.precond.cpu().clone(),
+        "precond_inv": camera_optimizer.refiner.precond_inv.cpu().clone(),
+        "camera_deltas": camera_optimizer.refiner.deltas().detach().cpu().clone(),
+        "num_refreshes": int(camera_optimizer.refiner.num_refreshes),
         "refresh_steps": refresh_steps,
         "first_pixels": first_pixels[0],
         "camera_errors": dict(model._camera_errors),

@@ -12,6 +12,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
+from latents import latent_grad, latent_moment, write_latent
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 
@@ -23,7 +24,7 @@ from s2camp_ns.core.proxy_range import ProxyRangeConfig
 from s2camp_ns.core.shared_intrinsics import compute_shared_preconditioner
 from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras, nerfstudio_distortion
 from s2camp_ns.nerfstudio.camera_fields import replace_cameras
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY
+from s2camp_ns.nerfstudio.rays import PIXEL_KEY, cast_rays, train_camera_raybundle
 
 NUM_CAMERAS = 3
 WIDTH, HEIGHT = 64, 48
@@ -85,22 +86,22 @@ def random_ray_bundle(num_rays: int = 256, seed: int = 0) -> RayBundle:
 
 def set_latent(optimizer: S2CampCameraOptimizer, seed: int = 1, scale: float = 1e-2) -> None:
     generator = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        optimizer.whitened_delta.copy_(scale * torch.randn(optimizer.whitened_delta.shape, generator=generator))
+    refiner = optimizer.refiner
+    write_latent(refiner, scale * torch.randn(refiner.num_images, refiner.layout.num_params, generator=generator))
 
 
 def refined_state(optimizer: S2CampCameraOptimizer) -> torch.Tensor:
-    intrinsics = optimizer.refined_intrinsics()
+    intrinsics = optimizer.refiner.refined_intrinsics()
     names = ("fx", "fy", "cx", "cy", "skew", "k1", "k2")
     columns = [getattr(intrinsics, name) for name in names]
-    return torch.cat([optimizer.refined_c2w().reshape(NUM_CAMERAS, -1), torch.stack(columns, dim=-1)], dim=-1)
+    return torch.cat([optimizer.refiner.refined_c2w().reshape(NUM_CAMERAS, -1), torch.stack(columns, dim=-1)], dim=-1)
 
 
 def test_initial_preconditioner_is_computed_and_symmetric():
     optimizer = make_optimizer()
-    p, p_inv = optimizer.precond, optimizer.precond_inv
+    p, p_inv = optimizer.refiner.precond, optimizer.refiner.precond_inv
     assert p.shape == (NUM_CAMERAS, 12, 12)
-    assert int(optimizer.last_refresh_step) == 0
+    assert int(optimizer.refiner.last_refresh_step) == 0
     torch.testing.assert_close(p, p.transpose(-1, -2))
     torch.testing.assert_close(p @ p_inv, torch.eye(12, dtype=torch.float64).expand_as(p), atol=1e-8, rtol=0)
     assert not torch.allclose(p, torch.eye(12, dtype=torch.float64).expand_as(p))
@@ -110,27 +111,26 @@ def test_whitening_round_trip():
     """phi = P^-1 (P phi) (paper eq. 15) for every camera and parameter."""
     optimizer = make_optimizer()
     phi = 1e-3 * torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
-    with torch.no_grad():
-        optimizer.whitened_delta.copy_((optimizer.precond @ phi[..., None])[..., 0])
-    torch.testing.assert_close(optimizer.camera_deltas()[:, :12], phi, atol=1e-9, rtol=1e-5)
-    assert optimizer.camera_deltas()[:, 12:].abs().max() == 0  # k3, k4, p1, p2: not in a RADIAL camera
+    write_latent(optimizer.refiner, (optimizer.refiner.precond @ phi[..., None])[..., 0])
+    torch.testing.assert_close(optimizer.refiner.deltas()[:, :12], phi, atol=1e-9, rtol=1e-5)
+    assert optimizer.refiner.deltas()[:, 12:].abs().max() == 0  # k3, k4, p1, p2: not in a RADIAL camera
 
 
 @pytest.mark.parametrize("parameters", ["pose", "pose+focal", "pose+intrinsics", "all"])
 def test_layout_selects_columns(parameters: str):
     optimizer = make_optimizer(parameters=parameters)
     layout = ParameterLayout.from_preset(parameters)
-    assert optimizer.whitened_delta.shape == (NUM_CAMERAS, layout.num_params)
+    assert optimizer.refiner.latent().shape == (NUM_CAMERAS, layout.num_params)
     set_latent(optimizer)
     disabled = [i for i in range(16) if i not in layout.indices]
-    assert torch.all(optimizer.camera_deltas()[:, disabled] == 0)
+    assert torch.all(optimizer.refiner.deltas()[:, disabled] == 0)
 
 
 def test_precondition_false_uses_raw_deltas():
     optimizer = make_optimizer(precondition=False)
     set_latent(optimizer)
     torch.testing.assert_close(
-        optimizer.camera_deltas(), optimizer.layout.expand(optimizer.whitened_delta.detach().double())
+        optimizer.refiner.deltas(), optimizer.refiner.layout.expand(optimizer.refiner.latent().detach())
     )
 
 
@@ -153,7 +153,7 @@ def history_directions(precond: torch.Tensor, dense: bool) -> list[torch.Tensor]
 
 def refined_deltas(optimizer: S2CampCameraOptimizer) -> torch.Tensor:
     """phi: the camera deltas of the refined parameters (the layout's columns; the others stay zero)."""
-    return optimizer.camera_deltas()[:, list(optimizer.layout.indices)]
+    return optimizer.refiner.deltas()[:, list(optimizer.refiner.layout.indices)]
 
 
 def linear_step(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam, direction: torch.Tensor) -> torch.Tensor:
@@ -190,10 +190,11 @@ def trained_optimizer(dense: bool) -> tuple[S2CampCameraOptimizer, torch.optim.A
     """An optimizer whose focal length moved enough that a refresh changes P, after four Adam steps."""
     optimizer = make_optimizer()
     set_latent(optimizer, scale=1e-2)
-    with torch.no_grad():
-        optimizer.whitened_delta[:, 6] += 0.01
-    adam = torch.optim.Adam([optimizer.whitened_delta], lr=LR)
-    history = history_directions(optimizer.precond, dense)
+    latent = optimizer.refiner.latent().detach()
+    latent[:, 6] += 0.01
+    write_latent(optimizer.refiner, latent)
+    adam = torch.optim.Adam(optimizer.parameters(), lr=LR)
+    history = history_directions(optimizer.refiner.precond, dense)
     for direction in history:
         linear_step(optimizer, adam, direction)
     return optimizer, adam, history
@@ -207,21 +208,22 @@ def test_refresh_keeps_cameras_and_the_next_adam_step(dense: bool):
     state instead: 80%-200%). Adam is not invariant to a change of basis, so the last two cannot agree exactly."""
     optimizer, adam, history = trained_optimizer(dense)
     without, without_adam = copy.deepcopy((optimizer, adam))
-    before, p_old = refined_state(optimizer).detach(), optimizer.precond.clone()
-    optimizer.refresh(step=10, optimizer=adam)
-    assert int(optimizer.last_refresh_step) == 10 and int(optimizer.num_refreshes) == 2
-    assert relative(optimizer.precond, p_old) > 0.03  # P really changed (by about 7%)
+    before, p_old = refined_state(optimizer).detach(), optimizer.refiner.precond.clone()
+    optimizer.refiner.refresh(step=10, optimizer=adam)
+    assert int(optimizer.refiner.last_refresh_step) == 10 and int(optimizer.refiner.num_refreshes) == 2
+    assert relative(optimizer.refiner.precond, p_old) > 0.03  # P really changed (by about 7%)
     torch.testing.assert_close(refined_state(optimizer).detach(), before, atol=1e-6, rtol=1e-6)
     # Adam's moments are those of the reference Adam: m exactly, v exactly for single-component gradients.
-    _, expected_state = adam_in_basis(optimizer.precond, history)
-    state = adam.state[optimizer.whitened_delta]
-    assert int(state["step"]) == len(history)
-    assert relative(state["exp_avg"].double(), expected_state["exp_avg"]) < 1e-5
-    assert relative(state["exp_avg_sq"].double(), expected_state["exp_avg_sq"]) < (0.05 if dense else 1e-5)
+    _, expected_state = adam_in_basis(optimizer.refiner.precond, history)
+    refiner = optimizer.refiner
+    assert int(adam.state[refiner.whitened_delta]["step"]) == len(history)
+    assert relative(latent_moment(adam, refiner, "exp_avg").double(), expected_state["exp_avg"]) < 1e-5
+    moment = latent_moment(adam, refiner, "exp_avg_sq").double()
+    assert relative(moment, expected_state["exp_avg_sq"]) < (0.05 if dense else 1e-5)
 
     direction = torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
     moved = linear_step(optimizer, adam, direction)
-    expected, _ = adam_in_basis(optimizer.precond, [*history, direction])
+    expected, _ = adam_in_basis(optimizer.refiner.precond, [*history, direction])
     assert relative(moved, expected) < (0.02 if dense else 2e-5)
     assert relative(moved, linear_step(without, without_adam, direction)) < 0.2
 
@@ -232,47 +234,48 @@ def test_preconditioner_whitens_the_camera_the_optimizer_renders():
     w.r.t. its latent gives J P^-1: the optimizer applies the parameters P was computed for, with the same signs.
     A twist applied as exp(-xi), or any other column out of step with the core, breaks this (and the whitening)."""
     optimizer = make_optimizer()
-    base = optimizer.refined_intrinsics().detach()
+    base = optimizer.refiner.refined_intrinsics().detach()
     points_cam = sample_proxy_points(base, SamplingConfig(num_points=8, sampler="camp-random"))
-    _, analytic, _ = projection_jacobian(points_cam, base, optimizer.layout)  # [n, l, 2, 12]
-    c2w = optimizer.base_c2w_cv
+    _, analytic, _ = projection_jacobian(points_cam, base, optimizer.refiner.layout)  # [n, l, 2, 12]
+    c2w = optimizer.refiner.base_c2w_cv
     world = (c2w[:, None, :, :3] @ points_cam[..., None])[..., 0] + c2w[:, None, :, 3]
 
     def pixels() -> torch.Tensor:
-        refined = optimizer.refined_c2w()
+        refined = optimizer.refiner.refined_c2w()
         rotation, centre = refined[:, None, :, :3], refined[:, None, :, 3]
         in_camera = (rotation.transpose(-1, -2) @ (world - centre)[..., None])[..., 0]
-        return project(in_camera, optimizer.refined_intrinsics())[0]
+        return project(in_camera, optimizer.refiner.refined_intrinsics())[0]
 
     flat = pixels().reshape(-1)
     rows = []
+    latents = list(optimizer.parameters())  # per image: the pose and the intrinsics latent, one row each
     for i in range(flat.numel()):
-        (gradient,) = torch.autograd.grad(pixels().reshape(-1)[i], optimizer.whitened_delta)
-        rows.append(gradient.double())
+        gradients = torch.autograd.grad(pixels().reshape(-1)[i], latents)
+        rows.append(torch.cat(gradients, dim=-1).double())
     latent_jacobian = torch.stack(rows).reshape(*flat.shape, NUM_CAMERAS, 12)
     camera = torch.arange(flat.numel()) // (flat.numel() // NUM_CAMERAS)
     autograd = latent_jacobian[torch.arange(flat.numel()), camera].reshape(analytic.shape[:-1] + (12,))
     # d pixels / d phi_hat = J P^-1; compared as (d pixels / d phi_hat) P = J, away from P^-1's large entries
     # (the latent is float32, so its gradients carry float32 rounding)
     scale = float(analytic.abs().amax())
-    torch.testing.assert_close(autograd @ optimizer.precond[:, None], analytic, rtol=0, atol=1e-6 * scale)
+    torch.testing.assert_close(autograd @ optimizer.refiner.precond[:, None], analytic, rtol=0, atol=1e-6 * scale)
     assert analytic[..., :6].abs().amax() > 1.0  # the pose columns are not trivially zero
 
 
 def test_refresh_with_invalid_intrinsics_keeps_preconditioner():
     optimizer = make_optimizer(precondition=True)
-    p_before = optimizer.precond.clone()
-    with torch.no_grad():  # k1 so negative that the distortion folds inside the image
-        optimizer.whitened_delta.copy_((optimizer.precond @ torch.eye(12, dtype=torch.float64)[10] * -5.0).float())
+    p_before = optimizer.refiner.precond.clone()
+    # k1 so negative that the distortion folds inside the image
+    write_latent(optimizer.refiner, optimizer.refiner.precond @ torch.eye(12, dtype=torch.float64)[10] * -5.0)
     with pytest.warns(UserWarning, match="refresh at step 10 skipped"):
-        optimizer.refresh(step=10)
-    torch.testing.assert_close(optimizer.precond, p_before)
+        optimizer.refiner.refresh(step=10)
+    torch.testing.assert_close(optimizer.refiner.precond, p_before)
 
 
 def test_should_refresh_schedule():
     optimizer = make_optimizer(refresh_every=5)
-    assert [s for s in range(12) if optimizer.should_refresh(s)] == [5, 10]
-    assert not any(make_optimizer(refresh_every=0).should_refresh(s) for s in range(12))
+    assert [s for s in range(12) if optimizer.refresh_due(s)] == [5, 10]
+    assert not any(make_optimizer(refresh_every=0).refresh_due(s) for s in range(12))
 
 
 @pytest.mark.parametrize("precondition", [True, False])
@@ -283,8 +286,8 @@ def test_gradient_reaches_every_parameter(precondition: bool):
     optimizer.apply_to_raybundle(bundle)
     weights = torch.randn(bundle.directions.shape, generator=torch.Generator().manual_seed(5))
     ((bundle.directions * weights).sum() + (bundle.origins * weights).sum()).backward()
-    grad = optimizer.whitened_delta.grad
-    assert grad is not None and torch.isfinite(grad).all()
+    grad = latent_grad(optimizer.refiner)
+    assert torch.isfinite(grad).all()
     per_parameter = grad.abs().sum(dim=0)
     assert torch.all(per_parameter > 0), dict(zip(PARAMETER_NAMES, per_parameter.tolist(), strict=True))
 
@@ -292,39 +295,45 @@ def test_gradient_reaches_every_parameter(precondition: bool):
 def test_checkpoint_round_trip():
     optimizer = make_optimizer()
     set_latent(optimizer)
-    optimizer.refresh(step=20)
+    optimizer.refiner.refresh(step=20)
     state = optimizer.state_dict()
-    assert {"whitened_delta", "precond", "precond_inv", "last_refresh_step", "num_refreshes"} <= set(state)
-    assert "base_c2w_cv" not in state  # base cameras come from the dataparser on every run
-    assert torch.equal(state["precond_base_intrinsics"], optimizer.base_intrinsics)  # what P was computed for
+    assert {f"refiner.{name}" for name in ("whitened_delta", "precond", "precond_inv", "last_refresh_step",
+                                           "num_refreshes")} <= set(state)  # fmt: skip
+    assert "refiner.base_c2w_cv" not in state  # base cameras come from the dataparser on every run
+    # what P was computed for
+    assert torch.equal(state["refiner.precond_base_intrinsics"], optimizer.refiner.base_intrinsics)
 
     restored = make_optimizer()
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # same cameras: the saved P is used as is, silently
         restored.load_state_dict(state)
-    assert torch.equal(restored.precond, optimizer.precond) and torch.equal(restored.precond_inv, optimizer.precond_inv)
+    assert torch.equal(restored.refiner.precond, optimizer.refiner.precond) and torch.equal(
+        restored.refiner.precond_inv, optimizer.refiner.precond_inv
+    )
     torch.testing.assert_close(refined_state(restored), refined_state(optimizer), atol=0, rtol=0)
-    assert int(restored.last_refresh_step) == 20 and int(restored.num_refreshes) == int(optimizer.num_refreshes)
-    assert not restored.should_refresh(20)
+    assert int(restored.refiner.last_refresh_step) == 20 and int(restored.refiner.num_refreshes) == int(
+        optimizer.refiner.num_refreshes
+    )
+    assert not restored.refresh_due(20)
 
 
 def latents(optimizer: S2CampCameraOptimizer) -> list[torch.nn.Parameter]:
-    """The optimizer's trainable latents: per image, or per image (pose) and per physical camera (intrinsics)."""
-    return [optimizer.whitened_delta, *([optimizer.whitened_intrinsics] if optimizer.shared else [])]
+    """The optimizer's trainable latents: the pose per image and the intrinsics per image or physical camera."""
+    return list(optimizer.parameters())
 
 
 def train(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam, steps: range) -> None:
     """nerfstudio's order per step: BEFORE callbacks (the model's stale-P check), loss and Adam step, AFTER callbacks
     (the scheduled refresh)."""
     for step in steps:
-        optimizer.recompute_stale_preconditioner(step, adam)
+        optimizer.refiner.recompute_stale_preconditioner(step, adam)
         adam.zero_grad()
         bundle = random_ray_bundle(seed=step)
         optimizer.apply_to_raybundle(bundle)
         (bundle.directions.square().sum() + bundle.origins.sum()).backward()
         adam.step()
-        if optimizer.should_refresh(step):
-            optimizer.refresh(step, adam)
+        if optimizer.refresh_due(step):
+            optimizer.refiner.refresh(step, adam)
 
 
 def checkpoint(optimizer: S2CampCameraOptimizer, adam: torch.optim.Adam) -> dict:
@@ -361,14 +370,14 @@ def test_interrupted_run_continues_bit_identically(intrinsics: str):
         resumed, resumed_adam = resume(checkpoint(first, first_adam), cameras, intrinsics=intrinsics)
     train(resumed, resumed_adam, range(16, 26))
 
-    assert int(resumed.num_refreshes) == int(uninterrupted.num_refreshes) == 3  # steps 0, 10, 20
+    assert int(resumed.refiner.num_refreshes) == int(uninterrupted.refiner.num_refreshes) == 3  # steps 0, 10, 20
     for mine, reference in zip(latents(resumed), latents(uninterrupted), strict=True):
         assert torch.equal(mine, reference)
         for key in ("exp_avg", "exp_avg_sq"):
             assert torch.equal(resumed_adam.state[mine][key], adam.state[reference][key])
-    assert torch.equal(resumed.precond, uninterrupted.precond)
+    assert torch.equal(resumed.refiner.precond, uninterrupted.refiner.precond)
     assert torch.equal(refined_state(resumed), refined_state(uninterrupted))
-    assert not torch.equal(uninterrupted.whitened_delta, first.whitened_delta)  # the last ten steps did move
+    assert not torch.equal(uninterrupted.refiner.latent(), first.refiner.latent())  # the last ten steps did move
 
 
 def other_base_cameras() -> Cameras:
@@ -384,33 +393,34 @@ def test_checkpoint_on_other_base_cameras_recomputes_p_and_maps_adam_state():
     kept, and Adam's moments become those of an Adam that ran in the new basis from the start."""
     saved, saved_adam, history = trained_optimizer(dense=False)
     state = checkpoint(saved, saved_adam)
-    deltas = saved.camera_deltas().detach()
+    deltas = saved.refiner.deltas().detach()
 
     with pytest.warns(UserWarning, match=r"intrinsics differ from those its P was computed for \(largest change fx"):
         resumed, adam = resume(state, other_base_cameras())
-    assert resumed.preconditioner_is_stale
-    resumed.recompute_stale_preconditioner(step=30, optimizer=adam)  # the model's callback before the first step
-    assert not resumed.preconditioner_is_stale and int(resumed.last_refresh_step) == 30
-    torch.testing.assert_close(resumed.camera_deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
+    assert resumed.refiner.preconditioner_is_stale
+    resumed.refiner.recompute_stale_preconditioner(
+        step=30, optimizer=adam
+    )  # the model's callback before the first step
+    assert not resumed.refiner.preconditioner_is_stale and int(resumed.refiner.last_refresh_step) == 30
+    torch.testing.assert_close(resumed.refiner.deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
     expected = compute_preconditioner(
-        resumed.base_intrinsics_struct().with_delta(deltas),
-        resumed.layout,
+        resumed.refiner.base_intrinsics_struct().with_delta(deltas),
+        resumed.refiner.layout,
         resumed.config.sampling,
         resumed.config.damping,
     )
-    torch.testing.assert_close(resumed.precond, expected.matrix, rtol=1e-9, atol=0)
-    assert relative(resumed.precond, saved.precond) > 0.01  # the stale P would have been this far off
-    assert torch.equal(resumed.precond_base_intrinsics, resumed.base_intrinsics)
-    _, expected_state = adam_in_basis(resumed.precond, history)
-    adam_state = adam.state[resumed.whitened_delta]
-    assert relative(adam_state["exp_avg"].double(), expected_state["exp_avg"]) < 1e-5
-    assert relative(adam_state["exp_avg_sq"].double(), expected_state["exp_avg_sq"]) < 1e-5
-    precond = resumed.precond.clone()
-    resumed.recompute_stale_preconditioner(step=31, optimizer=adam)  # nothing left to do
-    assert torch.equal(resumed.precond, precond)
+    torch.testing.assert_close(resumed.refiner.precond, expected.matrix, rtol=1e-9, atol=0)
+    assert relative(resumed.refiner.precond, saved.refiner.precond) > 0.01  # the stale P would have been this far off
+    assert torch.equal(resumed.refiner.precond_base_intrinsics, resumed.refiner.base_intrinsics)
+    _, expected_state = adam_in_basis(resumed.refiner.precond, history)
+    for key in ("exp_avg", "exp_avg_sq"):
+        assert relative(latent_moment(adam, resumed.refiner, key).double(), expected_state[key]) < 1e-5
+    precond = resumed.refiner.precond.clone()
+    resumed.refiner.recompute_stale_preconditioner(step=31, optimizer=adam)  # nothing left to do
+    assert torch.equal(resumed.refiner.precond, precond)
     direction = torch.randn(NUM_CAMERAS, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
     moved = linear_step(resumed, adam, direction)
-    assert relative(moved, adam_in_basis(resumed.precond, [*history, direction])[0]) < 2e-5
+    assert relative(moved, adam_in_basis(resumed.refiner.precond, [*history, direction])[0]) < 2e-5
 
 
 def test_shared_intrinsics_checkpoint_on_other_base_cameras_recomputes_p():
@@ -419,42 +429,41 @@ def test_shared_intrinsics_checkpoint_on_other_base_cameras_recomputes_p():
     saved = make_optimizer(intrinsics="per-camera")
     adam = torch.optim.Adam(latents(saved), lr=LR)
     train(saved, adam, range(1, 6))
-    deltas = saved.camera_deltas().detach()
+    deltas = saved.refiner.deltas().detach()
     with pytest.warns(UserWarning, match="differ from those its P was computed for"):
         resumed, resumed_adam = resume(checkpoint(saved, adam), other_base_cameras(), intrinsics="per-camera")
-    resumed.recompute_stale_preconditioner(step=6, optimizer=resumed_adam)
-    torch.testing.assert_close(resumed.camera_deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
-    refined = resumed.base_intrinsics_struct().with_delta(deltas)  # 3 distinct cameras: one per image here
+    resumed.refiner.recompute_stale_preconditioner(step=6, optimizer=resumed_adam)
+    torch.testing.assert_close(resumed.refiner.deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
+    refined = resumed.refiner.base_intrinsics_struct().with_delta(deltas)  # 3 distinct cameras: one per image here
     config = resumed.config
-    expected = compute_shared_preconditioner(refined, resumed.layout, config.sampling, config.damping).matrix
-    torch.testing.assert_close(resumed.precond, expected, rtol=1e-9, atol=1e-12)
-    assert relative(saved.precond, expected) > 0.01  # the stale P would have been this far off
+    expected = compute_shared_preconditioner(refined, resumed.refiner.layout, config.sampling, config.damping).matrix
+    torch.testing.assert_close(resumed.refiner.precond, expected, rtol=1e-9, atol=1e-12)
+    assert relative(saved.refiner.precond, expected) > 0.01  # the stale P would have been this far off
 
 
 def test_checkpoint_without_recorded_cameras_recomputes_p():
     """Checkpoints written before the base intrinsics were saved: P is recomputed rather than trusted."""
     saved, saved_adam, _ = trained_optimizer(dense=False)
     state = checkpoint(saved, saved_adam)
-    del state["pipeline"]["precond_base_intrinsics"]
+    del state["pipeline"]["refiner.precond_base_intrinsics"]
     with pytest.warns(UserWarning, match="the intrinsics its P was computed for are not recorded"):
         resumed, adam = resume(state, make_cameras(k1=-0.05, k2=0.01))
-    resumed.recompute_stale_preconditioner(step=7, optimizer=adam)
-    torch.testing.assert_close(resumed.camera_deltas(), saved.camera_deltas(), rtol=1e-6, atol=1e-9)
-    assert torch.equal(resumed.precond_base_intrinsics, resumed.base_intrinsics)
-    assert int(resumed.last_refresh_step) == 7
+    resumed.refiner.recompute_stale_preconditioner(step=7, optimizer=adam)
+    torch.testing.assert_close(resumed.refiner.deltas(), saved.refiner.deltas(), rtol=1e-6, atol=1e-9)
+    assert torch.equal(resumed.refiner.precond_base_intrinsics, resumed.refiner.base_intrinsics)
+    assert int(resumed.refiner.last_refresh_step) == 7
 
 
 def test_checkpoint_that_cannot_fit_the_cameras_is_refused():
     """Learned deltas whose k1 folds the distortion inside the image of the new cameras: no P exists for them,
     and training refuses to start with the stale one."""
     saved = make_optimizer()
-    with torch.no_grad():
-        saved.whitened_delta.copy_((saved.precond @ torch.eye(12, dtype=torch.float64)[10] * -5.0).float())
+    write_latent(saved.refiner, saved.refiner.precond @ torch.eye(12, dtype=torch.float64)[10] * -5.0)
     optimizer = make_optimizer(other_base_cameras())
     with pytest.warns(UserWarning, match="differ from those its P was computed for"):
         optimizer.load_state_dict(saved.state_dict())
     with pytest.raises(ValueError, match=r"checkpoint cannot be used with these training cameras: .*non-monotonic"):
-        optimizer.recompute_stale_preconditioner(step=1, optimizer=None)
+        optimizer.refiner.recompute_stale_preconditioner(step=1, optimizer=None)
 
 
 def test_camera_optimizer_state_of_other_cameras_is_refused_with_both_counts():
@@ -475,11 +484,14 @@ def test_viewer_correction_matches_refined_pose():
     c2w = cameras.camera_to_worlds.double()
     rotation = c2w[:, :, :3] @ correction[:, :, :3]
     composed = torch.cat([rotation, c2w[:, :, 3:] + c2w[:, :, :3] @ correction[:, :, 3:]], dim=-1)
-    torch.testing.assert_close(composed, optimizer.refined_c2w(opengl=True).detach(), atol=1e-6, rtol=0)
+    torch.testing.assert_close(composed, optimizer.refiner.refined_c2w(opengl=True).detach(), atol=1e-6, rtol=0)
     camera = cameras[1:2]
     camera.metadata = {"cam_idx": 1}
     torch.testing.assert_close(
-        optimizer.apply_to_camera(camera).double(), optimizer.refined_c2w(opengl=True)[1:2].detach(), atol=1e-6, rtol=0
+        optimizer.apply_to_camera(camera).double(),
+        optimizer.refiner.refined_c2w(opengl=True)[1:2].detach(),
+        atol=1e-6,
+        rtol=0,
     )
 
 
@@ -495,7 +507,9 @@ def test_param_group_is_camera_opt():
     optimizer = make_optimizer()
     groups: dict = {}
     optimizer.get_param_groups(groups)
-    assert list(groups) == ["camera_opt"] and groups["camera_opt"] == [optimizer.whitened_delta]
+    refiner = optimizer.refiner
+    assert list(groups) == ["camera_opt"]
+    assert groups["camera_opt"] == [refiner.whitened_delta, refiner.whitened_intrinsics]  # one storage, two tensors
 
 
 def _with(cameras: Cameras, distortion: list[float], camera_type: CameraType = CameraType.PERSPECTIVE) -> Cameras:
@@ -553,18 +567,18 @@ def test_unsupported_camera_types_are_named(camera_type: CameraType):
 )
 def test_all_preset_refines_the_distortion_of_the_camera_model(distortion, camera_type, model, tail):
     optimizer = make_optimizer(_with(make_cameras(), distortion, camera_type))
-    layout = optimizer.layout
+    layout = optimizer.refiner.layout
     assert layout == ParameterLayout.from_preset("all", model)
     assert layout.names[-len(tail) :] == tail
-    assert optimizer.whitened_delta.shape == (NUM_CAMERAS, layout.num_params)
-    assert optimizer.precond.shape == (NUM_CAMERAS, layout.num_params, layout.num_params)
-    assert torch.isfinite(optimizer.precond).all() and optimizer.gram.abs().amax() > 0
+    assert optimizer.refiner.latent().shape == (NUM_CAMERAS, layout.num_params)
+    assert optimizer.refiner.precond.shape == (NUM_CAMERAS, layout.num_params, layout.num_params)
+    assert torch.isfinite(optimizer.refiner.precond).all() and optimizer.refiner.gram.abs().amax() > 0
     bundle = random_ray_bundle()
     optimizer.apply_to_raybundle(bundle)
     (bundle.directions.sum() + bundle.origins.sum()).backward()
-    assert (optimizer.whitened_delta.grad.abs().amax(dim=0) > 0).all(), "every refined parameter gets a gradient"
+    assert (latent_grad(optimizer.refiner).abs().amax(dim=0) > 0).all(), "every refined parameter gets a gradient"
     without_distortion = make_optimizer(_with(make_cameras(), distortion, camera_type), parameters="pose+intrinsics")
-    assert without_distortion.layout.num_params == 10
+    assert without_distortion.refiner.layout.num_params == 10
 
 
 @pytest.mark.parametrize("announced", [False, True])
@@ -581,19 +595,22 @@ def test_shared_intrinsics_latent_follows_the_camera_model(distortion, camera_ty
     config = S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=64, sampler="camp-random"))
     optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
     if announced:
-        optimizer.set_camera_model(model)
-        assert optimizer.whitened_intrinsics.shape == (NUM_CAMERAS, 8)
-    optimizer.set_camera_groups([0, 0, 0])
-    announced_latent = optimizer.whitened_intrinsics
+        optimizer.refiner.set_camera_model(model)
+        assert optimizer.refiner.whitened_intrinsics.shape == (NUM_CAMERAS, 8)
+    optimizer.refiner.set_camera_groups([0, 0, 0])
+    announced_latent = optimizer.refiner.whitened_intrinsics
     optimizer.set_train_cameras(_with(make_cameras(), distortion, camera_type))
-    assert optimizer.layout == ParameterLayout.from_preset("all", model)
-    assert optimizer.whitened_delta.shape == (NUM_CAMERAS, 6) and optimizer.whitened_intrinsics.shape == (1, 8)
+    assert optimizer.refiner.layout == ParameterLayout.from_preset("all", model)
+    assert optimizer.refiner.whitened_delta.shape == (
+        NUM_CAMERAS,
+        6,
+    ) and optimizer.refiner.whitened_intrinsics.shape == (1, 8)
     if announced:  # no resize after the announcement: optimizers built on the parameter keep it
-        assert optimizer.whitened_intrinsics is announced_latent
+        assert optimizer.refiner.whitened_intrinsics is announced_latent
     bundle = random_ray_bundle()
     optimizer.apply_to_raybundle(bundle)
     (bundle.directions.sum() + bundle.origins.sum()).backward()
-    assert (optimizer.whitened_intrinsics.grad.abs() > 0).all()
+    assert (optimizer.refiner.whitened_intrinsics.grad.abs() > 0).all()
 
 
 def test_invalid_config_raises():
@@ -618,7 +635,7 @@ def raw_optimizer(cameras: Cameras | None = None, **overrides) -> S2CampCameraOp
 
 def set_raw_delta(optimizer: S2CampCameraOptimizer, delta: torch.Tensor) -> None:
     with torch.no_grad():
-        optimizer.whitened_delta.copy_(delta.expand_as(optimizer.whitened_delta))
+        write_latent(optimizer.refiner, delta)
 
 
 def refined_c2w_cv_by_hand(c2w_gl: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
@@ -698,8 +715,9 @@ def test_unsupported_camera_types_are_rejected():
 
 def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
     optimizer = make_optimizer()
-    assert set(optimizer.state_dict()) == {
+    assert {key.removeprefix("refiner.") for key in optimizer.state_dict()} == {
         "whitened_delta",
+        "whitened_intrinsics",
         "precond",
         "precond_inv",
         "last_refresh_step",
@@ -709,7 +727,7 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "undistortion_steps",  # the undistortion's Newton steps: a resumed run casts its rays as it did
     }
     # Buffers move with the module (.to(device)), the base cameras and the Gram included.
-    assert {name for name, _ in optimizer.named_buffers()} == {
+    assert {name.removeprefix("refiner.") for name, _ in optimizer.named_buffers()} == {
         "precond",
         "precond_inv",
         "last_refresh_step",
@@ -733,7 +751,7 @@ def test_use_before_set_train_cameras_raises():
     optimizer = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
     message = "S2CampCameraOptimizer.set_train_cameras must be called before use (the pipeline does)"
     with pytest.raises(RuntimeError, match=f"^{re.escape(message)}$"):
-        optimizer.refined_intrinsics()
+        optimizer.refiner.refined_intrinsics()
     metrics: dict = {}
     optimizer.get_metrics_dict(metrics)
     assert metrics == {}
@@ -744,17 +762,17 @@ def test_set_train_cameras_checks_the_count_and_computes_p_once():
     with pytest.raises(ValueError, match=r"^cameras must hold 3 training cameras, got 2$"):
         optimizer.set_train_cameras(make_cameras()[:2])
     set_latent(optimizer, scale=1.0)  # refined intrinsics now differ from the base ones
-    p_before = optimizer.precond.clone()
+    p_before = optimizer.refiner.precond.clone()
     optimizer.set_train_cameras(make_cameras(k1=-0.05, k2=0.01))  # again, e.g. after a checkpoint load
-    assert torch.equal(optimizer.precond, p_before) and int(optimizer.num_refreshes) == 1
+    assert torch.equal(optimizer.refiner.precond, p_before) and int(optimizer.refiner.num_refreshes) == 1
 
 
 def test_should_refresh_every_step_and_not_at_step_zero_after_a_restore():
     every_step = make_optimizer(refresh_every=1)
-    assert [s for s in range(4) if every_step.should_refresh(s)] == [1, 2, 3]
+    assert [s for s in range(4) if every_step.refresh_due(s)] == [1, 2, 3]
     restored = make_optimizer(refresh_every=5)
-    restored.refresh(step=20)
-    assert [s for s in (0, 5, 20, 25) if restored.should_refresh(s)] == [5, 25]
+    restored.refiner.refresh(step=20)
+    assert [s for s in (0, 5, 20, 25) if restored.refresh_due(s)] == [5, 25]
 
 
 def test_non_trainable_cameras_keep_their_base_camera():
@@ -766,13 +784,13 @@ def test_non_trainable_cameras_keep_their_base_camera():
     delta = torch.arange(1.0, 13.0) * 1e-3
     set_raw_delta(optimizer, delta)
     expected = torch.stack([delta, torch.zeros(12), delta]).double()
-    torch.testing.assert_close(optimizer.camera_deltas()[:, :12], expected, atol=1e-12, rtol=0)
-    assert optimizer.camera_deltas()[:, 12:].abs().sum() == 0  # no p1, p2, k3, k4 for RADIAL cameras
+    torch.testing.assert_close(optimizer.refiner.deltas()[:, :12], expected, atol=1e-12, rtol=0)
+    assert optimizer.refiner.deltas()[:, 12:].abs().sum() == 0  # no p1, p2, k3, k4 for RADIAL cameras
 
 
 def test_mode_off_keeps_every_camera():
     optimizer = make_optimizer(mode="off")
-    assert torch.equal(optimizer.camera_deltas(), torch.zeros(NUM_CAMERAS, len(PARAMETER_NAMES), dtype=torch.float64))
+    assert torch.equal(optimizer.refiner.deltas(), torch.zeros(NUM_CAMERAS, len(PARAMETER_NAMES), dtype=torch.float64))
     camera = make_cameras()[1:2]
     camera.metadata = {"cam_idx": 1}
     assert torch.equal(optimizer.apply_to_camera(camera), camera.camera_to_worlds)
@@ -783,9 +801,9 @@ def test_refined_pose_is_the_matrix_exponential_of_the_twist():
     optimizer = raw_optimizer(cameras)
     set_raw_delta(optimizer, torch.cat([XI, torch.zeros(6)]))
     expected_cv = refined_c2w_cv_by_hand(cameras.camera_to_worlds, XI.double())
-    torch.testing.assert_close(optimizer.refined_c2w().detach(), expected_cv, atol=1e-6, rtol=0)
+    torch.testing.assert_close(optimizer.refiner.refined_c2w().detach(), expected_cv, atol=1e-6, rtol=0)
     expected_gl = gl_from_cv(expected_cv)
-    torch.testing.assert_close(optimizer.refined_c2w(opengl=True).detach(), expected_gl, atol=1e-6, rtol=0)
+    torch.testing.assert_close(optimizer.refiner.refined_c2w(opengl=True).detach(), expected_gl, atol=1e-6, rtol=0)
     corrections = optimizer.get_correction_matrices()
     assert corrections.shape == (NUM_CAMERAS, 3, 4) and corrections.dtype == torch.float32
     c2w = cameras.camera_to_worlds.double()
@@ -820,9 +838,9 @@ def test_explicit_deltas_are_used():
     set_raw_delta(optimizer, torch.full((12,), 1e-3))
     deltas = torch.zeros(NUM_CAMERAS, 12, dtype=torch.float64)
     deltas[:, 6], deltas[:, 0] = 5.0, 0.25  # focal +5 pixels, 0.25 along the camera's x axis
-    assert optimizer.refined_intrinsics(deltas).fx.tolist() == [65.0, 67.0, 63.0]
+    assert optimizer.refiner.refined_intrinsics(deltas).fx.tolist() == [65.0, 67.0, 63.0]
     expected = refined_c2w_cv_by_hand(cameras.camera_to_worlds, torch.tensor([0.25, 0, 0, 0, 0, 0]).double())
-    torch.testing.assert_close(optimizer.refined_c2w(deltas), expected, atol=1e-6, rtol=0)
+    torch.testing.assert_close(optimizer.refiner.refined_c2w(deltas), expected, atol=1e-6, rtol=0)
 
 
 def _pinhole_directions_cv(pixels: torch.Tensor, fx, fy, cx, cy) -> torch.Tensor:
@@ -891,7 +909,7 @@ def test_train_camera_raybundle_closed_form():
     cameras = make_cameras()
     optimizer = raw_optimizer(cameras)
     set_raw_delta(optimizer, torch.cat([XI, torch.tensor([3.0, 1.0, -2.0, 0.0, 0.0, 0.0])]))
-    bundle = optimizer.train_camera_raybundle(1, downscale=2)
+    bundle = train_camera_raybundle(optimizer.refiner, 1, downscale=2)
     assert bundle.origins.shape == (HEIGHT // 2, WIDTH // 2, 3)
     fx, fy, cx, cy = 62.0 + 3.0, 62.0 + 3.0, 31.0 + 1.0, 24.5 - 2.0
     ys, xs = torch.meshgrid(torch.arange(HEIGHT // 2), torch.arange(WIDTH // 2), indexing="ij")
@@ -908,7 +926,7 @@ def test_train_camera_raybundle_closed_form():
     )
     torch.testing.assert_close(bundle.pixel_area, torch.full((HEIGHT // 2, WIDTH // 2, 1), 4.0 / (fx * fy)))
     assert bundle.camera_indices.shape == (HEIGHT // 2, WIDTH // 2, 1) and bool((bundle.camera_indices == 1).all())
-    thirds = optimizer.train_camera_raybundle(1, downscale=3)  # pixel area scales with downscale^2 = 9
+    thirds = train_camera_raybundle(optimizer.refiner, 1, downscale=3)  # pixel area scales with downscale^2 = 9
     torch.testing.assert_close(thirds.pixel_area, torch.full((HEIGHT // 3, WIDTH // 3, 1), 9.0 / (fx * fy)))
 
 
@@ -1014,22 +1032,22 @@ def test_a_unit_latent_step_moves_the_proxy_points_one_normalized_pixel_rms(damp
         sampling=SamplingConfig(num_points=500), damping=DampingConfig(damping_rel=damping_rel), parameters="all"
     )
     camera, step = 2, 1e-5
-    base = optimizer.base_intrinsics_struct()
+    base = optimizer.refiner.base_intrinsics_struct()
     single = Intrinsics.from_tensors(base.tensors()[camera : camera + 1], model=base.model)
     points_camera = sample_proxy_points(single, SamplingConfig(num_points=500))[0]
-    c2w = optimizer.base_c2w_cv[camera]
+    c2w = optimizer.refiner.base_c2w_cv[camera]
     points_world = points_camera @ c2w[:, :3].T + c2w[:, 3]
     pixels, depth = project(points_camera[None], single)
     inside = in_image(pixels, depth, single)[0]
     size = float(max(single.width[0], single.height[0]))
     displacements = []
-    for direction in range(optimizer.whitened_delta.shape[1]):
-        with torch.no_grad():
-            optimizer.whitened_delta.zero_()
-            optimizer.whitened_delta[camera, direction] = step
-        deltas = optimizer.camera_deltas()
-        refined_c2w = optimizer.refined_c2w(deltas)[camera]
-        refined = optimizer.refined_intrinsics(deltas)
+    for direction in range(optimizer.refiner.layout.num_params):
+        latent = torch.zeros(NUM_CAMERAS, optimizer.refiner.layout.num_params)
+        latent[camera, direction] = step
+        write_latent(optimizer.refiner, latent)
+        deltas = optimizer.refiner.deltas()
+        refined_c2w = optimizer.refiner.refined_c2w(deltas)[camera]
+        refined = optimizer.refiner.refined_intrinsics(deltas)
         refined_single = Intrinsics.from_tensors(refined.tensors()[camera : camera + 1].detach(), model=refined.model)
         moved_camera = (points_world - refined_c2w[:, 3]) @ refined_c2w[:, :3]
         moved, _ = project(moved_camera[None].detach(), refined_single)
@@ -1080,43 +1098,45 @@ def test_proxy_range_is_chosen_from_the_scene_and_enters_p():
     points = scene_cloud()
     optimizer = make_optimizer(cameras, sampling=SPAN_SAMPLING, points=points)
     expected = contracted_quartiles_by_hand(cameras, points)  # three intrinsics: three physical cameras
-    assert optimizer.proxy_ranges.num_points.tolist() == [512] * NUM_CAMERAS  # each sees the whole cloud
-    torch.testing.assert_close(optimizer.proxy_range, expected, rtol=0, atol=1e-12)
-    assert torch.equal(optimizer.precond_proxy_range, optimizer.proxy_range)
+    assert optimizer.refiner.proxy_ranges.num_points.tolist() == [512] * NUM_CAMERAS  # each sees the whole cloud
+    torch.testing.assert_close(optimizer.refiner.proxy_range, expected, rtol=0, atol=1e-12)
+    assert torch.equal(optimizer.refiner.precond_proxy_range, optimizer.refiner.proxy_range)
     config = optimizer.config
     reference = compute_preconditioner(
-        optimizer.base_intrinsics_struct(),
-        optimizer.layout,
+        optimizer.refiner.base_intrinsics_struct(),
+        optimizer.refiner.layout,
         config.sampling,
         config.damping,
-        ranges=optimizer.proxy_range,
+        ranges=optimizer.refiner.proxy_range,
     )
-    assert torch.equal(optimizer.precond, reference.matrix)
+    assert torch.equal(optimizer.refiner.precond, reference.matrix)
     without_points = make_optimizer(cameras, sampling=SPAN_SAMPLING)
-    assert without_points.proxy_range.tolist() == [[0.4, 1.5]] * NUM_CAMERAS
-    assert relative(optimizer.precond, without_points.precond) > 0.01
+    assert without_points.refiner.proxy_range.tolist() == [[0.4, 1.5]] * NUM_CAMERAS
+    assert relative(optimizer.refiner.precond, without_points.refiner.precond) > 0.01
 
 
 def test_without_points_p_is_the_fixed_range_one_bit_for_bit():
     cameras = make_cameras(k1=-0.05, k2=0.01)
     auto = make_optimizer(cameras, sampling={"sampler": "frolov"})
     fixed = make_optimizer(cameras, sampling={"sampler": "frolov", "t_near": 0.4, "t_far": 1.5})
-    assert torch.equal(auto.precond, fixed.precond) and torch.equal(auto.proxy_range, fixed.proxy_range)
+    assert torch.equal(auto.refiner.precond, fixed.refiner.precond) and torch.equal(
+        auto.refiner.proxy_range, fixed.refiner.proxy_range
+    )
 
 
 def test_explicit_t_far_is_honoured_and_t_near_still_chosen():
     cameras = make_cameras(k1=-0.05, k2=0.01)
     optimizer = make_optimizer(cameras, sampling={**SPAN_SAMPLING, "t_far": 1.8}, points=scene_cloud())
-    assert optimizer.proxy_range[:, 1].tolist() == [1.8] * NUM_CAMERAS
+    assert optimizer.refiner.proxy_range[:, 1].tolist() == [1.8] * NUM_CAMERAS
     # The explicit far end leaves room: the near end is the plain quartile, not widened.
     quartiles = contracted_quartiles_by_hand(cameras, scene_cloud(), widen=False)
-    torch.testing.assert_close(optimizer.proxy_range[:, 0], quartiles[:, 0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(optimizer.refiner.proxy_range[:, 0], quartiles[:, 0], rtol=0, atol=1e-12)
     both = make_optimizer(cameras, sampling={"sampler": "frolov", "t_near": 0.3, "t_far": 1.8}, points=scene_cloud())
-    assert both.proxy_range.tolist() == [[0.3, 1.8]] * NUM_CAMERAS
+    assert both.refiner.proxy_range.tolist() == [[0.3, 1.8]] * NUM_CAMERAS
     reference = compute_preconditioner(
-        both.base_intrinsics_struct(), both.layout, SamplingConfig(num_points=64, t_near=0.3, t_far=1.8)
+        both.refiner.base_intrinsics_struct(), both.refiner.layout, SamplingConfig(num_points=64, t_near=0.3, t_far=1.8)
     )
-    assert torch.equal(both.precond, reference.matrix.to(both.precond))
+    assert torch.equal(both.refiner.precond, reference.matrix.to(both.refiner.precond))
 
 
 def test_camp_sampling_ignores_the_scene_points():
@@ -1124,24 +1144,24 @@ def test_camp_sampling_ignores_the_scene_points():
     cameras = make_cameras(k1=-0.05, k2=0.01)
     with_points = make_optimizer(cameras, points=scene_cloud())
     without = make_optimizer(cameras)
-    assert torch.equal(with_points.precond, without.precond)
+    assert torch.equal(with_points.refiner.precond, without.refiner.precond)
 
 
 def test_refresh_uses_the_stored_range():
     cameras = make_cameras(k1=-0.05, k2=0.01)
     optimizer = make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
     set_latent(optimizer, scale=1e-6)
-    refined = optimizer.refined_intrinsics().detach()  # what the refresh computes P at
-    optimizer.refresh(step=20)
-    assert int(optimizer.last_refresh_step) == 20
-    torch.testing.assert_close(optimizer.proxy_range, contracted_quartiles_by_hand(cameras, scene_cloud()))
+    refined = optimizer.refiner.refined_intrinsics().detach()  # what the refresh computes P at
+    optimizer.refiner.refresh(step=20)
+    assert int(optimizer.refiner.last_refresh_step) == 20
+    torch.testing.assert_close(optimizer.refiner.proxy_range, contracted_quartiles_by_hand(cameras, scene_cloud()))
     config = optimizer.config
     expected = compute_preconditioner(
-        refined, optimizer.layout, config.sampling, config.damping, ranges=optimizer.proxy_range
+        refined, optimizer.refiner.layout, config.sampling, config.damping, ranges=optimizer.refiner.proxy_range
     )
-    assert torch.equal(optimizer.precond, expected.matrix)
-    fixed = compute_preconditioner(refined, optimizer.layout, config.sampling, config.damping)
-    assert relative(optimizer.precond, fixed.matrix) > 0.01
+    assert torch.equal(optimizer.refiner.precond, expected.matrix)
+    fixed = compute_preconditioner(refined, optimizer.refiner.layout, config.sampling, config.damping)
+    assert relative(optimizer.refiner.precond, fixed.matrix) > 0.01
 
 
 def test_checkpoint_round_trip_keeps_the_range_and_p():
@@ -1150,12 +1170,14 @@ def test_checkpoint_round_trip_keeps_the_range_and_p():
     adam = torch.optim.Adam(latents(saved), lr=LR)
     train(saved, adam, range(1, 6))
     state = checkpoint(saved, adam)
-    assert torch.equal(state["pipeline"]["precond_proxy_range"], saved.proxy_range)
+    assert torch.equal(state["pipeline"]["refiner.precond_proxy_range"], saved.refiner.proxy_range)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # same cameras, same points: the saved P is used as is, silently
         resumed, _ = resume(state, cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
-    assert not resumed.preconditioner_is_stale
-    assert torch.equal(resumed.precond, saved.precond) and torch.equal(resumed.proxy_range, saved.proxy_range)
+    assert not resumed.refiner.preconditioner_is_stale
+    assert torch.equal(resumed.refiner.precond, saved.refiner.precond) and torch.equal(
+        resumed.refiner.proxy_range, saved.refiner.proxy_range
+    )
 
 
 def test_checkpoint_with_another_range_recomputes_p_without_moving_the_cameras():
@@ -1163,23 +1185,23 @@ def test_checkpoint_with_another_range_recomputes_p_without_moving_the_cameras()
     saved = make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
     adam = torch.optim.Adam(latents(saved), lr=LR)
     train(saved, adam, range(1, 6))
-    deltas = saved.camera_deltas().detach()
+    deltas = saved.refiner.deltas().detach()
     moved_points = scene_cloud(offset=0.3)
     with pytest.warns(UserWarning, match=r"the proxy range differs from the one its P was computed for \(t_"):
         resumed, resumed_adam = resume(checkpoint(saved, adam), cameras, sampling=SPAN_SAMPLING, points=moved_points)
-    assert resumed.preconditioner_is_stale
-    assert resumed.proxy_ranges.num_points.tolist() == [512] * NUM_CAMERAS
-    resumed.recompute_stale_preconditioner(step=6, optimizer=resumed_adam)
-    torch.testing.assert_close(resumed.camera_deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
+    assert resumed.refiner.preconditioner_is_stale
+    assert resumed.refiner.proxy_ranges.num_points.tolist() == [512] * NUM_CAMERAS
+    resumed.refiner.recompute_stale_preconditioner(step=6, optimizer=resumed_adam)
+    torch.testing.assert_close(resumed.refiner.deltas().detach(), deltas, rtol=1e-6, atol=1e-9)
     new_range = contracted_quartiles_by_hand(cameras, moved_points)
-    assert torch.equal(resumed.precond_proxy_range, resumed.proxy_range)
-    torch.testing.assert_close(resumed.proxy_range, new_range, rtol=0, atol=1e-12)
+    assert torch.equal(resumed.refiner.precond_proxy_range, resumed.refiner.proxy_range)
+    torch.testing.assert_close(resumed.refiner.proxy_range, new_range, rtol=0, atol=1e-12)
     config = resumed.config
     expected = compute_preconditioner(
-        resumed.base_intrinsics_struct().with_delta(deltas), resumed.layout, config.sampling, config.damping,
-        ranges=new_range,
+        resumed.refiner.base_intrinsics_struct().with_delta(deltas), resumed.refiner.layout, config.sampling,
+        config.damping, ranges=new_range,
     )  # fmt: skip
-    torch.testing.assert_close(resumed.precond, expected.matrix, rtol=1e-9, atol=0)
+    torch.testing.assert_close(resumed.refiner.precond, expected.matrix, rtol=1e-9, atol=0)
 
 
 def test_checkpoint_without_recorded_range_recomputes_p():
@@ -1187,11 +1209,11 @@ def test_checkpoint_without_recorded_range_recomputes_p():
     saved = make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
     adam = torch.optim.Adam(latents(saved), lr=LR)
     state = checkpoint(saved, adam)
-    del state["pipeline"]["precond_proxy_range"]
+    del state["pipeline"]["refiner.precond_proxy_range"]
     with pytest.warns(UserWarning, match="the proxy range its P was computed for is not recorded"):
         resumed, resumed_adam = resume(state, cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
-    resumed.recompute_stale_preconditioner(step=3, optimizer=resumed_adam)
-    assert torch.equal(resumed.precond_proxy_range, resumed.proxy_range)
+    resumed.refiner.recompute_stale_preconditioner(step=3, optimizer=resumed_adam)
+    assert torch.equal(resumed.refiner.precond_proxy_range, resumed.refiner.proxy_range)
 
 
 def test_the_range_and_its_fallback_are_logged(capsys: pytest.CaptureFixture):
@@ -1227,7 +1249,7 @@ def test_the_proxy_range_note_in_full(capsys: pytest.CaptureFixture):
     make_optimizer(cameras, sampling={"sampler": "frolov"})
     assert _stderr(capsys) == (
         "S2CamP proxy range: the scene has no points (dataparser metadata 'points3D_xyz'), so every camera uses the "
-        "fixed contracted range (0.4, 1.5) (sampling.t-near / t-far set it)"
+        "fixed contracted range (0.4, 1.5)"
     )
     make_optimizer(cameras, sampling=SPAN_SAMPLING, points=scene_cloud())
     expected = contracted_quartiles_by_hand(cameras, scene_cloud())
@@ -1293,24 +1315,24 @@ def test_a_new_optimizer_holds_float64_placeholders_and_no_refresh(intrinsics: s
         "gram": (n, 12, 12),
     }
     for name, shape in shapes.items():
-        buffer = getattr(optimizer, name)
+        buffer = getattr(optimizer.refiner, name)
         assert tuple(buffer.shape) == shape and buffer.dtype == torch.float64 and not bool(buffer.any()), name
-    assert optimizer.last_refresh_step.dtype == torch.long and int(optimizer.last_refresh_step) == -1
-    assert optimizer.num_refreshes.dtype == torch.long and int(optimizer.num_refreshes) == 0
-    assert optimizer.camera_of_image.tolist() == [0, 1, 2]
-    assert not optimizer.preconditioner_is_stale and optimizer.proxy_ranges is None
-    assert optimizer.projection == "perspective"
-    assert optimizer.device == "cpu" and optimizer.num_cameras == n and optimizer.non_trainable_camera_indices is None
-    shared = intrinsics == "per-camera"
-    assert tuple(optimizer.whitened_delta.shape) == (n, 6 if shared else 12)
-    if shared:
-        assert tuple(optimizer.whitened_intrinsics.shape) == (n, 6) and not bool(optimizer.whitened_intrinsics.any())
+    assert optimizer.refiner.last_refresh_step.dtype == torch.long and int(optimizer.refiner.last_refresh_step) == -1
+    assert optimizer.refiner.num_refreshes.dtype == torch.long and int(optimizer.refiner.num_refreshes) == 0
+    assert optimizer.refiner.camera_of_image.tolist() == [0, 1, 2]
+    assert not optimizer.refiner.preconditioner_is_stale and optimizer.refiner.proxy_ranges is None
+    assert optimizer.refiner.projection == "perspective"
+    assert optimizer.device == "cpu" and optimizer.num_cameras == n and optimizer.refiner.frozen_images is None
+    # One storage: the pose per image, the intrinsics one row per image until set_camera_groups.
+    assert tuple(optimizer.refiner.whitened_delta.shape) == (n, 6)
+    assert tuple(optimizer.refiner.whitened_intrinsics.shape) == (n, 6)
+    assert not bool(optimizer.refiner.latent().any())
 
 
 def test_pose_only_refinement_has_no_intrinsics_latent():
     optimizer = make_optimizer(parameters="pose", intrinsics="per-camera")
-    assert not optimizer.shared
-    assert [name for name, _ in optimizer.named_parameters()] == ["whitened_delta"]
+    assert optimizer.refiner.factorisation != "block"
+    assert [name for name, _ in optimizer.named_parameters()] == ["refiner.whitened_delta"]
 
 
 @pytest.mark.parametrize("overrides", [{"precondition": False}, {"mode": "off"}], ids=["P=I", "off"])
@@ -1321,10 +1343,10 @@ def test_p_equal_to_identity_loads_silently_onto_other_cameras(overrides: dict):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         resumed.load_state_dict(state)
-    assert not resumed.preconditioner_is_stale
-    assert not torch.equal(state["precond_base_intrinsics"], resumed.base_intrinsics)
-    assert torch.equal(resumed.precond_base_intrinsics, resumed.base_intrinsics)
-    assert torch.equal(resumed.precond_proxy_range, resumed.proxy_range)
+    assert not resumed.refiner.preconditioner_is_stale
+    assert not torch.equal(state["refiner.precond_base_intrinsics"], resumed.refiner.base_intrinsics)
+    assert torch.equal(resumed.refiner.precond_base_intrinsics, resumed.refiner.base_intrinsics)
+    assert torch.equal(resumed.refiner.precond_proxy_range, resumed.refiner.proxy_range)
 
 
 STALE_TAIL = (
@@ -1338,7 +1360,7 @@ def _drop(key: str):
 
 
 def _set_range(image: int, column: int, value: float):
-    return lambda state: state["precond_proxy_range"].__setitem__((image, column), value)
+    return lambda state: state["refiner.precond_proxy_range"].__setitem__((image, column), value)
 
 
 NOT_RECORDED = "its P was computed for {} not recorded (an older checkpoint)"
@@ -1348,8 +1370,8 @@ RANGE_DIFFERS = "the proxy range differs from the one its P was computed for ({}
 @pytest.mark.parametrize(
     ("edit", "reason"),
     [
-        (_drop("precond_base_intrinsics"), "the intrinsics " + NOT_RECORDED.format("are")),
-        (_drop("precond_proxy_range"), "the proxy range " + NOT_RECORDED.format("is")),
+        (_drop("refiner.precond_base_intrinsics"), "the intrinsics " + NOT_RECORDED.format("are")),
+        (_drop("refiner.precond_proxy_range"), "the proxy range " + NOT_RECORDED.format("is")),
         (_set_range(1, 1, 1.25), RANGE_DIFFERS.format("t_far of image 1: 1.25 -> 1.5")),
         (_set_range(2, 0, 0.3), RANGE_DIFFERS.format("t_near of image 2: 0.3 -> 0.4")),
     ],
@@ -1375,8 +1397,8 @@ def test_loading_still_reports_unexpected_keys_and_wrong_shapes():
     with pytest.raises(RuntimeError, match=r'Unexpected key\(s\) in state_dict: "bogus"'):
         make_optimizer().load_state_dict({**state, "bogus": torch.zeros(1)})
     # A wrong parameter count (the camera count is right: another scene's is refused by its own message).
-    wrong = {**state, "precond": torch.zeros(3, 11, 11, dtype=torch.float64)}
-    message = r"size mismatch for precond: copying a param with shape torch.Size\(\[3, 11"
+    wrong = {**state, "refiner.precond": torch.zeros(3, 11, 11, dtype=torch.float64)}
+    message = r"size mismatch for refiner.precond: copying a param with shape torch.Size\(\[3, 11"
     with pytest.raises(RuntimeError, match=message):
         make_optimizer().load_state_dict(wrong)
 
@@ -1387,15 +1409,17 @@ def test_a_subset_of_cameras_gets_exactly_their_rows():
     optimizer.set_train_cameras(make_cameras(k1=-0.05, k2=0.01))
     set_latent(optimizer)
     subset = torch.tensor([2, 1])
-    deltas = optimizer.camera_deltas().detach()
+    deltas = optimizer.refiner.deltas().detach()
     assert bool(deltas[2].ne(0).any()) and not bool(deltas[1].any())  # camera 1 is not trainable
     exact = {"rtol": 0.0, "atol": 1e-15}
-    torch.testing.assert_close(optimizer.camera_deltas(subset).detach(), deltas[subset], **exact)
-    torch.testing.assert_close(optimizer.refined_c2w(cameras=subset), optimizer.refined_c2w()[subset], **exact)
-    subset_intrinsics = optimizer.refined_intrinsics(cameras=subset).tensors()
-    torch.testing.assert_close(subset_intrinsics, optimizer.refined_intrinsics().tensors()[subset], **exact)
+    torch.testing.assert_close(optimizer.refiner.deltas(subset).detach(), deltas[subset], **exact)
+    torch.testing.assert_close(
+        optimizer.refiner.refined_c2w(images=subset), optimizer.refiner.refined_c2w()[subset], **exact
+    )
+    subset_intrinsics = optimizer.refiner.refined_intrinsics(images=subset).tensors()
+    torch.testing.assert_close(subset_intrinsics, optimizer.refiner.refined_intrinsics().tensors()[subset], **exact)
     off = make_optimizer(mode="off")
-    assert torch.equal(off.camera_deltas(torch.tensor([2])), torch.zeros(1, len(PARAMETER_NAMES), dtype=torch.float64))
+    assert torch.equal(off.refiner.deltas(torch.tensor([2])), torch.zeros(1, len(PARAMETER_NAMES), dtype=torch.float64))
 
 
 def test_pixel_area_of_rays_from_one_camera_uses_that_cameras_focal_length():
@@ -1412,15 +1436,15 @@ def test_pixel_area_of_rays_from_one_camera_uses_that_cameras_focal_length():
 
 def test_fisheye_cameras_stay_fisheye_in_every_intrinsics_view():
     optimizer = make_optimizer(_with(make_cameras(), [0.05, -0.01, 0.002, -0.0003, 0.0, 0.0], CameraType.FISHEYE))
-    assert optimizer.projection == "fisheye"
-    assert optimizer.base_intrinsics_struct().is_fisheye and optimizer.refined_intrinsics().is_fisheye
+    assert optimizer.refiner.projection == "fisheye"
+    assert optimizer.refiner.base_intrinsics_struct().is_fisheye and optimizer.refiner.refined_intrinsics().is_fisheye
 
 
 def test_rays_come_in_the_requested_dtype_whatever_the_pixels():
     cameras = make_cameras()
     optimizer = raw_optimizer(cameras)
     pixels = torch.tensor([[10.5, 20.5], [30.25, 5.5]], dtype=torch.float64)
-    rays = optimizer.cast_rays(torch.tensor([0, 2]), pixels, dtype=torch.float32)
+    rays = cast_rays(optimizer.refiner, torch.tensor([0, 2]), pixels, dtype=torch.float32)
     origins, directions, norms = rays.origins, rays.directions, rays.directions_norm
     assert origins.dtype == directions.dtype == norms.dtype == rays.pixel_area.dtype == torch.float32
     index = torch.tensor([0, 2])
@@ -1440,7 +1464,7 @@ def test_rays_come_in_the_requested_dtype_whatever_the_pixels():
 def test_no_range_is_chosen_where_none_is_needed(overrides: dict, capsys: pytest.CaptureFixture):
     capsys.readouterr()
     optimizer = make_optimizer(points=scene_cloud(), **overrides)
-    assert optimizer.proxy_ranges is None and _stderr(capsys) == ""
+    assert optimizer.refiner.proxy_ranges is None and _stderr(capsys) == ""
 
 
 def test_per_image_ranges_pool_the_images_of_each_physical_camera():
@@ -1449,21 +1473,21 @@ def test_per_image_ranges_pool_the_images_of_each_physical_camera():
     same.fx, same.fy = torch.full((NUM_CAMERAS, 1), 60.0), torch.full((NUM_CAMERAS, 1), 61.0)
     same.cx, same.cy = torch.full((NUM_CAMERAS, 1), 32.0), torch.full((NUM_CAMERAS, 1), 24.0)
     pooled = make_optimizer(same, sampling=SPAN_SAMPLING, points=scene_cloud())
-    assert pooled.proxy_ranges.num_points.tolist() == [3 * 512]  # one camera, its three images pooled
-    assert bool((pooled.proxy_range == pooled.proxy_range[0]).all())
+    assert pooled.refiner.proxy_ranges.num_points.tolist() == [3 * 512]  # one camera, its three images pooled
+    assert bool((pooled.refiner.proxy_range == pooled.refiner.proxy_range[0]).all())
     config = S2CampCameraOptimizerConfig(
         intrinsics="per-image", sampling=SamplingConfig(num_points=64, **SPAN_SAMPLING)
     )
     grouped = config.setup(num_cameras=NUM_CAMERAS, device="cpu")
-    grouped.set_camera_groups([5, 5, 9])  # distinct intrinsics, but two physical cameras
+    grouped.refiner.set_camera_groups([5, 5, 9])  # distinct intrinsics, but two physical cameras
     grouped.set_train_cameras(make_cameras(k1=-0.05, k2=0.01), points=scene_cloud())
-    assert grouped.proxy_ranges.num_points.tolist() == [2 * 512, 512]
-    assert torch.equal(grouped.proxy_range[0], grouped.proxy_range[1])
+    assert grouped.refiner.proxy_ranges.num_points.tolist() == [2 * 512, 512]
+    assert torch.equal(grouped.refiner.proxy_range[0], grouped.refiner.proxy_range[1])
 
 
 def test_explicit_t_near_is_honoured():
     optimizer = make_optimizer(sampling={**SPAN_SAMPLING, "t_near": 0.3}, points=scene_cloud())
-    assert optimizer.proxy_range[:, 0].tolist() == [0.3] * NUM_CAMERAS
+    assert optimizer.refiner.proxy_range[:, 0].tolist() == [0.3] * NUM_CAMERAS
 
 
 def test_the_configured_radial_measure_chooses_the_range():
@@ -1475,8 +1499,8 @@ def test_the_configured_radial_measure_chooses_the_range():
     volume = make_optimizer(cameras, sampling={"sampler": "frolov"}, points=scene_cloud())
     c2w = opengl_to_opencv(cameras.camera_to_worlds.double())
     expected = proxy_ranges(scene_cloud(), c2w, intrinsics_from_cameras(cameras), torch.arange(3), radial="ray")
-    assert torch.equal(ray.proxy_range, expected.stacked())
-    assert relative(ray.proxy_range, volume.proxy_range) > 1e-3
+    assert torch.equal(ray.refiner.proxy_range, expected.stacked())
+    assert relative(ray.refiner.proxy_range, volume.refiner.proxy_range) > 1e-3
 
 
 def test_a_checkpoint_loaded_before_the_cameras_keeps_its_p_even_from_step_zero():
@@ -1485,11 +1509,11 @@ def test_a_checkpoint_loaded_before_the_cameras_keeps_its_p_even_from_step_zero(
     saved = make_optimizer()
     set_latent(saved)
     state = saved.state_dict()
-    assert int(state["last_refresh_step"]) == 0
+    assert int(state["refiner.last_refresh_step"]) == 0
     resumed = saved.config.setup(num_cameras=NUM_CAMERAS, device="cpu")
     resumed.load_state_dict(state)
     resumed.set_train_cameras(make_cameras(k1=-0.05, k2=0.01))
-    assert int(resumed.num_refreshes) == 1 and torch.equal(resumed.precond, saved.precond)
+    assert int(resumed.refiner.num_refreshes) == 1 and torch.equal(resumed.refiner.precond, saved.refiner.precond)
 
 
 def test_pose_only_warning_is_attributed_to_a_caller():

@@ -16,6 +16,7 @@ from nerfstudio.cameras.rays import RayBundle
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer, S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
+from s2camp_ns.core.refiner import CameraRefiner
 
 
 def _cameras(fx: float) -> Cameras:
@@ -35,20 +36,20 @@ def _optimizer() -> S2CampCameraOptimizer:
 
 def _assert_names_a_line_of(record: pytest.WarningsRecorder, function) -> None:
     lines, first = inspect.getsourcelines(function)
-    assert record[0].filename == inspect.getsourcefile(S2CampCameraOptimizer)
+    assert record[0].filename == inspect.getsourcefile(function)
     assert first <= record[0].lineno < first + len(lines)
 
 
 def test_a_stale_checkpoint_warning_names_the_loading_line():
-    """Loaded after the cameras: the warning names ``_load_from_state_dict`` (stacklevel 2), not the check itself
-    (stacklevel 1) nor torch's loader that called it (stacklevel 3)."""
+    """Loaded after the cameras: the warning names the refiner's ``_load_from_state_dict`` (stacklevel 2), not the
+    check itself (stacklevel 1) nor torch's loader that called it (stacklevel 3)."""
     saved = _optimizer()
     saved.set_train_cameras(_cameras(60.0))
     resumed = _optimizer()
     resumed.set_train_cameras(_cameras(63.0))
     with pytest.warns(UserWarning, match="differ from those its P was computed for") as record:
         resumed.load_state_dict(saved.state_dict())
-    _assert_names_a_line_of(record, S2CampCameraOptimizer._load_from_state_dict)
+    _assert_names_a_line_of(record, CameraRefiner._load_from_state_dict)
 
 
 def test_a_checkpoint_loaded_before_the_cameras_warns_from_set_train_cameras():
@@ -62,8 +63,7 @@ def test_a_checkpoint_loaded_before_the_cameras_warns_from_set_train_cameras():
 
 
 def test_the_pose_only_warning_names_the_line_in_apply_to_raybundle():
-    """Rays without pixel coordinates: the warning names ``apply_to_raybundle`` (stacklevel 2), not the helper that
-    raises it (stacklevel 1) nor the caller (stacklevel 3)."""
+    """Rays without pixel coordinates: the warning names ``apply_to_raybundle``, not its caller."""
     optimizer = _optimizer()
     optimizer.set_train_cameras(_cameras(60.0))
     bundle = RayBundle(

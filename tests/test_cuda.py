@@ -48,32 +48,32 @@ def _optimizer_step(device: str) -> dict[str, torch.Tensor]:
     optimizer = config.setup(num_cameras=NUM_CAMERAS, device=device)
     optimizer.set_train_cameras(make_cameras(k1=-0.05, k2=0.01).to(device))
     with torch.no_grad():
-        latent = 1e-2 * torch.randn(optimizer.whitened_delta.shape, generator=torch.Generator().manual_seed(1))
-        optimizer.whitened_delta.copy_(latent.to(device))
+        latent = 1e-2 * torch.randn(optimizer.refiner.whitened_delta.shape, generator=torch.Generator().manual_seed(1))
+        optimizer.refiner.whitened_delta.copy_(latent.to(device))
     bundle = _ray_bundle(device)
     optimizer.apply_to_raybundle(bundle)
     target = torch.linspace(-1.0, 1.0, NUM_RAYS * 3).reshape(NUM_RAYS, 3).to(device)
     loss = ((bundle.origins + 2.0 * bundle.directions - target) ** 2).mean()
     loss.backward()
     return {
-        "precond": optimizer.precond.detach(),
+        "precond": optimizer.refiner.precond.detach(),
         "origins": bundle.origins.detach(),
         "directions": bundle.directions.detach(),
-        "grad": optimizer.whitened_delta.grad.detach(),
-        "intrinsics_grad": optimizer.whitened_intrinsics.grad.detach(),
+        "grad": optimizer.refiner.whitened_delta.grad.detach(),
+        "intrinsics_grad": optimizer.refiner.whitened_intrinsics.grad.detach(),
     }
 
 
 def test_camera_optimizer_on_cuda_matches_the_cpu() -> None:
     on_cuda = _optimizer_step(CUDA)
     on_cpu = _optimizer_step("cpu")
-    assert on_cuda["precond"].device.type == CUDA and on_cuda["precond"].dtype == torch.float64
+    assert on_cuda["refiner.precond"].device.type == CUDA and on_cuda["refiner.precond"].dtype == torch.float64
     for name in ("origins", "directions", "grad", "intrinsics_grad"):
         assert on_cuda[name].device.type == CUDA, name
         assert torch.isfinite(on_cuda[name]).all(), name
     assert on_cuda["grad"].abs().max() > 0 and on_cuda["intrinsics_grad"].abs().max() > 0
     # P is float64 on both devices (eigensolves differ in the last bits); the rays and gradients are float32.
-    torch.testing.assert_close(on_cuda["precond"].cpu(), on_cpu["precond"], rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(on_cuda["refiner.precond"].cpu(), on_cpu["refiner.precond"], rtol=1e-6, atol=1e-9)
     for name in ("origins", "directions", "grad", "intrinsics_grad"):
         torch.testing.assert_close(on_cuda[name].cpu(), on_cpu[name], rtol=1e-4, atol=1e-6, msg=name)
 
@@ -114,8 +114,8 @@ def test_training_steps_on_cuda_with_mixed_precision(method: str, tiny_scene: Pa
     assert all(torch.isfinite(p).all() for p in model.parameters())
     assert max(float(p.abs().max()) for p in camera_parameters) > 0, "the cameras were not refined"
     if method == "s2camp":
-        assert model.camera_optimizer.precond.dtype == torch.float64
-        assert int(model.camera_optimizer.num_refreshes) == 1 + 19 // 5  # the initial P and steps 5, 10, 15
+        assert model.camera_optimizer.refiner.precond.dtype == torch.float64
+        assert int(model.camera_optimizer.refiner.num_refreshes) == 1 + 19 // 5  # the initial P and steps 5, 10, 15
     assert model._camera_errors and all(math.isfinite(v) for v in model._camera_errors.values())
 
     evaluation = evaluate(trainer.pipeline, AlignmentConfig(steps=3, rays=64))

@@ -240,8 +240,8 @@ def test_every_supported_colmap_model_reaches_the_camera_optimizer(scene: Path, 
     assert float(out.cameras.fx[0]) == pytest.approx(params[0]) and float(out.cameras.cx[0]) == pytest.approx(25.0)
     assert out.metadata["camera_model"] == LAYOUT_MODEL.get(model, "RADIAL")
     optimizer = _camera_optimizer(out.cameras)
-    assert optimizer.layout.camera_model == LAYOUT_MODEL.get(model, "RADIAL")
-    assert optimizer.base_intrinsics_struct().model == ("fisheye" if fisheye else "perspective")
+    assert optimizer.refiner.layout.camera_model == LAYOUT_MODEL.get(model, "RADIAL")
+    assert optimizer.refiner.base_intrinsics_struct().model == ("fisheye" if fisheye else "perspective")
 
 
 def test_full_opencv_with_a_rational_factor_is_refused(scene: Path):
@@ -270,8 +270,8 @@ def test_ns_process_data_transforms_reach_the_camera_optimizer(scene: Path, tmp_
     assert out.metadata["source_format"] == "nerfstudio"
     torch.testing.assert_close(out.cameras.distortion_params[0], torch.tensor(expected).float())
     optimizer = _camera_optimizer(out.cameras)
-    assert optimizer.layout.camera_model == model
-    assert optimizer.layout.num_params == 14 and optimizer.precond.shape[-1] == 14
+    assert optimizer.refiner.layout.camera_model == model
+    assert optimizer.refiner.layout.num_params == 14 and optimizer.refiner.precond.shape[-1] == 14
 
 
 def test_equirectangular_transforms_are_refused_by_name(scene: Path, tmp_path: Path):

@@ -45,8 +45,8 @@ from s2camp_ns.core.preconditioner import (
     sample_proxy_points,
 )
 from s2camp_ns.core.proxy_range import proxy_ranges
-from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY
+from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras, refined_cameras
+from s2camp_ns.nerfstudio.rays import PIXEL_KEY, cast_rays
 
 NUM_CAMERAS, WIDTH, HEIGHT = 3, 64, 48
 CAMERA_MODELS = {
@@ -211,7 +211,7 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
     optimizer = config.setup(num_cameras=NUM_CAMERAS, device=device)
     cameras = make_cameras(camera_model).to(device)
     optimizer.set_train_cameras(cameras, points=None if sampler == "camp-random" else scene_points(device))
-    initial_p = optimizer.precond.clone()
+    initial_p = optimizer.refiner.precond.clone()
     adam = torch.optim.Adam(list(optimizer.parameters()), lr=1e-3)
     bundle = ray_bundle(device)
     optimizer.apply_to_raybundle(bundle)
@@ -219,12 +219,12 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
     loss.backward()
     gradients = torch.cat([p.grad.reshape(-1) for p in optimizer.parameters()])
     adam.step()
-    optimizer.refresh(10, adam)  # P at the refined intrinsics, latent and Adam's moments re-expressed
-    rays = optimizer.cast_rays(
+    optimizer.refiner.refresh(10, adam)  # P at the refined intrinsics, latent and Adam's moments re-expressed
+    rays = cast_rays(optimizer.refiner,
         torch.tensor([0, 2, 1], device=device), torch.tensor([[0.5, 0.5], [40.0, 20.0], [63.5, 47.5]], device=device)
     )
     origins, directions, norms = rays.origins, rays.directions, rays.directions_norm
-    refined = optimizer.refine_cameras(cameras)
+    refined = refined_cameras(optimizer.refiner, cameras)
     camera = cameras[1:2]
     camera.metadata = {"cam_idx": 1}
     corrected = optimizer.apply_to_camera(camera)
@@ -232,18 +232,18 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
     resumed = config.setup(num_cameras=NUM_CAMERAS, device=device)
     # Loaded before the cameras are known, the layout announced first as the model does from the dataparser (the
     # order that needs no second P computation: the saved P is checked against the cameras and kept).
-    resumed.set_camera_model(camera_model)
+    resumed.refiner.set_camera_model(camera_model)
     resumed.load_state_dict(state)
     resumed.set_train_cameras(cameras, points=None if sampler == "camp-random" else scene_points(device))
-    assert not resumed.preconditioner_is_stale
+    assert not resumed.refiner.preconditioner_is_stale
     return {
         "initial_p": initial_p,
-        "p": optimizer.precond,
-        "p_inv": optimizer.precond_inv,
-        "gram": optimizer.gram,
-        "proxy_range": optimizer.proxy_range,
+        "p": optimizer.refiner.precond,
+        "p_inv": optimizer.refiner.precond_inv,
+        "gram": optimizer.refiner.gram,
+        "proxy_range": optimizer.refiner.proxy_range,
         "gradients": gradients,
-        "latent": optimizer.whitened_delta.detach(),
+        "latent": optimizer.refiner.whitened_delta.detach(),
         "ray_origins": bundle.origins.detach(),
         "ray_directions": bundle.directions.detach(),
         "origins": origins.detach(),
@@ -253,10 +253,10 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
         "refined_fx": refined.fx,
         "refined_distortion": refined.distortion_params,
         "corrected": corrected.detach(),
-        "resumed_rays": resumed.cast_rays(
+        "resumed_rays": cast_rays(resumed.refiner,
             torch.tensor([0, 2], device=device), torch.ones(2, 2, device=device)
         ).directions.detach(),
-        "resumed_p": resumed.precond,
+        "resumed_p": resumed.refiner.precond,
     }
 
 
@@ -365,10 +365,10 @@ def test_track_reprojection_and_track_prior_on_cuda():
         optimizer = config.setup(num_cameras=3, device=device)
         optimizer.set_train_cameras(cameras.to(device))
         with torch.no_grad():
-            optimizer.whitened_delta.fill_(1.0)
+            optimizer.refiner.whitened_delta.fill_(1.0)
         optimizer.set_track_prior(expected)  # the data parser's CPU tensor
-        optimizer.apply_track_prior(1e-3)
-        return optimizer.whitened_delta.detach()
+        optimizer.refiner.apply_track_prior(1e-3)
+        return optimizer.refiner.whitened_delta.detach()
 
     reference = prior_step("cpu")
     with fake_cuda():
@@ -457,7 +457,7 @@ def test_training_step_on_cuda(cuda_pipeline):
         loss_dict = model.get_loss_dict(outputs, batch, metrics)
         optimizers.zero_grad_all()
         sum(loss_dict.values()).backward()
-        latent_before = values(model.camera_optimizer.whitened_delta).clone()
+        latent_before = values(model.camera_optimizer.refiner.whitened_delta).clone()
         optimizers.optimizer_step_all()
         optimizers.scheduler_step_all(1)
         for callback in callbacks:
@@ -467,8 +467,8 @@ def test_training_step_on_cuda(cuda_pipeline):
     for group, parameters in model.get_param_groups().items():
         assert all(on_cuda(p) and (p.grad is None or on_cuda(p.grad)) for p in parameters), group
     camera_optimizer = model.camera_optimizer
-    assert not torch.equal(values(camera_optimizer.whitened_delta), latent_before), "Adam moved the cameras"
-    assert int(camera_optimizer.last_refresh_step) == 1 and on_cuda(camera_optimizer.precond)
+    assert not torch.equal(values(camera_optimizer.refiner.whitened_delta), latent_before), "Adam moved the cameras"
+    assert int(camera_optimizer.refiner.last_refresh_step) == 1 and on_cuda(camera_optimizer.refiner.precond)
     assert mode.count("_linalg_eigh", "cuda", torch.float64) > 0
     assert model._camera_errors["camera_errors/aligned"] == 1.0
 
@@ -526,6 +526,6 @@ def test_viewer_panel_rendering_and_test_time_alignment_on_cuda(cuda_pipeline):
     assert len(aligned) == len(pipeline.datamanager.eval_dataset)
     assert all(math.isfinite(view.psnr) for view in aligned)
     assert refined.device == pipeline.datamanager.train_dataset.cameras.device  # Cameras come back where they were
-    refined_fx = values(model.camera_optimizer.refined_intrinsics().fx)
+    refined_fx = values(model.camera_optimizer.refiner.refined_intrinsics().fx)
     torch.testing.assert_close(refined.fx.cpu(), refined_fx[:, None].float())
     assert reconstruction.num_images() == model.camera_optimizer.num_cameras

@@ -276,12 +276,14 @@ def _assert_exported_poses_follow_the_checkpoint_twist(run_dir: Path, reconstruc
     start_arrays, refined_arrays = reconstruction_to_arrays(start_model), reconstruction_to_arrays(reconstruction)
     (checkpoint,) = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
     state = torch.load(checkpoint, map_location="cpu")["pipeline"]
-    latent = state["_model.camera_optimizer.whitened_delta"].double()
-    if "_model.camera_optimizer.whitened_intrinsics" in state:  # intrinsics shared per physical camera: [z_i; w_c]
-        shared = state["_model.camera_optimizer.whitened_intrinsics"].double()
+    latent = state["_model.camera_optimizer.refiner.whitened_delta"].double()
+    if (
+        "_model.camera_optimizer.refiner.whitened_intrinsics" in state
+    ):  # intrinsics shared per physical camera: [z_i; w_c]
+        shared = state["_model.camera_optimizer.refiner.whitened_intrinsics"].double()
         assert shared.shape[0] == 1  # the generated scene has one COLMAP camera
         latent = torch.cat([latent, shared.expand(latent.shape[0], -1)], dim=-1)
-    twists = (state["_model.camera_optimizer.precond_inv"] @ latent[..., None])[..., 0][:, :6].numpy()
+    twists = (state["_model.camera_optimizer.refiner.precond_inv"] @ latent[..., None])[..., 0][:, :6].numpy()
     assert np.abs(twists[:, 3:]).max() > 1e-3  # the rotations moved well beyond the tolerance below
 
     def homogeneous(c2w: np.ndarray) -> np.ndarray:
@@ -438,17 +440,22 @@ def test_interrupted_run_resumes_bit_identically(resume_runs: ResumeRuns):
     assert set(expected) == set(actual)
     tensors = [key for key, value in expected.items() if isinstance(value, torch.Tensor)]
     assert len(tensors) > 100 and any("/optimizers/camera_opt/state/" in key for key in tensors)
-    for part in ("field.mlp_head", "proposal_networks.1", "camera_optimizer.whitened_delta", "optimizer.precond"):
+    for part in (
+        "field.mlp_head",
+        "proposal_networks.1",
+        "camera_optimizer.refiner.whitened_delta",
+        "optimizer.refiner.precond",
+    ):
         assert any(part in key for key in tensors), part
     different = [
         key for key, value in expected.items()
         if not (torch.equal(value, actual[key]) if isinstance(value, torch.Tensor) else value == actual[key])
     ]  # fmt: skip
     assert not different, f"{len(different)} of {len(expected)} entries differ after resuming: {different[:20]}"
-    assert int(whole["pipeline"]["_model.camera_optimizer.num_refreshes"]) == 3  # steps 0, 8 and 16
+    assert int(whole["pipeline"]["_model.camera_optimizer.refiner.num_refreshes"]) == 3  # steps 0, 8 and 16
     resumed_state = resume_runs.checkpoint("whole", RESUME_AT)
     assert resumed_state["sampler_state"]["proposal_sampler"]["_step"] == RESUME_AT  # past the warm-up (< 10)
-    delta = "_model.camera_optimizer.whitened_delta"
+    delta = "_model.camera_optimizer.refiner.whitened_delta"
     assert not torch.equal(whole["pipeline"][delta], resumed_state["pipeline"][delta])  # the resumed steps moved it
 
 

@@ -73,8 +73,8 @@ def test_ns_train_s2camp_on_ns_process_data_transforms(model: str, tmp_path: Pat
     )
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)["pipeline"]
     # Intrinsics per physical camera (the default): a pose latent per image, one intrinsics latent for the camera.
-    pose = state["_model.camera_optimizer.whitened_delta"]
-    intrinsics = state["_model.camera_optimizer.whitened_intrinsics"]
+    pose = state["_model.camera_optimizer.refiner.whitened_delta"]
+    intrinsics = state["_model.camera_optimizer.refiner.whitened_intrinsics"]
     layout = ParameterLayout.from_preset("all", model)
     assert pose.shape == (7, 6)  # 8 images, every 8th held out
     assert intrinsics.shape == (1, layout.num_params - 6)

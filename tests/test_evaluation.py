@@ -97,9 +97,10 @@ def test_s2camp_refinement_is_measured_against_the_reference_cameras(held_out: l
     given.camera_to_worlds = _yawed(reference.camera_to_worlds, 0, 2.0).float()
     refined_intrinsics = intrinsics_from_cameras(reference)
     refined_intrinsics = dataclasses.replace(refined_intrinsics, fx=refined_intrinsics.fx * 1.02)
-    optimizer = SimpleNamespace(
+    refiner = SimpleNamespace(
         refined_c2w=lambda opengl: reference.camera_to_worlds.to(F64), refined_intrinsics=lambda: refined_intrinsics
     )
+    optimizer = SimpleNamespace(refiner=refiner)
     model = SimpleNamespace(
         _train_cameras=given, reference_cameras=lambda: reference, uses_s2camp_optimizer=True,
         camera_optimizer=optimizer,

@@ -11,12 +11,14 @@ import pycolmap
 import pytest
 import torch
 import tyro
+from latents import write_latent
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.camera import se3_exp
 from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio import export_cameras as export
+from s2camp_ns.nerfstudio.camera_conversion import refined_cameras
 from s2camp_ns.nerfstudio.colmap_reconstruction import (
     cameras_to_reconstruction,
     export_cameras,
@@ -185,8 +187,7 @@ def test_exported_cameras_reproduce_the_training_rays_of_s2camp(scene: Path):
     # raw deltas (P = I), skew 0: nerfstudio's Cameras cannot hold skew
     raw = torch.tensor([0.02, -0.01, 0.03, 0.01, -0.02, 0.015, 2.0, 1.0, -1.5, 0.0, 0.02, -0.005])
     scale = torch.linspace(-1.0, 1.0, out.cameras.shape[0])[:, None]
-    with torch.no_grad():
-        optimizer.whitened_delta.copy_(raw * scale)
+    write_latent(optimizer.refiner, raw * scale)
     indices = pixel_indices(out.cameras, seed=1)
     expected, exported = (
         training_rays(out.cameras, optimizer, indices),
@@ -294,15 +295,15 @@ def test_each_camera_model_exports_in_colmap_meaning(scene: Path, tmp_path: Path
     )
     optimizer = config.setup(num_cameras=len(names), device="cpu")
     optimizer.set_train_cameras(out.cameras)
-    layout = optimizer.layout
+    layout = optimizer.refiner.layout
     with torch.no_grad():  # raw focal, principal point and distortion deltas (skew stays zero: COLMAP has none)
         phi = torch.zeros(len(names), 16, dtype=torch.float64)
         phi[:, 6:9] = torch.tensor([1.5, -0.5, 0.7])
         phi[:, 10:] = torch.tensor([0.004, -0.001, 2e-4, 3e-5, 2e-4, -3e-4])
-        optimizer.whitened_delta.copy_((optimizer.precond @ phi[:, list(layout.indices), None])[..., 0])
-    refined = optimizer.refine_cameras(out.cameras)
+        write_latent(optimizer.refiner, (optimizer.refiner.precond @ phi[:, list(layout.indices), None])[..., 0])
+    refined = refined_cameras(optimizer.refiner, out.cameras)
     reconstruction = export_cameras(refined, out.dataparser_transform, out.dataparser_scale, names)
-    intrinsics = optimizer.refined_intrinsics().detach()
+    intrinsics = optimizer.refiner.refined_intrinsics().detach()
     points = torch.tensor([[[0.1, -0.2, 1.0], [0.3, 0.2, 2.0], [-0.25, 0.1, 1.5]]], dtype=torch.float64)
     for index, name in enumerate(names):
         image = next(image for image in reconstruction.images.values() if image.name == name)

@@ -141,7 +141,8 @@ def test_train_arguments_of_the_methods() -> None:
     ]  # fmt: skip
     perturbed = ["s2camp-data", "--perturbation.enabled", "True"]
     assert train_arguments(config, "s2camp", Path("scene")) == [
-        "s2camp", *shared, "--timestamp", "s2camp", *run, "--pipeline.model.camera-optimizer.refresh-every", "100",
+        "s2camp", *shared, "--timestamp", "s2camp", *run,
+        "--pipeline.model.camera-optimizer.refresh-every", "100",
         *perturbed,
     ]  # fmt: skip
     for method in ("nerfacto", "s2camp-so3xr3", "s2camp-camp"):
@@ -306,7 +307,7 @@ def test_method_result_from_the_measurements() -> None:
 
 def test_the_nccl_checkpoint_check(tmp_path: Path) -> None:
     path = tmp_path / "step-000000059.ckpt"
-    key = "_model.module.camera_optimizer.whitened_delta"
+    key = "_model.module.camera_optimizer.refiner.whitened_delta"
     assert check_nccl_checkpoint(path) == f"no final checkpoint {path}"
     torch.save({"pipeline": {key: torch.tensor([[0.0, 1e-4]])}}, path)
     assert check_nccl_checkpoint(path) is None

@@ -305,24 +305,26 @@ def test_pipeline_gives_the_optimizer_the_scenes_points(tiny_scene) -> None:
     names = [path.name for path in outputs.image_filenames]
     distances = _visible_distances_by_hand(tiny_scene, names) * float(outputs.dataparser_scale)
     low, high = (contracted(d) for d in np.percentile(distances, [25.0, 75.0]))
-    assert optimizer.num_physical_cameras == 1 and optimizer.proxy_ranges.num_points.tolist() == [len(distances)]
+    assert optimizer.refiner.num_physical_cameras == 1 and optimizer.refiner.proxy_ranges.num_points.tolist() == [
+        len(distances)
+    ]
     expected = torch.tensor([[low, high]], dtype=torch.float64).expand(len(names), 2)
     # nerfstudio hands over float32 points and cameras: agreement to float32 rounding, not to the last bit.
-    torch.testing.assert_close(optimizer.proxy_range, expected, rtol=0, atol=1e-6)
-    assert torch.equal(optimizer.precond_proxy_range, optimizer.proxy_range)
+    torch.testing.assert_close(optimizer.refiner.proxy_range, expected, rtol=0, atol=1e-6)
+    assert torch.equal(optimizer.refiner.precond_proxy_range, optimizer.refiner.proxy_range)
 
 
 def test_pipeline_default_range_comes_from_the_scene_and_an_explicit_one_wins(tiny_scene) -> None:
     from s2camp_ns.core.preconditioner import SamplingConfig
 
     chosen = _tiny_pipeline(tiny_scene, SamplingConfig(num_points=64)).model.camera_optimizer
-    near, far = chosen.proxy_range[0].tolist()
-    assert not chosen.proxy_ranges.fallback.any() and (near, far) != (0.4, 1.5)
-    assert bool((chosen.proxy_range == chosen.proxy_range[0]).all())  # one physical camera: one range
+    near, far = chosen.refiner.proxy_range[0].tolist()
+    assert not chosen.refiner.proxy_ranges.fallback.any() and (near, far) != (0.4, 1.5)
+    assert bool((chosen.refiner.proxy_range == chosen.refiner.proxy_range[0]).all())  # one physical camera: one range
     # Both ends on the 0.01 grid of the moment rule.
     assert round(near * 100) == pytest.approx(near * 100, abs=1e-9) and round(far * 100) == pytest.approx(far * 100)
     fixed = _tiny_pipeline(tiny_scene, SamplingConfig(num_points=64, t_far=1.8)).model.camera_optimizer
-    assert fixed.proxy_range[:, 1].tolist() == [1.8] * fixed.num_cameras
+    assert fixed.refiner.proxy_range[:, 1].tolist() == [1.8] * fixed.num_cameras
 
 
 def test_large_scenes_are_thinned_deterministically() -> None:

@@ -6,12 +6,14 @@ import math
 
 import pytest
 import torch
+from latents import set_latent_column, write_latent
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer, S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
+from s2camp_ns.nerfstudio.camera_conversion import refined_cameras
 from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY
+from s2camp_ns.nerfstudio.rays import PIXEL_KEY, cast_rays, train_camera_raybundle
 
 NUM_CAMERAS = 2
 WIDTH, HEIGHT = 80, 60
@@ -108,8 +110,7 @@ def test_pixel_area_follows_the_refined_focal_length():
     cameras = make_cameras(0.0, 0.0)
     d = 6.0  # pixels, raw focal delta (P = I)
     optimizer = make_optimizer(cameras, precondition=False)
-    with torch.no_grad():
-        optimizer.whitened_delta[:, 6] = d
+    set_latent_column(optimizer.refiner, 6, d)
     bundle = PixelRayGenerator(cameras)(all_ray_indices())
     optimizer.apply_to_raybundle(bundle)
     per_camera = torch.tensor([1.0 / (76.0 * 77.0), 1.0 / (81.0 * 80.0)])
@@ -131,8 +132,7 @@ def test_each_parameter_moves_the_rays(column: int, value: float):
     optimizer = make_optimizer(cameras, precondition=False)
     reference = PixelRayGenerator(cameras)(all_ray_indices())
     optimizer.apply_to_raybundle(reference)
-    with torch.no_grad():
-        optimizer.whitened_delta[:, column] = value
+    set_latent_column(optimizer.refiner, column, value)
     bundle = PixelRayGenerator(cameras)(all_ray_indices())
     optimizer.apply_to_raybundle(bundle)
     moved = (bundle.directions - reference.directions).norm(dim=-1).amax()
@@ -149,11 +149,10 @@ def test_refined_nerfstudio_cameras_match_regenerated_rays(model: str):
     optimizer = make_optimizer(cameras, precondition=False)
     full = torch.tensor([0.02, -0.01, 0.03, 0.01, -0.02, 0.015, 2.0, 1.0, -1.5, 0.0, 0.02, -0.005])
     full = torch.cat([full, torch.tensor([0.001, 0.0001, 0.001, -0.0005])])  # k3, k4, p1, p2
-    raw = full[list(optimizer.layout.indices)]
-    assert optimizer.layout.num_params == {"radial": 12, "opencv": 14, "full_opencv": 15}.get(model, 14)
-    with torch.no_grad():
-        optimizer.whitened_delta.copy_(raw.expand(NUM_CAMERAS, raw.shape[0]) * torch.tensor([[1.0], [-0.5]]))
-    refined = optimizer.refine_cameras(cameras)
+    raw = full[list(optimizer.refiner.layout.indices)]
+    assert optimizer.refiner.layout.num_params == {"radial": 12, "opencv": 14, "full_opencv": 15}.get(model, 14)
+    write_latent(optimizer.refiner, raw.expand(NUM_CAMERAS, raw.shape[0]) * torch.tensor([[1.0], [-0.5]]))
+    refined = refined_cameras(optimizer.refiner, cameras)
     stock = PixelRayGenerator(refined)(all_ray_indices())
     bundle = PixelRayGenerator(cameras)(all_ray_indices())
     with torch.no_grad():
@@ -166,8 +165,9 @@ def test_train_camera_raybundle_matches_training_rays():
     cameras = make_cameras(-0.05, 0.01)
     optimizer = make_optimizer(cameras)
     with torch.no_grad():
-        optimizer.whitened_delta.normal_(0.0, 0.05, generator=torch.Generator().manual_seed(1))
-    image = optimizer.train_camera_raybundle(1)
+        for latent in optimizer.parameters():
+            latent.normal_(0.0, 0.05, generator=torch.Generator().manual_seed(1))
+    image = train_camera_raybundle(optimizer.refiner, 1)
     assert image.origins.shape == (HEIGHT, WIDTH, 3)
     bundle = PixelRayGenerator(cameras)(all_ray_indices())
     with torch.no_grad():
@@ -183,15 +183,15 @@ def test_cast_rays_are_every_camera_refined_then_indexed_per_ray(intrinsics: str
     reference, and exact zeros for the cameras no ray came from."""
     cameras = make_cameras(-0.05, 0.01)
     optimizer = make_optimizer(cameras, intrinsics=intrinsics)
-    latents = [p for p in (optimizer.whitened_delta, getattr(optimizer, "whitened_intrinsics", None)) if p is not None]
-    assert len(latents) == (2 if intrinsics == "per-camera" else 1)
+    latents = list(optimizer.parameters())
+    assert len(latents) == 2  # the pose per image, the intrinsics per physical camera or per image
     with torch.no_grad():
         for latent in latents:
             latent.copy_(torch.linspace(-2e-3, 3e-3, latent.numel()).reshape(latent.shape))
     camera_indices = torch.tensor([1, 1, 1, 1])  # camera 0 is not in this batch
     pixels = torch.tensor([[3.5, 4.5], [40.0, 30.0], [79.5, 0.5], [10.25, 55.75]])
 
-    rays = optimizer.cast_rays(camera_indices, pixels, dtype=torch.float64)
+    rays = cast_rays(optimizer.refiner, camera_indices, pixels, dtype=torch.float64)
     origins, directions, norms = rays.origins, rays.directions, rays.directions_norm
     (origins.sum() + directions.sum() + norms.sum()).backward()
     batch_gradients = [latent.grad.clone() for latent in latents]
@@ -201,9 +201,9 @@ def test_cast_rays_are_every_camera_refined_then_indexed_per_ray(intrinsics: str
     # Reference: every camera refined, then indexed per ray.
     from s2camp_ns.core.unprojection import pixel_to_ray_direction
 
-    deltas = optimizer.camera_deltas()
-    intrinsics = optimizer.refined_intrinsics(deltas)[camera_indices]
-    c2w = optimizer.refined_c2w(deltas)[camera_indices]
+    deltas = optimizer.refiner.deltas()
+    intrinsics = optimizer.refiner.refined_intrinsics(deltas)[camera_indices]
+    c2w = optimizer.refiner.refined_c2w(deltas)[camera_indices]
     directions_cam = pixel_to_ray_direction(pixels.to(torch.float64)[:, None, :], intrinsics)[:, 0]
     expected_directions = (c2w[:, :, :3] @ directions_cam[:, :, None])[..., 0]
     expected_origins = c2w[:, :, 3]

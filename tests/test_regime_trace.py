@@ -28,12 +28,13 @@ def _ring(n: int = 8, radius: float = 2.0) -> torch.Tensor:
 def _optimizer(given: torch.Tensor, refined: torch.Tensor, fx: torch.Tensor, refined_fx: torch.Tensor):
     intrinsics = torch.zeros(given.shape[0], 13, dtype=torch.float64)
     intrinsics[:, 0] = fx
-    return SimpleNamespace(
+    refiner = SimpleNamespace(
         base_c2w_cv=given,
         refined_c2w=lambda: refined,
         base_intrinsics=intrinsics,
         refined_intrinsics=lambda: SimpleNamespace(fx=refined_fx),
     )
+    return SimpleNamespace(refiner=refiner)
 
 
 def test_a_pure_similarity_is_all_gauge_and_no_error() -> None:

@@ -49,14 +49,13 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     # changes; "s2camp" and the baselines take the method's own defaults.
     photometric = "--pipeline.model.camera-optimizer.photometric"
     precondition = "--pipeline.model.camera-optimizer.precondition"
-    loss = "--pipeline.model.camera-optimizer.track-loss"
     exponent = "--pipeline.model.camera-optimizer.pose-prior-exponent"
     expected_options = {
         "off": {"--pipeline.model.camera-optimizer.mode": "off"},
-        "tracks": {photometric: "False", rotation: "True", prior: "True", loss: "False"},
-        "s2camp-photometric": {rotation: "True", prior: "False", loss: "False"},
-        "s2camp-camp-prior": {rotation: "True", prior: "True", loss: "False"},
-        "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True", loss: "False"},
+        "tracks": {photometric: "False", rotation: "True", prior: "True"},
+        "s2camp-photometric": {rotation: "True", prior: "False"},
+        "s2camp-camp-prior": {rotation: "True", prior: "True"},
+        "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True"},
         "s2camp-pose-exp0": {exponent: "0"},
         "s2camp-pose-exp0.5": {exponent: "0.5"},
     }  # fmt: skip

@@ -18,7 +18,7 @@ from s2camp_ns.core.shared_intrinsics import (
     deltas_from_latents,
     joint_gram,
     joint_inverse,
-    reexpress_shared_latents,
+    reexpress_latents,
 )
 
 ROOM = Intrinsics.create(fx=793.13, fy=793.49, cx=389.25, cy=259.375, width=778, height=518, k1=-0.02, k2=0.003)
@@ -116,7 +116,7 @@ def test_reexpressing_keeps_every_camera_and_maps_the_first_moment_exactly() -> 
     phi_before, grad_z, grad_w = gradients(old.inverse, pose, intrinsics)
     pose_state = {"exp_avg": grad_z.clone(), "exp_avg_sq": grad_z.square()}
     intrinsics_state = {"exp_avg": grad_w.clone(), "exp_avg_sq": grad_w.square()}
-    reexpress_shared_latents(
+    reexpress_latents(
         pose, intrinsics, camera_of_image, old.matrix, old.inverse, new.matrix, new.inverse, pose_state,
         intrinsics_state,
     )  # fmt: skip

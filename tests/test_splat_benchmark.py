@@ -53,11 +53,11 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     assert _option(command, "--pipeline.model.camera-error-every") == "0"
     camera_options = [arg for arg in command if arg.startswith("--pipeline.model.camera-optimizer.")]
     optimizer = "--pipeline.model.camera-optimizer"
-    prior, loss = f"{optimizer}.track-prior", f"{optimizer}.track-loss"
+    prior = f"{optimizer}.track-prior"
     expected_options = {
         "splat-off": {f"{optimizer}.mode": "off"},
-        "s2camp-splat-tracks": {f"{optimizer}.photometric": "False", prior: "True", loss: "False"},
-        "s2camp-splat-photometric": {prior: "False", loss: "False"},
+        "s2camp-splat-tracks": {f"{optimizer}.photometric": "False", prior: "True"},
+        "s2camp-splat-photometric": {prior: "False"},
     }
     assert {arg: _option(command, arg) for arg in camera_options} == expected_options.get(variant, {})
     # The compressed schedule: 900 of splatfacto's 30000 steps = 3 %.

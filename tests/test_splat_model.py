@@ -66,9 +66,10 @@ def test_view_matrix_projects_like_the_refined_camera():
     optimizer = config.setup(num_cameras=2, device="cpu")
     optimizer.set_train_cameras(cameras)
     with torch.no_grad():
-        optimizer.whitened_delta.copy_(torch.randn(optimizer.whitened_delta.shape, generator=torch.manual_seed(0)))
-        optimizer.whitened_delta.mul_(3e-3)
-    deltas = optimizer.camera_deltas().detach()
+        generator = torch.manual_seed(0)
+        for latent in optimizer.parameters():
+            latent.copy_(3e-3 * torch.randn(latent.shape, generator=generator))
+    deltas = optimizer.refiner.deltas().detach()
     assert float(deltas[:, 6:10].abs().min()) > 0.05, "focal, principal point and skew must all be refined"
     model = SimpleNamespace(training=True, uses_s2camp_optimizer=True, camera_optimizer=optimizer)
     world = torch.randn(30, 3, dtype=torch.float64, generator=torch.manual_seed(1)) * 0.4
@@ -82,7 +83,7 @@ def test_view_matrix_projects_like_the_refined_camera():
         pixels = pixels[:, :2] / pixels[:, 2:]
         base_w2c = world_to_camera(opengl_to_opencv(camera.camera_to_worlds.double()))[0]
         points_cam = (base_w2c[:3, :3] @ world.T).T + base_w2c[:3, 3]
-        base = optimizer.base_intrinsics_struct()
+        base = optimizer.refiner.base_intrinsics_struct()
         expected = project_with_delta(points_cam[None], base.to(dtype=torch.float64)[i : i + 1], deltas[i : i + 1])[0]
         torch.testing.assert_close(pixels, expected, rtol=1e-6, atol=1e-4)
         # A held-out or viewer camera (no cam_idx) renders as given.
@@ -125,16 +126,16 @@ def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
     model = trainer.pipeline.model
     assert isinstance(model, S2CampSplatModel)
     seeds = model.num_points
-    base_fx = model.camera_optimizer.refined_intrinsics().fx.detach().clone()
+    base_fx = model.camera_optimizer.refiner.refined_intrinsics().fx.detach().clone()
     trainer.train()
     elapsed = time.perf_counter() - start
     optimizer = model.camera_optimizer
     # Growth (split / duplicate) needs the projected means' accumulated gradients above splatfacto's threshold.
     assert model.num_points > seeds, "the densification strategy must have grown Gaussians from means2d gradients"
-    assert int(optimizer.num_refreshes) >= 2  # the initial P and the scheduled refresh at step 20
-    deltas = optimizer.camera_deltas().detach()
+    assert int(optimizer.refiner.num_refreshes) >= 2  # the initial P and the scheduled refresh at step 20
+    deltas = optimizer.refiner.deltas().detach()
     assert float(deltas[:, :6].abs().amax()) > 0, "the pose must be refined"
-    assert float((optimizer.refined_intrinsics().fx.detach() - base_fx).abs().amax()) > 1e-3
+    assert float((optimizer.refiner.refined_intrinsics().fx.detach() - base_fx).abs().amax()) > 1e-3
     assert float(deltas[:, 7:10].abs().amax()) > 0, "principal point and skew must be refined"
     errors = model.update_camera_errors()
     assert {"camera_errors/rot_err_mean", "camera_errors/pos_err_mean", "camera_errors/focal_err_mean"} <= set(errors)
@@ -144,7 +145,7 @@ def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
 
     exported = refined_training_cameras(trainer.pipeline)
     torch.testing.assert_close(
-        exported.fx.reshape(-1).double(), optimizer.refined_intrinsics().fx.detach().cpu(), rtol=1e-6, atol=1e-4
+        exported.fx.reshape(-1).double(), optimizer.refiner.refined_intrinsics().fx.detach().cpu(), rtol=1e-6, atol=1e-4
     )
     print(f"s2camp-splat, 40 CPU steps: {elapsed:.1f} s, {seeds} -> {model.num_points} Gaussians, {errors}")
     # s2camp-eval on the run's config.yml and final checkpoint: test-time alignment of the held-out views.
@@ -250,9 +251,9 @@ def test_splat_training_step_on_emulated_cuda(tiny_scene: Path):
         loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
         optimizers.zero_grad_all()
         sum(loss_dict.values()).backward()
-        grad = model.camera_optimizer.whitened_intrinsics.grad
+        grad = model.camera_optimizer.refiner.whitened_intrinsics.grad
         means2d_grad = model.info["means2d"].grad
-        latent_before = values(model.camera_optimizer.whitened_intrinsics).clone()
+        latent_before = values(model.camera_optimizer.refiner.whitened_intrinsics).clone()
         optimizers.optimizer_step_all()
         # s2camp-eval's view construction, renders and metrics on "cuda"; steps=0: the emulation cannot run the
         # backward pass of the reference rasterizer's chained per-tile index_put (autograd's C++ zeros carry the
@@ -262,7 +263,7 @@ def test_splat_training_step_on_emulated_cuda(tiny_scene: Path):
     assert is_fake_cuda(outputs["rgb"]) and is_fake_cuda(grad) and is_fake_cuda(means2d_grad)
     assert float(values(grad).abs().sum()) > 0, "the intrinsics get a gradient through the view matrix"
     assert float(values(means2d_grad).abs().sum()) > 0, "the strategy reads the projected means' gradient"
-    assert not torch.equal(values(model.camera_optimizer.whitened_intrinsics), latent_before)
+    assert not torch.equal(values(model.camera_optimizer.refiner.whitened_intrinsics), latent_before)
     assert len(aligned) == len(pipeline.datamanager.eval_dataset) and all(math.isfinite(v.psnr) for v in aligned)
 
 
@@ -315,12 +316,12 @@ def test_undistorted_cameras_keep_the_given_anchor_and_the_tracks_standard_error
     rms = torch.tensor([0.4, 0.8], dtype=torch.float64)
     model.set_train_cameras(cameras, track_rms_px=rms, track_evidence=evidence)
     optimizer = model.camera_optimizer
-    assert bool((optimizer.prior_anchor == 0).all())  # the given cameras: no refit against the distorted pixels
+    assert bool((optimizer.refiner.prior_anchor == 0).all())  # the given cameras: no refit against the distorted pixels
     # Each pose the standard error of its own tracks, r_i / sqrt(2 O_i).
     poses = [0.4 / 40 / math.sqrt(2 * 30), 0.8 / 40 / math.sqrt(2 * 10)]
-    assert optimizer.prior_radius.tolist() == pytest.approx(poses, rel=1e-12)
+    assert optimizer.refiner.prior_radius.tolist() == pytest.approx(poses, rel=1e-12)
     expected = math.sqrt(30 * 0.4**2 + 10 * 0.8**2) / (math.sqrt(2) * 40) / 40
-    assert optimizer.prior_radius_intrinsics.tolist() == pytest.approx([expected], rel=1e-12)
+    assert optimizer.refiner.prior_radius_intrinsics.tolist() == pytest.approx([expected], rel=1e-12)
 
 
 def test_undistortion_scale_is_the_data_managers_focal_over_the_dataparsers():

@@ -124,9 +124,9 @@ def test_a_training_steps_camera_work_reads_nothing_on_the_host(model: str, intr
         metrics: dict = {}
         camera_optimizer.get_metrics_dict(metrics)
         sum(losses.values()).backward()
-        camera_optimizer.apply_track_prior(1e-3)
-        camera_optimizer.remove_common_motion()
-        assert not camera_optimizer.should_refresh(13)
+        camera_optimizer.refiner.apply_track_prior(1e-3)
+        camera_optimizer.refiner.remove_common_motion()
+        assert not camera_optimizer.refresh_due(13)
     total = counter.total()
     assert total.num_syncs == 0, total.syncs
     assert metrics == {} and torch.isfinite(bundle.directions).all()

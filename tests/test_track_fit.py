@@ -238,7 +238,7 @@ def _optimizer_from(outputs, **overrides):
 
     config = S2CampCameraOptimizerConfig(track_prior=True, **overrides)
     optimizer = config.setup(num_cameras=outputs.cameras.shape[0], device="cpu")
-    optimizer.set_camera_groups(outputs.metadata["camera_ids"])
+    optimizer.refiner.set_camera_groups(outputs.metadata["camera_ids"])
     optimizer.set_train_cameras(outputs.cameras, points=outputs.metadata.get("points3D_xyz"))
     optimizer.set_track_prior(outputs.metadata["track_rms_px"], outputs.metadata["track_evidence"])
     return optimizer
@@ -246,22 +246,24 @@ def _optimizer_from(outputs, **overrides):
 
 def _assert_anchor_is_the_truth(outputs, optimizer) -> None:
     reference = outputs.metadata["reference_cameras"]
-    pose, intrinsics = optimizer.prior_anchor_latents()
+    pose, intrinsics = optimizer.refiner.prior_anchor_latents()
     with torch.no_grad():
-        optimizer.whitened_delta.copy_(pose)
+        optimizer.refiner.whitened_delta.copy_(pose)
         if intrinsics is not None:
-            optimizer.whitened_intrinsics.copy_(intrinsics)
+            optimizer.refiner.whitened_intrinsics.copy_(intrinsics)
     # The generated tracks are exact: the anchor is the true camera, up to the float32 storage of the cameras.
-    refined = optimizer.refined_c2w(opengl=True)
+    refined = optimizer.refiner.refined_c2w(opengl=True)
     torch.testing.assert_close(refined, reference.camera_to_worlds.to(torch.float64), atol=2e-5, rtol=0)
-    torch.testing.assert_close(optimizer.refined_intrinsics().fx, reference.fx[:, 0].double(), atol=1e-3, rtol=0)
+    torch.testing.assert_close(
+        optimizer.refiner.refined_intrinsics().fx, reference.fx[:, 0].double(), atol=1e-3, rtol=0
+    )
 
 
 def test_colmap_scene_anchor_is_the_true_camera_for_perturbed_cameras(tiny_scene: Path) -> None:
     outputs = perturbed_with_scene_tracks(tiny_scene)
     optimizer = _optimizer_from(outputs)
     assert float(outputs.metadata["track_rms_px"].min()) > 0.1  # the given cameras disagree with their tracks
-    assert float(optimizer.prior_radius.max()) < 1e-6  # the anchor agrees: exact tracks, radius ~0
+    assert float(optimizer.refiner.prior_radius.max()) < 1e-6  # the anchor agrees: exact tracks, radius ~0
     _assert_anchor_is_the_truth(outputs, optimizer)
 
 
@@ -276,23 +278,23 @@ def test_per_image_intrinsics_anchor_and_the_accurate_start_anchor_at_zero(tiny_
     _assert_anchor_is_the_truth(perturbed, _optimizer_from(perturbed, intrinsics="per-image"))
     accurate = _parse(tiny_scene)
     optimizer = _optimizer_from(accurate)
-    assert float(optimizer.prior_anchor.abs().max()) < 1e-5
+    assert float(optimizer.refiner.prior_anchor.abs().max()) < 1e-5
 
 
 def test_proximal_step_pulls_towards_the_anchor_not_the_given_camera(tiny_scene: Path) -> None:
     outputs = perturbed_with_scene_tracks(tiny_scene)
     optimizer = _optimizer_from(outputs)
-    pose, intrinsics = optimizer.prior_anchor_latents()
-    torch.testing.assert_close(optimizer.whitened_delta.double(), pose, rtol=1e-6, atol=1e-9)  # started there
+    pose, intrinsics = optimizer.refiner.prior_anchor_latents()
+    torch.testing.assert_close(optimizer.refiner.whitened_delta.double(), pose, rtol=1e-6, atol=1e-9)  # started there
     with torch.no_grad():  # back at the given cameras
         for latent in optimizer.parameters():
             latent.zero_()
-    optimizer.prior_radius.fill_(0.01)  # a finite radius: one step closes lr / (r + lr) of the gap
-    optimizer.prior_radius_intrinsics.fill_(0.01)
-    optimizer.apply_track_prior(lr=1e-3)
-    torch.testing.assert_close(optimizer.whitened_delta.double(), pose * (1e-3 / 0.011), rtol=1e-5, atol=1e-9)
+    optimizer.refiner.prior_radius.fill_(0.01)  # a finite radius: one step closes lr / (r + lr) of the gap
+    optimizer.refiner.prior_radius_intrinsics.fill_(0.01)
+    optimizer.refiner.apply_track_prior(lr=1e-3)
+    torch.testing.assert_close(optimizer.refiner.whitened_delta.double(), pose * (1e-3 / 0.011), rtol=1e-5, atol=1e-9)
     torch.testing.assert_close(
-        optimizer.whitened_intrinsics.double(), intrinsics * (1e-3 / 0.011), rtol=1e-5, atol=1e-9
+        optimizer.refiner.whitened_intrinsics.double(), intrinsics * (1e-3 / 0.011), rtol=1e-5, atol=1e-9
     )
 
 
@@ -301,15 +303,15 @@ def test_common_rotation_removal_keeps_the_rotation_the_anchors_share(tiny_scene
     # no gauge. At the anchor the removal must change nothing; without the prior it removes that mean.
     outputs = perturbed_with_scene_tracks(tiny_scene)
     optimizer = _optimizer_from(outputs, fix_common_rotation=True)
-    pose, intrinsics = optimizer.prior_anchor_latents()
+    pose, intrinsics = optimizer.refiner.prior_anchor_latents()
     with torch.no_grad():
-        optimizer.whitened_delta.copy_(pose)
-        optimizer.whitened_intrinsics.copy_(intrinsics)
-    shared = optimizer.camera_deltas()[:, 3:6].mean(dim=0)
+        optimizer.refiner.whitened_delta.copy_(pose)
+        optimizer.refiner.whitened_intrinsics.copy_(intrinsics)
+    shared = optimizer.refiner.deltas()[:, 3:6].mean(dim=0)
     assert float(shared.abs().max()) > 1e-4  # the anchors do share a rotation
-    optimizer.remove_common_motion()
+    optimizer.refiner.remove_common_motion()
     reference = outputs.metadata["reference_cameras"].camera_to_worlds.double()
-    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), reference, atol=2e-5, rtol=0)
-    optimizer.has_track_prior = False  # as without tracks: the shared rotation is removed
-    optimizer.remove_common_motion()
-    assert float(optimizer.camera_deltas()[:, 3:6].mean(dim=0).abs().max()) < 1e-9
+    torch.testing.assert_close(optimizer.refiner.refined_c2w(opengl=True), reference, atol=2e-5, rtol=0)
+    optimizer.refiner.has_track_prior = False  # as without tracks: the shared rotation is removed
+    optimizer.refiner.remove_common_motion()
+    assert float(optimizer.refiner.deltas()[:, 3:6].mean(dim=0).abs().max()) < 1e-9

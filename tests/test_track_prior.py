@@ -129,22 +129,24 @@ def test_prior_step_shrinks_each_latent_by_its_radius_and_leaves_untracked_image
     optimizer = make_optimizer(track_prior=True)  # 4 images of width 64, two physical cameras: images 0, 2 and 1, 3
     optimizer.set_track_prior(torch.tensor([0.64, 6.4, float("nan"), 1.28]))
     with torch.no_grad():
-        optimizer.whitened_delta.fill_(1.0)
-        optimizer.whitened_intrinsics.fill_(1.0)
-    optimizer.apply_track_prior(lr=1e-3)
+        optimizer.refiner.whitened_delta.fill_(1.0)
+        optimizer.refiner.whitened_intrinsics.fill_(1.0)
+    optimizer.refiner.apply_track_prior(lr=1e-3)
     # Errors in whitened units 0.01, 0.1, none, 0.02; without observation counts each image counts once, so the poses'
     # radii are the standard errors r / sqrt(2); factor 1 / (1 + lr / r) towards the anchor (zero: the given cameras).
     expected = [1 / (1 + 1e-3 * math.sqrt(2) / r) if r else 1.0 for r in (0.01, 0.1, None, 0.02)]
-    assert optimizer.whitened_delta[:, 0].tolist() == pytest.approx(expected, rel=1e-6)
-    assert bool((optimizer.whitened_delta == optimizer.whitened_delta[:, :1]).all())  # every coordinate alike
+    assert optimizer.refiner.whitened_delta[:, 0].tolist() == pytest.approx(expected, rel=1e-6)
+    assert bool(
+        (optimizer.refiner.whitened_delta == optimizer.refiner.whitened_delta[:, :1]).all()
+    )  # every coordinate alike
     # Shared intrinsics: the standard error r / sqrt(2 O) of a fit to O observations of pooled RMS r. Without the
     # observation counts (track_rms_px alone) each image counts once. Camera A (images 0 and 2): only image 0 has
     # tracks, 0.01 / sqrt(2); camera B: images 1 and 3, radii 0.1 and 0.02 pooled over 2 observations.
     radius_b = math.sqrt((0.1**2 + 0.02**2) / 2) / math.sqrt(2 * 2)
     shared = [1 / (1 + 1e-3 / r) for r in (0.01 / math.sqrt(2), radius_b)]
-    labels = optimizer.camera_of_image.tolist()
-    assert optimizer.whitened_intrinsics[labels[0], 0].item() == pytest.approx(shared[0], rel=1e-6)
-    assert optimizer.whitened_intrinsics[labels[1], 0].item() == pytest.approx(shared[1], rel=1e-6)
+    labels = optimizer.refiner.camera_of_image.tolist()
+    assert optimizer.refiner.whitened_intrinsics[labels[0], 0].item() == pytest.approx(shared[0], rel=1e-6)
+    assert optimizer.refiner.whitened_intrinsics[labels[1], 0].item() == pytest.approx(shared[1], rel=1e-6)
 
 
 def test_shared_intrinsics_radius_is_the_standard_error_of_every_observation(monkeypatch) -> None:
@@ -165,12 +167,12 @@ def test_shared_intrinsics_radius_is_the_standard_error_of_every_observation(mon
     evidence = TrackEvidence(tracks, IDENTITY_C2W.expand(4, 3, 4), 1.0)
     optimizer.set_track_prior(None, evidence)
     expected = [r / math.sqrt(2 * o) for r, o in zip((0.01, 0.1, 0.02, 0.05), (100, 300, 50, 20), strict=True)]
-    assert optimizer.prior_radius.tolist() == pytest.approx(expected, rel=1e-12)
+    assert optimizer.refiner.prior_radius.tolist() == pytest.approx(expected, rel=1e-12)
     camera_a = math.sqrt(100 * 0.01**2 + 50 * 0.02**2) / (math.sqrt(2) * 150)
     camera_b = math.sqrt(300 * 0.1**2 + 20 * 0.05**2) / (math.sqrt(2) * 320)
-    labels = optimizer.camera_of_image.tolist()
-    assert optimizer.prior_radius_intrinsics[labels[0]].item() == pytest.approx(camera_a, rel=1e-12)
-    assert optimizer.prior_radius_intrinsics[labels[1]].item() == pytest.approx(camera_b, rel=1e-12)
+    labels = optimizer.refiner.camera_of_image.tolist()
+    assert optimizer.refiner.prior_radius_intrinsics[labels[0]].item() == pytest.approx(camera_a, rel=1e-12)
+    assert optimizer.refiner.prior_radius_intrinsics[labels[1]].item() == pytest.approx(camera_b, rel=1e-12)
 
 
 def test_prior_off_or_without_tracks_changes_nothing() -> None:
@@ -178,10 +180,10 @@ def test_prior_off_or_without_tracks_changes_nothing() -> None:
     off = make_optimizer(track_prior=False)
     for optimizer, rms in ((off, torch.full((4,), 0.5)), (make_optimizer(track_prior=True), None)):
         with torch.no_grad():
-            optimizer.whitened_delta.fill_(1.0)
+            optimizer.refiner.whitened_delta.fill_(1.0)
         optimizer.set_track_prior(rms)
-        optimizer.apply_track_prior(lr=1e-2)
-        assert bool((optimizer.whitened_delta == 1.0).all())
+        optimizer.refiner.apply_track_prior(lr=1e-2)
+        assert bool((optimizer.refiner.whitened_delta == 1.0).all())
 
 
 def test_prior_refuses_wrong_sizes_and_negative_errors() -> None:
@@ -202,15 +204,15 @@ def test_adam_with_the_prior_settles_within_the_radius(noise: bool) -> None:
     # 0.05 in whitened units (width 64) from 2 observations each: radius 0.05 / sqrt(4) = 0.025, far above lr.
     optimizer.set_track_prior(torch.full((4,), 3.2), track_observations=torch.full((4,), 2.0))
     radius = 0.05 / 2.0
-    adam = torch.optim.Adam([optimizer.whitened_delta], lr=1e-3)
+    adam = torch.optim.Adam([optimizer.refiner.whitened_delta], lr=1e-3)
     generator = torch.Generator().manual_seed(0)
     for _ in range(3000):
         adam.zero_grad()
         gradient = torch.randn(4, 6, generator=generator) if noise else -torch.ones(4, 6)
-        optimizer.whitened_delta.grad = gradient
+        optimizer.refiner.whitened_delta.grad = gradient
         adam.step()
-        optimizer.apply_track_prior(lr=1e-3)
-    latent = optimizer.whitened_delta.detach()
+        optimizer.refiner.apply_track_prior(lr=1e-3)
+    latent = optimizer.refiner.whitened_delta.detach()
     if noise:
         assert float(latent.abs().max()) < 0.5 * radius
         assert float(latent.abs().max()) > 0.02 * radius  # noise does move it: the bound above is not vacuous
@@ -280,7 +282,7 @@ def _moved_cameras_with_exact_tracks(scene, **optimizer_options):
     rms, evidence = colmap_track_evidence(moved, model, outputs.metadata["image_names"], outputs)
     config = S2CampCameraOptimizerConfig(track_prior=True, **optimizer_options)
     optimizer = config.setup(num_cameras=truth.shape[0], device="cpu")
-    optimizer.set_camera_groups(outputs.metadata["camera_ids"])
+    optimizer.refiner.set_camera_groups(outputs.metadata["camera_ids"])
     optimizer.set_train_cameras(moved, points=outputs.metadata["points3D_xyz"])
     optimizer.set_track_prior(rms, evidence)
     assert float((moved.camera_to_worlds - truth.camera_to_worlds).abs().max()) > 1e-2  # there to be undone
@@ -292,15 +294,17 @@ def test_exact_tracks_anchor_moved_cameras_at_the_truth(tiny_scene) -> None:
     # with a radius of ~0, its proximal step ends there. Checked against the true cameras, not against the fit.
     optimizer, truth = _moved_cameras_with_exact_tracks(tiny_scene)
     for _ in range(3):
-        optimizer.apply_track_prior(lr=1.0)
-    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), truth.camera_to_worlds.double(), atol=1e-4, rtol=0)
-    torch.testing.assert_close(optimizer.refined_intrinsics().fx, truth.fx[:, 0].double(), atol=1e-2, rtol=0)
+        optimizer.refiner.apply_track_prior(lr=1.0)
+    torch.testing.assert_close(
+        optimizer.refiner.refined_c2w(opengl=True), truth.camera_to_worlds.double(), atol=1e-4, rtol=0
+    )
+    torch.testing.assert_close(optimizer.refiner.refined_intrinsics().fx, truth.fx[:, 0].double(), atol=1e-2, rtol=0)
 
 
 def test_tracks_alone_places_the_cameras_at_the_anchor_and_the_images_do_not_move_them(tiny_scene) -> None:
     optimizer, truth = _moved_cameras_with_exact_tracks(tiny_scene, photometric=False)
     expected = truth.camera_to_worlds.double()
-    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), expected, atol=1e-4, rtol=0)  # no step taken
+    torch.testing.assert_close(optimizer.refiner.refined_c2w(opengl=True), expected, atol=1e-4, rtol=0)  # no step taken
     before = [p.detach().clone() for p in optimizer.parameters()]
     adam = torch.optim.Adam(optimizer.parameters(), lr=1e-2)
     for _ in range(3):  # a loss that would move every coordinate
@@ -321,14 +325,18 @@ def test_the_default_starts_at_the_anchor_and_the_images_still_move_the_cameras(
     # The tracks-alone placement with the images left on. With exact tracks the anchor is the truth, so the cameras
     # start there before any step; a loss then moves them.
     optimizer, truth = _moved_cameras_with_exact_tracks(tiny_scene)
-    torch.testing.assert_close(optimizer.refined_c2w(opengl=True), truth.camera_to_worlds.double(), atol=1e-4, rtol=0)
-    torch.testing.assert_close(optimizer.refined_intrinsics().fx, truth.fx[:, 0].double(), atol=1e-2, rtol=0)
-    before = optimizer.whitened_delta.detach().clone()
-    adam = torch.optim.Adam([optimizer.whitened_delta], lr=1e-2)
+    torch.testing.assert_close(
+        optimizer.refiner.refined_c2w(opengl=True), truth.camera_to_worlds.double(), atol=1e-4, rtol=0
+    )
+    torch.testing.assert_close(optimizer.refiner.refined_intrinsics().fx, truth.fx[:, 0].double(), atol=1e-2, rtol=0)
+    before = optimizer.refiner.whitened_delta.detach().clone()
+    adam = torch.optim.Adam([optimizer.refiner.whitened_delta], lr=1e-2)
     adam.zero_grad()
-    (optimizer.whitened_delta - 1.0).square().sum().backward()
+    (optimizer.refiner.whitened_delta - 1.0).square().sum().backward()
     adam.step()
-    assert float((optimizer.whitened_delta.detach() - before).abs().min()) > 5e-3  # Adam's first step moves each by lr
+    assert (
+        float((optimizer.refiner.whitened_delta.detach() - before).abs().min()) > 5e-3
+    )  # Adam's first step moves each by lr
     from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 
     with pytest.raises(ValueError, match=r"pose_prior_exponent must lie in \[0, 1\], got 1.5"):

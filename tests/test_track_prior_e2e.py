@@ -35,7 +35,7 @@ def _train(scene: Path, output: Path, prior: bool) -> dict:
 def test_exact_tracks_hold_accurate_cameras_that_move_without_the_prior(tiny_scene: Path, tmp_path: Path) -> None:
     # The generated tracks are the exact projections of the true cameras (reprojection error ~1e-5 px): with the prior
     # the latents stay at the start; without it the same steps move them.
-    keys = ("_model.camera_optimizer.whitened_delta", "_model.camera_optimizer.whitened_intrinsics")
+    keys = ("_model.camera_optimizer.refiner.whitened_delta", "_model.camera_optimizer.refiner.whitened_intrinsics")
     held = _train(tiny_scene, tmp_path, prior=True)
     free = _train(tiny_scene, tmp_path, prior=False)
     for key in keys:

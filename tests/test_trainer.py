@@ -281,10 +281,10 @@ def test_checkpoint_of_another_scene_is_refused_with_both_camera_counts(tiny_sce
         eval_load_checkpoint(SimpleNamespace(load_dir=checkpoint_dir, load_step=None), other)
 
     # The same split loads: the check passes the checkpoint on to nerfstudio's loader.
-    saved_precond = trained.state_dict()["_model.camera_optimizer.precond"].clone()
-    trained.model.camera_optimizer.precond.zero_()
+    saved_precond = trained.state_dict()["_model.camera_optimizer.refiner.precond"].clone()
+    trained.model.camera_optimizer.refiner.precond.zero_()
     eval_load_checkpoint(SimpleNamespace(load_dir=checkpoint_dir, load_step=None), trained)
-    assert torch.equal(trained.model.camera_optimizer.precond, saved_precond)
+    assert torch.equal(trained.model.camera_optimizer.refiner.precond, saved_precond)
 
 
 def test_checkpoint_camera_count_reads_every_method_state():
@@ -292,7 +292,7 @@ def test_checkpoint_camera_count_reads_every_method_state():
     appearance codes), with the pipeline's and DDP's prefixes."""
     from s2camp_ns.nerfstudio.pipeline import check_checkpoint_cameras, checkpoint_camera_count
 
-    assert checkpoint_camera_count({"_model.camera_optimizer.precond": torch.zeros(4, 6, 6)}) == 4
+    assert checkpoint_camera_count({"_model.camera_optimizer.refiner.precond": torch.zeros(4, 6, 6)}) == 4
     assert checkpoint_camera_count({"_model.module.camera_optimizer.pose_adjustment": torch.zeros(3, 6)}) == 3
     assert checkpoint_camera_count({"_model.field.embedding_appearance.embedding.weight": torch.zeros(2, 32)}) == 2
     assert checkpoint_camera_count({"_model.field.mlp.weight": torch.zeros(8, 8)}) is None

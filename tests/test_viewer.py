@@ -222,7 +222,7 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         initial_positions = {i: p[0].copy() for i, p in panel._poses["initial"].items()}
         refined_fov = panel._poses["refined"][1][2]
         with torch.no_grad():
-            optimizer.whitened_delta.add_(0.05)
+            optimizer.refiner.whitened_delta.add_(0.05)
         callback.func(step=7)
         moved = panel_text(panel)
         assert moved["a_status"].startswith("step 7 ")
@@ -230,10 +230,10 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         assert moved["c_rotation_error"] != first["c_rotation_error"]
         assert moved["i_since_refresh"].startswith("7 steps ago")
         assert all((panel._poses["initial"][i][0] == p).all() for i, p in initial_positions.items())
-        refined = optimizer.refined_intrinsics().detach()
+        refined = optimizer.refiner.refined_intrinsics().detach()
         expected_fov = float(vertical_field_of_view(refined)[1])  # tested against closed forms in test_camera_models
         assert panel._poses["refined"][1][2] == pytest.approx(expected_fov) and expected_fov != refined_fov
-        refined_position = optimizer.refined_c2w().detach()[1, :, 3].numpy() * 10.0
+        refined_position = optimizer.refiner.refined_c2w().detach()[1, :, 3].numpy() * 10.0
         assert panel._poses["refined"][1][0] == pytest.approx(refined_position)
 
         # The button only passes the request on; the model refreshes P in its own training callback, and the
@@ -242,11 +242,11 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
             c for c in model.get_training_callbacks(attributes) if c.func.__name__ == "refresh_preconditioner"
         ]
         panel.request_refresh()
-        assert int(optimizer.last_refresh_step) == 0
+        assert int(optimizer.refiner.last_refresh_step) == 0
         refresh.func(step=9)
-        assert int(optimizer.last_refresh_step) == 9
+        assert int(optimizer.refiner.last_refresh_step) == 9
         refresh.func(step=10)  # a request is applied once
-        assert int(optimizer.last_refresh_step) == 9
+        assert int(optimizer.refiner.last_refresh_step) == 9
         panel._update_period = 1e9
         callback.func(step=9)
         assert panel.i_since_refresh.value.startswith("0 steps ago")

@@ -73,6 +73,8 @@ from s2camp_ns.core.frustum import radius_from_unit
 from s2camp_ns.core.validation import check_finite, check_positive_int, check_range
 
 __all__ = [
+    "describe_proxy_ranges",
+    "span",
     "DEFAULT_T_FAR",
     "DEFAULT_T_NEAR",
     "RULES",
@@ -384,3 +386,30 @@ def proxy_ranges(
     return ProxyRanges(
         t_near=near.to(device), t_far=far.to(device), num_points=counts.to(device), fallback=fallback.to(device)
     )
+
+
+def describe_proxy_ranges(
+    ranges: ProxyRanges | None, num_points: int, fixed: tuple[float, float], min_points: int
+) -> str:
+    """The start-up note on the proxy ranges chosen from ``num_points`` scene points (``fixed``: the range without
+    them; ``min_points``: the fewest points a camera's choice needs)."""
+    if ranges is None or num_points == 0:
+        return (
+            "S2CamP proxy range: the scene has no points (dataparser metadata 'points3D_xyz'), so every camera "
+            f"uses the fixed contracted range ({fixed[0]:g}, {fixed[1]:g})"
+        )
+    chosen = f"t_near {span(ranges.t_near)}, t_far {span(ranges.t_far)} (contracted)"
+    message = f"S2CamP proxy range from {num_points} scene points, {ranges.t_near.shape[0]} physical cameras: {chosen}"
+    fell_back = int(ranges.fallback.sum())
+    if fell_back:
+        message += (
+            f"; {fell_back} camera(s) see fewer than {min_points} points and use the fixed range "
+            f"({fixed[0]:g}, {fixed[1]:g})"
+        )
+    return message
+
+
+def span(values: Tensor) -> str:
+    """ "low..high" of ``values`` to three decimals, one number when they agree."""
+    low, high = float(values.min()), float(values.max())
+    return f"{low:.3f}" if low == high else f"{low:.3f}..{high:.3f}"

@@ -169,10 +169,10 @@ def joint_inverse(inverse: Float[Tensor, "k k"], num_images: int) -> Float[Tenso
 
 
 @torch.no_grad()
-def reexpress_shared_latents(
+def reexpress_latents(
     pose_latent: Float[Tensor, "n 6"],
-    intrinsics_latent: Float[Tensor, "c m"],
-    camera_of_image: Int[Tensor, " n"],
+    intrinsics_latent: Float[Tensor, "c m"] | None,
+    row_of_image: Int[Tensor, " n"],
     old_matrix: Float[Tensor, "c k k"],
     old_inverse: Float[Tensor, "c k k"],
     new_matrix: Float[Tensor, "c k k"],
@@ -180,37 +180,52 @@ def reexpress_shared_latents(
     pose_state: dict | None = None,
     intrinsics_state: dict | None = None,
 ) -> None:
-    """Switch the latents from T_old to T_new in place without moving any camera (phi_i unchanged, paper eq. 15).
+    """Switch the latents from P_old to P_new in place without moving any camera (phi_i unchanged, paper eq. 15).
 
-    Per camera, M = T_new T_old^-1 is block upper-triangular: z_i' = M_zz z_i + M_zw w_c and w_c' = M_ww w_c.
-    Gradients map with M^-T = (T_old T_new^-1)^T = [[X^T, 0], [Y^T, Z^T]]: the pose gradient of image i only with
-    X^T, and the shared gradient, which sums the images of c, as Z^T g_w + Y^T sum_i g_z_i. Adam's first moment is
-    linear in the gradients and maps exactly the same way; the second moment (elementwise) is mapped assuming
-    uncorrelated components, as in ``s2camp_ns.core.preconditioner.reexpress_latent``.
+    Per intrinsics row c, M = P_new P_old^-1: z_i' = M_zz z_i + M_zw w_c and w_c' = M_ww w_c + sum_i M_wz z_i over
+    the row's images. A block-triangular P (shared intrinsics) has M_wz = 0; the symmetric root has one image per row,
+    so the sum is that image's term. Gradients map with G = M^-T = (P_old P_new^-1)^T the same way (g_z' = G_zz g_z
+    + G_zw g_w, g_w' = G_ww g_w + sum_i G_wz g_z_i), and so does Adam's first moment, linear in the gradients; the
+    second (elementwise) is mapped with the elementwise squares, assuming uncorrelated components (exact for a
+    diagonal M). P changes slowly between refreshes, so M stays near the identity. ``intrinsics_latent`` None: the
+    layout refines no intrinsics (K = 6).
     """
-    p = NUM_POSE_PARAMS
-    num_cameras = intrinsics_latent.shape[0]
-    _check_camera_index(camera_of_image, num_cameras, pose_latent.shape[0])
+    index = row_of_image.to(new_matrix.device)
+    _check_camera_index(index, new_matrix.shape[0], pose_latent.shape[0])
     change = new_matrix.to(torch.float64) @ old_inverse.to(torch.float64)
     gradient = (old_matrix.to(torch.float64) @ new_inverse.to(torch.float64)).transpose(-1, -2)
-    index = camera_of_image.to(change.device)
-    z = pose_latent.to(torch.float64)
-    w = intrinsics_latent.to(torch.float64)
-    new_z = (change[index, :p, :p] @ z[..., None])[..., 0] + (change[index, :p, p:] @ w[index][..., None])[..., 0]
-    new_w = (change[:, p:, p:] @ w[..., None])[..., 0]
-    pose_latent.copy_(new_z.to(pose_latent.dtype))
-    intrinsics_latent.copy_(new_w.to(intrinsics_latent.dtype))
+    values = [pose_latent] if intrinsics_latent is None else [pose_latent, intrinsics_latent]
+    _map_pair(values, change, index)
     for key, power in (("exp_avg", 1), ("exp_avg_sq", 2)):
-        if not pose_state or not intrinsics_state or key not in pose_state or key not in intrinsics_state:
-            continue
-        moment_z = pose_state[key].to(torch.float64)
-        moment_w = intrinsics_state[key].to(torch.float64)
-        zz, wz, ww = gradient[index, :p, :p] ** power, gradient[:, p:, :p] ** power, gradient[:, p:, p:] ** power
-        mapped_z = (zz @ moment_z[..., None])[..., 0]
-        per_image = torch.zeros_like(moment_w).index_add_(0, index, (wz[index] @ moment_z[..., None])[..., 0])
-        mapped_w = (ww @ moment_w[..., None])[..., 0] + per_image
-        pose_state[key].copy_(mapped_z.to(pose_state[key].dtype))
-        intrinsics_state[key].copy_(mapped_w.to(intrinsics_state[key].dtype))
+        states = [pose_state] if intrinsics_latent is None else [pose_state, intrinsics_state]
+        if all(state and key in state for state in states):
+            _map_pair([state[key] for state in states], gradient**power, index)
+
+
+def _map_pair(tensors: list[Tensor], matrix: Float[Tensor, "c k k"], index: Tensor) -> None:
+    """[z; w] <- matrix [z; w] in place per image and row (``reexpress_latents``): z [n, 6] per image, w [c, m] per
+    row, the rows' terms from their images summed in."""
+    p = NUM_POSE_PARAMS
+    z = tensors[0].to(torch.float64)
+    new_z = (matrix[index, :p, :p] @ z[..., None])[..., 0]
+    if len(tensors) > 1:
+        w = tensors[1].to(torch.float64)
+        new_z = new_z + (matrix[index, :p, p:] @ w[index][..., None])[..., 0]
+        from_images = (matrix[index, p:, :p] @ z[..., None])[..., 0]
+        new_w = (matrix[:, p:, p:] @ w[..., None])[..., 0] + torch.zeros_like(w).index_add_(0, index, from_images)
+        tensors[1].copy_(new_w.to(tensors[1].dtype))
+    tensors[0].copy_(new_z.to(tensors[0].dtype))
+
+
+def mean_per_camera(
+    values: Float[Tensor, "n d"], camera_of_image: Int[Tensor, " n"], num_cameras: int
+) -> Float[Tensor, "n d"]:
+    """Each image's row replaced by the mean over the images of its physical camera (``camera_of_image``, one index
+    below ``num_cameras`` per image): the base intrinsics shared intrinsics start from, in ``values``' dtype."""
+    count = torch.bincount(camera_of_image, minlength=num_cameras).to(values)  # [C]
+    sums = torch.zeros(num_cameras, values.shape[1], dtype=values.dtype, device=values.device)
+    sums = sums.index_add_(0, camera_of_image, values)  # [C, d]
+    return (sums / count.clamp(min=1.0)[:, None])[camera_of_image]
 
 
 def _check_camera_index(camera_of_image: Tensor, num_cameras: int, num_images: int) -> None:
@@ -233,5 +248,6 @@ __all__ = [
     "deltas_from_latents",
     "joint_gram",
     "joint_inverse",
-    "reexpress_shared_latents",
+    "mean_per_camera",
+    "reexpress_latents",
 ]

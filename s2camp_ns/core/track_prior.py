@@ -38,6 +38,7 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from s2camp_ns.core.camera import ParameterLayout
+from s2camp_ns.core.proxy_range import span
 from s2camp_ns.core.track_fit import TrackFit
 
 
@@ -157,16 +158,8 @@ def describe_anchor_fit(fit: TrackFit) -> str | None:
         f"put them (the anchor{kept}; {fit.iterations} Levenberg-Marquardt iterations)"
     )
 
-
-def span(values: Tensor) -> str:
-    """ "low..high" of ``values`` to three decimals, one number when they agree."""
-    low, high = float(values.min()), float(values.max())
-    return f"{low:.3f}" if low == high else f"{low:.3f}..{high:.3f}"
-
-
 __all__ = [
     "describe_anchor_fit",
-    "span",
     "TrackPriorEvidence",
     "apply_track_prior",
     "inverse_radius",

@@ -7,7 +7,7 @@ from jaxtyping import Int
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
-from s2camp_ns.core.latent_layout import mean_per_camera
+from s2camp_ns.core.shared_intrinsics import mean_per_camera
 
 
 def replace_cameras(cameras: Cameras, **fields) -> Cameras:
@@ -37,7 +37,7 @@ def has_distortion(cameras: Cameras) -> bool:
 def physical_camera_means(cameras: Cameras, camera_ids: Int[Tensor, " n"]) -> Cameras:
     """A copy of ``cameras`` in which every image of a physical camera (``camera_ids``, one per image) holds the mean
     over those images of fx, fy, cx, cy and the distortion: the intrinsics a refiner that shares them starts from
-    (``core.latent_layout``). Images that agree already (SfM's cameras) are unchanged up to rounding; a per-image
+    (``core.refiner``). Images that agree already (SfM's cameras) are unchanged up to rounding; a per-image
     perturbation of the focal length (CamP's) averages out. Poses, sizes and types are kept."""
     n = cameras.shape[0]
     ids = torch.as_tensor(camera_ids, dtype=torch.long).reshape(-1).cpu()

@@ -61,7 +61,8 @@ def refined_cameras(model) -> tuple[Float[Tensor, "n 3 4"], Intrinsics]:
     with torch.no_grad():
         if model.uses_s2camp_optimizer:
             optimizer = model.camera_optimizer
-            return optimizer.refined_c2w(opengl=True).cpu(), optimizer.refined_intrinsics().detach().to("cpu")
+            refiner = optimizer.refiner
+            return refiner.refined_c2w(opengl=True).cpu(), refiner.refined_intrinsics().detach().to("cpu")
         c2w, _ = model.refined_train_cameras()  # nerfstudio's pose optimizer leaves the intrinsics alone
         return c2w, intrinsics_from_cameras(model._train_cameras)
 

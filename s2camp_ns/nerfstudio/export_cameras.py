@@ -27,7 +27,8 @@ import torch
 import tyro
 from nerfstudio.cameras.cameras import Cameras
 
-from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics
+from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
+from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics, refined_cameras
 from s2camp_ns.nerfstudio.colmap_reconstruction import CameraModel, export_cameras, read_points
 
 
@@ -38,8 +39,8 @@ def refined_training_cameras(pipeline) -> Cameras:
     cameras = pipeline.datamanager.train_dataset.cameras
     if optimizer is None:
         return cameras
-    if hasattr(optimizer, "refine_cameras"):  # S2CamP's optimizer: pose, fx, fy, cx, cy, distortion of all cameras
-        return optimizer.refine_cameras(cameras)
+    if isinstance(optimizer, S2CampCameraOptimizer):  # pose, fx, fy, cx, cy, distortion of every image
+        return refined_cameras(optimizer.refiner, cameras)
     # nerfstudio's optimizer only refines poses: apply it camera by camera (it reads cam_idx from the metadata).
     poses = []
     for i in range(cameras.shape[0]):
@@ -97,11 +98,11 @@ def main(config: ExportCamerasConfig) -> Path:
     if config.include_points and model_path is not None and Path(model_path).exists():
         xyz, rgb = read_points(Path(model_path))
     optimizer = getattr(pipeline.model, "camera_optimizer", None)
-    shared = bool(getattr(optimizer, "shared", False))
+    shared = isinstance(optimizer, S2CampCameraOptimizer) and optimizer.refiner.factorisation == "block"
     # One COLMAP camera per physical camera: the shared refinement's groups, else images whose exported intrinsics
     # agree exactly (refinement off, pose only, or nerfstudio's pose optimizer keep the given shared intrinsics;
     # per-image refinement gives each image its own).
-    camera_ids = optimizer.camera_of_image.tolist() if shared else group_identical_intrinsics(cameras).tolist()
+    camera_ids = optimizer.refiner.camera_of_image.tolist() if shared else group_identical_intrinsics(cameras).tolist()
     reconstruction = export_cameras(
         cameras,
         outputs.dataparser_transform,

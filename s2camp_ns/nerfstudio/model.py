@@ -16,6 +16,7 @@ from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 
 from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
+from s2camp_ns.nerfstudio.rays import train_camera_raybundle
 from s2camp_ns.nerfstudio.refinement import S2CampRefinementMixin, warn_lpips_unavailable
 
 
@@ -75,6 +76,6 @@ class S2CampModel(S2CampRefinementMixin, NerfactoModel):
         """
         if self.uses_s2camp_optimizer and camera.metadata is not None and TRAIN_CAMERA_KEY in camera.metadata:
             index = int(camera.metadata[TRAIN_CAMERA_KEY])
-            ray_bundle = self.camera_optimizer.train_camera_raybundle(index)
+            ray_bundle = train_camera_raybundle(self.camera_optimizer.refiner, index)
             return self.get_outputs_for_camera_ray_bundle(ray_bundle)
         return super().get_outputs_for_camera(camera, obb_box)

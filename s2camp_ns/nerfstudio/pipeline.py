@@ -43,7 +43,8 @@ from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
 from s2camp_ns.nerfstudio.undistorted_tracks import undistorted_track_evidence
 
 CAMERA_COUNT_KEYS = (
-    "camera_optimizer.precond",  # S2CamP's P, one per training camera [N, K, K]
+    "camera_optimizer.refiner.precond",  # S2CamP's P, one per training camera [N, K, K]
+    "camera_optimizer.precond",  # the same, in checkpoints written before the refiner became a submodule
     "camera_optimizer.pose_adjustment",  # nerfstudio's SO3xR3 / SE3 deltas [N, 6] (s2camp-so3xr3)
     "field.embedding_appearance.embedding.weight",  # nerfacto's appearance code per training image [N, d]
 )

@@ -64,10 +64,10 @@ class S2CampRefinementMixin:
         metadata = self.kwargs.get("metadata") or {}
         camera_ids = metadata.get("camera_ids")
         if self.uses_s2camp_optimizer and camera_ids is not None and len(camera_ids) == self.num_train_data:
-            self.camera_optimizer.set_camera_groups(camera_ids)
+            self.camera_optimizer.refiner.set_camera_groups(camera_ids)
         # Likewise the camera model, whose distortion coefficients set the layout's K.
         if self.uses_s2camp_optimizer and metadata.get("camera_model") is not None:
-            self.camera_optimizer.set_camera_model(metadata["camera_model"])
+            self.camera_optimizer.refiner.set_camera_model(metadata["camera_model"])
         # --- S2CamP viewer panel (viewer_panel.py); inert unless nerfstudio's viewer installs it. The attribute name
         # is the panel's folder label in the viewer.
         if self.config.viewer_update_period >= 0 and self.uses_s2camp_optimizer:
@@ -109,8 +109,8 @@ class S2CampRefinementMixin:
         ``apply_to_camera``); it leaves the intrinsics alone.
         """
         if self.uses_s2camp_optimizer:
-            optimizer = self.camera_optimizer
-            return optimizer.refined_c2w(opengl=True).cpu(), optimizer.refined_intrinsics().fx.cpu()
+            refiner = self.camera_optimizer.refiner
+            return refiner.refined_c2w(opengl=True).cpu(), refiner.refined_intrinsics().fx.cpu()
         if self._train_cameras is None:
             raise RuntimeError("set_train_cameras must be called before refined_train_cameras (the pipeline does)")
         cameras = self._train_cameras
@@ -140,23 +140,22 @@ class S2CampRefinementMixin:
         def refresh_preconditioner(step: int) -> None:
             # Scheduled refreshes and those requested (the viewer's button) happen here, in the training thread.
             # Both are decided identically on every rank: the schedule by the step number, a request by agreement.
-            if self.agreed_refresh_request(step) or camera_optimizer.should_refresh(step):
+            if self.agreed_refresh_request(step) or camera_optimizer.refresh_due(step):
                 torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
-                camera_optimizer.refresh(step, torch_optimizer)
+                camera_optimizer.refiner.refresh(step, torch_optimizer)
 
         def recompute_stale_preconditioner(step: int) -> None:
             # A checkpoint loaded onto other base cameras carries a P computed for those; nerfstudio loads Adam's
             # moments after the pipeline, so P is recomputed here, before the first step (a no-op otherwise).
             torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
-            camera_optimizer.recompute_stale_preconditioner(step, torch_optimizer)
+            camera_optimizer.refiner.recompute_stale_preconditioner(step, torch_optimizer)
 
         def after_camera_step(step: int) -> None:
             # After the optimizers' step: the track prior's proximal step with the camera group's step size, then
             # the shared rotation removed (each a no-op unless configured).
             torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
-            if torch_optimizer is not None:
-                camera_optimizer.apply_track_prior(float(torch_optimizer.param_groups[0]["lr"]))
-            camera_optimizer.remove_common_motion()
+            lr = 0.0 if torch_optimizer is None else float(torch_optimizer.param_groups[0]["lr"])
+            camera_optimizer.after_step(lr)
 
         trainer = training_callback_attributes.trainer
         steps_per_log = trainer.config.logging.steps_per_log if trainer is not None else 1
@@ -195,18 +194,19 @@ class S2CampRefinementMixin:
     # ------------------------------------------------------------------ viewer panel (CameraRefinementSource)
     def refinement_status(self) -> RefinementStatus | None:
         optimizer = self.camera_optimizer
-        if not self.uses_s2camp_optimizer or not optimizer.has_cameras:
+        if not self.uses_s2camp_optimizer or not optimizer.refiner.has_cameras:
             return None
+        refiner = optimizer.refiner
         preconditioned = optimizer.enabled and optimizer.config.precondition
-        computed = preconditioned and optimizer.refiner.gram_known  # host state: the viewer's check reads no tensor
+        computed = preconditioned and refiner.gram_known  # host state: the viewer's check reads no tensor
         return RefinementStatus(
             num_cameras=optimizer.num_cameras,
             refinement_enabled=optimizer.enabled,
             preconditioned=preconditioned,
-            last_refresh_step=optimizer.refiner.last_refresh,
+            last_refresh_step=refiner.last_refresh,
             refresh_every=optimizer.config.refresh_every,
-            gram=optimizer.gram if computed else None,
-            precond_inverse=optimizer.precond_inv if computed else None,
+            gram=refiner.gram if computed else None,
+            precond_inverse=refiner.precond_inv if computed else None,
         )
 
     def camera_errors(self) -> dict[str, float]:
@@ -214,23 +214,23 @@ class S2CampRefinementMixin:
 
     @torch.no_grad()
     def camera_frusta(self, which: FrustumSet) -> CameraFrusta | None:
-        optimizer = self.camera_optimizer
-        if not self.uses_s2camp_optimizer or not optimizer.has_cameras:
+        if not self.uses_s2camp_optimizer or not self.camera_optimizer.refiner.has_cameras:
             return None
-        base = optimizer.base_intrinsics_struct()
+        refiner = self.camera_optimizer.refiner
+        base = refiner.base_intrinsics_struct()
         if which == "refined":
-            deltas = optimizer.camera_deltas()
-            refined = optimizer.refined_intrinsics(deltas)
+            deltas = refiner.deltas()
+            refined = refiner.refined_intrinsics(deltas)
             fov = vertical_field_of_view(refined)
-            return CameraFrusta(optimizer.refined_c2w(deltas), fov, refined.width, refined.height)
+            return CameraFrusta(refiner.refined_c2w(deltas), fov, refined.width, refined.height)
         if which == "initial":
-            return CameraFrusta(optimizer.base_c2w_cv, vertical_field_of_view(base), base.width, base.height)
+            return CameraFrusta(refiner.base_c2w_cv, vertical_field_of_view(base), base.width, base.height)
         reference = self.reference_cameras()
         if reference is None:
             return None
         c2w = opengl_to_opencv(reference.camera_to_worlds.to(torch.float64)).cpu()
         fov = vertical_field_of_view(intrinsics_from_cameras(reference.to("cpu"))).cpu()
-        same_poses = torch.allclose(c2w, optimizer.base_c2w_cv.cpu(), atol=1e-6)
+        same_poses = torch.allclose(c2w, refiner.base_c2w_cv.cpu(), atol=1e-6)
         if same_poses and torch.allclose(fov, vertical_field_of_view(base).cpu()):
             return None
         return CameraFrusta(

@@ -188,7 +188,7 @@ def image_track_evidence(
 ) -> Evidence | None:
     """``track_rms_px`` and ``track_evidence`` from tracks made from the scene's full-size images with the given
     ``cameras`` (``image_tracks``), one COLMAP camera per physical camera of ``camera_ids`` at its images' mean
-    intrinsics, the refiner's shared base (``latent_layout``); None, with the reason shown once, when none could be
+    intrinsics, the refiner's shared base (``core.refiner``); None, with the reason shown once, when none could be
     made."""
     if data_format == "colmap":
         scene = Path(config.data)

@@ -48,6 +48,7 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from s2camp_ns.camera_optimizer import split_per_image_adam_state
 from s2camp_ns.nerfstudio.pipeline import CheckpointCamerasError
 from s2camp_ns.nerfstudio.schedulers import RunLengthScheduleConfig
 
@@ -248,7 +249,10 @@ class S2CampTrainer(Trainer):
             self.pipeline.load_pipeline(state["pipeline"], state["step"])
         except CheckpointCamerasError as error:
             raise CheckpointCamerasError(f"checkpoint {path}: {error}") from None
-        self.optimizers.load_optimizers(state["optimizers"])
+        optimizers = dict(state["optimizers"])
+        if "camera_opt" in optimizers:  # written while a per-image latent was one tensor
+            optimizers["camera_opt"] = split_per_image_adam_state(optimizers["camera_opt"])
+        self.optimizers.load_optimizers(optimizers)
         if "schedulers" in state and config.load_scheduler:
             self.optimizers.load_schedulers(state["schedulers"])
         self.grad_scaler.load_state_dict(state["scalers"])
