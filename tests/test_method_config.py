@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import re
 import math
+import re
 from contextlib import redirect_stdout
 from importlib.metadata import entry_points
 
