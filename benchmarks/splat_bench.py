@@ -65,6 +65,7 @@ from .common import (
     split_runnable,
     write_report,
 )
+from .data_parser import SUBCOMMAND as BENCH_DATAPARSER
 from .robustness import (
     ERRORS,
     METRICS,
@@ -285,7 +286,8 @@ def train_command(
         *VARIANT_ARGUMENTS.get(spec.variant, []),
     ]  # fmt: skip
     preset = SCENES[spec.scene]
-    dataparser = [DATAPARSER_SUBCOMMAND, "--downscale-factor", str(preset.downscale)]
+    subcommand = BENCH_DATAPARSER if spec.start == "sfm" else DATAPARSER_SUBCOMMAND
+    dataparser = [subcommand, "--downscale-factor", str(preset.downscale)]
     if spec.start == "perturbed":
         dataparser += ["--perturbation.enabled", "True", "--perturbation.seed", str(preset.perturbation_seed)]
     if spec.start != "sfm":  # evidence that does not know the truth: the generated tracks are exact projections

@@ -26,6 +26,12 @@ def _option(command: list[str], name: str) -> str:
     return command[command.index(name) + 1]
 
 
+def _dataparser_index(command: list[str]) -> int:
+    """Where the data parser's subcommand starts: s2camp-data, or the benchmarks' s2camp-bench-data."""
+    (index,) = [i for i, arg in enumerate(command) if arg in ("s2camp-data", "s2camp-bench-data")]
+    return index
+
+
 @pytest.mark.parametrize("start", ["accurate", "perturbed", "phone", "accurate-untracked"])
 @pytest.mark.parametrize("variant", RUNNABLE_VARIANTS)
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
@@ -61,7 +67,7 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
         "s2camp-pose-exp0.5": {exponent: "0.5"},
     }  # fmt: skip
     assert camera_options == expected_options.get(variant, {})
-    tail = command[command.index("s2camp-data") :]
+    tail = command[_dataparser_index(command) :]
     seed = str(SCENES["near-deep"].perturbation_seed)
     # Every start but sfm trains with tracks made from its images, never the generated scene's exact projections.
     if start in ("accurate", "accurate-untracked"):
@@ -72,12 +78,12 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     else:  # phone: CamP's steps off, the VIO drift on, one draw per run seed (scene seed + run seed 2), own tracks
         phone_seed = str(SCENES["near-deep"].perturbation_seed + 2)
         assert tail == [
-            "s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True", "--perturbation.seed",
+            "s2camp-bench-data", "--downscale-factor", "1", "--perturbation.enabled", "True", "--perturbation.seed",
             phone_seed, "--perturbation.sigma-position", "0.0", "--perturbation.sigma-look-at", "0.0",
             "--perturbation.sigma-dolly-z", "0.0", "--perturbation.sigma-focal-length", "0.0",
-            "--perturbation.drift.enabled", "True", "--perturbation.drift.position-drift", "0.01",
-            "--perturbation.drift.yaw-drift-deg", "1.5", "--perturbation.drift.tilt-deg", "0.3",
-            "--perturbation.drift.focal-error", "0.015", "--image-tracks", "always",
+            "--drift.enabled", "True", "--drift.position-drift", "0.01",
+            "--drift.yaw-drift-deg", "1.5", "--drift.tilt-deg", "0.3",
+            "--drift.focal-error", "0.015", "--image-tracks", "always",
         ]  # fmt: skip
     assert "--save-only-latest-checkpoint" not in command
 
@@ -122,13 +128,38 @@ def test_rows_of_the_two_devices_are_summarized_and_resumed_apart(tmp_path: Path
     assert resume(specs, tmp_path, "cuda") == ([], specs)  # a CPU row is no GPU run
 
 
+def test_phone_and_sfm_commands_parse_to_the_benchmarks_data_parser() -> None:
+    """ns-train's own parse of the two starts that need ``s2camp-bench-data`` (its entry point installed by
+    ``make venv``): the phone start's drift after CamP's steps with CamP's sigmas zero, the sfm start's truth."""
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    from s2camp_ns.benchmarks.data_parser import BenchDataParserConfig
+    from s2camp_ns.benchmarks.phone_drift import DriftConfig
+
+    config = RobustnessConfig(iterations=10)
+    phone = train_command(RunSpec("near-deep", "phone", "s2camp", 1), Path("scene"), Path("runs"), config)
+    sfm = train_command(RunSpec("near-deep", "sfm", "s2camp", 1), Path("sfm"), Path("runs"), config, Path("truth"))
+    parsed = [tyro.cli(AnnotatedBaseConfigUnion, args=command[1:]).pipeline.datamanager.dataparser
+              for command in (phone, sfm)]  # fmt: skip
+    assert all(isinstance(dataparser, BenchDataParserConfig) for dataparser in parsed)
+    perturbation = parsed[0].perturbation
+    assert perturbation.enabled and perturbation.seed == SCENES["near-deep"].perturbation_seed + 1
+    sigmas = (perturbation.sigma_position, perturbation.sigma_look_at, perturbation.sigma_dolly_z,
+              perturbation.sigma_focal_length)  # fmt: skip
+    assert sigmas == (0.0, 0.0, 0.0, 0.0)
+    assert parsed[0].drift == DriftConfig(True, 0.01, 1.5, 0.3, 0.015) and parsed[0].reference_model is None
+    assert parsed[1].reference_model == Path("truth") / "sparse" / "0"
+    assert not parsed[1].perturbation.enabled and not parsed[1].drift.enabled
+
+
 def test_sfm_start_trains_on_the_sfm_scene_against_the_generated_cameras() -> None:
     config = RobustnessConfig(iterations=3000, trace_every=250)
     spec = RunSpec("regime-wide", "sfm", "s2camp", 0)
     command = train_command(spec, Path("sfm-scene"), Path("runs"), config, truth=Path("truth"))
     assert _option(command, "--data") == "sfm-scene"
-    assert command[command.index("s2camp-data") :] == [
-        "s2camp-data", "--downscale-factor", "2", "--reference-model", str(Path("truth") / "sparse" / "0"),
+    assert command[command.index("s2camp-bench-data") :] == [
+        "s2camp-bench-data", "--downscale-factor", "2", "--reference-model", str(Path("truth") / "sparse" / "0"),
     ]  # fmt: skip
     # The trace keeps a checkpoint every 250 steps.
     assert _option(command, "--steps-per-save") == "250"

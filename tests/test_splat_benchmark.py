@@ -74,7 +74,9 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
         assert _option(command, "--optimizers.camera-opt.scheduler.min-warmup-steps") == "75"  # 2500 x 0.03
     else:  # no camera refinement
         assert camera_schedule == []
-    tail = command[command.index("s2camp-data") :]
+    subcommand = "s2camp-bench-data" if start == "sfm" else "s2camp-data"  # the benchmarks' parser: true cameras
+    assert [arg for arg in command if arg.startswith("s2camp-") and arg.endswith("-data")] == [subcommand]
+    tail = command[command.index(subcommand) :]
     assert _option(tail, "--downscale-factor") == "4"  # images_4: 64x48
     assert ("--perturbation.enabled" in tail) == (start == "perturbed")
     if start == "perturbed":

@@ -95,8 +95,8 @@ def splat_held_out_views(datamanager) -> list[tuple[Tensor, Float[Tensor, "3 4"]
 
     Images: the data manager's cached evaluation images (``cached_eval``; its first use undistorts them and rewrites
     the evaluation cameras' K to the undistorted pinhole one, as ``ns-eval`` of splatfacto sees them). Poses: the
-    evaluation split's reference cameras where the dataparser provides them (the true cameras of
-    ``--reference-model``), else the evaluation cameras. Intrinsics: an image the data manager undistorted is
+    evaluation split's reference cameras where the dataparser provides them (true cameras that
+    differ from the input's), else the evaluation cameras. Intrinsics: an image the data manager undistorted is
     described by its undistorted K (a reference camera's K describes the distorted original), any other by the
     reference camera's K; a reference camera with distortion whose image was not undistorted cannot be rendered by
     a pinhole splat model and is refused.

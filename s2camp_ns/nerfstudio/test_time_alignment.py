@@ -251,8 +251,8 @@ def align_and_evaluate(
 
 def _ray_held_out_views(dataset) -> list[tuple[Tensor, Float[Tensor, "3 4"], Intrinsics]]:
     """(image, OpenGL c2w, intrinsics) of every evaluation image for a ray model, in the reference cameras' frame:
-    the evaluation split's reference cameras where the dataparser provides them (the true cameras of
-    ``--reference-model``), else the evaluation cameras as given; images and distortion as in the dataset."""
+    the evaluation split's reference cameras where the dataparser provides them (true cameras that
+    differ from the input's), else the evaluation cameras as given; images and distortion as in the dataset."""
     from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 
     cameras = (getattr(dataset, "metadata", None) or {}).get("reference_cameras")
@@ -270,8 +270,8 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
 
     The reference training cameras (``metadata["reference_cameras"]``, present when the dataparser perturbed the
     training cameras) define the frame of the evaluation cameras; without them the training cameras as given do.
-    The evaluation cameras are the evaluation split's reference cameras where the dataparser provides them (the
-    true cameras of ``--reference-model``), else the evaluation cameras (splat models: ``splat_held_out_views``).
+    The evaluation cameras are the evaluation split's reference cameras where the dataparser provides them (true
+    cameras that differ from the input's), else the evaluation cameras (splat models: ``splat_held_out_views``).
     """
     model = pipeline.model
     renderer = renderer_for(model, config)  # refuses a model it cannot render before any work
