@@ -261,9 +261,10 @@ def _assert_exported_poses_follow_the_checkpoint_twist(run_dir: Path, reconstruc
     tolerance 1e-5 (float32 cameras), so a twist applied with the wrong sign (c2w exp(-xi)) fails by 2 |xi|, which
     the comparison with the true cameras above (tolerance 0.05 rad, 10x the perturbation) cannot see."""
     import yaml
+    from colmap_arrays import reconstruction_to_arrays
     from scipy.linalg import expm
 
-    from s2camp_ns.nerfstudio.colmap_reconstruction import export_cameras, reconstruction_to_arrays
+    from s2camp_ns.nerfstudio.colmap_reconstruction import export_cameras
 
     config = yaml.load((run_dir / "config.yml").read_text(), Loader=yaml.Loader)
     dataparser = config.pipeline.datamanager.dataparser
