@@ -301,7 +301,8 @@ def _assert_exported_poses_follow_the_checkpoint_twist(run_dir: Path, reconstruc
 
 
 def test_s2camp_eval_aligns_held_out_views(runs: Runs, tmp_path: Path):
-    """``s2camp-eval``: test-time alignment of the held-out views of the refined run, metrics written as JSON."""
+    """``s2camp-eval``: test-time alignment of the held-out views of the refined run, metrics written as JSON, what
+    it is doing said on stderr."""
     runs.check()
     output = tmp_path / "aligned.json"
     tool = str(Path(sys.executable).with_name("s2camp-eval"))
@@ -317,6 +318,9 @@ def test_s2camp_eval_aligns_held_out_views(runs: Runs, tmp_path: Path):
         assert 5.0 < view["psnr"] < 60.0 and 0.0 < view["ssim"] <= 1.0
         assert view["psnr"] > view["psnr_unaligned"] - 0.5, "ten small camera steps must not make the view worse"
     assert "PSNR before" in result.stdout
+    # What it is doing, on stderr as it goes (not a terminal here: the lines, without the live bar).
+    assert "s2camp-eval: loading" in result.stderr and "aligning the held-out views: 10" in result.stderr
+    assert f"aligned {held_out} views in" in result.stderr
 
 
 def test_ns_render_writes_a_video_without_a_system_ffmpeg(runs: Runs, tmp_path: Path):

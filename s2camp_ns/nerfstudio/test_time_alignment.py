@@ -25,6 +25,7 @@ view is rendered through (twist, log focal) differs:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -123,6 +124,17 @@ def _image_metrics(model, predicted: Tensor, target: Tensor) -> tuple[float, flo
     return psnr, ssim, lpips
 
 
+Progress = Callable[[int, int], None]
+"""``progress(done, total)``, told after each unit of an alignment's work: each view's render before and after the
+camera-only steps, and each step of a batch of views (``s2camp-eval``'s progress bar)."""
+
+
+def alignment_work(num_views: int, config: AlignmentConfig) -> int:
+    """The units of work (``Progress``) of aligning ``num_views`` views."""
+    batches = -(-num_views // config.views_per_batch)
+    return 2 * num_views + batches * config.steps
+
+
 class ViewRenderer(Protocol):
     """How a model renders a held-out view through (twist, log focal): the part of the protocol that differs
     between ray models (``ray_alignment.RayRenderer``) and splat models (``splat_alignment.SplatRenderer``)."""
@@ -163,8 +175,11 @@ def renderer_for(model, config: AlignmentConfig) -> ViewRenderer:
     return RayRenderer(model, rays=config.rays, chunk=config.chunk)
 
 
-def align_and_evaluate_views(model, views: list[HeldOutView], config: AlignmentConfig) -> list[AlignedView]:
-    """Align held-out cameras to the frozen ``model`` and evaluate them (module docstring).
+def align_and_evaluate_views(
+    model, views: list[HeldOutView], config: AlignmentConfig, progress: Progress | None = None
+) -> list[AlignedView]:
+    """Align held-out cameras to the frozen ``model`` and evaluate them (module docstring); ``progress`` is told
+    each unit of work done (``alignment_work`` in all).
 
     Up to ``config.views_per_batch`` views are optimised in one loop: each step renders every view's sample (ray
     models: ``rays`` pixels in one batch) and minimises the sum of the per-view MSEs. Each view has its own twist,
@@ -173,11 +188,19 @@ def align_and_evaluate_views(model, views: list[HeldOutView], config: AlignmentC
     """
     config.validate()
     renderer = renderer_for(model, config)
+    total, done = alignment_work(len(views), config), 0
+
+    def advance() -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, total)
+
     step = config.views_per_batch
     return [
         aligned
         for start in range(0, len(views), step)
-        for aligned in _align_batch(model, renderer, views[start : start + step], config)
+        for aligned in _align_batch(model, renderer, views[start : start + step], config, advance)
     ]
 
 
@@ -187,18 +210,21 @@ def _target_image(image: Tensor) -> Float[Tensor, "h w 3"]:
     return rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb.float()
 
 
-def _align_batch(model, renderer: ViewRenderer, views: list[HeldOutView], config: AlignmentConfig) -> list[AlignedView]:
-    """:func:`align_and_evaluate_views` for one batch of (validated) views."""
+def _align_batch(
+    model, renderer: ViewRenderer, views: list[HeldOutView], config: AlignmentConfig, advance: Callable[[], None]
+) -> list[AlignedView]:
+    """:func:`align_and_evaluate_views` for one batch of (validated) views; ``advance()`` after each unit of work."""
     targets = [_target_image(view.image) for view in views]
     twists = [torch.zeros(6, dtype=torch.float64, requires_grad=True) for _ in views]
     log_focals = [torch.zeros((), dtype=torch.float64, requires_grad=config.refine_focal) for _ in views]
     generators = [torch.Generator().manual_seed(config.seed + 7919 * view.index) for view in views]
 
     def render_all() -> list[Tensor]:
-        return [
-            renderer.image(view, target.shape[1], target.shape[0], twist, log_focal)
-            for view, target, twist, log_focal in zip(views, targets, twists, log_focals, strict=True)
-        ]
+        images = []
+        for view, target, twist, log_focal in zip(views, targets, twists, log_focals, strict=True):
+            images.append(renderer.image(view, target.shape[1], target.shape[0], twist, log_focal))
+            advance()
+        return images
 
     was_training = model.training
     model.eval()
@@ -220,6 +246,7 @@ def _align_batch(model, renderer: ViewRenderer, views: list[HeldOutView], config
             optimizer.step()
             schedule.step()
             losses = [float(loss.detach()) for loss in per_view]
+            advance()
         aligned = render_all()
     finally:
         for parameter in frozen:
@@ -264,9 +291,11 @@ def _ray_held_out_views(dataset) -> list[tuple[Tensor, Float[Tensor, "3 4"], Int
     ]
 
 
-def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig()) -> list[AlignedView]:
+def evaluate_held_out_views(
+    pipeline, config: AlignmentConfig = AlignmentConfig(), progress: Progress | None = None
+) -> list[AlignedView]:
     """Align and evaluate every evaluation image of a nerfstudio pipeline with an S2CamP model (a nerfacto model, or
-    S2CamP's splat model: module docstring).
+    S2CamP's splat model: module docstring); ``progress`` as ``align_and_evaluate_views``'s.
 
     The reference training cameras (``metadata["reference_cameras"]``, present when the dataparser perturbed the
     training cameras) define the frame of the evaluation cameras; without them the training cameras as given do.
@@ -294,4 +323,4 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
         HeldOutView(image, map_camera(similarity, c2w), scale_focal(intrinsics, focal_ratio), index)
         for index, (image, c2w, intrinsics) in enumerate(held_out)
     ]
-    return align_and_evaluate_views(model, views, config)
+    return align_and_evaluate_views(model, views, config, progress)
