@@ -51,6 +51,7 @@ from s2camp_ns.scene.make_scene import MakeSceneConfig
 from .common import (
     DEFAULT_OUTPUT_DIR,
     generated_scene,
+    in_report_order,
     in_work_folder,
     log,
     no_longer_run_section,
@@ -585,7 +586,7 @@ def summarize(rows: list[dict]) -> list[dict]:
     """One row per scene, start, variant and passes per pixel (``--rays-per-batch`` and ``--iterations`` change them):
     the metrics over seeds (``Spread``), the PSNR difference against "off" at the same passes (labelled "no difference"
     when smaller than the larger of the two seed ranges) and, for perturbed starts, the fraction of the start error
-    removed (1 - mean final / start; the start is the same for every seed)."""
+    removed (1 - mean final / start; the start is the same for every seed). In report order (``report_order``)."""
     groups: dict[tuple[str, str, str, str, str, str], list[dict]] = {}
     for row in rows:
         passes = f"{row.get('passes', math.nan):.3g}"
@@ -613,7 +614,13 @@ def summarize(rows: list[dict]) -> list[dict]:
         off = next((e for e in summary if _summary_key(e) == reference), None)
         entry["psnr_vs_off"] = math.nan if off is None else entry["psnr"].mean - off["psnr"].mean
         entry["psnr_vs_off_label"] = _difference_label(entry, off)
-    return summary
+    return report_order(summary, then=("device", "passes_key", "build"))
+
+
+def report_order(entries: list[dict], then: tuple[str, ...] = ()) -> list[dict]:
+    """``entries`` by scene, start and variant in the order ``SCENES``, ``STARTS`` and ``RUNNABLE_VARIANTS`` list
+    them (names no longer run after them), then by the keys ``then``."""
+    return in_report_order(entries, tuple(SCENES), STARTS, RUNNABLE_VARIANTS, then)
 
 
 def _summary_key(entry: dict) -> tuple[str, str, str, str, str, str]:
@@ -831,7 +838,7 @@ TRACE_COLUMNS = (
 def trace_sections(rows: list[dict]) -> list[str]:
     """One table per traced run: the cameras' path through training (``benchmarks/regime_trace.py``)."""
     sections = []
-    for row in rows:
+    for row in report_order(rows, then=("seed",)):
         trace = row.get("trace")
         if not trace:
             continue

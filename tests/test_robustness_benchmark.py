@@ -353,6 +353,41 @@ def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path:
     assert (tmp_path / "regime.png").exists()
 
 
+def test_report_rows_are_sorted_by_scene_start_and_variant_in_the_benchmarks_order(tmp_path: Path) -> None:
+    """Rows arrive in the order runs finished; the report lists them by scene, start and variant as ``SCENES``,
+    ``STARTS`` and the variants are listed (names no longer run last, alphabetically), then by passes; the traced
+    runs by seed."""
+    from s2camp_ns.benchmarks.robustness import TRACE_COLUMNS, report
+
+    extra = {"train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
+    finished = [
+        ("regime-wide", "sfm", "s2camp"), ("regime-wide", "perturbed", "tracks"), ("regime-wide", "sfm", "off"),
+        ("regime-wide-full", "perturbed", "off"), ("regime-wide", "accurate", "s2camp-zz-old"),
+        ("regime-wide", "accurate", "s2camp"), ("regime-wide", "perturbed", "off"), ("regime-wide", "accurate", "off"),
+        ("regime-wide", "accurate", "s2camp-aa-old"),
+    ]  # fmt: skip
+    rows = [_row(start, variant, 0, 20.0, 0.1, 0.1) | extra | {"scene": scene} for scene, start, variant in finished]
+    rows.append(_row("perturbed", "off", 0, 20.0, 0.1, 0.1) | extra | {"scene": "regime-wide", "passes": 0.5})
+    for seed in (2, 1):
+        trace = [dict.fromkeys(TRACE_COLUMNS, 0.5)]
+        rows.append(_row("sfm", "s2camp", seed, 20.0, 0.1, 0.1) | extra | {"scene": "regime-wide", "trace": trace})
+    listed = [(e["scene"], e["start"], e["variant"], e["passes_key"]) for e in summarize(rows)]
+    assert listed == [
+        ("regime-wide", "accurate", "off", "1.5"), ("regime-wide", "accurate", "s2camp", "1.5"),
+        ("regime-wide", "accurate", "s2camp-aa-old", "1.5"), ("regime-wide", "accurate", "s2camp-zz-old", "1.5"),
+        ("regime-wide", "perturbed", "off", "0.5"), ("regime-wide", "perturbed", "off", "1.5"),
+        ("regime-wide", "perturbed", "tracks", "1.5"), ("regime-wide", "sfm", "off", "1.5"),
+        ("regime-wide", "sfm", "s2camp", "1.5"), ("regime-wide-full", "perturbed", "off", "1.5"),
+    ]  # fmt: skip
+    text = report(rows, RobustnessConfig(preset="regime", output_dir=tmp_path)).read_text()
+    table = [line.split(" | ")[:3] for line in text.splitlines() if line.startswith("| regime-wide")]
+    order = [(scene.lstrip("| "), start, variant) for scene, start, variant in table if start != "56"]
+    # The results, then the rows of names no longer run.
+    old = [("regime-wide", "accurate", "s2camp-aa-old"), ("regime-wide", "accurate", "s2camp-zz-old")]
+    assert order == [entry[:3] for entry in listed if "old" not in entry[2]] + old
+    assert text.index("seed 1") < text.index("seed 2")  # the camera paths by seed
+
+
 def test_report_lists_rows_of_variants_and_starts_that_no_longer_run_apart(tmp_path: Path) -> None:
     """Committed rows of names no longer runnable still render, in their own table after the results, and their
     comparison with refinement off is that of the whole grid."""

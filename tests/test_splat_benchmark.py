@@ -186,6 +186,18 @@ def test_summary_gives_removed_fractions_changes_psnr_differences_and_time_ratio
     assert math.isnan(accurate["time_ratio"]) and math.isnan(accurate["psnr_vs_so3xr3"])  # no baseline run
 
 
+def test_summary_is_sorted_by_scene_start_and_variant_in_the_benchmarks_order() -> None:
+    finished = [
+        ("sfm", "s2camp-splat"), ("accurate", "splat-off"), ("perturbed", "s2camp-splat"), ("accurate", "s2camp-splat"),
+        ("perturbed", "splat-off"), ("accurate", "s2camp-splat-so3xr3"),
+    ]  # fmt: skip
+    listed = [(e["start"], e["variant"]) for e in summarize([_row(start, variant, 0) for start, variant in finished])]
+    assert listed == [
+        ("accurate", "splat-off"), ("accurate", "s2camp-splat-so3xr3"), ("accurate", "s2camp-splat"),
+        ("perturbed", "splat-off"), ("perturbed", "s2camp-splat"), ("sfm", "s2camp-splat"),
+    ]  # fmt: skip
+
+
 def test_time_ratios_compare_seconds_of_one_invocation_only() -> None:
     # The machine is shared: seconds per step from different invocations of the benchmark are not comparable.
     rows = [
