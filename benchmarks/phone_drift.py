@@ -29,8 +29,28 @@ The drift is applied after CamP's steps (``s2camp_ns.core.perturbation``, to the
 seeded stream after all of CamP's draws, in this order: w (N - 1 rows of 3), n (N - 1), the tilts (N rows of pitch,
 roll), n_f. CamP's draws, and so its result, are the same whether the drift is on or off; with the drift off its code
 does not run. For the drift alone, set CamP's four sigmas to zero (its steps then return the cameras to rounding).
-Default sizes and where they come from: ``DriftConfig``. The benchmarks' data parser (``data_parser``) applies it
-to the training cameras of the "phone" start.
+The benchmarks' data parser (``data_parser``) applies it to the training cameras of the "phone" start.
+
+Default sizes (``DriftConfig``; measured figures are named as such, the rest are assumptions):
+
+- ``position_drift`` 1%. Figures checked: about 17 m per 120 m (14%) for ARKit, ARCore and HoloLens walked through a
+  1,600 m^2 dynamic industrial hall (Feigl et al., "Localization Limitations of ARCore, ARKit, and Hololens in Dynamic
+  Large-scale Industry Environments", VISIGRAPP 2020); about 0.5 m (ARCore, 2.6%) and 1.5 m (ARKit, 8%) after a
+  19.1 m corridor walk, in a single blog test (Zhongyu Wang, "Drifting Error Comparision of ARCore and ARKit Visual
+  Odometry", Medium, 2020). Both are long walks through hard scenes; 1% for one loop around a textured object is an
+  ASSUMPTION, at the favourable end of those figures.
+- ``yaw_drift_deg`` 1.5. Figure checked: in the same blog test the heading was about 0.06 rad (ARCore) and 0.15 rad
+  (ARKit) off after three and a half turns in place, about 1 and 2.5 degrees per turn; a ring capture turns once. 1.5
+  degrees between the two is an ASSUMPTION (that the per-turn figure holds for a walk around an object).
+- ``tilt_deg`` 0.3. Derivation: an accelerometer bias b tilts the gravity a VIO estimates by atan(b / g), 0.057
+  degrees per mg; 0.3 degrees is a residual bias of about 5 mg after VIO's online bias estimation, an ASSUMPTION (not
+  measured here).
+- ``focal_error`` 1.5%. Derivation: a phone's autofocus moves its lens, so the principal distance
+  f u / (u - f) ~ f (1 + f / u) of a lens of focal f focused at distance u differs from a calibration at infinity by
+  f / u: 0.9% to 1.4% for a 4.3 mm phone lens focused at 0.5 m to 0.3 m. 1.5% (factory tolerance on top) is an
+  ASSUMPTION of that order.
+- ``up`` +z: the frame the S2CamP data parser perturbs in (nerfstudio's ``orientation_method`` "up" turns the cameras'
+  mean up vector to +z; ``perturb_nerfstudio_cameras`` converts the camera axes only, OpenGL to OpenCV, not the world).
 """
 
 from __future__ import annotations
@@ -52,37 +72,21 @@ from s2camp_ns.core.validation import check_range
 class DriftConfig(DefaultsOnLoad):
     """Visual-inertial odometry drift (module docstring); off by default. Sizes are RMS values at the last camera,
     except ``tilt_deg`` (a bound) and ``focal_error`` (a log-normal sigma). The defaults stand for a phone's ARKit /
-    ARCore poses; what each rests on is stated with it: measured figures are named as such, the rest are assumptions.
-    """
+    ARCore poses; what each rests on: the module docstring, "Default sizes"."""
 
     enabled: bool = False
     """Add the drift to the perturbed cameras (needs ``perturbation.enabled``; after CamP's steps)."""
     position_drift: float = 0.01
     """RMS position error at the last camera as a fraction of the distance the cameras travel (the sum of the
-    distances between consecutive camera centres, in capture order). Figures checked: about 17 m per 120 m (14%) for
-    ARKit, ARCore and HoloLens walked through a 1,600 m^2 dynamic industrial hall (Feigl et al., "Localization
-    Limitations of ARCore, ARKit, and Hololens in Dynamic Large-scale Industry Environments", VISIGRAPP 2020); about
-    0.5 m (ARCore, 2.6%) and 1.5 m (ARKit, 8%) after a 19.1 m corridor walk, in a single blog test (Zhongyu Wang,
-    "Drifting Error Comparision of ARCore and ARKit Visual Odometry", Medium, 2020). Both are long walks through hard
-    scenes; 1% for one loop around a textured object is an ASSUMPTION, at the favourable end of those figures."""
+    distances between consecutive centres, in capture order)."""
     yaw_drift_deg: float = 1.5
-    """RMS yaw error (degrees, about ``up``) at the last camera. Figure checked: in the same blog test the heading was
-    about 0.06 rad (ARCore) and 0.15 rad (ARKit) off after three and a half turns in place, about 1 and 2.5 degrees per
-    turn; a ring capture turns once. 1.5 degrees between the two is an ASSUMPTION (that the per-turn figure holds for
-    a walk around an object)."""
+    """RMS yaw error (degrees, about ``up``) at the last camera."""
     tilt_deg: float = 0.3
-    """Bound (degrees) of each camera's roll and pitch errors, each uniform in [-tilt_deg, tilt_deg]. Derivation: an
-    accelerometer bias b tilts the gravity a VIO estimates by atan(b / g), 0.057 degrees per mg; 0.3 degrees is a
-    residual bias of about 5 mg after VIO's online bias estimation, an ASSUMPTION (not measured here)."""
+    """Bound (degrees) of each camera's roll and pitch errors, each uniform in [-tilt_deg, tilt_deg]."""
     focal_error: float = 0.015
-    """Relative size of the one focal error shared by all images: focal scales by exp(N(0,1) log1p(focal_error)).
-    Derivation: a phone's autofocus moves its lens, so the principal distance f u / (u - f) ~ f (1 + f / u) of a
-    lens of focal f focused at distance u differs from a calibration at infinity by f / u: 0.9% to 1.4% for a 4.3 mm
-    phone lens focused at 0.5 m to 0.3 m. 1.5% (factory tolerance on top) is an ASSUMPTION of that order."""
+    """Relative size of the one focal error shared by all images: focal scales by exp(N(0,1) log1p(focal_error))."""
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    """World up (gravity opposite), normalized before use. +z is up in the frame the S2CamP data parser perturbs in:
-    nerfstudio's ``orientation_method`` "up" turns the cameras' mean up vector to +z, and ``perturb_nerfstudio_cameras``
-    converts the camera axes only (OpenGL to OpenCV), not the world."""
+    """World up (gravity opposite), normalized before use; +z in the frame the S2CamP data parser perturbs in."""
 
     def validate(self) -> None:
         check_range("drift.position_drift", self.position_drift, low=0.0, high=1.0)

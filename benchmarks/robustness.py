@@ -202,8 +202,8 @@ PHONE_PROFILE = {
     "drift.yaw_drift_deg": 1.5, "drift.tilt_deg": 0.3, "drift.focal_error": 0.015,
 }  # fmt: skip
 """The phone-pose start: visual-inertial odometry poses (ARKit / ARCore, as Polycam or Record3D export them), the
-benchmarks' data parser's VIO drift (``s2camp-bench-data``, ``benchmarks/phone_drift.py``'s ``DriftConfig``, where each
-size's source or assumption is stated) with CamP's own steps off. Along the capture (image order, the ring's order): the
+benchmarks' data parser's VIO drift (``s2camp-bench-data``, ``benchmarks/phone_drift.py``, where each size's
+source or assumption is stated) with CamP's own steps off. Along the capture (image order, the ring's order): the
 centres a random walk from the first camera whose RMS grows to 1% of the distance travelled at the last (about 0.05 to
 0.06 normalized units on these rings, which travel 4.6 to 6 units over the training cameras), the yaw (about +z, the
 data parser's up) a random walk to 1.5 degrees RMS, roll and pitch within 0.3 degrees of gravity, and one focal length

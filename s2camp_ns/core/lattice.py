@@ -31,13 +31,9 @@ Parameter choice
     the Gram matrix (paper eq. 5), so candidates are ranked first by their worst relative Gram error on two *search
     cameras* (40 degrees 4:3 and 75 degrees 16:9, off-centre principal points; pyramid transform, contracted radius
     in ``[0.4, 1.99]``); among those within a factor 1.5 of the best, the lowest worst dispersion / body-centred-cubic
-    covering ratio wins. The search cameras are deliberately not the benchmark frusta ("room", "wide"), so the
-    benchmarks measure the lattice on cameras it was not tuned on. The choice matters: the Gram error varies widely
-    over the candidates, and a lattice chosen for dispersion alone integrates worse than scrambled Sobol points
-    (measured in docs/DESIGN-NOTES.md sec. 2, "Integration accuracy is the criterion"). At run time this module only
-    looks the parameters up in ``_TABLE``; a size without an entry takes the entry of the nearest tabulated size
-    (``table_params``), so no search ever runs when training starts and this module imports nothing above
-    ``validation``.
+    covering ratio wins: the points integrate first, cover second. At run time this module only looks the parameters up
+    in ``_TABLE``; a size without an entry takes the entry of the nearest tabulated size (``table_params``), so no
+    search ever runs when training starts and this module imports nothing above ``validation``.
 
 Also here: seeded uniform random points, scrambled Sobol points and Halton points.
 """

@@ -30,6 +30,17 @@ scene units (the cameras fit in [-1, 1]^3), as CamP applies them in its own norm
 cameras of the split are kept in ``metadata["reference_cameras"]``; evaluation cameras are never perturbed. The
 scene's own tracks, made with the unperturbed cameras, would tell the track prior where the reference is: perturbed
 cameras get tracks made from the images with the perturbed cameras instead, or no prior.
+Tracks (``tracks``): each training camera's reprojection error against the COLMAP model's tracks, as the cameras are
+given (after any perturbation), ``metadata["track_rms_px"]`` (``core.tracks``), and the tracks with those cameras in
+the model's world, ``metadata["track_evidence"]``, from which the camera optimizer's track prior takes its anchor and
+scale (``core.track_fit``): COLMAP scenes with points, and transforms.json scenes with the model ns-process-data leaves
+beside them (``colmap/sparse/0``, cameras checked against it, ``transforms_tracks``); images the model does not hold
+get NaN. Scenes without them get tracks made from their images (``image_tracks``: SIFT matches, points triangulated
+with the given training cameras, bundle-adjusted with them and aligned to them by a similarity; built once, on the
+CPU, and cached, ``track_cache``). With the perturbation on, the scene's own tracks (made with the unperturbed
+cameras) are never used: the perturbed cameras get tracks made from the images (``image_tracks`` auto or always) or
+none (never), and the log says which.
+
 ``_reference_cameras`` and ``_perturb`` are the two steps a subclass may replace (where the reference cameras come
 from, how the training cameras are perturbed).
 """
@@ -92,27 +103,14 @@ class S2CampDataParserConfig(DataParserConfig):
     load_3D_points: bool = True
     """Load the COLMAP sparse points into metadata (needed by point-initialized models; cheap)."""
     tracks: bool = True
-    """Measure each training camera's reprojection error against the COLMAP model's tracks, as the cameras are given
-    (after any perturbation): ``metadata["track_rms_px"]`` (``core.tracks``), and the tracks with those cameras in
-    the model's world, ``metadata["track_evidence"]``, from which the camera optimizer's track prior takes its anchor
-    and scale (``core.track_fit``). COLMAP scenes with points, and transforms.json scenes with the model
-    ns-process-data leaves beside them (``colmap/sparse/0``, cameras checked against it, ``transforms_tracks``);
-    images the model does not hold get NaN. Scenes without them get tracks made from their images (``image_tracks``).
-    With the perturbation on, the scene's own tracks (made with the unperturbed cameras) are never used: the
-    perturbed cameras get tracks made from the images (``image_tracks`` auto or always) or none (never), and the log
-    says which. False measures nothing (no prior)."""
+    """Measure each training camera against the scene's SfM tracks, from which the track prior takes its anchor and
+    scale (module docstring); scenes without them get tracks made from their images. False: nothing, no prior."""
     image_tracks: Literal["auto", "always", "never"] = "auto"
-    """Tracks made from the scene's own images for the track prior (``nerfstudio/image_tracks.py``: SIFT matches,
-    points triangulated with the given training cameras, bundle-adjusted with them and aligned to them by a
-    similarity; built once, on the CPU, and cached). auto: where the scene has no SfM tracks (phone exports, hand-made
-    or converted transforms.json files); always: in place of the scene's own tracks; never: only the scene's tracks.
-    Without tracks the photometric loss leaves the focal length and forward motion barely determined
-    (docs/DESIGN-NOTES.md sec. 6)."""
+    """Tracks made from the scene's own images, built once and cached: auto where the scene has no SfM tracks or
+    its cameras are perturbed, always in place of the scene's own, never only the scene's."""
     image_tracks_cache: Path | None = None
-    """Folder of the image tracks' cache (read and written; an error when a build is needed and it cannot be
-    written); None: ``s2camp_image_tracks`` in the scene folder (beside the transforms.json), read where it exists,
-    and where the scene folder cannot be written new entries go to ``$XDG_CACHE_HOME/s2camp-ns/image_tracks``
-    (``~/.cache/...``; ``nerfstudio/track_cache.py``)."""
+    """Folder of the image tracks' cache, read and written; None: ``s2camp_image_tracks`` in the scene folder, or
+    ``$XDG_CACHE_HOME/s2camp-ns/image_tracks`` where that cannot be written (``track_cache``)."""
     perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
     """CamP perturbation of the training cameras (evaluation protocol, off by default)."""
 

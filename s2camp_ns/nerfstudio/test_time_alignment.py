@@ -18,7 +18,7 @@ view is rendered through (twist, log focal) differs:
 - ray models (nerfacto-derived, S2CamP's and the stock optimizer's): ``ray_alignment``, ``rays`` random pixels per
   step, rays differentiable in both variables;
 - S2CamP's splat model (``s2camp-splat``, ``s2camp-splat-so3xr3``): ``splat_alignment``, the whole image per step,
-  the focal scale through the view matrix as in training (docs/SPLAT.md); the held-out images and cameras are
+  the focal scale through the view matrix as in training; the held-out images and cameras are
   splatfacto's undistorted ones. Other splatfacto models are refused by name (use ns-eval).
 """
 
@@ -47,9 +47,7 @@ class AlignmentConfig:
     steps: int = 100
     """Adam steps per test camera (CamP: 100); 0 evaluates the similarity-mapped camera as is."""
     rays: int = 256
-    """Random pixels of the test image per step, ray models (on a 96x72 recovery-benchmark run, twice as many
-    barely changed the held-out PSNR and took markedly longer); splat models take every pixel (``splat_alignment``).
-    The protocol: docs/USAGE.md (``s2camp-eval``), docs/SPLAT.md sec. 5."""
+    """Random pixels of the test image per step, ray models; splat models take every pixel (``splat_alignment``)."""
     lr: float = 1e-3
     """Initial Adam learning rate of the twist (rad, scene units) and of the log focal scale."""
     lr_final: float = 1e-4
