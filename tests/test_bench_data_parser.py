@@ -1,7 +1,8 @@
 """The benchmarks' data parser ``s2camp-bench-data`` (``benchmarks/data_parser.py``): the true cameras of a
 ``--reference-model``, the phone start's VIO drift after CamP's steps, and its registration with nerfstudio.
 
-The scenes and COLMAP cases are test_dataparser.py's; the drift's own statistics: tests/test_phone_drift.py."""
+The scene is conftest's ``generated_scene``, the COLMAP cases test_dataparser.py's; the drift's own statistics:
+tests/test_phone_drift.py."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import pycolmap
 import pytest
 import torch
 from conftest import write_transforms
-from test_dataparser import COLMAP_CASES, WIDTH, _set_camera, input_model, parse, tiny_colmap_scene
+from test_dataparser import COLMAP_CASES, WIDTH, _set_camera, input_model, parse
 
 from s2camp_ns.benchmarks.data_parser import SUBCOMMAND, BenchDataParserConfig
 from s2camp_ns.benchmarks.phone_drift import DriftConfig, perturb_with_drift
@@ -24,17 +25,6 @@ PHONE = PerturbationConfig(
     enabled=True, seed=2, sigma_position=0.0, sigma_look_at=0.0, sigma_dolly_z=0.0, sigma_focal_length=0.0
 )
 """The phone start's perturbation: CamP's steps off, the drift alone."""
-
-
-@pytest.fixture(scope="module")
-def generated_scene(tmp_path_factory) -> Path:
-    return tiny_colmap_scene(tmp_path_factory.mktemp("scene") / "tiny")
-
-
-@pytest.fixture
-def scene(generated_scene: Path, tmp_path: Path) -> Path:
-    """A private copy that a test may modify."""
-    return Path(shutil.copytree(generated_scene, tmp_path / "scene"))
 
 
 def parse_bench(data: Path, split: str = "train", **kwargs):

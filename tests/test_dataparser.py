@@ -14,7 +14,7 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
-from conftest import write_transforms
+from conftest import PARSER_SCENE, write_transforms
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from PIL import Image
 
@@ -22,29 +22,8 @@ from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
-# 50 x 38 so that a quarter-size folder must round (12.5 x 9.5 -> 13 x 10), like mip-NeRF 360's images_4.
-WIDTH, HEIGHT, NUM_CAMERAS = 50, 38, 10
-
-
-def tiny_colmap_scene(root: Path) -> Path:
-    """The generated scene of these tests (``WIDTH`` x ``HEIGHT``, ``NUM_CAMERAS`` images) in ``root``."""
-    config = MakeSceneConfig(
-        output_dir=root, num_cameras=NUM_CAMERAS, width=WIDTH, height=HEIGHT, supersample=1, points_per_image=30
-    )
-    return make_scene(config)
-
-
-@pytest.fixture(scope="session")
-def generated_scene(tmp_path_factory) -> Path:
-    return tiny_colmap_scene(tmp_path_factory.mktemp("scene") / "tiny")
-
-
-@pytest.fixture
-def scene(generated_scene: Path, tmp_path: Path) -> Path:
-    """A private copy that a test may modify."""
-    return Path(shutil.copytree(generated_scene, tmp_path / "scene"))
+WIDTH, HEIGHT, NUM_CAMERAS = PARSER_SCENE["width"], PARSER_SCENE["height"], PARSER_SCENE["num_cameras"]
 
 
 def parse(data: Path, split: str = "train", **kwargs):
