@@ -30,6 +30,7 @@ scene units (the cameras fit in [-1, 1]^3), as CamP applies them in its own norm
 cameras of the split are kept in ``metadata["reference_cameras"]``; evaluation cameras are never perturbed. The
 scene's own tracks, made with the unperturbed cameras, would tell the track prior where the reference is: perturbed
 cameras get tracks made from the images with the perturbed cameras instead, or no prior.
+
 Tracks (``tracks``): each training camera's reprojection error against the COLMAP model's tracks, as the cameras are
 given (after any perturbation), ``metadata["track_rms_px"]`` (``core.tracks``), and the tracks with those cameras in
 the model's world, ``metadata["track_evidence"]``, from which the camera optimizer's track prior takes its anchor and
