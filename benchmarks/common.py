@@ -119,6 +119,28 @@ def split_runnable(
     return current, old
 
 
+def in_report_order(
+    entries: Iterable[dict],
+    scenes: Sequence[str],
+    starts: Sequence[str],
+    variants: Sequence[str],
+    then: Sequence[str] = (),
+) -> list[dict]:
+    """``entries`` (a report's rows: dicts with "scene", "start" and "variant") sorted by scene, start and variant,
+    each in the order the benchmark lists its names (names it no longer lists after them, alphabetically), then by
+    the keys ``then`` (seed, ...)."""
+
+    def position(names: Sequence[str]) -> Callable[[str], tuple[int, str]]:
+        index = {name: i for i, name in enumerate(names)}
+        return lambda name: (index.get(name, len(index)), name)
+
+    scene, start, variant = position(scenes), position(starts), position(variants)
+    return sorted(
+        entries,
+        key=lambda e: (scene(e["scene"]), start(e["start"]), variant(e["variant"]), *(e[key] for key in then)),
+    )
+
+
 NO_LONGER_RUN_HEADING = "## Rows of variants no longer run"
 
 

@@ -29,10 +29,10 @@ import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import log
+from .data_parser import SUBCOMMAND as BENCH_DATAPARSER
 from .recovery_photometric import (
     PhotometricConfig,
     TrainedRun,
@@ -124,8 +124,9 @@ def variant_arguments(variant: str, seed: int, config: PhotometricConfig) -> lis
 
 
 def dataparser_arguments(truth: Path) -> list[str]:
+    """The benchmarks' data parser with the generated scene's cameras as the reference (``--reference-model``)."""
     return [
-        DATAPARSER_SUBCOMMAND,
+        BENCH_DATAPARSER,
         "--downscale-factor", str(TRAINING_DOWNSCALE),
         "--reference-model", str(truth / "sparse" / "0"),
     ]  # fmt: skip

@@ -51,12 +51,14 @@ from s2camp_ns.scene.make_scene import MakeSceneConfig
 from .common import (
     DEFAULT_OUTPUT_DIR,
     generated_scene,
+    in_report_order,
     in_work_folder,
     log,
     no_longer_run_section,
     split_runnable,
     write_report,
 )
+from .data_parser import SUBCOMMAND as BENCH_DATAPARSER
 
 
 def focal_for_fov(width: int, fov_degrees: float) -> float:
@@ -194,20 +196,20 @@ the prior with P = I (the defaults, ``precondition`` False); the looser poses of
 under other variant names were recorded with settings that no longer run: the report lists them apart, and
 docs/RESULTS.md ("Names that no longer run") says what each ran."""
 PHONE_PROFILE = {
-    "sigma_position": 0.0, "sigma_look_at": 0.0, "sigma_dolly_z": 0.0, "sigma_focal_length": 0.0,
-    "drift.enabled": True, "drift.position_drift": 0.01, "drift.yaw_drift_deg": 1.5, "drift.tilt_deg": 0.3,
-    "drift.focal_error": 0.015,
+    "perturbation.sigma_position": 0.0, "perturbation.sigma_look_at": 0.0, "perturbation.sigma_dolly_z": 0.0,
+    "perturbation.sigma_focal_length": 0.0, "drift.enabled": True, "drift.position_drift": 0.01,
+    "drift.yaw_drift_deg": 1.5, "drift.tilt_deg": 0.3, "drift.focal_error": 0.015,
 }  # fmt: skip
 """The phone-pose start: visual-inertial odometry poses (ARKit / ARCore, as Polycam or Record3D export them), the
-data parser's VIO drift (``s2camp_ns.core.perturbation.DriftConfig``, where each size's source or assumption is
-stated) with CamP's own steps off. Along the capture (image order, the ring's order): the centres a random walk from
-the first camera whose RMS grows to 1% of the distance travelled at the last (about 0.05 to 0.06 normalized units on
-these rings, which travel 4.6 to 6 units over the training cameras), the yaw (about +z, the data parser's up) a random
-walk to 1.5 degrees RMS, roll and pitch within 0.3 degrees of gravity, and one focal length for every image 1.5% off
-(a log-normal sigma; a single phone camera's factory calibration), no per-image focal error. Each run seed draws its
-own drift: seed s of a scene with perturbation seed p uses perturbation seed p + s, so the seeds of a grid are
-different draws (the variants of one seed share it), unlike the perturbed start's one draw per scene. These exports
-carry no SfM tracks, so this start trains without the scene's (``s2camp-data --image-tracks always``: tracks made from
+benchmarks' data parser's VIO drift (``s2camp-bench-data``, ``benchmarks/phone_drift.py``, where each size's
+source or assumption is stated) with CamP's own steps off. Along the capture (image order, the ring's order): the
+centres a random walk from the first camera whose RMS grows to 1% of the distance travelled at the last (about 0.05 to
+0.06 normalized units on these rings, which travel 4.6 to 6 units over the training cameras), the yaw (about +z, the
+data parser's up) a random walk to 1.5 degrees RMS, roll and pitch within 0.3 degrees of gravity, and one focal length
+for every image 1.5% off (a log-normal sigma; a single phone camera's factory calibration), no per-image focal error.
+Each run seed draws its own drift: seed s of a scene with perturbation seed p uses perturbation seed p + s, so the seeds
+of a grid are different draws (the variants of one seed share it), unlike the perturbed start's one draw per scene.
+These exports carry no SfM tracks, so this start trains without the scene's (``--image-tracks always``: tracks made from
 the images)."""
 SFM_FOCAL_PRIOR = 1.05
 """The sfm start's focal prior (the EXIF focal of a real capture; ``benchmarks/sfm.py``)."""
@@ -356,14 +358,15 @@ def train_command(
         *VARIANT_ARGUMENTS.get(spec.variant, []),
     ]  # fmt: skip
     preset = SCENES[spec.scene]
-    dataparser = [DATAPARSER_SUBCOMMAND, "--downscale-factor", str(preset.downscale)]
+    subcommand = BENCH_DATAPARSER if spec.start in ("phone", "sfm") else DATAPARSER_SUBCOMMAND
+    dataparser = [subcommand, "--downscale-factor", str(preset.downscale)]
     if spec.start == "perturbed":
         dataparser += ["--perturbation.enabled", "True", "--perturbation.seed", str(preset.perturbation_seed)]
     if spec.start == "phone":  # one VIO drift draw per run seed (PHONE_PROFILE)
         seed = preset.perturbation_seed + spec.seed
         dataparser += ["--perturbation.enabled", "True", "--perturbation.seed", str(seed)]
         for key, value in PHONE_PROFILE.items():
-            dataparser += [f"--perturbation.{key.replace('_', '-')}", str(value)]
+            dataparser += [f"--{key.replace('_', '-')}", str(value)]
     if spec.start != "sfm":  # evidence that does not know the truth: the generated tracks are exact projections
         dataparser += ["--image-tracks", "always"]
     if spec.start == "sfm":
@@ -582,7 +585,7 @@ def summarize(rows: list[dict]) -> list[dict]:
     """One row per scene, start, variant and passes per pixel (``--rays-per-batch`` and ``--iterations`` change them):
     the metrics over seeds (``Spread``), the PSNR difference against "off" at the same passes (labelled "no difference"
     when smaller than the larger of the two seed ranges) and, for perturbed starts, the fraction of the start error
-    removed (1 - mean final / start; the start is the same for every seed)."""
+    removed (1 - mean final / start; the start is the same for every seed). In report order (``report_order``)."""
     groups: dict[tuple[str, str, str, str, str, str], list[dict]] = {}
     for row in rows:
         passes = f"{row.get('passes', math.nan):.3g}"
@@ -610,7 +613,13 @@ def summarize(rows: list[dict]) -> list[dict]:
         off = next((e for e in summary if _summary_key(e) == reference), None)
         entry["psnr_vs_off"] = math.nan if off is None else entry["psnr"].mean - off["psnr"].mean
         entry["psnr_vs_off_label"] = _difference_label(entry, off)
-    return summary
+    return report_order(summary, then=("device", "passes_key", "build"))
+
+
+def report_order(entries: list[dict], then: tuple[str, ...] = ()) -> list[dict]:
+    """``entries`` by scene, start and variant in the order ``SCENES``, ``STARTS`` and ``RUNNABLE_VARIANTS`` list
+    them (names no longer run after them), then by the keys ``then``."""
+    return in_report_order(entries, tuple(SCENES), STARTS, RUNNABLE_VARIANTS, then)
 
 
 def _summary_key(entry: dict) -> tuple[str, str, str, str, str, str]:
@@ -828,7 +837,7 @@ TRACE_COLUMNS = (
 def trace_sections(rows: list[dict]) -> list[str]:
     """One table per traced run: the cameras' path through training (``benchmarks/regime_trace.py``)."""
     sections = []
-    for row in rows:
+    for row in report_order(rows, then=("seed",)):
         trace = row.get("trace")
         if not trace:
             continue

@@ -59,12 +59,14 @@ from s2camp_ns.scene.make_scene import MakeSceneConfig
 from .common import (
     DEFAULT_OUTPUT_DIR,
     generated_scene,
+    in_report_order,
     in_work_folder,
     log,
     no_longer_run_section,
     split_runnable,
     write_report,
 )
+from .data_parser import SUBCOMMAND as BENCH_DATAPARSER
 from .robustness import (
     ERRORS,
     METRICS,
@@ -284,7 +286,8 @@ def train_command(
         *VARIANT_ARGUMENTS.get(spec.variant, []),
     ]  # fmt: skip
     preset = SCENES[spec.scene]
-    dataparser = [DATAPARSER_SUBCOMMAND, "--downscale-factor", str(preset.downscale)]
+    subcommand = BENCH_DATAPARSER if spec.start == "sfm" else DATAPARSER_SUBCOMMAND
+    dataparser = [subcommand, "--downscale-factor", str(preset.downscale)]
     if spec.start == "perturbed":
         dataparser += ["--perturbation.enabled", "True", "--perturbation.seed", str(preset.perturbation_seed)]
     if spec.start != "sfm":  # evidence that does not know the truth: the generated tracks are exact projections
@@ -440,7 +443,8 @@ def summarize(rows: list[dict]) -> list[dict]:
     """One entry per scene, start and variant: the metrics over seeds (``Spread``); the start errors (equal for
     every seed); for a recovery start the fraction of each start error removed (1 - mean final / start), for the
     others the change final - start; the PSNR differences against SO3xR3 and splat-off; the ratio of the mean
-    seconds per iteration to SO3xR3's from the same start and invocation (``_time_ratio``)."""
+    seconds per iteration to SO3xR3's from the same start and invocation (``_time_ratio``). Sorted by scene, start and
+    variant in the order the benchmark lists them."""
     groups: dict[tuple[str, str, str], list[dict]] = {}
     for row in rows:
         groups.setdefault((row["scene"], row["start"], row["variant"]), []).append(row)
@@ -466,7 +470,7 @@ def summarize(rows: list[dict]) -> list[dict]:
             entry[f"psnr_vs_{label}"] = math.nan if reference is None else entry["psnr"].mean - reference["psnr"].mean
         entry["time_ratio"] = _time_ratio(groups[(entry["scene"], entry["start"], entry["variant"])],
                                           groups.get((entry["scene"], entry["start"], BASELINE), []))  # fmt: skip
-    return summary
+    return in_report_order(summary, tuple(SCENES), STARTS, RUNNABLE_VARIANTS)
 
 
 def _time_ratio(rows: list[dict], baseline: list[dict]) -> float:

@@ -1,4 +1,4 @@
-"""Shared fixtures: a tiny synthetic scene in the mip-NeRF 360 layout (generated once per test session).
+"""Shared fixtures: tiny synthetic scenes in the mip-NeRF 360 layout (generated once per test session).
 
 The scene module is imported inside the fixtures, so a broken import there fails the tests that use the scene,
 not the collection of the whole suite.
@@ -73,6 +73,25 @@ def tiny_scene(tiny_scene_config: MakeSceneConfig) -> Path:
     from s2camp_ns.scene.make_scene import make_scene
 
     return make_scene(tiny_scene_config)
+
+
+PARSER_SCENE = {"num_cameras": 10, "width": 50, "height": 38, "supersample": 1, "points_per_image": 30}
+"""Config of the data parsers' scene: 50 x 38 so that a quarter-size folder must round (12.5 x 9.5 -> 13 x 10), like
+mip-NeRF 360's images_4."""
+
+
+@pytest.fixture(scope="session")
+def generated_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Directory of a generated ``PARSER_SCENE`` scene, shared by the session: read-only (``scene`` to modify)."""
+    from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+
+    return make_scene(MakeSceneConfig(output_dir=tmp_path_factory.mktemp("scene") / "tiny", **PARSER_SCENE))
+
+
+@pytest.fixture
+def scene(generated_scene: Path, tmp_path: Path) -> Path:
+    """A private copy of ``generated_scene`` that a test may modify."""
+    return Path(shutil.copytree(generated_scene, tmp_path / "scene"))
 
 
 @pytest.fixture

@@ -1,86 +1,84 @@
-"""The ``ffmpeg`` console script (imageio-ffmpeg's binary) that nerfstudio's ns-render needs on PATH; the end-to-end
-render is ``tests/test_e2e.py::test_ns_render_writes_a_video_without_a_system_ffmpeg``."""
+"""imageio-ffmpeg's binary handed to nerfstudio's renderer where the machine has no ffmpeg, without a console script
+named like the system tool (``s2camp_ns.nerfstudio.bundled_ffmpeg``); the end-to-end render is
+``tests/test_e2e.py::test_ns_render_writes_a_video_without_a_system_ffmpeg``."""
 
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
+import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
-from hang_guard import HANG_GUARD_S
 
-from s2camp_ns import bundled_ffmpeg
+from s2camp_ns.nerfstudio import bundled_ffmpeg
 
-RUN_SCRIPT = "import sys; from s2camp_ns.bundled_ffmpeg import entrypoint; sys.argv[0] = 'ffmpeg'; entrypoint()"
+PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 
 
-def test_pyproject_installs_the_script_and_its_binary():
-    """Every install (``make venv``, ``pip install s2camp-ns``) gets the script beside ns-render, and the binary."""
-    pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text().splitlines()
-    scripts = pyproject[pyproject.index("[project.scripts]") :]
-    assert 'ffmpeg = "s2camp_ns.bundled_ffmpeg:entrypoint"' in scripts[: scripts.index("")]
-    dependencies = pyproject[pyproject.index("dependencies = [") :]
+@pytest.fixture
+def mediapy_ffmpeg():
+    """mediapy's ffmpeg setting, put back after the test."""
+    import mediapy
+
+    saved = mediapy._config.ffmpeg_name_or_path
+    yield mediapy
+    mediapy.set_ffmpeg(saved)
+
+
+def test_no_console_script_takes_a_system_tools_name_and_the_binary_is_a_dependency():
+    lines = PYPROJECT.read_text().splitlines()
+    scripts = lines[lines.index("[project.scripts]") + 1 :]
+    scripts = [line.split("=")[0].strip() for line in scripts[: scripts.index("")] if not line.startswith("#")]
+    assert scripts and all(name.startswith("s2camp-") for name in scripts), scripts
+    dependencies = lines[lines.index("dependencies = [") :]
     assert '    "imageio-ffmpeg",' in dependencies[: dependencies.index("]")]
 
 
-def test_script_runs_the_bundled_binary_with_its_arguments(tmp_path: Path):
-    """Arguments, stdin, stdout and the exit status pass through: two raw 4x2 frames piped in become a PNG."""
-    frames = bytes(range(4 * 2 * 3)) * 2
-    result = subprocess.run(
-        [sys.executable, "-c", RUN_SCRIPT, "-hide_banner", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt",
-         "rgb24", "-s", "4x2", "-i", "-", "-frames:v", "1", str(tmp_path / "frame.png")],
-        input=frames, capture_output=True, timeout=HANG_GUARD_S, check=False,
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr.decode()[-2000:]
-    from PIL import Image
+def test_without_an_ffmpeg_the_bundled_one_is_on_path_and_writes_mediapys_video(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mediapy_ffmpeg
+):
+    """PATH holds only an empty folder (``.venv/bin/ns-render`` run on a machine without ffmpeg): nerfstudio's check
+    (``shutil.which("ffmpeg")``) then finds imageio-ffmpeg's binary, and mediapy writes an H.264 video with it."""
+    import imageio_ffmpeg
 
-    with Image.open(tmp_path / "frame.png") as image:
-        assert image.size == (4, 2)
-        assert list(image.getdata())[:2] == [(0, 1, 2), (3, 4, 5)]
-    failed = subprocess.run(
-        [sys.executable, "-c", RUN_SCRIPT, "-i", str(tmp_path / "missing.mp4")],
-        capture_output=True, timeout=HANG_GUARD_S, check=False,
-    )  # fmt: skip
-    assert failed.returncode != 0 and b"missing.mp4" in failed.stderr
-
-
-def test_script_started_by_imageio_ffmpegs_own_search_does_not_search_again():
-    """imageio-ffmpeg probes ``<prefix>/bin/ffmpeg`` (this script) when its binary is missing: that probe must fail
-    at once instead of starting the search again, endlessly."""
-    environment = {**os.environ, "S2CAMP_BUNDLED_FFMPEG_RUNNING": "1"}
-    result = subprocess.run(
-        [sys.executable, "-c", RUN_SCRIPT, "-version"],
-        env=environment,
-        capture_output=True,
-        timeout=HANG_GUARD_S,
-        check=False,
-    )
-    assert result.returncode == 127 and b"ffmpeg version" not in result.stdout
-
-
-def test_script_folder_joins_path_only_when_no_ffmpeg_is_found(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    scripts = tmp_path / "venv" / "bin"
-    scripts.mkdir(parents=True)
-    (scripts / "ffmpeg").write_text("#!/bin/sh\n")
-    (scripts / "ffmpeg").chmod(0o755)
     empty = tmp_path / "empty"
     empty.mkdir()
-    monkeypatch.setattr(sys, "executable", str(scripts / "python"))
     monkeypatch.setenv("PATH", str(empty))
-    assert bundled_ffmpeg.make_bundled_ffmpeg_findable() is True
-    assert os.environ["PATH"] == os.pathsep.join([str(scripts), str(empty)])
-    # An ffmpeg already on PATH (the system's, or the activated environment's) is left alone.
+    link = bundled_ffmpeg.use_bundled_ffmpeg()
+    assert link is not None and link.name == bundled_ffmpeg.NAME
+    assert Path(shutil.which("ffmpeg")) == link
+    assert link.resolve() == Path(imageio_ffmpeg.get_ffmpeg_exe()).resolve()
+    assert os.environ["PATH"] == os.pathsep.join([str(link.parent), str(empty)])
+    assert mediapy_ffmpeg._config.ffmpeg_name_or_path == str(link)
+    frames = np.stack([np.full((16, 24, 3), 40 * i, dtype=np.uint8) for i in range(4)])
+    video = tmp_path / "video.mp4"
+    mediapy_ffmpeg.write_video(video, frames, fps=4)
+    reader = imageio_ffmpeg.read_frames(str(video))
+    meta = next(reader)
+    assert meta["codec"].startswith("h264") and tuple(meta["size"]) == (24, 16)
+    assert len(list(reader)) == 4
+    # A second call (another pipeline in the same process) finds it and changes nothing.
+    assert bundled_ffmpeg.use_bundled_ffmpeg() is None
+    assert os.environ["PATH"] == os.pathsep.join([str(link.parent), str(empty)])
+
+
+def test_an_ffmpeg_on_path_is_left_alone(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mediapy_ffmpeg):
     system = tmp_path / "system"
     system.mkdir()
     (system / "ffmpeg").write_text("#!/bin/sh\n")
     (system / "ffmpeg").chmod(0o755)
     monkeypatch.setenv("PATH", str(system))
-    assert bundled_ffmpeg.make_bundled_ffmpeg_findable() is False
+    before = mediapy_ffmpeg._config.ffmpeg_name_or_path
+    assert bundled_ffmpeg.use_bundled_ffmpeg() is None
     assert os.environ["PATH"] == str(system)
-    # No script beside this Python (another install layout): nothing to add.
-    (scripts / "ffmpeg").unlink()
-    monkeypatch.setenv("PATH", str(empty))
-    assert bundled_ffmpeg.make_bundled_ffmpeg_findable() is False
-    assert os.environ["PATH"] == str(empty)
+    assert mediapy_ffmpeg._config.ffmpeg_name_or_path == before
+
+
+def test_without_a_bundled_binary_nothing_changes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mediapy_ffmpeg):
+    """``IMAGEIO_FFMPEG_EXE`` naming a binary that does not exist: nerfstudio's own message is left to say so."""
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.setenv("IMAGEIO_FFMPEG_EXE", str(tmp_path / "missing-ffmpeg"))
+    assert bundled_ffmpeg.bundled_ffmpeg_exe() is None
+    assert bundled_ffmpeg.use_bundled_ffmpeg() is None
+    assert os.environ["PATH"] == str(tmp_path)

@@ -3,10 +3,11 @@ the config with PyYAML): the missing field takes its default."""
 
 from __future__ import annotations
 
+import pytest
 import yaml
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
-from s2camp_ns.core.perturbation import DriftConfig, PerturbationConfig
+from s2camp_ns.core.perturbation import PerturbationConfig
 
 
 def _without(saved: str, line_start: str) -> str:
@@ -23,14 +24,56 @@ def _without(saved: str, line_start: str) -> str:
     return "\n".join(out) + "\n"
 
 
-def test_a_perturbation_config_saved_before_the_drift_loads_with_it_off() -> None:
-    saved = yaml.dump(PerturbationConfig(enabled=True, seed=3))
-    old = _without(saved, "drift:")
-    assert "drift" not in old and "seed: 3" in old
-    loaded = yaml.load(old, Loader=yaml.Loader)
-    assert loaded.drift == DriftConfig() and loaded.drift.enabled is False
-    assert loaded.seed == 3 and loaded.enabled is True
-    loaded.validate()  # what the data parser does first: an AttributeError before
+PREVIOUS_PERTURBATION = """\
+!!python/object:s2camp_ns.core.perturbation.PerturbationConfig
+drift: !!python/object:s2camp_ns.core.perturbation.DriftConfig
+  enabled: {drift}
+  focal_error: 0.015
+  position_drift: 0.01
+  tilt_deg: 0.3
+  up: !!python/tuple
+  - 0.0
+  - 0.0
+  - 1.0
+  yaw_drift_deg: 1.5
+enabled: true
+seed: 3
+sigma_dolly_z: 0.05
+sigma_focal_length: 0.02
+sigma_look_at: 0.005
+sigma_position: 0.005
+single_dolly: true
+zero_distortion: true
+"""
+"""A perturbation config as the previous version wrote it into every run's config.yml (its drift since moved to the
+benchmarks' data parser, its two protocol switches since fixed at these values)."""
+
+
+def test_a_perturbation_config_of_the_previous_version_loads_and_a_drift_it_turned_on_is_refused() -> None:
+    loaded = yaml.load(PREVIOUS_PERTURBATION.format(drift="false"), Loader=yaml.Loader)
+    assert isinstance(loaded, PerturbationConfig) and (loaded.enabled, loaded.seed) == (True, 3)
+    loaded.validate()  # what the data parser does first
+    assert loaded.drift.enabled is False  # kept as saved, read by nothing but the check below
+    on = yaml.load(PREVIOUS_PERTURBATION.format(drift="true"), Loader=yaml.Loader)
+    with pytest.raises(ValueError, match="perturbation.drift: this run's config.yml turns on a visual-inertial drift"):
+        on.validate()
+
+
+def test_a_data_parser_config_saved_with_a_reference_model_is_refused_by_name(tmp_path) -> None:
+    """``reference_model`` (now the benchmarks' data parser's) in a run's config.yml: None loads and parses as
+    saved, a model is refused rather than left out of the reference cameras."""
+    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+
+    saved = yaml.dump(S2CampDataParserConfig(data=tmp_path / "missing"))
+    for value, refused in (("null", False), ("/truth/sparse/0", True)):
+        loaded = yaml.load(saved + f"reference_model: {value}\n", Loader=yaml.Loader)
+        parser = loaded.setup()
+        if refused:
+            with pytest.raises(ValueError, match=r"reference_model /truth/sparse/0: this run's config.yml takes"):
+                parser.get_dataparser_outputs("train")
+        else:
+            with pytest.raises(FileNotFoundError, match="does not exist"):  # validated, then the missing scene
+                parser.get_dataparser_outputs("train")
 
 
 def test_a_camera_optimizer_config_saved_before_photometric_loads_with_the_images_on() -> None:

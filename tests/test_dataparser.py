@@ -1,4 +1,6 @@
-"""S2CampDataParser on a tiny generated mip-NeRF 360 style scene: detection, downscale folders, perturbation, errors."""
+"""S2CampDataParser on a tiny generated mip-NeRF 360 style scene: detection, downscale folders, perturbation, errors.
+
+The benchmarks' data parser (drift, reference model): tests/test_bench_data_parser.py."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
-from conftest import write_transforms
+from conftest import PARSER_SCENE, write_transforms
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from PIL import Image
 
@@ -20,25 +22,8 @@ from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
 from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
-# 50 x 38 so that a quarter-size folder must round (12.5 x 9.5 -> 13 x 10), like mip-NeRF 360's images_4.
-WIDTH, HEIGHT, NUM_CAMERAS = 50, 38, 10
-
-
-@pytest.fixture(scope="session")
-def generated_scene(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("scene") / "tiny"
-    config = MakeSceneConfig(
-        output_dir=root, num_cameras=NUM_CAMERAS, width=WIDTH, height=HEIGHT, supersample=1, points_per_image=30
-    )
-    return make_scene(config)
-
-
-@pytest.fixture
-def scene(generated_scene: Path, tmp_path: Path) -> Path:
-    """A private copy that a test may modify."""
-    return Path(shutil.copytree(generated_scene, tmp_path / "scene"))
+WIDTH, HEIGHT, NUM_CAMERAS = PARSER_SCENE["width"], PARSER_SCENE["height"], PARSER_SCENE["num_cameras"]
 
 
 def parse(data: Path, split: str = "train", **kwargs):
@@ -399,92 +384,6 @@ def test_corrupt_text_model_file_is_named(scene: Path, name: str, damage: str, r
         parse(scene)
     if "corrupt or truncated" in str(info.value):
         assert f"expected a COLMAP {name} (" in str(info.value)
-
-
-def _write_model(reconstruction: pycolmap.Reconstruction, folder: Path) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    reconstruction.write_binary(str(folder))
-    return folder
-
-
-def test_reference_model_of_the_input_gives_the_input_cameras(generated_scene: Path):
-    for split in ("train", "test"):
-        plain = parse(generated_scene, split)
-        with_reference = parse(generated_scene, split, reference_model=generated_scene / "sparse" / "0")
-        reference = with_reference.metadata["reference_cameras"]
-        torch.testing.assert_close(reference.camera_to_worlds, plain.cameras.camera_to_worlds, atol=1e-5, rtol=0)
-        torch.testing.assert_close(reference.fx, plain.cameras.fx)
-        torch.testing.assert_close(reference.cx, plain.cameras.cx)
-        torch.testing.assert_close(reference.distortion_params, plain.cameras.distortion_params)
-        # The training cameras themselves stay the input's.
-        torch.testing.assert_close(with_reference.cameras.camera_to_worlds, plain.cameras.camera_to_worlds)
-
-
-def test_reference_model_is_aligned_into_the_input_frame_and_scaled_to_the_images(scene: Path, tmp_path: Path):
-    """The input is the truth moved by a similarity, with a wrong focal length: the reference poses are the input's
-    (the similarity is undone), the reference focal is the truth's at the training resolution."""
-    truth = input_model(scene)
-    true_focal = float(truth.cameras[1].params[0])
-    moved = input_model(scene)
-    rotation = pycolmap.Rotation3d(np.array([0.1, -0.3, 0.2, 0.9]) / np.linalg.norm([0.1, -0.3, 0.2, 0.9]))
-    moved.transform(pycolmap.Sim3d(2.5, rotation, np.array([3.0, -1.0, 0.5])))
-    camera = moved.cameras[1]
-    params = camera.params.copy()
-    params[0] *= 1.1
-    camera.params = params
-    shutil.rmtree(scene / "sparse" / "0")
-    _write_model(moved, scene / "sparse" / "0")
-    truth_folder = _write_model(truth, tmp_path / "truth")
-    for split in ("train", "test"):
-        outputs = parse(scene, split, downscale_factor=2, reference_model=truth_folder)
-        reference = outputs.metadata["reference_cameras"]
-        torch.testing.assert_close(reference.camera_to_worlds, outputs.cameras.camera_to_worlds, atol=1e-5, rtol=0)
-        assert torch.allclose(reference.fx, torch.full_like(reference.fx, true_focal * 25 / WIDTH), atol=1e-4)
-        assert torch.allclose(outputs.cameras.fx, torch.full_like(reference.fx, 1.1 * true_focal * 25 / WIDTH))
-
-
-@pytest.mark.parametrize("model", list(COLMAP_CASES))
-def test_reference_model_of_every_supported_model_keeps_its_distortion(scene: Path, tmp_path: Path, model: str):
-    """The reference's own model and coefficients (the truth's), not the input's: the input has the same model with
-    a 10% focal error and no distortion."""
-    params, expected = COLMAP_CASES[model]
-    _set_camera(scene, model, params)
-    truth = input_model(scene)
-    truth_folder = _write_model(truth, tmp_path / "truth")
-    wrong = list(params)
-    wrong[0] *= 1.1
-    first_distortion = {"SIMPLE_RADIAL": 3, "RADIAL": 3, "OPENCV": 4, "FULL_OPENCV": 4, "OPENCV_FISHEYE": 4}
-    first = first_distortion.get(model, len(params))
-    wrong[first:] = [0.0] * (len(params) - first)
-    _set_camera(scene, model, wrong)
-    outputs = parse(scene, reference_model=truth_folder)
-    reference = outputs.metadata["reference_cameras"]
-    torch.testing.assert_close(reference.distortion_params, torch.tensor(expected).expand(8, 6).float())
-    torch.testing.assert_close(outputs.cameras.distortion_params, torch.zeros(8, 6))
-    assert torch.allclose(reference.fx, torch.full_like(reference.fx, float(params[0])), atol=1e-4)
-    assert torch.allclose(outputs.cameras.fx, torch.full_like(reference.fx, 1.1 * params[0]), atol=1e-4)
-    assert torch.equal(reference.camera_type, outputs.cameras.camera_type)
-
-
-def test_reference_model_of_another_projection_is_refused(scene: Path, tmp_path: Path):
-    truth = input_model(scene)
-    camera = truth.cameras[1]
-    camera.model = pycolmap.CameraModelId.OPENCV_FISHEYE
-    camera.params = COLMAP_CASES["OPENCV_FISHEYE"][0]
-    truth_folder = _write_model(truth, tmp_path / "truth")
-    with pytest.raises(ValueError, match=r"camera 1 \(OPENCV_FISHEYE\) is a fisheye camera.*input is perspective"):
-        parse(scene, reference_model=truth_folder)
-
-
-def test_reference_model_missing_image_is_named(scene: Path, tmp_path: Path):
-    truth = input_model(scene)
-    image = next(image for image in truth.images.values() if image.name == "frame_00003.png")
-    image.name = "renamed.png"
-    folder = _write_model(truth, tmp_path / "truth")
-    with pytest.raises(ValueError, match=r"frame_00003\.png.*images\.bin.*1 of 10 images missing"):
-        parse(scene, reference_model=folder)
-    with pytest.raises(FileNotFoundError, match="reference_model"):
-        parse(scene, reference_model=tmp_path / "nowhere")
 
 
 def test_transforms_size_that_disagrees_with_the_images_is_named(generated_scene: Path, tmp_path: Path):

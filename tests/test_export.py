@@ -11,6 +11,7 @@ import pycolmap
 import pytest
 import torch
 import tyro
+from colmap_arrays import reconstruction_to_arrays
 from latents import write_latent
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 
@@ -19,11 +20,7 @@ from s2camp_ns.core.camera import se3_exp
 from s2camp_ns.core.preconditioner import SamplingConfig
 from s2camp_ns.nerfstudio import export_cameras as export
 from s2camp_ns.nerfstudio.camera_conversion import refined_cameras
-from s2camp_ns.nerfstudio.colmap_reconstruction import (
-    cameras_to_reconstruction,
-    export_cameras,
-    reconstruction_to_arrays,
-)
+from s2camp_ns.nerfstudio.colmap_reconstruction import cameras_to_reconstruction, export_cameras
 from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 from s2camp_ns.nerfstudio.export_cameras import ExportCamerasConfig, refined_training_cameras

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 import pytest
+from colmap_arrays import reconstruction_to_arrays
 
-from s2camp_ns.nerfstudio.colmap_reconstruction import cameras_to_reconstruction, reconstruction_to_arrays
+from s2camp_ns.nerfstudio.colmap_reconstruction import cameras_to_reconstruction
 
 
 def _poses(n: int) -> np.ndarray:

@@ -609,12 +609,12 @@ def test_perturbed_cameras_are_tracked_as_the_refiner_models_them(tiny_scene: Pa
 
 
 def test_image_tracks_model_the_physical_cameras_the_refiner_shares(tiny_scene: Path, tmp_path: Path, monkeypatch):
-    """The refiner groups images into physical cameras by the reference model (``camera_ids``); the image tracks'
-    adjustment must model the same cameras, even where the scene's own model groups them otherwise. The reference
-    here is the scene's model with every second image on a second camera of 5% longer focal length; the scene's own
-    model has one camera."""
+    """The refiner groups images into physical cameras by the reference cameras (``camera_ids``); the image tracks'
+    adjustment must model the same cameras, even where the scene's own model groups them otherwise. The reference here
+    (the benchmarks' data parser's ``reference_model``) is the scene's model with every second image on a second camera
+    of 5% longer focal length; the scene's own model has one camera."""
+    from s2camp_ns.benchmarks.data_parser import BenchDataParserConfig
     from s2camp_ns.nerfstudio import track_evidence
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 
     seen = []
 
@@ -639,7 +639,7 @@ def test_image_tracks_model_the_physical_cameras_the_refiner_shares(tiny_scene: 
         fields[8] = "2"
         body[row] = " ".join(fields)
     (reference / "images.txt").write_text("\n".join(header + body) + "\n")
-    config = S2CampDataParserConfig(
+    config = BenchDataParserConfig(
         data=tiny_scene, reference_model=reference, image_tracks="always", image_tracks_cache=tmp_path / "cache"
     )
     outputs = config.setup().get_dataparser_outputs("train")

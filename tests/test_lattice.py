@@ -12,7 +12,6 @@ import torch
 from s2camp_ns.core import lattice
 from s2camp_ns.core.lattice import (
     FrolovParams,
-    fibonacci_lattice,
     frolov_lattice,
     frolov_points,
     halton_points,
@@ -99,16 +98,11 @@ def test_seeded_sets(fn) -> None:
     assert bool(((a >= 0.0) & (a <= 1.0)).all())
 
 
-def test_halton_and_fibonacci() -> None:
+def test_halton_points() -> None:
     h = halton_points(10)
     assert h.shape == (10, 3)
     assert torch.allclose(h[:3, 0], torch.tensor([0.5, 0.25, 0.75], dtype=torch.float64))
     assert torch.allclose(h[:3, 1], torch.tensor([1 / 3, 2 / 3, 1 / 9], dtype=torch.float64))
-    f = fibonacci_lattice(21)
-    assert f.shape == (21, 2)
-    assert bool(((f >= 0.0) & (f < 1.0)).all())
-    golden = (1 + math.sqrt(5)) / 2
-    assert math.isclose(float(f[1, 1]), 1 / golden % 1.0)
 
 
 @pytest.mark.parametrize("kind", ["frolov", "random", "sobol", "halton"])

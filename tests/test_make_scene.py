@@ -120,9 +120,12 @@ def test_pinhole_when_undistorted(tmp_path: Path) -> None:
             observed = image.points2D[element.point2D_idx].xy
             worst = max(worst, float(np.hypot(fx * x / z + cx - observed[0], fy * y / z + cy - observed[1])))
     assert rec.num_points3D() > 0 and worst < 0.5
-    # regenerating into a scene directory replaces it; a foreign non-empty directory is refused
-    make_scene(dataclasses.replace(cfg, num_cameras=3))
+    # regenerating into a scene directory replaces it (telling each image rendered, the command's progress bar); a
+    # foreign non-empty directory is refused
+    told: list[tuple[int, int]] = []
+    make_scene(dataclasses.replace(cfg, num_cameras=3), lambda done, total: told.append((done, total)))
     assert len(list((tmp_path / "s" / "images").iterdir())) == 3
+    assert told == [(1, 3), (2, 3), (3, 3)]
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "notes.txt").write_text("keep me")
     with pytest.raises(ValueError, match="output_dir"):

@@ -26,6 +26,12 @@ def _option(command: list[str], name: str) -> str:
     return command[command.index(name) + 1]
 
 
+def _dataparser_index(command: list[str]) -> int:
+    """Where the data parser's subcommand starts: s2camp-data, or the benchmarks' s2camp-bench-data."""
+    (index,) = [i for i, arg in enumerate(command) if arg in ("s2camp-data", "s2camp-bench-data")]
+    return index
+
+
 @pytest.mark.parametrize("start", ["accurate", "perturbed", "phone", "accurate-untracked"])
 @pytest.mark.parametrize("variant", RUNNABLE_VARIANTS)
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
@@ -60,7 +66,7 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
         "s2camp-pose-exp0.5": {exponent: "0.5"},
     }  # fmt: skip
     assert camera_options == expected_options.get(variant, {})
-    tail = command[command.index("s2camp-data") :]
+    tail = command[_dataparser_index(command) :]
     seed = str(SCENES["near-deep"].perturbation_seed)
     # Every start but sfm trains with tracks made from its images, never the generated scene's exact projections.
     if start in ("accurate", "accurate-untracked"):
@@ -71,12 +77,12 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     else:  # phone: CamP's steps off, the VIO drift on, one draw per run seed (scene seed + run seed 2), own tracks
         phone_seed = str(SCENES["near-deep"].perturbation_seed + 2)
         assert tail == [
-            "s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True", "--perturbation.seed",
+            "s2camp-bench-data", "--downscale-factor", "1", "--perturbation.enabled", "True", "--perturbation.seed",
             phone_seed, "--perturbation.sigma-position", "0.0", "--perturbation.sigma-look-at", "0.0",
             "--perturbation.sigma-dolly-z", "0.0", "--perturbation.sigma-focal-length", "0.0",
-            "--perturbation.drift.enabled", "True", "--perturbation.drift.position-drift", "0.01",
-            "--perturbation.drift.yaw-drift-deg", "1.5", "--perturbation.drift.tilt-deg", "0.3",
-            "--perturbation.drift.focal-error", "0.015", "--image-tracks", "always",
+            "--drift.enabled", "True", "--drift.position-drift", "0.01",
+            "--drift.yaw-drift-deg", "1.5", "--drift.tilt-deg", "0.3",
+            "--drift.focal-error", "0.015", "--image-tracks", "always",
         ]  # fmt: skip
     assert "--save-only-latest-checkpoint" not in command
 
@@ -121,13 +127,38 @@ def test_rows_of_the_two_devices_are_summarized_and_resumed_apart(tmp_path: Path
     assert resume(specs, tmp_path, "cuda") == ([], specs)  # a CPU row is no GPU run
 
 
+def test_phone_and_sfm_commands_parse_to_the_benchmarks_data_parser() -> None:
+    """ns-train's own parse of the two starts that need ``s2camp-bench-data`` (its entry point installed by
+    ``make venv``): the phone start's drift after CamP's steps with CamP's sigmas zero, the sfm start's truth."""
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    from s2camp_ns.benchmarks.data_parser import BenchDataParserConfig
+    from s2camp_ns.benchmarks.phone_drift import DriftConfig
+
+    config = RobustnessConfig(iterations=10)
+    phone = train_command(RunSpec("near-deep", "phone", "s2camp", 1), Path("scene"), Path("runs"), config)
+    sfm = train_command(RunSpec("near-deep", "sfm", "s2camp", 1), Path("sfm"), Path("runs"), config, Path("truth"))
+    parsed = [tyro.cli(AnnotatedBaseConfigUnion, args=command[1:]).pipeline.datamanager.dataparser
+              for command in (phone, sfm)]  # fmt: skip
+    assert all(isinstance(dataparser, BenchDataParserConfig) for dataparser in parsed)
+    perturbation = parsed[0].perturbation
+    assert perturbation.enabled and perturbation.seed == SCENES["near-deep"].perturbation_seed + 1
+    sigmas = (perturbation.sigma_position, perturbation.sigma_look_at, perturbation.sigma_dolly_z,
+              perturbation.sigma_focal_length)  # fmt: skip
+    assert sigmas == (0.0, 0.0, 0.0, 0.0)
+    assert parsed[0].drift == DriftConfig(True, 0.01, 1.5, 0.3, 0.015) and parsed[0].reference_model is None
+    assert parsed[1].reference_model == Path("truth") / "sparse" / "0"
+    assert not parsed[1].perturbation.enabled and not parsed[1].drift.enabled
+
+
 def test_sfm_start_trains_on_the_sfm_scene_against_the_generated_cameras() -> None:
     config = RobustnessConfig(iterations=3000, trace_every=250)
     spec = RunSpec("regime-wide", "sfm", "s2camp", 0)
     command = train_command(spec, Path("sfm-scene"), Path("runs"), config, truth=Path("truth"))
     assert _option(command, "--data") == "sfm-scene"
-    assert command[command.index("s2camp-data") :] == [
-        "s2camp-data", "--downscale-factor", "2", "--reference-model", str(Path("truth") / "sparse" / "0"),
+    assert command[command.index("s2camp-bench-data") :] == [
+        "s2camp-bench-data", "--downscale-factor", "2", "--reference-model", str(Path("truth") / "sparse" / "0"),
     ]  # fmt: skip
     # The trace keeps a checkpoint every 250 steps.
     assert _option(command, "--steps-per-save") == "250"
@@ -319,6 +350,41 @@ def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path:
     assert "### Camera path: regime-wide, sfm start, s2camp, seed 1" in text
     assert "| 250 | 0.5 |" in text and "| 0.25 | 0.25 |" in text
     assert (tmp_path / "regime.png").exists()
+
+
+def test_report_rows_are_sorted_by_scene_start_and_variant_in_the_benchmarks_order(tmp_path: Path) -> None:
+    """Rows arrive in the order runs finished; the report lists them by scene, start and variant as ``SCENES``,
+    ``STARTS`` and the variants are listed (names no longer run last, alphabetically), then by passes; the traced
+    runs by seed."""
+    from s2camp_ns.benchmarks.robustness import TRACE_COLUMNS, report
+
+    extra = {"train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
+    finished = [
+        ("regime-wide", "sfm", "s2camp"), ("regime-wide", "perturbed", "tracks"), ("regime-wide", "sfm", "off"),
+        ("regime-wide-full", "perturbed", "off"), ("regime-wide", "accurate", "s2camp-zz-old"),
+        ("regime-wide", "accurate", "s2camp"), ("regime-wide", "perturbed", "off"), ("regime-wide", "accurate", "off"),
+        ("regime-wide", "accurate", "s2camp-aa-old"),
+    ]  # fmt: skip
+    rows = [_row(start, variant, 0, 20.0, 0.1, 0.1) | extra | {"scene": scene} for scene, start, variant in finished]
+    rows.append(_row("perturbed", "off", 0, 20.0, 0.1, 0.1) | extra | {"scene": "regime-wide", "passes": 0.5})
+    for seed in (2, 1):
+        trace = [dict.fromkeys(TRACE_COLUMNS, 0.5)]
+        rows.append(_row("sfm", "s2camp", seed, 20.0, 0.1, 0.1) | extra | {"scene": "regime-wide", "trace": trace})
+    listed = [(e["scene"], e["start"], e["variant"], e["passes_key"]) for e in summarize(rows)]
+    assert listed == [
+        ("regime-wide", "accurate", "off", "1.5"), ("regime-wide", "accurate", "s2camp", "1.5"),
+        ("regime-wide", "accurate", "s2camp-aa-old", "1.5"), ("regime-wide", "accurate", "s2camp-zz-old", "1.5"),
+        ("regime-wide", "perturbed", "off", "0.5"), ("regime-wide", "perturbed", "off", "1.5"),
+        ("regime-wide", "perturbed", "tracks", "1.5"), ("regime-wide", "sfm", "off", "1.5"),
+        ("regime-wide", "sfm", "s2camp", "1.5"), ("regime-wide-full", "perturbed", "off", "1.5"),
+    ]  # fmt: skip
+    text = report(rows, RobustnessConfig(preset="regime", output_dir=tmp_path)).read_text()
+    table = [line.split(" | ")[:3] for line in text.splitlines() if line.startswith("| regime-wide")]
+    order = [(scene.lstrip("| "), start, variant) for scene, start, variant in table if start != "56"]
+    # The results, then the rows of names no longer run.
+    old = [("regime-wide", "accurate", "s2camp-aa-old"), ("regime-wide", "accurate", "s2camp-zz-old")]
+    assert order == [entry[:3] for entry in listed if "old" not in entry[2]] + old
+    assert text.index("seed 1") < text.index("seed 2")  # the camera paths by seed
 
 
 def test_report_lists_rows_of_variants_and_starts_that_no_longer_run_apart(tmp_path: Path) -> None:

@@ -74,7 +74,9 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
         assert _option(command, "--optimizers.camera-opt.scheduler.min-warmup-steps") == "75"  # 2500 x 0.03
     else:  # no camera refinement
         assert camera_schedule == []
-    tail = command[command.index("s2camp-data") :]
+    subcommand = "s2camp-bench-data" if start == "sfm" else "s2camp-data"  # the benchmarks' parser: true cameras
+    assert [arg for arg in command if arg.startswith("s2camp-") and arg.endswith("-data")] == [subcommand]
+    tail = command[command.index(subcommand) :]
     assert _option(tail, "--downscale-factor") == "4"  # images_4: 64x48
     assert ("--perturbation.enabled" in tail) == (start == "perturbed")
     if start == "perturbed":
@@ -182,6 +184,18 @@ def test_summary_gives_removed_fractions_changes_psnr_differences_and_time_ratio
     accurate = summary[("accurate", "s2camp-splat")]
     assert math.isnan(accurate["removed_rot_err"]) and accurate["change_rot_err"] == pytest.approx(0.2)
     assert math.isnan(accurate["time_ratio"]) and math.isnan(accurate["psnr_vs_so3xr3"])  # no baseline run
+
+
+def test_summary_is_sorted_by_scene_start_and_variant_in_the_benchmarks_order() -> None:
+    finished = [
+        ("sfm", "s2camp-splat"), ("accurate", "splat-off"), ("perturbed", "s2camp-splat"), ("accurate", "s2camp-splat"),
+        ("perturbed", "splat-off"), ("accurate", "s2camp-splat-so3xr3"),
+    ]  # fmt: skip
+    listed = [(e["start"], e["variant"]) for e in summarize([_row(start, variant, 0) for start, variant in finished])]
+    assert listed == [
+        ("accurate", "splat-off"), ("accurate", "s2camp-splat-so3xr3"), ("accurate", "s2camp-splat"),
+        ("perturbed", "splat-off"), ("perturbed", "s2camp-splat"), ("sfm", "s2camp-splat"),
+    ]  # fmt: skip
 
 
 def test_time_ratios_compare_seconds_of_one_invocation_only() -> None:

@@ -18,6 +18,7 @@ from s2camp_ns.nerfstudio.test_time_alignment import (
     HeldOutView,
     align_and_evaluate,
     align_and_evaluate_views,
+    alignment_work,
     frame_similarity,
     map_camera,
 )
@@ -156,6 +157,23 @@ def test_views_aligned_together_follow_the_same_steps_as_alone():
     assert [v.psnr for v in one_at_a_time] == pytest.approx([v.psnr for v in together], abs=1e-6)
 
 
+@pytest.mark.parametrize(("views_per_batch", "steps"), [(8, 20), (1, 20), (2, 0)])
+def test_progress_counts_every_render_and_step_up_to_the_announced_total(views_per_batch: int, steps: int):
+    """What s2camp-eval's bar shows: one unit per full render (before and after, each view) and per step of a batch,
+    told in order and ending at the total announced from the start."""
+    field = AnalyticField()
+    truth = _c2w_gl()
+    image = _true_image(field, truth)
+    views = [HeldOutView(image, truth, _intrinsics(), index) for index in range(3)]
+    config = AlignmentConfig(steps=steps, rays=32, views_per_batch=views_per_batch)
+    told: list[tuple[int, int]] = []
+    align_and_evaluate_views(field, views, config, lambda done, total: told.append((done, total)))
+    batches = -(-3 // views_per_batch)
+    total = 2 * 3 + batches * steps
+    assert alignment_work(3, config) == total
+    assert told == [(done, total) for done in range(1, total + 1)]
+
+
 def test_zero_steps_evaluates_the_mapped_camera_as_is():
     field = AnalyticField()
     image = _true_image(field, _c2w_gl())
@@ -206,7 +224,7 @@ def test_held_out_cameras_are_the_evaluation_reference_when_given(monkeypatch, w
     reference = _cameras(torch.tensor([[0.6, 0.4, 0.5], [0.1, 0.3, 0.5]]), FOCAL + 2.0)
     metadata = {"reference_cameras": reference} if with_reference else {}
     pipeline = SimpleNamespace(model=model, datamanager=SimpleNamespace(eval_dataset=_EvalDataset(given, metadata)))
-    monkeypatch.setattr(module, "align_and_evaluate_views", lambda model, views, config: views)
+    monkeypatch.setattr(module, "align_and_evaluate_views", lambda model, views, config, progress: views)
     views = module.evaluate_held_out_views(pipeline, AlignmentConfig())
     expected = reference if with_reference else given
     for index, view in enumerate(views):

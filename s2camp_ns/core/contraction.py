@@ -1,10 +1,10 @@
-"""mip-NeRF 360 scene contraction about the camera centre (paper eq. 10) and its closed-form inverse.
+"""mip-NeRF 360 scene contraction about the camera centre (paper eq. 10) and its closed-form inverse on radii.
 
 The contraction maps Euclidean camera-frame points into the ball of radius 2 and keeps directions:
 ``|x| <= 1`` is left alone, ``|x| > 1`` goes to radius ``2 - 1/|x|``. The inverse on radii is
 ``t -> t`` for ``t <= 1`` and ``t -> 1 / (2 - t)`` for ``1 < t < 2``; ``t >= 2`` is the point at infinity and
-is rejected. All functions work on any leading batch shape, keep the input dtype and device, and are exact
-inverses of each other up to rounding.
+is rejected. All functions work on any leading batch shape and keep the input dtype and device; the two radial maps
+are exact inverses of each other up to rounding.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from torch import Tensor
 
 from s2camp_ns.core.validation import check_finite, check_range
 
-__all__ = ["contract", "contract_radius", "uncontract", "uncontract_radius"]
+__all__ = ["contract", "contract_radius", "uncontract_radius"]
 
 
 def contract_radius(radius: Float[Tensor, "*batch"]) -> Float[Tensor, "*batch"]:
@@ -47,14 +47,4 @@ def contract(points: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
     # Scaling by s(r)/r keeps the direction; for r <= 1 the factor is exactly 1 (no rounding of near points).
     far = radius.clamp_min(1.0)
     factor = torch.where(radius <= 1.0, torch.ones_like(radius), (2.0 - 1.0 / far) / far)
-    return points * factor
-
-
-def uncontract(points: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
-    """Closed-form inverse of :func:`contract` (paper eq. 10); raises for points with radius >= 2."""
-    check_finite("points", points)
-    radius = _norm(points)
-    check_range("contracted radius |points|", radius, low=0.0, high=2.0, high_inclusive=False)
-    far = radius.clamp_min(1.0)
-    factor = torch.where(radius <= 1.0, torch.ones_like(radius), 1.0 / ((2.0 - far) * far))
     return points * factor

@@ -65,13 +65,10 @@ __all__ = [
     "Radial",
     "Transform",
     "directions_from_unit",
-    "frustum_to_unit",
     "map_unit_to_frustum",
     "radius_from_unit",
     "radius_per_camera",
     "sample_frustum",
-    "unit_from_directions",
-    "unit_from_radius",
     "validate_frustum",
 ]
 
@@ -150,14 +147,6 @@ def radius_from_unit(u1: Tensor, t_near: float, t_far: float, radial: str = "vol
     return cube.clamp_min(0.0).pow(1.0 / 3.0)
 
 
-def unit_from_radius(radius: Tensor, t_near: float, t_far: float, radial: str = "volume") -> Tensor:
-    """Radial CDF: ``F_r(r) = (r^3 - t0^3) / (t1^3 - t0^3)`` (paper eq. 11, ``"volume"``) or
-    ``(r - t0) / (t1 - t0)`` (``"ray"``)."""
-    if radial == "ray":
-        return (radius - t_near) / (t_far - t_near)
-    return (radius**3 - t_near**3) / (t_far**3 - t_near**3)
-
-
 def _column(bounds: Tensor, index: int, like: Tensor) -> Tensor:
     """Bound ``index`` of each camera, shaped to broadcast against ``like`` of shape [N, ...]."""
     return bounds[:, index].reshape((-1,) + (1,) * (like.ndim - 1))
@@ -214,30 +203,6 @@ def directions_from_unit(
     return direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True)
 
 
-def unit_from_directions(
-    directions: Float[Tensor, "*batch 3"], bounds: Float[Tensor, "n 4"], transform: str
-) -> tuple[Float[Tensor, "*batch"], Float[Tensor, "*batch"]]:
-    """Forward angular CDFs ``(u_vertical, u_horizontal)`` of directions (paper eq. 11); inverse of the above."""
-    x, y, z = directions.unbind(-1)
-    a0, a1 = _column(bounds, 0, x), _column(bounds, 1, x)
-    b0, b1 = _column(bounds, 2, x), _column(bounds, 3, x)
-    if transform == "pixel":
-        return (y / z - b0) / (b1 - b0), (x / z - a0) / (a1 - a0)
-    if transform == "spherical":
-        az = torch.atan2(x, z)
-        sin_el = y / torch.linalg.vector_norm(directions, dim=-1)
-        sin_e0, sin_e1 = b0 / torch.sqrt(1.0 + b0 * b0), b1 / torch.sqrt(1.0 + b1 * b1)
-        u_h = (az - torch.atan(a0)) / (torch.atan(a1) - torch.atan(a0))
-        return (sin_el - sin_e0) / (sin_e1 - sin_e0), u_h
-    a, b = x / z, y / z
-    s0, s1 = b0 / torch.sqrt(1.0 + b0 * b0), b1 / torch.sqrt(1.0 + b1 * b1)
-    c_lo, c_hi = _pyramid_strip(a0, s0, s1), _pyramid_strip(a1, s0, s1)
-    u_h = (_pyramid_strip(a, s0, s1) - c_lo) / (c_hi - c_lo)
-    rho = 1.0 + a * a
-    h0, h1 = b0 / torch.sqrt(rho + b0 * b0), b1 / torch.sqrt(rho + b1 * b1)
-    return (b / torch.sqrt(rho + b * b) - h0) / (h1 - h0), u_h
-
-
 def _as_batched_unit(unit_points: Tensor, num_cameras: int, device: torch.device) -> Tensor:
     if not isinstance(unit_points, Tensor) or unit_points.ndim not in (2, 3) or unit_points.shape[-1] != 3:
         shape = tuple(unit_points.shape) if isinstance(unit_points, Tensor) else type(unit_points).__name__
@@ -279,25 +244,6 @@ def map_unit_to_frustum(
         unit_points = unit_points.expand(bounds.shape[0], -1, -1)
     directions = directions_from_unit(unit_points[..., 1], unit_points[..., 2], bounds, transform)
     return radius.unsqueeze(-1) * directions
-
-
-def frustum_to_unit(
-    contracted: Float[Tensor, "n l 3"],
-    tangent_bounds: Float[Tensor, "n 4"],
-    t_near: float,
-    t_far: float,
-    transform: Transform = "pyramid",
-    radial: Radial = "volume",
-) -> Float[Tensor, "n l 3"]:
-    """Forward CDF ``F(p)`` of contracted frustum points (paper eqs. 6, 11): the inverse of :func:`sample_frustum`.
-
-    Points outside the frustum get coordinates outside ``[0, 1]``; use this to test membership.
-    """
-    bounds = validate_frustum(tangent_bounds, t_near, t_far, transform, radial)
-    points = contracted.to(device=bounds.device, dtype=torch.float64)
-    radius = torch.linalg.vector_norm(points, dim=-1)
-    u_v, u_h = unit_from_directions(points, bounds, transform)
-    return torch.stack([unit_from_radius(radius, t_near, t_far, radial), u_v, u_h], dim=-1)
 
 
 def sample_frustum(

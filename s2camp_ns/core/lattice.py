@@ -31,15 +31,11 @@ Parameter choice
     the Gram matrix (paper eq. 5), so candidates are ranked first by their worst relative Gram error on two *search
     cameras* (40 degrees 4:3 and 75 degrees 16:9, off-centre principal points; pyramid transform, contracted radius
     in ``[0.4, 1.99]``); among those within a factor 1.5 of the best, the lowest worst dispersion / body-centred-cubic
-    covering ratio wins. The search cameras are deliberately not the benchmark frusta ("room", "wide"), so the
-    benchmarks measure the lattice on cameras it was not tuned on. The choice matters: the Gram error varies widely
-    over the candidates, and a lattice chosen for dispersion alone integrates worse than scrambled Sobol points
-    (measured in docs/DESIGN-NOTES.md sec. 2, "Integration accuracy is the criterion"). At run time this module only
-    looks the parameters up in ``_TABLE``; a size without an entry takes the entry of the nearest tabulated size
-    (``table_params``), so no search ever runs when training starts and this module imports nothing above
-    ``validation``.
+    covering ratio wins: the points integrate first, cover second. At run time this module only looks the parameters up
+    in ``_TABLE``; a size without an entry takes the entry of the nearest tabulated size (``table_params``), so no
+    search ever runs when training starts and this module imports nothing above ``validation``.
 
-Also here: a 2-D Fibonacci lattice, seeded uniform random points, scrambled Sobol points and Halton points.
+Also here: seeded uniform random points, scrambled Sobol points and Halton points.
 """
 
 from __future__ import annotations
@@ -59,7 +55,6 @@ __all__ = [
     "FrolovParams",
     "PointSetKind",
     "halton_sequence",
-    "fibonacci_lattice",
     "frolov_lattice",
     "frolov_points",
     "halton_points",
@@ -219,15 +214,6 @@ def frolov_lattice(num_points: int) -> Float[Tensor, "l 3"]:
     """Exactly ``num_points`` Frolov-lattice points in ``[0, 1]^3``, float64, bit-identical across calls."""
     check_positive_int("num_points", num_points)
     return _frolov_cached(num_points).clone()
-
-
-def fibonacci_lattice(num_points: int) -> Float[Tensor, "l 2"]:
-    """2-D Fibonacci lattice ``((i + 1/2) / L, frac(i / phi))``, the 2-D special case of a Frolov lattice
-    (generator polynomial ``x^2 - x - 1``)."""
-    check_positive_int("num_points", num_points)
-    index = torch.arange(num_points, dtype=torch.float64)
-    golden = (1.0 + math.sqrt(5.0)) / 2.0
-    return torch.stack([(index + 0.5) / num_points, torch.frac(index / golden)], dim=1)
 
 
 def random_points(num_points: int, seed: int = 0) -> Float[Tensor, "l 3"]:

@@ -17,102 +17,28 @@ already normalized (centred and scaled), in this order, with one seeded random s
 The sigmas are in the units of the normalized scene, so perturb after the data parser's normalization.
 Cameras here use the OpenCV convention (x right, y down, z forward), like the rest of ``s2camp_ns.core``.
 
-Visual-inertial drift (``PerturbationConfig.drift``, off by default): the errors of visual-inertial odometry (VIO)
-poses, such as the ARKit / ARCore poses that phone capture apps (Polycam, Record3D) export. VIO observes roll and
-pitch through gravity, and leaves global position and yaw (rotation about gravity) unobservable: the four
-unobservable directions of vision-aided inertial navigation (Hesch, Kottas, Bowman and Roumeliotis, "Consistency
-analysis and improvement of vision-aided inertial navigation", IEEE T-RO 2014). So position and yaw errors accumulate
-along the capture while roll and pitch stay small. The model, for cameras k = 0 .. N-1 in capture order (the order
-given; the generated ring scenes are captured in image order), with OpenCV camera-to-world poses [R_k | c_k] and the
-world's unit up vector u (``DriftConfig.up``):
-
-- position: a random walk from the first camera, e_0 = 0, e_k = e_{k-1} + sigma_p w_k with w_k ~ N(0, I_3), so
-  E|e_k|^2 = 3 k sigma_p^2. sigma_p = position_drift L / sqrt(3 (N - 1)), L = sum_k |c_k - c_{k-1}| the distance the
-  given cameras travel, makes the RMS error position_drift L sqrt(k / (N - 1)): zero at the first camera,
-  position_drift L at the last. The walk is the integral of a stationary velocity error (VIO observes velocity, not
-  position); isotropic (an assumption: no separate vertical size);
-- yaw: a random walk psi_0 = 0, psi_k = psi_{k-1} + sigma_psi n_k, n_k ~ N(0, 1), sigma_psi = yaw_drift / sqrt(N - 1):
-  RMS yaw_drift sqrt(k / (N - 1)), a rotation about u through the camera centre;
-- roll and pitch: independent per camera, uniform in [-tilt, tilt] each (bounded; RMS tilt / sqrt(3)): pitch about the
-  camera's horizontal right axis h1 = h2 x u, roll about its horizontal forward axis h2 (the optical axis z projected
-  on the plane normal to u, normalized; a camera looking along u uses h1 = its x projected, h2 = u x h1). Positive
-  pitch raises the optical axis; positive roll lowers the image's right side. Both axes lie in the plane normal to
-  u, so the tilt moves the camera's gravity direction by sqrt(pitch^2 + roll^2) and nothing else does;
-- R_k' = Exp(psi_k u) Exp(pitch_k h1_k + roll_k h2_k) R_k and c_k' = c_k + e_k (Exp: the rotation of a rotation
-  vector; the yaw leaves the centre in place);
-- focal length: one factor exp(n_f log1p(focal_error)), n_f ~ N(0, 1), for every image (one phone camera, one
-  factory calibration), none per image.
-
-The drift is applied after CamP's steps (to their output) and draws from the same seeded stream after all of CamP's
-draws, in this order: w (N - 1 rows of 3), n (N - 1), the tilts (N rows of pitch, roll), n_f. CamP's draws, and so
-its result, are the same whether the drift is on or off; with the drift off its code does not run. For the drift
-alone, set CamP's four sigmas to zero (its steps then return the cameras to rounding). Default sizes and where they
-come from: ``DriftConfig``.
+Runs saved by earlier versions name a ``DriftConfig`` of this module in their config.yml (a visual-inertial drift
+these cameras could be given then): it loads as ``RemovedConfig``, and a saved drift that was on is refused by
+``PerturbationConfig.validate`` rather than silently left out.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.core.camera import se3_exp
-from s2camp_ns.core.config_defaults import DefaultsOnLoad
+from s2camp_ns.core.config_defaults import DefaultsOnLoad, RemovedConfig
 from s2camp_ns.core.validation import check_finite, check_range
 
 
 @dataclass
-class DriftConfig(DefaultsOnLoad):
-    """Visual-inertial odometry drift (module docstring); off by default. Sizes are RMS values at the last camera,
-    except ``tilt_deg`` (a bound) and ``focal_error`` (a log-normal sigma). The defaults stand for a phone's ARKit /
-    ARCore poses; what each rests on is stated with it: measured figures are named as such, the rest are assumptions.
-    """
-
-    enabled: bool = False
-    """Add the drift to the perturbed cameras (with ``perturbation.enabled``; after CamP's steps)."""
-    position_drift: float = 0.01
-    """RMS position error at the last camera as a fraction of the distance the cameras travel (the sum of the
-    distances between consecutive camera centres, in capture order). Figures checked: about 17 m per 120 m (14%) for
-    ARKit, ARCore and HoloLens walked through a 1,600 m^2 dynamic industrial hall (Feigl et al., "Localization
-    Limitations of ARCore, ARKit, and Hololens in Dynamic Large-scale Industry Environments", VISIGRAPP 2020); about
-    0.5 m (ARCore, 2.6%) and 1.5 m (ARKit, 8%) after a 19.1 m corridor walk, in a single blog test (Zhongyu Wang,
-    "Drifting Error Comparision of ARCore and ARKit Visual Odometry", Medium, 2020). Both are long walks through hard
-    scenes; 1% for one loop around a textured object is an ASSUMPTION, at the favourable end of those figures."""
-    yaw_drift_deg: float = 1.5
-    """RMS yaw error (degrees, about ``up``) at the last camera. Figure checked: in the same blog test the heading was
-    about 0.06 rad (ARCore) and 0.15 rad (ARKit) off after three and a half turns in place, about 1 and 2.5 degrees per
-    turn; a ring capture turns once. 1.5 degrees between the two is an ASSUMPTION (that the per-turn figure holds for
-    a walk around an object)."""
-    tilt_deg: float = 0.3
-    """Bound (degrees) of each camera's roll and pitch errors, each uniform in [-tilt_deg, tilt_deg]. Derivation: an
-    accelerometer bias b tilts the gravity a VIO estimates by atan(b / g), 0.057 degrees per mg; 0.3 degrees is a
-    residual bias of about 5 mg after VIO's online bias estimation, an ASSUMPTION (not measured here)."""
-    focal_error: float = 0.015
-    """Relative size of the one focal error shared by all images: focal scales by exp(N(0,1) log1p(focal_error)).
-    Derivation: a phone's autofocus moves its lens, so the principal distance f u / (u - f) ~ f (1 + f / u) of a
-    lens of focal f focused at distance u differs from a calibration at infinity by f / u: 0.9% to 1.4% for a 4.3 mm
-    phone lens focused at 0.5 m to 0.3 m. 1.5% (factory tolerance on top) is an ASSUMPTION of that order."""
-    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    """World up (gravity opposite), normalized before use. +z is up in the frame the S2CamP data parser perturbs in:
-    nerfstudio's ``orientation_method`` "up" turns the cameras' mean up vector to +z, and ``perturb_nerfstudio_cameras``
-    converts the camera axes only (OpenGL to OpenCV), not the world."""
-
-    def validate(self) -> None:
-        check_range("perturbation.drift.position_drift", self.position_drift, low=0.0, high=1.0)
-        check_range("perturbation.drift.yaw_drift_deg", self.yaw_drift_deg, low=0.0, high=180.0)
-        check_range("perturbation.drift.tilt_deg", self.tilt_deg, low=0.0, high=10.0)
-        check_range("perturbation.drift.focal_error", self.focal_error, low=0.0, high=0.5)
-        up = tuple(self.up)
-        if len(up) != 3 or not all(math.isfinite(float(v)) for v in up) or math.hypot(*map(float, up)) < 1e-9:
-            raise ValueError(f"perturbation.drift.up must be 3 finite numbers of norm > 0, got {self.up!r}")
-
-
-@dataclass
 class PerturbationConfig(DefaultsOnLoad):
-    """CamP's camera perturbation; the defaults are its ``camera_optim_perturbed`` setting."""
+    """CamP's camera perturbation (one dolly shared by all cameras, distortion zeroed); the defaults are its
+    ``camera_optim_perturbed`` setting."""
 
     enabled: bool = False
     """Perturb the training cameras (an evaluation protocol; off for normal training)."""
@@ -125,21 +51,20 @@ class PerturbationConfig(DefaultsOnLoad):
     exp(N(0,1) log1p(sigma))."""
     sigma_focal_length: float = 0.02
     """Relative strength of the per-camera focal length change: focal scales by exp(N(0,1) log1p(sigma))."""
-    single_dolly: bool = True
-    """One dolly scale shared by all cameras (CamP's default) rather than one per camera."""
-    zero_distortion: bool = True
-    """Set the radial distortion of the perturbed cameras to zero (part of CamP's protocol)."""
     seed: int = 0
     """Seed of the random stream; the same seed and cameras give the same perturbation."""
-    drift: DriftConfig = field(default_factory=DriftConfig)
-    """Visual-inertial odometry drift added after CamP's steps (module docstring; off by default)."""
 
     def validate(self) -> None:
         for name in ("sigma_look_at", "sigma_position", "sigma_dolly_z", "sigma_focal_length"):
             check_range(f"perturbation.{name}", getattr(self, name), low=0.0)
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"perturbation.seed must be an integer in [0, inf), got {self.seed!r}")
-        self.drift.validate()
+        if getattr(self.__dict__.get("drift"), "enabled", False):
+            raise ValueError(
+                "perturbation.drift: this run's config.yml turns on a visual-inertial drift of the cameras, which "
+                "this version's s2camp-data no longer applies (s2camp-bench-data does, as --drift); load the run "
+                "with the version that trained it"
+            )
 
 
 @dataclass
@@ -152,9 +77,9 @@ class PerturbedCameras:
     """Perturbed focal lengths (pixels)."""
     fy: Float[Tensor, " n"]
     focal_scale: Float[Tensor, " n"]
-    """Total factor applied to both focal lengths (dolly times focal perturbation, times the drift's shared factor)."""
+    """Total factor applied to both focal lengths (dolly times focal perturbation)."""
     dolly_scale: Float[Tensor, " n"]
-    """Factor applied to the world-to-camera z translation (the same for all cameras with ``single_dolly``)."""
+    """Factor applied to the world-to-camera z translation (one value shared by all cameras)."""
 
 
 def _unit_vectors(n: int, generator: torch.Generator) -> Tensor:
@@ -189,12 +114,14 @@ def perturb_cameras(
     fy: Float[Tensor, " n"] | None = None,
     config: PerturbationConfig | None = None,
     seed: int | None = None,
+    generator: torch.Generator | None = None,
 ) -> PerturbedCameras:
-    """Perturb OpenCV cameras with CamP's protocol, then the drift if ``config.drift.enabled`` (module docstring);
-    ``config.enabled`` is not consulted here. Cameras are taken in capture order (the drift grows along it).
+    """Perturb OpenCV cameras with CamP's protocol (module docstring); ``config.enabled`` is not consulted here.
 
-    ``seed`` overrides ``config.seed``. Works in float64 on the CPU so that the random stream, and hence the
-    perturbation, is the same on every machine; the result is moved back to the input device.
+    ``seed`` overrides ``config.seed``. ``generator``: the CPU random stream to draw from instead of a new one seeded
+    with the seed (a caller that draws more after CamP's steps passes its own). Works in float64 on the CPU so that
+    the random stream, and hence the perturbation, is the same on every machine; the result is moved back to the
+    input device.
     """
     config = config or PerturbationConfig()
     config.validate()
@@ -212,14 +139,15 @@ def perturb_cameras(
     c2w = c2w.detach().to(device="cpu", dtype=torch.float64)
     fx = fx.detach().to(device="cpu", dtype=torch.float64)
     fy = fy.detach().to(device="cpu", dtype=torch.float64)
-    generator = torch.Generator(device="cpu").manual_seed(int(seed))
+    if generator is None:
+        generator = torch.Generator(device="cpu").manual_seed(int(seed))
 
     rotation, centre = c2w[:, :, :3], c2w[:, :, 3]
     # World-to-camera translation t = -R^T c: its z is the depth of the world origin in front of the camera.
     translation = -torch.einsum("nji,nj->ni", rotation, centre)
 
     # 1. Dolly zoom (always draw, so the later draws do not depend on whether it is enabled).
-    dolly_draw = torch.randn(1 if config.single_dolly else n, dtype=torch.float64, generator=generator)
+    dolly_draw = torch.randn(1, dtype=torch.float64, generator=generator)
     dolly_scale = torch.exp(dolly_draw * math.log1p(config.sigma_dolly_z)).expand(n).clone()
     translation = translation.clone()
     translation[:, 2] = translation[:, 2] * dolly_scale
@@ -244,12 +172,6 @@ def perturb_cameras(
     up = -rotation[:, :, 1]  # OpenCV y points down in the image
     new_rotation = look_at_rotation(new_centre, look_at, up)
 
-    if config.drift.enabled:  # after every CamP draw: CamP's result does not depend on the drift
-        new_rotation, new_centre, drift_focal = _vio_drift(
-            new_rotation, new_centre, c2w[:, :, 3], config.drift, generator
-        )
-        focal_scale = focal_scale * drift_focal
-
     new_c2w = torch.cat([new_rotation, new_centre[:, :, None]], dim=-1)
     return PerturbedCameras(
         c2w=new_c2w.to(device),
@@ -260,59 +182,8 @@ def perturb_cameras(
     )
 
 
-def _rotation_exp(omega: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3 3"]:
-    """Rotation matrices of rotation vectors (exactly the identity for a zero vector)."""
-    return se3_exp(torch.cat([torch.zeros_like(omega), omega], dim=-1))[:, :, :3]
-
-
-def _horizontal_axes(rotation: Float[Tensor, "n 3 3"], up: Float[Tensor, " 3"]) -> tuple[Tensor, Tensor]:
-    """Each camera's horizontal right h1 and horizontal forward h2 axes, unit vectors normal to ``up`` with
-    h1 = h2 x up: h2 is the optical axis projected on the horizontal plane; a camera looking along ``up`` takes h1
-    from its x axis instead (module docstring). Shapes [N, 3]."""
-    forward, right = rotation[:, :, 2], rotation[:, :, 0]
-    forward_h = forward - (forward @ up)[:, None] * up  # [n, 3]
-    right_h = right - (right @ up)[:, None] * up  # [n, 3]
-    forward_norm = torch.linalg.norm(forward_h, dim=-1, keepdim=True)
-    along_up = forward_norm < 1e-9  # [n, 1]
-    h2_forward = forward_h / forward_norm.clamp_min(1e-300)
-    h1_right = right_h / torch.linalg.norm(right_h, dim=-1, keepdim=True).clamp_min(1e-300)
-    up_n = up.expand_as(forward)
-    h1 = torch.where(along_up, h1_right, torch.linalg.cross(h2_forward, up_n, dim=-1))
-    h2 = torch.where(along_up, torch.linalg.cross(up_n, h1_right, dim=-1), h2_forward)
-    return h1, h2
-
-
-def _vio_drift(
-    rotation: Float[Tensor, "n 3 3"],
-    centre: Float[Tensor, "n 3"],
-    given_centre: Float[Tensor, "n 3"],
-    config: DriftConfig,
-    generator: torch.Generator,
-) -> tuple[Float[Tensor, "n 3 3"], Float[Tensor, "n 3"], Float[Tensor, " n"]]:
-    """The visual-inertial drift of the module docstring applied to float64 CPU cameras [rotation | centre], in
-    capture order; ``given_centre`` (the cameras before any perturbation) sets the distance travelled L. Returns the
-    new rotations, centres and the shared focal factor (repeated per camera). Draws in the documented order."""
-    n = rotation.shape[0]
-    steps = max(n - 1, 1)  # no step for a single camera: its drift is zero
-    up = torch.tensor(config.up, dtype=torch.float64)
-    up = up / torch.linalg.norm(up)
-    travelled = torch.linalg.norm(given_centre[1:] - given_centre[:-1], dim=-1).sum()  # L, scalar
-
-    sigma_position = config.position_drift * travelled / math.sqrt(3 * steps)
-    position_steps = torch.randn(n - 1, 3, dtype=torch.float64, generator=generator)  # w_k, [n - 1, 3]
-    position_error = torch.cat([centre.new_zeros(1, 3), torch.cumsum(sigma_position * position_steps, dim=0)])
-
-    sigma_yaw = math.radians(config.yaw_drift_deg) / math.sqrt(steps)
-    yaw_steps = torch.randn(n - 1, dtype=torch.float64, generator=generator)  # n_k, [n - 1]
-    yaw = torch.cat([centre.new_zeros(1), torch.cumsum(sigma_yaw * yaw_steps, dim=0)])  # psi_k, [n]
-
-    tilt_draw = torch.rand(n, 2, dtype=torch.float64, generator=generator)  # [n, 2]: pitch, roll in [0, 1)
-    tilt = math.radians(config.tilt_deg) * (2.0 * tilt_draw - 1.0)  # [n, 2] in [-tilt, tilt)
-    h1, h2 = _horizontal_axes(rotation, up)
-    tilt_vector = tilt[:, :1] * h1 + tilt[:, 1:] * h2  # [n, 3], normal to up
-
-    focal_draw = torch.randn(1, dtype=torch.float64, generator=generator)
-    focal = torch.exp(focal_draw * math.log1p(config.focal_error)).expand(n).clone()  # [n], one value
-
-    new_rotation = _rotation_exp(yaw[:, None] * up) @ _rotation_exp(tilt_vector) @ rotation
-    return new_rotation, centre + position_error, focal
+def __getattr__(name: str) -> type:
+    """``DriftConfig``, the name runs saved by earlier versions give their drift's config: ``RemovedConfig``."""
+    if name == "DriftConfig":
+        return RemovedConfig
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -2,17 +2,25 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from s2camp_ns.core.camera import opengl_to_opencv
-from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
+from s2camp_ns.core.perturbation import PerturbationConfig, PerturbedCameras, perturb_cameras
 from s2camp_ns.nerfstudio.camera_conversion import SUPPORTED_CAMERA_TYPES
 from s2camp_ns.nerfstudio.camera_fields import replace_cameras
 
+Perturb = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, PerturbationConfig], PerturbedCameras]
+"""A perturbation of OpenCV cameras: (c2w [N, 3, 4], fx [N], fy [N], config) -> ``PerturbedCameras`` (float64)."""
 
-def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> Cameras:
-    """Apply the CamP perturbation to nerfstudio (OpenGL) cameras; zero their distortion if configured.
+
+def perturb_nerfstudio_cameras(
+    cameras: Cameras, config: PerturbationConfig, perturb: Perturb = perturb_cameras
+) -> Cameras:
+    """Apply the CamP perturbation (or ``perturb``, which draws from the same protocol's config) to nerfstudio
+    (OpenGL) cameras and zero their distortion.
 
     Perspective and fisheye cameras: the protocol draws poses and focal lengths only, which both projections share
     (a fisheye's focal scales its image-space angle as a pinhole's scales its tangent); zeroed distortion leaves a
@@ -23,18 +31,16 @@ def perturb_nerfstudio_cameras(cameras: Cameras, config: PerturbationConfig) -> 
         names = ", ".join(CameraType(t).name for t in unsupported)
         raise ValueError(f"the camera perturbation supports PERSPECTIVE and FISHEYE cameras, got {names}")
     c2w = opengl_to_opencv(cameras.camera_to_worlds.double())
-    out = perturb_cameras(c2w, cameras.fx[:, 0].double(), cameras.fy[:, 0].double(), config)
+    out = perturb(c2w, cameras.fx[:, 0].double(), cameras.fy[:, 0].double(), config)
     dtype = cameras.camera_to_worlds.dtype
     distortion = cameras.distortion_params
-    if config.zero_distortion and distortion is not None:
-        distortion = torch.zeros_like(distortion)
     return replace_cameras(
         cameras,
         camera_to_worlds=opengl_to_opencv(out.c2w).to(dtype),
         fx=out.fx[:, None].to(cameras.fx.dtype),
         fy=out.fy[:, None].to(cameras.fy.dtype),
-        distortion_params=distortion,
+        distortion_params=None if distortion is None else torch.zeros_like(distortion),
     )
 
 
-__all__ = ["perturb_nerfstudio_cameras"]
+__all__ = ["Perturb", "perturb_nerfstudio_cameras"]

@@ -1,6 +1,6 @@
 """nerfstudio cameras to and from a COLMAP reconstruction (pycolmap): the model ``s2camp-export-cameras`` writes
 (``export_cameras``: nerfstudio's normalization undone, the camera axes flipped from OpenGL to OpenCV, one COLMAP
-camera per physical camera or per image), the one the image tracks are made with, and the arrays read back from one.
+camera per physical camera or per image) and the one the image tracks are made with.
 
 The distortion is written in COLMAP's meaning (``core.colmap_models``): with ``camera_model auto`` fisheye cameras
 become OPENCV_FISHEYE (k1..k4), perspective ones RADIAL when fx = fy and there is no tangential term, OPENCV (k1, k2,
@@ -21,7 +21,7 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
-from s2camp_ns.core.colmap_models import colmap_model_for, colmap_to_values, values_to_colmap
+from s2camp_ns.core.colmap_models import colmap_model_for, values_to_colmap
 from s2camp_ns.nerfstudio.camera_conversion import projection_of
 from s2camp_ns.nerfstudio.colmap_world import c2w_to_colmap_world
 
@@ -188,34 +188,6 @@ def _add_points(reconstruction: pycolmap.Reconstruction, points_xyz: np.ndarray,
         reconstruction.add_point3D(point, pycolmap.Track(), colour)
 
 
-def reconstruction_to_arrays(reconstruction: pycolmap.Reconstruction) -> dict[str, np.ndarray | list[str]]:
-    """OpenCV c2w [N, 3, 4], names, models, and fx, fy, cx, cy, k1, k2, k3, k4, p1, p2 (``core.camera`` meaning),
-    width, height of a reconstruction, by image id."""
-    keys = ("names", "models", "c2w", "fx", "fy", "cx", "cy", *DISTORTION, "width", "height")
-    out: dict[str, list] = {key: [] for key in keys}
-    for image_id in sorted(reconstruction.images):
-        image = reconstruction.images[image_id]
-        camera = reconstruction.cameras[image.camera_id]
-        w2c = image.cam_from_world().matrix()
-        rotation = w2c[:, :3].T
-        out["names"].append(image.name)
-        out["c2w"].append(np.concatenate([rotation, (-rotation @ w2c[:, 3])[:, None]], axis=1))
-        model = camera.model.name
-        try:
-            values = colmap_to_values(model, camera.params)
-        except ValueError as error:
-            raise ValueError(f"camera {image.camera_id}: {error}") from error
-        out["models"].append(model)
-        for key in ("fx", "fy", "cx", "cy", *DISTORTION):
-            out[key].append(values[key])
-        out["width"].append(camera.width)
-        out["height"].append(camera.height)
-    return {
-        key: (value if key in ("names", "models") else np.asarray(value, dtype=np.float64))
-        for key, value in out.items()
-    }
-
-
 def _column(tensor: Tensor | None, n: int, index: int | None = None) -> np.ndarray:
     if tensor is None:
         return np.zeros(n)
@@ -285,5 +257,4 @@ __all__ = [
     "cameras_to_reconstruction",
     "export_cameras",
     "read_points",
-    "reconstruction_to_arrays",
 ]

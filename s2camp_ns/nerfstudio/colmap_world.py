@@ -1,5 +1,5 @@
-"""nerfstudio's normalization of a scene's cameras and its inverse: the world the cameras were given in (COLMAP's, or a
-transforms.json's) against the normalized frame nerfstudio trains in.
+"""nerfstudio's normalization of a scene's cameras undone: from the normalized frame nerfstudio trains in back to the
+world the cameras were given in (COLMAP's, or a transforms.json's).
 
 nerfstudio maps an original-world pose to ``T @ c2w`` (T = ``dataparser_transform`` as 4x4, which includes the COLMAP
 world axis swap), multiplies the centre by ``dataparser_scale`` and keeps OpenGL camera axes; the original world keeps
@@ -30,18 +30,4 @@ def c2w_to_colmap_world(
     return opengl_to_opencv(original[:, :3, :4])
 
 
-def colmap_world_to_c2w(
-    c2w_world: torch.Tensor, dataparser_transform: torch.Tensor, dataparser_scale: float
-) -> torch.Tensor:
-    """nerfstudio's normalization of original-world OpenCV c2w [N, 3, 4] (float64): the inverse of
-    ``c2w_to_colmap_world`` (camera axes flipped to OpenGL, ``T @ c2w``, centres times the scale)."""
-    c2w = opengl_to_opencv(c2w_world.detach().double().cpu())
-    transform = torch.eye(4, dtype=torch.float64)
-    transform[:3, :4] = dataparser_transform.detach().double().cpu()
-    bottom = torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(c2w.shape[0], 1, 4)
-    normalized = (transform @ torch.cat([c2w, bottom], dim=1))[:, :3, :4]
-    normalized[:, :, 3] = normalized[:, :, 3] * float(dataparser_scale)
-    return normalized
-
-
-__all__ = ["c2w_to_colmap_world", "colmap_world_to_c2w"]
+__all__ = ["c2w_to_colmap_world"]

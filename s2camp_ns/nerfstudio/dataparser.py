@@ -30,12 +30,25 @@ scene units (the cameras fit in [-1, 1]^3), as CamP applies them in its own norm
 cameras of the split are kept in ``metadata["reference_cameras"]``; evaluation cameras are never perturbed. The
 scene's own tracks, made with the unperturbed cameras, would tell the track prior where the reference is: perturbed
 cameras get tracks made from the images with the perturbed cameras instead, or no prior.
-With ``--reference-model`` (a COLMAP model of the true cameras, e.g. a rendered scene's when the input is an SfM
-reconstruction of it), the reference cameras are the true ones instead, similarity-aligned into the input's frame.
+
+Tracks (``tracks``): each training camera's reprojection error against the COLMAP model's tracks, as the cameras are
+given (after any perturbation), ``metadata["track_rms_px"]`` (``core.tracks``), and the tracks with those cameras in
+the model's world, ``metadata["track_evidence"]``, from which the camera optimizer's track prior takes its anchor and
+scale (``core.track_fit``): COLMAP scenes with points, and transforms.json scenes with the model ns-process-data leaves
+beside them (``colmap/sparse/0``, cameras checked against it, ``transforms_tracks``); images the model does not hold
+get NaN. Scenes without them get tracks made from their images (``image_tracks``: SIFT matches, points triangulated
+with the given training cameras, bundle-adjusted with them and aligned to them by a similarity; built once, on the
+CPU, and cached, ``track_cache``). With the perturbation on, the scene's own tracks (made with the unperturbed
+cameras) are never used: the perturbed cameras get tracks made from the images (``image_tracks`` auto or always) or
+none (never), and the log says which.
+
+``_reference_cameras`` and ``_perturb`` are the two steps a subclass may replace (where the reference cameras come
+from, how the training cameras are perturbed).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,8 +63,7 @@ from s2camp_ns.core.validation import check_range
 from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics
 from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
 from s2camp_ns.nerfstudio.colmap_scene import parse_colmap
-from s2camp_ns.nerfstudio.reference_model import reference_cameras
-from s2camp_ns.nerfstudio.scene_formats import check_supported_cameras, detect_format
+from s2camp_ns.nerfstudio.scene_formats import ParsedSplit, check_supported_cameras, detect_format
 from s2camp_ns.nerfstudio.track_evidence import track_evidence
 from s2camp_ns.nerfstudio.transforms_scene import parse_transforms
 
@@ -92,33 +104,16 @@ class S2CampDataParserConfig(DataParserConfig):
     load_3D_points: bool = True
     """Load the COLMAP sparse points into metadata (needed by point-initialized models; cheap)."""
     tracks: bool = True
-    """Measure each training camera's reprojection error against the COLMAP model's tracks, as the cameras are given
-    (after any perturbation): ``metadata["track_rms_px"]`` (``core.tracks``), and the tracks with those cameras in
-    the model's world, ``metadata["track_evidence"]``, from which the camera optimizer's track prior takes its anchor
-    and scale (``core.track_fit``). COLMAP scenes with points, and transforms.json scenes with the model
-    ns-process-data leaves beside them (``colmap/sparse/0``, cameras checked against it, ``transforms_tracks``);
-    images the model does not hold get NaN. Scenes without them get tracks made from their images (``image_tracks``).
-    With the perturbation on, the scene's own tracks (made with the unperturbed cameras) are never used: the
-    perturbed cameras get tracks made from the images (``image_tracks`` auto or always) or none (never), and the log
-    says which. False measures nothing (no prior)."""
+    """Measure each training camera against the scene's SfM tracks, from which the track prior takes its anchor and
+    scale (module docstring); scenes without them get tracks made from their images. False: nothing, no prior."""
     image_tracks: Literal["auto", "always", "never"] = "auto"
-    """Tracks made from the scene's own images for the track prior (``nerfstudio/image_tracks.py``: SIFT matches,
-    points triangulated with the given training cameras, bundle-adjusted with them and aligned to them by a
-    similarity; built once, on the CPU, and cached). auto: where the scene has no SfM tracks (phone exports, hand-made
-    or converted transforms.json files); always: in place of the scene's own tracks; never: only the scene's tracks.
-    Without tracks the photometric loss leaves the focal length and forward motion barely determined
-    (docs/DESIGN-NOTES.md sec. 6)."""
+    """Tracks made from the scene's own images, built once and cached: auto where the scene has no SfM tracks or
+    its cameras are perturbed, always in place of the scene's own, never only the scene's."""
     image_tracks_cache: Path | None = None
-    """Folder of the image tracks' cache (read and written; an error when a build is needed and it cannot be
-    written); None: ``s2camp_image_tracks`` in the scene folder (beside the transforms.json), read where it exists,
-    and where the scene folder cannot be written new entries go to ``$XDG_CACHE_HOME/s2camp-ns/image_tracks``
-    (``~/.cache/...``; ``nerfstudio/track_cache.py``)."""
+    """Folder of the image tracks' cache, read and written; None: ``s2camp_image_tracks`` in the scene folder, or
+    ``$XDG_CACHE_HOME/s2camp-ns/image_tracks`` where that cannot be written (``track_cache``)."""
     perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
     """CamP perturbation of the training cameras (evaluation protocol, off by default)."""
-    reference_model: Path | None = None
-    """COLMAP model of the true cameras (images matched by name, COLMAP scenes only): the reference cameras of the
-    camera errors, the viewer's reference frusta and the held-out views come from it instead of the input cameras,
-    similarity-aligned into the input's frame (``reference_from_model``)."""
 
 
 @dataclass
@@ -143,6 +138,13 @@ class S2CampDataParser(DataParser):
         ):
             raise ValueError(f"eval_interval must be an integer in [1, inf), got {config.eval_interval!r}")
         config.perturbation.validate()
+        saved = vars(config).get("reference_model")  # a run's config.yml from an earlier version
+        if saved is not None and not hasattr(type(config), "reference_model"):
+            raise ValueError(
+                f"reference_model {saved}: this run's config.yml takes its reference cameras from a COLMAP model, "
+                "which this version's s2camp-data no longer reads (s2camp-bench-data does); load the run with the "
+                "version that trained it"
+            )
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         self._validate_config()
@@ -153,9 +155,9 @@ class S2CampDataParser(DataParser):
         else:
             outputs, parsed = parse_transforms(config, source, split)
         intrinsics = check_supported_cameras(outputs.cameras, source)
-        reference = reference_cameras(config, data_format, source, outputs, parsed)
+        reference = self._reference_cameras(data_format, source, outputs, parsed)
         perturbed = split == "train" and config.perturbation.enabled
-        cameras = perturb_nerfstudio_cameras(outputs.cameras, config.perturbation) if perturbed else outputs.cameras
+        cameras = self._perturb(outputs.cameras) if perturbed else outputs.cameras
         # One id per physical camera: images whose reference intrinsics agree (COLMAP's camera_id in practice; the
         # global intrinsics of a transforms.json), grouped before any perturbation. The refiner shares intrinsics
         # over these groups and the image tracks' adjustment models the same cameras.
@@ -169,6 +171,17 @@ class S2CampDataParser(DataParser):
         metadata.update(self._split_metadata(data_format, source, outputs, reference, intrinsics, perturbed))
         metadata["camera_ids"] = camera_ids.tolist()
         return dataclasses.replace(outputs, cameras=cameras, metadata=metadata)
+
+    def _reference_cameras(
+        self, data_format: str, source: Path, outputs: DataparserOutputs, parsed: ParsedSplit
+    ) -> Cameras:
+        """The split's reference cameras (``metadata["reference_cameras"]``: the camera errors, the viewer's
+        reference frusta, the held-out views): a copy of the input cameras, before any perturbation."""
+        return copy.deepcopy(outputs.cameras)
+
+    def _perturb(self, cameras: Cameras) -> Cameras:
+        """The training cameras perturbed (``perturbation.enabled``): CamP's protocol."""
+        return perturb_nerfstudio_cameras(cameras, self.config.perturbation)
 
     @staticmethod
     def _split_metadata(

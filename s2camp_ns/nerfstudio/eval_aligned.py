@@ -9,6 +9,9 @@ reports the metrics before and after. It loads any run of ``s2camp``, ``s2camp-c
 ``splat_alignment``).
 
     s2camp-eval --load-config outputs/room/s2camp/<timestamp>/config.yml --output-path aligned.json
+
+What it is doing goes to stderr as it goes: loading the run, then (on a terminal) a bar over the alignment's work,
+each view's renders and the camera-only steps, with the time left; the table of results goes to stdout.
 """
 
 from __future__ import annotations
@@ -17,17 +20,22 @@ import contextlib
 import io
 import json
 import math
+import time
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import tyro
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_held_out_views
+from s2camp_ns.nerfstudio.build_progress import duration_text
+from s2camp_ns.nerfstudio.test_time_alignment import AlignedView, AlignmentConfig, evaluate_held_out_views
 
 CONSOLE = Console()
+LOG = Console(stderr=True)
+"""What the command is doing (stderr; the results go to ``CONSOLE``)."""
 
 
 @dataclass
@@ -47,22 +55,48 @@ def _mean(values: list[float]) -> float:
     return sum(finite) / len(finite) if finite else math.nan
 
 
-def main(config: EvalAlignedConfig) -> dict:
-    if not config.load_config.is_file():
-        raise ValueError(f"load_config must be an existing config.yml, got {str(config.load_config)!r}")
-    config.alignment.validate()
+def _load(load_config: Path):
+    """``eval_setup`` of the run (nerfstudio's own output hidden), said on ``LOG``: (pipeline, checkpoint, step)."""
+    LOG.print(f"[dim]s2camp-eval: loading {load_config} (scene, tracks, checkpoint)", highlight=False)
+    began = time.perf_counter()
     captured = io.StringIO()
     with contextlib.redirect_stdout(captured), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         from nerfstudio.utils.eval_utils import eval_setup
 
-        _, pipeline, checkpoint, step = eval_setup(config.load_config, test_mode="test")
+        _, pipeline, checkpoint, step = eval_setup(load_config, test_mode="test")
     if not hasattr(pipeline.model, "refined_train_cameras"):
         raise ValueError(
-            f"{config.load_config} is not a run of s2camp, s2camp-camp, s2camp-so3xr3, s2camp-splat or "
+            f"{load_config} is not a run of s2camp, s2camp-camp, s2camp-so3xr3, s2camp-splat or "
             "s2camp-splat-so3xr3 (its model has no refined training cameras)"
         )
-    views = evaluate_held_out_views(pipeline, config.alignment)
+    LOG.print(f"[dim]loaded step {step} in {duration_text(time.perf_counter() - began)}", highlight=False)
+    return pipeline, checkpoint, step
+
+
+def _aligned_views(pipeline, alignment: AlignmentConfig) -> list[AlignedView]:
+    """``evaluate_held_out_views`` with a bar of its work on ``LOG``."""
+    began = time.perf_counter()
+    LOG.print(f"[dim]aligning the held-out views: {alignment.steps} camera-only steps each", highlight=False)
+    progress = Progress(
+        TextColumn("[dim]aligning"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
+        console=LOG, transient=True, disable=not LOG.is_terminal,
+    )  # fmt: skip
+    with progress:
+        task = progress.add_task("align", total=None)
+        views = evaluate_held_out_views(
+            pipeline, alignment, lambda done, total: progress.update(task, completed=done, total=total)
+        )
+    LOG.print(f"[dim]aligned {len(views)} views in {duration_text(time.perf_counter() - began)}", highlight=False)
+    return views
+
+
+def main(config: EvalAlignedConfig) -> dict:
+    if not config.load_config.is_file():
+        raise ValueError(f"load_config must be an existing config.yml, got {str(config.load_config)!r}")
+    config.alignment.validate()
+    pipeline, checkpoint, step = _load(config.load_config)
+    views = _aligned_views(pipeline, config.alignment)
     table = Table(title=f"held-out views of {config.load_config.parent} (step {step})", title_justify="left")
     for column in ("view", "PSNR before", "PSNR", "SSIM", "LPIPS"):
         table.add_column(column, justify="right")

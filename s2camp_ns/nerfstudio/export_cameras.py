@@ -26,10 +26,14 @@ from typing import Literal
 import torch
 import tyro
 from nerfstudio.cameras.cameras import Cameras
+from rich.console import Console
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
 from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics, refined_cameras
 from s2camp_ns.nerfstudio.colmap_reconstruction import CameraModel, export_cameras, read_points
+
+LOG = Console(stderr=True)
+"""What the command is doing while it loads the run (stderr)."""
 
 
 def refined_training_cameras(pipeline) -> Cameras:
@@ -86,6 +90,7 @@ def main(config: ExportCamerasConfig) -> Path:
 
     if not config.load_config.is_file():
         raise FileNotFoundError(f"--load-config {config.load_config} does not exist")
+    LOG.print(f"[dim]s2camp-export-cameras: loading {config.load_config} (scene, tracks, checkpoint)", highlight=False)
     _, pipeline, _, _ = eval_setup(config.load_config, test_mode="inference")
     datamanager = pipeline.datamanager
     outputs = getattr(datamanager, "train_dataparser_outputs", None) or datamanager.train_dataset._dataparser_outputs

@@ -36,7 +36,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from torch.nn.parallel import DistributedDataParallel
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
-from s2camp_ns.nerfstudio import render_path
+from s2camp_ns.nerfstudio import bundled_ffmpeg, render_path
 from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.nerfstudio.camera_fields import has_distortion, replace_cameras
 from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
@@ -97,7 +97,8 @@ class S2CampPipelineConfig(VanillaPipelineConfig):
 class S2CampPipeline(VanillaPipeline):
     """VanillaPipeline + ``camera_optimizer.set_train_cameras`` with the scene's points (before any checkpoint is
     loaded) + its own DDP + a checkpoint of another scene refused by name (``check_checkpoint_cameras``) + the camera
-    path of ``ns-render interpolate`` defined for a pose source of one camera (``render_path.install``)."""
+    path of ``ns-render interpolate`` defined for a pose source of one camera (``render_path.install``) + an ffmpeg
+    for ``ns-render`` where the machine has none (``bundled_ffmpeg.use_bundled_ffmpeg``)."""
 
     def __init__(
         self,
@@ -108,8 +109,9 @@ class S2CampPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: GradScaler | None = None,
     ):
-        # eval_setup (ns-render) builds this pipeline before the render computes its camera path.
+        # eval_setup (ns-render) builds this pipeline before the render checks for ffmpeg and computes its path.
         render_path.install()
+        bundled_ffmpeg.use_bundled_ffmpeg()
         if str(device).startswith("cpu") and not torch.cuda.is_available():
             CONSOLE.print("[bold yellow]CUDA is not available: training on the CPU (expect about 1 s per iteration).")
         # world_size=1 keeps VanillaPipeline from wrapping the model (see the module docstring); its data manager

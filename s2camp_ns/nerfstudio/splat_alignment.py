@@ -3,7 +3,7 @@
 
 A splat model renders whole images from a view matrix, and its rasterizers (gsplat; the reference rasterizer
 follows its contract) differentiate the view matrix, not the intrinsics ``Ks``. The focal scale therefore enters
-as training's intrinsics do (docs/SPLAT.md eq. S3-S4): the view's own K goes to the rasterizer and the view matrix
+as training's intrinsics do (docs/SPLAT.md): the view's own K goes to the rasterizer and the view matrix
 is [[A R, A t], [0, 1]] with A = K^-1 K', K' = K with fx, fy scaled by exp(log_focal), [R | t] the world-to-camera
 of c2w exp(twist). The render goes through ``S2CampSplatModel.render_view``, never through the model's camera
 optimizer: held-out cameras are not training cameras.
@@ -46,7 +46,7 @@ def aligned_view_matrix(
     log_focal: Float[Tensor, ""],
 ) -> Float[Tensor, "1 4 4"]:
     """World-to-camera matrix [[A R, A t], [0, 1]] (float64) that, rendered with ``base_k``, renders the camera
-    c2w exp(twist) with fx, fy scaled by exp(log_focal) (docs/SPLAT.md eq. S3-S4); differentiable in both."""
+    c2w exp(twist) with fx, fy scaled by exp(log_focal) (docs/SPLAT.md); differentiable in both."""
     scale = torch.exp(log_focal.double())
     k = base_k.double()
     refined_k = intrinsics_matrix(k[:, 0, 0] * scale, k[:, 1, 1] * scale, k[:, 0, 2], k[:, 1, 2], k[:, 0, 1])
@@ -95,8 +95,8 @@ def splat_held_out_views(datamanager) -> list[tuple[Tensor, Float[Tensor, "3 4"]
 
     Images: the data manager's cached evaluation images (``cached_eval``; its first use undistorts them and rewrites
     the evaluation cameras' K to the undistorted pinhole one, as ``ns-eval`` of splatfacto sees them). Poses: the
-    evaluation split's reference cameras where the dataparser provides them (the true cameras of
-    ``--reference-model``), else the evaluation cameras. Intrinsics: an image the data manager undistorted is
+    evaluation split's reference cameras where the dataparser provides them (true cameras that
+    differ from the input's), else the evaluation cameras. Intrinsics: an image the data manager undistorted is
     described by its undistorted K (a reference camera's K describes the distorted original), any other by the
     reference camera's K; a reference camera with distortion whose image was not undistorted cannot be rendered by
     a pinhole splat model and is refused.

@@ -18,13 +18,14 @@ view is rendered through (twist, log focal) differs:
 - ray models (nerfacto-derived, S2CamP's and the stock optimizer's): ``ray_alignment``, ``rays`` random pixels per
   step, rays differentiable in both variables;
 - S2CamP's splat model (``s2camp-splat``, ``s2camp-splat-so3xr3``): ``splat_alignment``, the whole image per step,
-  the focal scale through the view matrix as in training (docs/SPLAT.md); the held-out images and cameras are
+  the focal scale through the view matrix as in training; the held-out images and cameras are
   splatfacto's undistorted ones. Other splatfacto models are refused by name (use ns-eval).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -46,9 +47,7 @@ class AlignmentConfig:
     steps: int = 100
     """Adam steps per test camera (CamP: 100); 0 evaluates the similarity-mapped camera as is."""
     rays: int = 256
-    """Random pixels of the test image per step, ray models (on a 96x72 recovery-benchmark run, twice as many
-    barely changed the held-out PSNR and took markedly longer); splat models take every pixel (``splat_alignment``).
-    The protocol: docs/USAGE.md (``s2camp-eval``), docs/SPLAT.md sec. 5."""
+    """Random pixels of the test image per step, ray models; splat models take every pixel (``splat_alignment``)."""
     lr: float = 1e-3
     """Initial Adam learning rate of the twist (rad, scene units) and of the log focal scale."""
     lr_final: float = 1e-4
@@ -123,6 +122,17 @@ def _image_metrics(model, predicted: Tensor, target: Tensor) -> tuple[float, flo
     return psnr, ssim, lpips
 
 
+Progress = Callable[[int, int], None]
+"""``progress(done, total)``, told after each unit of an alignment's work: each view's render before and after the
+camera-only steps, and each step of a batch of views (``s2camp-eval``'s progress bar)."""
+
+
+def alignment_work(num_views: int, config: AlignmentConfig) -> int:
+    """The units of work (``Progress``) of aligning ``num_views`` views."""
+    batches = -(-num_views // config.views_per_batch)
+    return 2 * num_views + batches * config.steps
+
+
 class ViewRenderer(Protocol):
     """How a model renders a held-out view through (twist, log focal): the part of the protocol that differs
     between ray models (``ray_alignment.RayRenderer``) and splat models (``splat_alignment.SplatRenderer``)."""
@@ -163,8 +173,11 @@ def renderer_for(model, config: AlignmentConfig) -> ViewRenderer:
     return RayRenderer(model, rays=config.rays, chunk=config.chunk)
 
 
-def align_and_evaluate_views(model, views: list[HeldOutView], config: AlignmentConfig) -> list[AlignedView]:
-    """Align held-out cameras to the frozen ``model`` and evaluate them (module docstring).
+def align_and_evaluate_views(
+    model, views: list[HeldOutView], config: AlignmentConfig, progress: Progress | None = None
+) -> list[AlignedView]:
+    """Align held-out cameras to the frozen ``model`` and evaluate them (module docstring); ``progress`` is told
+    each unit of work done (``alignment_work`` in all).
 
     Up to ``config.views_per_batch`` views are optimised in one loop: each step renders every view's sample (ray
     models: ``rays`` pixels in one batch) and minimises the sum of the per-view MSEs. Each view has its own twist,
@@ -173,11 +186,19 @@ def align_and_evaluate_views(model, views: list[HeldOutView], config: AlignmentC
     """
     config.validate()
     renderer = renderer_for(model, config)
+    total, done = alignment_work(len(views), config), 0
+
+    def advance() -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, total)
+
     step = config.views_per_batch
     return [
         aligned
         for start in range(0, len(views), step)
-        for aligned in _align_batch(model, renderer, views[start : start + step], config)
+        for aligned in _align_batch(model, renderer, views[start : start + step], config, advance)
     ]
 
 
@@ -187,18 +208,21 @@ def _target_image(image: Tensor) -> Float[Tensor, "h w 3"]:
     return rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb.float()
 
 
-def _align_batch(model, renderer: ViewRenderer, views: list[HeldOutView], config: AlignmentConfig) -> list[AlignedView]:
-    """:func:`align_and_evaluate_views` for one batch of (validated) views."""
+def _align_batch(
+    model, renderer: ViewRenderer, views: list[HeldOutView], config: AlignmentConfig, advance: Callable[[], None]
+) -> list[AlignedView]:
+    """:func:`align_and_evaluate_views` for one batch of (validated) views; ``advance()`` after each unit of work."""
     targets = [_target_image(view.image) for view in views]
     twists = [torch.zeros(6, dtype=torch.float64, requires_grad=True) for _ in views]
     log_focals = [torch.zeros((), dtype=torch.float64, requires_grad=config.refine_focal) for _ in views]
     generators = [torch.Generator().manual_seed(config.seed + 7919 * view.index) for view in views]
 
     def render_all() -> list[Tensor]:
-        return [
-            renderer.image(view, target.shape[1], target.shape[0], twist, log_focal)
-            for view, target, twist, log_focal in zip(views, targets, twists, log_focals, strict=True)
-        ]
+        images = []
+        for view, target, twist, log_focal in zip(views, targets, twists, log_focals, strict=True):
+            images.append(renderer.image(view, target.shape[1], target.shape[0], twist, log_focal))
+            advance()
+        return images
 
     was_training = model.training
     model.eval()
@@ -220,6 +244,7 @@ def _align_batch(model, renderer: ViewRenderer, views: list[HeldOutView], config
             optimizer.step()
             schedule.step()
             losses = [float(loss.detach()) for loss in per_view]
+            advance()
         aligned = render_all()
     finally:
         for parameter in frozen:
@@ -251,8 +276,8 @@ def align_and_evaluate(
 
 def _ray_held_out_views(dataset) -> list[tuple[Tensor, Float[Tensor, "3 4"], Intrinsics]]:
     """(image, OpenGL c2w, intrinsics) of every evaluation image for a ray model, in the reference cameras' frame:
-    the evaluation split's reference cameras where the dataparser provides them (the true cameras of
-    ``--reference-model``), else the evaluation cameras as given; images and distortion as in the dataset."""
+    the evaluation split's reference cameras where the dataparser provides them (true cameras that
+    differ from the input's), else the evaluation cameras as given; images and distortion as in the dataset."""
     from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 
     cameras = (getattr(dataset, "metadata", None) or {}).get("reference_cameras")
@@ -264,14 +289,16 @@ def _ray_held_out_views(dataset) -> list[tuple[Tensor, Float[Tensor, "3 4"], Int
     ]
 
 
-def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig()) -> list[AlignedView]:
+def evaluate_held_out_views(
+    pipeline, config: AlignmentConfig = AlignmentConfig(), progress: Progress | None = None
+) -> list[AlignedView]:
     """Align and evaluate every evaluation image of a nerfstudio pipeline with an S2CamP model (a nerfacto model, or
-    S2CamP's splat model: module docstring).
+    S2CamP's splat model: module docstring); ``progress`` as ``align_and_evaluate_views``'s.
 
     The reference training cameras (``metadata["reference_cameras"]``, present when the dataparser perturbed the
     training cameras) define the frame of the evaluation cameras; without them the training cameras as given do.
-    The evaluation cameras are the evaluation split's reference cameras where the dataparser provides them (the
-    true cameras of ``--reference-model``), else the evaluation cameras (splat models: ``splat_held_out_views``).
+    The evaluation cameras are the evaluation split's reference cameras where the dataparser provides them (true
+    cameras that differ from the input's), else the evaluation cameras (splat models: ``splat_held_out_views``).
     """
     model = pipeline.model
     renderer = renderer_for(model, config)  # refuses a model it cannot render before any work
@@ -294,4 +321,4 @@ def evaluate_held_out_views(pipeline, config: AlignmentConfig = AlignmentConfig(
         HeldOutView(image, map_camera(similarity, c2w), scale_focal(intrinsics, focal_ratio), index)
         for index, (image, c2w, intrinsics) in enumerate(held_out)
     ]
-    return align_and_evaluate_views(model, views, config)
+    return align_and_evaluate_views(model, views, config, progress)

@@ -24,6 +24,7 @@ import json
 import math
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -33,6 +34,8 @@ import pycolmap
 import torch
 import tyro
 from PIL import Image as PILImage
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from s2camp_ns import __version__
 from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics
@@ -319,14 +322,22 @@ def config_record(config: MakeSceneConfig) -> dict:
 
 
 def _write_images(
-    config: MakeSceneConfig, camera: pycolmap.Camera, names: list[str], poses: list[np.ndarray], output_dir: Path
+    config: MakeSceneConfig,
+    camera: pycolmap.Camera,
+    names: list[str],
+    poses: list[np.ndarray],
+    output_dir: Path,
+    progress: Callable[[int, int], None] | None = None,
 ) -> None:
-    """Render each image at its pose into ``images/`` and its 2x2 box-averaged half into ``images_2/``."""
-    for name, pose in zip(names, poses, strict=True):
+    """Render each image at its pose into ``images/`` and its 2x2 box-averaged half into ``images_2/``;
+    ``progress(done, total)`` after each image."""
+    for done, (name, pose) in enumerate(zip(names, poses, strict=True), start=1):
         image = render_image(config, camera, pose)
         _save(image, output_dir / "images" / name, config.image_format)
         half = image.reshape(config.height // 2, 2, config.width // 2, 2, 3).mean(axis=(1, 3))
         _save(half, output_dir / "images_2" / name, config.image_format)
+        if progress is not None:
+            progress(done, len(names))
 
 
 def _write_sparse(
@@ -425,8 +436,9 @@ def _scene_info(
     }
 
 
-def make_scene(config: MakeSceneConfig) -> Path:
-    """Generate the scene described by ``config``; return its directory."""
+def make_scene(config: MakeSceneConfig, progress: Callable[[int, int], None] | None = None) -> Path:
+    """Generate the scene described by ``config``; return its directory. ``progress(done, total)`` is told after
+    each image rendered (the longest part)."""
     camera = make_camera(config)
     output_dir = Path(config.output_dir)
     _prepare_output(output_dir)
@@ -434,7 +446,7 @@ def make_scene(config: MakeSceneConfig) -> Path:
     poses = ring_poses(config, rng)
     suffix = "png" if config.image_format == "png" else "jpg"
     names = [f"frame_{i:05d}.{suffix}" for i in range(config.num_cameras)]
-    _write_images(config, camera, names, poses, output_dir)
+    _write_images(config, camera, names, poses, output_dir, progress)
     xyz, rgb, tracks = sample_points(config, camera, poses, rng)
     _write_sparse(camera, names, poses, xyz, rgb, tracks, output_dir)
     _write_poses_bounds(camera, names, poses, xyz, tracks, output_dir)
@@ -447,8 +459,14 @@ def entrypoint() -> None:
     """Console script ``s2camp-make-scene``."""
     config = tyro.cli(MakeSceneConfig)
     start = time.perf_counter()
+    bar = Progress(
+        TextColumn(f"[dim]rendering {config.output_dir}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+        console=Console(stderr=True), transient=True,
+    )  # fmt: skip
     try:
-        output_dir = make_scene(config)
+        with bar:
+            task = bar.add_task("render", total=config.num_cameras)
+            output_dir = make_scene(config, lambda done, total: bar.update(task, completed=done, total=total))
     except ValueError as error:
         raise SystemExit(f"s2camp-make-scene: {error}") from None
     info = json.loads((output_dir / "scene_info.json").read_text())

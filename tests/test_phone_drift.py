@@ -1,9 +1,10 @@
-"""Visual-inertial drift of the camera perturbation (``DriftConfig``): growth along the capture, gravity-held roll
-and pitch, one shared focal, CamP's result untouched, determinism, the up axis, input checks and the CLI.
+"""Visual-inertial drift of the benchmarks' phone start (``benchmarks/phone_drift.py``): growth along the capture,
+gravity-held roll and pitch, one shared focal, CamP's result untouched, determinism, the up axis, input checks and the
+CLI.
 
-Expected values come from the model's stated equations (module docstring of ``s2camp_ns.core.perturbation``) and
-from geometry computed here, never from the drift code; the CamP reference numbers were recorded with the committed
-CamP implementation before the drift existed."""
+Expected values come from the model's stated equations (module docstring of ``s2camp_ns.benchmarks.phone_drift``)
+and from geometry computed here, never from the drift code; the CamP reference numbers were recorded with the
+committed CamP implementation before the drift existed."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ import math
 import pytest
 import torch
 
-from s2camp_ns.core.perturbation import DriftConfig, PerturbationConfig, look_at_rotation, perturb_cameras
+from s2camp_ns.benchmarks.phone_drift import DriftConfig, perturb_with_drift
+from s2camp_ns.core.perturbation import PerturbationConfig, look_at_rotation, perturb_cameras
 
 NO_CAMP = {"sigma_look_at": 0.0, "sigma_position": 0.0, "sigma_dolly_z": 0.0, "sigma_focal_length": 0.0}
 """CamP's steps off: the drift alone."""
@@ -36,12 +38,18 @@ def ring(
     return torch.cat([rotation, centre[:, :, None]], dim=-1), torch.full((n,), 500.0, dtype=torch.float64)
 
 
-def drift_config(**drift) -> PerturbationConfig:
-    return PerturbationConfig(**NO_CAMP, drift=DriftConfig(enabled=True, **drift))
+def drift_config(**drift) -> DriftConfig:
+    return DriftConfig(enabled=True, **drift)
 
 
-def draws(c2w: torch.Tensor, f: torch.Tensor, config: PerturbationConfig, seeds: int) -> list:
-    return [perturb_cameras(c2w, f, config=config, seed=seed) for seed in range(seeds)]
+def drifted(c2w: torch.Tensor, f: torch.Tensor, drift: DriftConfig, seed: int = 0, fy: torch.Tensor | None = None):
+    """The drift alone (CamP's sigmas zero) with perturbation seed ``seed``."""
+    fy = f if fy is None else fy
+    return perturb_with_drift(c2w, f, fy, PerturbationConfig(**NO_CAMP, seed=seed), drift)
+
+
+def draws(c2w: torch.Tensor, f: torch.Tensor, drift: DriftConfig, seeds: int) -> list:
+    return [drifted(c2w, f, drift, seed) for seed in range(seeds)]
 
 
 def gravity_in_camera(before: torch.Tensor, after: torch.Tensor, up: torch.Tensor = UP_Z) -> torch.Tensor:
@@ -103,7 +111,7 @@ def test_focal_is_one_shared_factory_factor():
     n, seeds, sigma = 30, 300, 0.015
     c2w, f = ring(n, height=0.3)
     fy = f * 1.25
-    outs = [perturb_cameras(c2w, f, fy, config=drift_config(focal_error=sigma), seed=s) for s in range(seeds)]
+    outs = [drifted(c2w, f, drift_config(focal_error=sigma), s, fy) for s in range(seeds)]
     for out in outs[:20]:
         ratio = out.fx / f
         torch.testing.assert_close(ratio, ratio[0].expand(n), atol=0, rtol=1e-15)  # one factor for every image
@@ -133,39 +141,34 @@ def _ring_as_recorded() -> tuple[torch.Tensor, torch.Tensor]:
     return torch.cat([rotation, centre[:, :, None]], dim=-1), torch.full((5,), 500.0, dtype=torch.float64)
 
 
-def test_drift_off_leaves_camp_bit_identical():
+def test_camp_is_as_recorded_and_the_drift_draws_after_it():
     c2w, f = _ring_as_recorded()
     off = perturb_cameras(c2w, f, f * 1.25, PerturbationConfig(**CAMP))
     expected = torch.tensor(CAMP_LAST_C2W, dtype=torch.float64)
     torch.testing.assert_close(off.c2w[-1], expected, atol=1e-12, rtol=0)
     torch.testing.assert_close(off.fx, torch.tensor(CAMP_FX, dtype=torch.float64), atol=1e-9, rtol=0)
     torch.testing.assert_close(off.fy, torch.tensor(CAMP_FY, dtype=torch.float64), atol=1e-9, rtol=0)
-    # Drift settings do nothing while the drift is off.
-    unused = DriftConfig(enabled=False, position_drift=0.5, yaw_drift_deg=90.0, tilt_deg=5.0, focal_error=0.3)
-    also_off = perturb_cameras(c2w, f, f * 1.25, PerturbationConfig(**CAMP, drift=unused))
-    for name in ("c2w", "fx", "fy", "focal_scale", "dolly_scale"):
-        assert torch.equal(getattr(off, name), getattr(also_off, name)), name
-    # The drift draws after CamP: with zero sizes it is on, draws, and still returns CamP's cameras bit for bit.
+    # The drift draws after CamP: with zero sizes it draws, and still returns CamP's cameras bit for bit.
     zero = DriftConfig(enabled=True, position_drift=0.0, yaw_drift_deg=0.0, tilt_deg=0.0, focal_error=0.0)
-    zero_drift = perturb_cameras(c2w, f, f * 1.25, PerturbationConfig(**CAMP, drift=zero))
+    zero_drift = perturb_with_drift(c2w, f, f * 1.25, PerturbationConfig(**CAMP), zero)
     for name in ("c2w", "fx", "fy", "focal_scale", "dolly_scale"):
         assert torch.equal(getattr(off, name), getattr(zero_drift, name)), name
     # And with its sizes on, CamP's dolly (drawn first) is unchanged while the cameras move.
-    on = perturb_cameras(c2w, f, f * 1.25, PerturbationConfig(**CAMP, drift=DriftConfig(enabled=True)))
+    on = perturb_with_drift(c2w, f, f * 1.25, PerturbationConfig(**CAMP), DriftConfig(enabled=True))
     assert torch.equal(on.dolly_scale, off.dolly_scale)
     assert not torch.allclose(on.c2w, off.c2w)
 
 
 def test_same_seed_is_bit_identical_and_seeds_differ():
     c2w, f = ring(24, height=0.3)
-    config = PerturbationConfig(drift=DriftConfig(enabled=True), seed=5)  # CamP and drift together
-    a = perturb_cameras(c2w, f, config=config)
-    b = perturb_cameras(c2w.clone(), f.clone(), config=PerturbationConfig(drift=DriftConfig(enabled=True), seed=5))
-    c = perturb_cameras(c2w, f, config=config, seed=6)
+    drift = DriftConfig(enabled=True)
+    a = perturb_with_drift(c2w, f, f, PerturbationConfig(seed=5), drift)  # CamP and drift together
+    b = perturb_with_drift(c2w.clone(), f.clone(), f.clone(), PerturbationConfig(seed=5), DriftConfig(enabled=True))
+    c = perturb_with_drift(c2w, f, f, PerturbationConfig(seed=6), drift)
     assert torch.equal(a.c2w, b.c2w) and torch.equal(a.fx, b.fx)
     assert not torch.allclose(a.c2w, c.c2w)
     single = ring(1, height=0.3)
-    one = perturb_cameras(*single, config=drift_config(yaw_drift_deg=30.0))  # one camera: no walk, only tilt
+    one = drifted(*single, drift_config(yaw_drift_deg=30.0))  # one camera: no walk, only tilt
     torch.testing.assert_close(one.c2w[:, :, 3], single[0][:, :, 3], atol=1e-12, rtol=0)
     assert bool(torch.isfinite(one.c2w).all())
 
@@ -176,8 +179,8 @@ def test_up_axis_is_the_yaw_axis():
     bound = math.radians(0.3)
     right = drift_config(yaw_drift_deg=10.0, up=(0.0, 2.0, 0.0))  # normalized before use
     wrong = drift_config(yaw_drift_deg=10.0)  # +z: this scene's yaw would tilt its gravity
-    tilt_right = gravity_in_camera(c2w, perturb_cameras(c2w, f, config=right).c2w, up_y) - up_y
-    tilt_wrong = gravity_in_camera(c2w, perturb_cameras(c2w, f, config=wrong).c2w, up_y) - up_y
+    tilt_right = gravity_in_camera(c2w, drifted(c2w, f, right).c2w, up_y) - up_y
+    tilt_wrong = gravity_in_camera(c2w, drifted(c2w, f, wrong).c2w, up_y) - up_y
     assert float(torch.linalg.norm(tilt_right, dim=-1).max()) <= math.sqrt(2) * bound + 1e-12
     assert float(torch.linalg.norm(tilt_wrong, dim=-1).max()) > 5 * bound
 
@@ -187,7 +190,7 @@ def test_camera_looking_along_up_is_tilted_within_the_bound():
     north = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64).expand(2, 3)
     rotation = look_at_rotation(centre, torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]).double(), north)
     c2w, f = torch.cat([rotation, centre[:, :, None]], dim=-1), torch.full((2,), 400.0, dtype=torch.float64)
-    out = perturb_cameras(c2w, f, config=drift_config(tilt_deg=1.0))
+    out = drifted(c2w, f, drift_config(tilt_deg=1.0))
     tilt = torch.linalg.norm(gravity_in_camera(c2w, out.c2w) - UP_Z, dim=-1)
     assert bool(torch.isfinite(out.c2w).all())
     assert float(tilt.max()) <= math.sqrt(2) * math.radians(1.0) + 1e-12 and float(tilt.min()) > 0
@@ -196,32 +199,37 @@ def test_camera_looking_along_up_is_tilted_within_the_bound():
 @pytest.mark.parametrize(
     ("drift", "message"),
     [
-        ({"position_drift": -0.1}, r"perturbation\.drift\.position_drift must lie in \[0, 1\], got -0\.1"),
-        ({"position_drift": float("nan")}, r"perturbation\.drift\.position_drift must lie in \[0, 1\], got nan"),
-        ({"yaw_drift_deg": 200.0}, r"perturbation\.drift\.yaw_drift_deg must lie in \[0, 180\], got 200"),
-        ({"tilt_deg": 20.0}, r"perturbation\.drift\.tilt_deg must lie in \[0, 10\], got 20"),
-        ({"focal_error": 0.6}, r"perturbation\.drift\.focal_error must lie in \[0, 0\.5\], got 0\.6"),
-        ({"up": (0.0, 0.0, 0.0)}, r"perturbation\.drift\.up must be 3 finite numbers of norm > 0, got \(0\.0, 0"),
-        ({"up": (0.0, float("nan"), 1.0)}, r"perturbation\.drift\.up must be 3 finite numbers"),
-        ({"up": (0.0, 1.0)}, r"perturbation\.drift\.up must be 3 finite numbers"),
+        ({"position_drift": -0.1}, r"drift\.position_drift must lie in \[0, 1\], got -0\.1"),
+        ({"position_drift": float("nan")}, r"drift\.position_drift must lie in \[0, 1\], got nan"),
+        ({"yaw_drift_deg": 200.0}, r"drift\.yaw_drift_deg must lie in \[0, 180\], got 200"),
+        ({"tilt_deg": 20.0}, r"drift\.tilt_deg must lie in \[0, 10\], got 20"),
+        ({"focal_error": 0.6}, r"drift\.focal_error must lie in \[0, 0\.5\], got 0\.6"),
+        ({"up": (0.0, 0.0, 0.0)}, r"drift\.up must be 3 finite numbers of norm > 0, got \(0\.0, 0"),
+        ({"up": (0.0, float("nan"), 1.0)}, r"drift\.up must be 3 finite numbers"),
+        ({"up": (0.0, 1.0)}, r"drift\.up must be 3 finite numbers"),
     ],
 )
 def test_bad_drift_config_is_named(drift, message):
     c2w, f = ring(4)
     with pytest.raises(ValueError, match=message):
-        perturb_cameras(c2w, f, config=PerturbationConfig(drift=DriftConfig(**drift)))
+        perturb_with_drift(c2w, f, f, PerturbationConfig(), DriftConfig(enabled=True, **drift))
     with pytest.raises(ValueError, match=message):  # also when the drift is off: the config is wrong either way
-        PerturbationConfig(drift=DriftConfig(enabled=False, **drift)).validate()
+        DriftConfig(enabled=False, **drift).validate()
 
 
 def test_cli_names():
-    tyro = pytest.importorskip("tyro")
+    """The options of the benchmarks' data parser as ns-train parses them ("--x True", not flags)."""
+    import tyro
+
+    from s2camp_ns.benchmarks.data_parser import BenchDataParserConfig
+
     args = [
         "--drift.enabled", "True", "--drift.position-drift", "0.02", "--drift.yaw-drift-deg", "2",
-        "--drift.tilt-deg", "0.2", "--drift.focal-error", "0.01", "--drift.up", "0", "1", "0", "--seed", "3",
+        "--drift.tilt-deg", "0.2", "--drift.focal-error", "0.01", "--drift.up", "0", "1", "0",
+        "--perturbation.seed", "3",
     ]  # fmt: skip
-    parse = tyro.conf.FlagConversionOff[PerturbationConfig]  # as ns-train parses: "--x True", not flags
+    parse = tyro.conf.FlagConversionOff[BenchDataParserConfig]
     config = tyro.cli(parse, args=args)
     expected = DriftConfig(True, 0.02, 2.0, 0.2, 0.01, (0.0, 1.0, 0.0))
-    assert config.drift == expected and config.seed == 3
+    assert config.drift == expected and config.perturbation.seed == 3
     assert tyro.cli(parse, args=[]).drift == DriftConfig()  # off by default

@@ -1,51 +1,21 @@
-"""The reference cameras of the split (``metadata["reference_cameras"]``: the camera errors, the viewer's reference
-frusta, the held-out views): the unperturbed input cameras, or with ``--reference-model`` the true cameras of a
-COLMAP model, matched by name and similarity-aligned into the input's normalized frame (``reference_from_model``)."""
+"""The true cameras of a COLMAP model as the split's reference cameras (``metadata["reference_cameras"]``: the camera
+errors, the viewer's reference frusta, the held-out views), matched by name and similarity-aligned into the input's
+normalized frame: the sfm starts' truth (``s2camp-bench-data --reference-model``, ``data_parser``)."""
 
 from __future__ import annotations
 
-import copy
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
-from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat
 
-from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION
+from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, opengl_to_opencv
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, colmap_to_values
 from s2camp_ns.nerfstudio.camera_conversion import projection_of
 from s2camp_ns.nerfstudio.camera_fields import replace_cameras
 from s2camp_ns.nerfstudio.colmap_model import model_file, read_model_file
 from s2camp_ns.nerfstudio.colmap_scene import NERFSTUDIO_DISTORTION, distortion_of
-from s2camp_ns.nerfstudio.colmap_world import colmap_world_to_c2w
-from s2camp_ns.nerfstudio.scene_formats import ParsedSplit
-
-if TYPE_CHECKING:
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-
-
-def reference_cameras(
-    config: S2CampDataParserConfig, data_format: str, source: Path, outputs: DataparserOutputs, parsed: ParsedSplit
-) -> Cameras:
-    """The split's reference cameras: a copy of the (unperturbed) input cameras ``outputs.cameras``, or those of
-    ``config.reference_model`` (COLMAP scenes only: images are matched by name)."""
-    if config.reference_model is None:
-        return copy.deepcopy(outputs.cameras)
-    if data_format != "colmap":
-        raise ValueError(
-            f"reference_model {config.reference_model} needs a COLMAP scene (images matched by name), but "
-            f"--data {config.data} is a {data_format} scene ({source})"
-        )
-    return reference_from_model(
-        config.reference_model,
-        source,
-        parsed.image_names,
-        outputs.cameras,
-        outputs.dataparser_transform,
-        float(outputs.dataparser_scale),
-    )
 
 
 def _read_colmap_model(folder: Path) -> tuple[dict, dict, Path]:
@@ -73,6 +43,21 @@ def _world_poses(images: dict, names: list[str]) -> torch.Tensor:
         translation = torch.tensor(image.tvec, dtype=torch.float64)
         poses.append(torch.cat([rotation.T, (-rotation.T @ translation)[:, None]], dim=1))
     return torch.stack(poses)
+
+
+def colmap_world_to_c2w(
+    c2w_world: torch.Tensor, dataparser_transform: torch.Tensor, dataparser_scale: float
+) -> torch.Tensor:
+    """nerfstudio's normalization of original-world OpenCV c2w [N, 3, 4] (float64): the inverse of
+    ``s2camp_ns.nerfstudio.colmap_world.c2w_to_colmap_world`` (camera axes flipped to OpenGL, ``T @ c2w``, centres
+    times the scale)."""
+    c2w = opengl_to_opencv(c2w_world.detach().double().cpu())
+    transform = torch.eye(4, dtype=torch.float64)
+    transform[:3, :4] = dataparser_transform.detach().double().cpu()
+    bottom = torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(c2w.shape[0], 1, 4)
+    normalized = (transform @ torch.cat([c2w, bottom], dim=1))[:, :3, :4]
+    normalized[:, :, 3] = normalized[:, :, 3] * float(dataparser_scale)
+    return normalized
 
 
 def reference_from_model(
@@ -156,4 +141,4 @@ def _reference_intrinsics(
     return pinhole, distortion
 
 
-__all__ = ["reference_cameras", "reference_from_model"]
+__all__ = ["colmap_world_to_c2w", "reference_from_model"]
