@@ -64,8 +64,8 @@ bench: venv
 # The GPU check (docs/GPU-CHECK.md): refuses to run without CUDA; report in outputs/gpu-check/gpu-check.md.
 # Options go through GPU_CHECK_ARGS, e.g. make gpu-check GPU_CHECK_ARGS="--write-docs".
 gpu-check: venv
-	@echo ">>> python -m s2camp_ns.gpu_check $(GPU_CHECK_ARGS)"
-	$(BIN)/python -m s2camp_ns.gpu_check $(GPU_CHECK_ARGS)
+	@echo ">>> python -m s2camp_ns.benchmarks.gpu_check $(GPU_CHECK_ARGS)"
+	$(BIN)/python -m s2camp_ns.benchmarks.gpu_check $(GPU_CHECK_ARGS)
 
 # Mutation testing (docs/mutation-testing.md): mutmut (the "mutation" extra) mutates the modules listed under
 # [tool.mutmut] in pyproject.toml and runs their unit tests against each mutant, one worker at a time. The run

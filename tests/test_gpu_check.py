@@ -1,4 +1,4 @@
-"""``make gpu-check`` (s2camp_ns/gpu_check) on the CPU: its options, the refusal without CUDA, the scene, the
+"""``make gpu-check`` (benchmarks/gpu_check) on the CPU: its options, the refusal without CUDA, the scene, the
 ``cuda`` test selection and skip reason, the command lines, the measurements and the report."""
 
 from __future__ import annotations
@@ -19,12 +19,12 @@ from conftest import CUDA_SKIP_REASON
 from hang_guard import HANG_GUARD_S
 from test_camera_optimizer import NUM_CAMERAS, make_cameras
 
-from s2camp_ns.gpu_check import report
-from s2camp_ns.gpu_check.config import GpuCheckConfig
-from s2camp_ns.gpu_check.environment import Environment, GpuCheckError, describe, require_cuda
-from s2camp_ns.gpu_check.measured_train import StepClock
-from s2camp_ns.gpu_check.report import MethodResult, StageResult
-from s2camp_ns.gpu_check.runs import (
+from s2camp_ns.benchmarks.gpu_check import report
+from s2camp_ns.benchmarks.gpu_check.config import GpuCheckConfig
+from s2camp_ns.benchmarks.gpu_check.environment import Environment, GpuCheckError, describe, require_cuda
+from s2camp_ns.benchmarks.gpu_check.measured_train import StepClock
+from s2camp_ns.benchmarks.gpu_check.report import MethodResult, StageResult
+from s2camp_ns.benchmarks.gpu_check.runs import (
     check_nccl_checkpoint,
     cuda_tests_result,
     generate_scene,
@@ -33,7 +33,7 @@ from s2camp_ns.gpu_check.runs import (
     seconds_per_iteration,
     train_arguments,
 )
-from s2camp_ns.gpu_check.stock_nerfacto import StockNerfactoModel
+from s2camp_ns.benchmarks.gpu_check.stock_nerfacto import StockNerfactoModel
 from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -171,7 +171,7 @@ def test_refuses_without_cuda_with_a_clear_message(monkeypatch: pytest.MonkeyPat
 def test_the_command_exits_non_zero_without_cuda_and_writes_no_report(tmp_path: Path) -> None:
     output = tmp_path / "out"
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_ns.gpu_check", "--output-dir", str(output)],
+        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check", "--output-dir", str(output)],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     text = " ".join((result.stdout + result.stderr).split())
@@ -416,7 +416,7 @@ def test_the_report_file(tmp_path: Path) -> None:
 def test_a_report_is_rebuilt_from_the_folder_of_a_check_that_was_stopped(tmp_path: Path) -> None:
     """A check whose machine was lost before the report: --report-from writes it from what the check left, on a
     machine without CUDA, and a method whose evaluation is missing is a failed row."""
-    from s2camp_ns.gpu_check.cli import run
+    from s2camp_ns.benchmarks.gpu_check.cli import run
 
     folder = tmp_path / "check"
     (folder / "runs").mkdir(parents=True)
@@ -437,7 +437,7 @@ def test_a_report_is_rebuilt_from_the_folder_of_a_check_that_was_stopped(tmp_pat
     config = GpuCheckConfig(report_from=folder, output_dir=tmp_path / "out")
     assert run(config) is False  # s2camp has no evaluation
     text = config.report_path.read_text()
-    assert f"Regenerate with `python -m s2camp_ns.gpu_check --report-from {folder.as_posix()}`." in text
+    assert f"Regenerate with `python -m s2camp_ns.benchmarks.gpu_check --report-from {folder.as_posix()}`." in text
     assert "_measured on the machine listed below; report rebuilt " in text and "Python" not in text
     assert "- torch 2.11.0+cu130 (CUDA 13.0)\n- CUDA devices: cuda:0 H100\n" in text
     assert "| `pytest -m cuda` | passed | 5 passed |" in text
@@ -462,7 +462,7 @@ def test_cpu_smoke_run_trains_and_evaluates_stock_nerfacto(tmp_path: Path) -> No
     sized for a GPU, not for a busy CPU."""
     output = tmp_path / "out"
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_ns.gpu_check", "--cpu-smoke", "--methods", "nerfacto", "--output-dir",
+        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check", "--cpu-smoke", "--methods", "nerfacto", "--output-dir",
          str(output), "--run-timeout-minutes", str(HANG_GUARD_S / 60)],
         capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip

@@ -1,4 +1,4 @@
-"""``make gpu-check`` / ``python -m s2camp_ns.gpu_check``: the stages in order, the report, the exit status.
+"""``make gpu-check`` / ``python -m s2camp_ns.benchmarks.gpu_check``: the stages in order, the report, the exit status.
 
 1. the machine: CUDA devices (refused without one), tiny-cuda-nn (missing: said so, nerfstudio's torch fallback
    runs), nvcc, gsplat; ``--tcnn-source`` builds a local tiny-cuda-nn checkout;
@@ -140,7 +140,7 @@ def rebuild_report(config: GpuCheckConfig) -> bool:
         path = earlier.measurements_path(method)
         if path.is_file():
             results.append(method_result(method, json.loads(path.read_text()), config.warmup_steps, None))
-    command = f"python -m s2camp_ns.gpu_check --report-from {folder.as_posix()}" + (
+    command = f"python -m s2camp_ns.benchmarks.gpu_check --report-from {folder.as_posix()}" + (
         " --write-docs" if config.write_docs else ""
     )
     return write_reports(config, lines, stages, results, None, command)

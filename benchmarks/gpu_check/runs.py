@@ -179,7 +179,7 @@ def train_arguments(config: GpuCheckConfig, method: str, scene: Path) -> list[st
 def measured_train_command(config: GpuCheckConfig, method: str, scene: Path, result_path: Path) -> list[str]:
     alignment = json.dumps(dataclasses.asdict(config.alignment))
     return [
-        sys.executable, "-m", "s2camp_ns.gpu_check.measured_train", "--result", str(result_path),
+        sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.measured_train", "--result", str(result_path),
         "--alignment", alignment, "--", *train_arguments(config, method, scene),
     ]  # fmt: skip
 

@@ -6,5 +6,5 @@
 - ``runs``: the training runs, their evaluation and the 2-process NCCL run;
 - ``stock_nerfacto``: the camera interface S2CamP's evaluation needs, for a stock ``nerfacto`` run;
 - ``report``: the markdown tables;
-- ``cli``: the stages in order and the exit status (``python -m s2camp_ns.gpu_check``).
+- ``cli``: the stages in order and the exit status (``python -m s2camp_ns.benchmarks.gpu_check``).
 """

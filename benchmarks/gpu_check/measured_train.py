@@ -1,6 +1,6 @@
 """One training run of the GPU check, measured and evaluated in the training process.
 
-    python -m s2camp_ns.gpu_check.measured_train --result RUN.json [--alignment JSON] -- <ns-train arguments>
+    python -m s2camp_ns.benchmarks.gpu_check.measured_train --result RUN.json [--alignment JSON] -- <ns-train arguments>
 
 The run is nerfstudio's own ``ns-train`` path: its ``main`` (the ``--data`` alias, timestamp, saved config.yml,
 ``launch``) and its ``train_loop`` (seed, ``Trainer`` setup and training), with three additions:
