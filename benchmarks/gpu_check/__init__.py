@@ -1,10 +1,17 @@
-"""``make gpu-check``: one command that proves the CUDA path on a machine with a GPU (docs/GPU-CHECK.md).
+"""The GPU check: what one lent GPU answers, within one lease (docs/GPU-CHECK.md).
 
-- ``config``: the command's options and the scene (mip-NeRF 360 room at images_4 size);
+- ``config``: the check's options, its scene and the layout of its folder;
 - ``environment``: what the machine has (CUDA devices, tiny-cuda-nn, nvcc, gsplat) and the refusal without CUDA;
-- ``measured_train``: ``ns-train`` in-process with per-step CUDA timing and the peak CUDA memory of the run;
-- ``runs``: the training runs, their evaluation and the 2-process NCCL run;
+- ``processes``: the deadline, and commands as subprocesses with a log and a time limit;
+- ``records``: the JSON-lines records written as results are made (``StageResult``);
+- ``scene_stage``: the generated scene and its image tracks;
+- ``gsplat_kernels``: gsplat's CUDA kernels built in the background;
+- ``train_arguments``: the ``ns-train`` arguments of the check's runs;
+- ``measured_train``: training runs in one process, measured as they go (step times, camera errors, a clean stop
+  before the deadline, the evaluation);
+- ``step_log``, ``camera_error_log``: the files those measurements are appended to;
 - ``stock_nerfacto``: the camera interface S2CamP's evaluation needs, for a stock ``nerfacto`` run;
-- ``report``: the markdown tables;
-- ``cli``: the stages in order and the exit status (``python -m s2camp_ns.benchmarks.gpu_check``).
+- ``timing``, ``tests_stage``, ``rest``: the stages;
+- ``report``: the report, rebuilt from the folder;
+- ``cli``: the stages in order (``python -m s2camp_ns.benchmarks.gpu_check``).
 """

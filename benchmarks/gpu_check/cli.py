@@ -1,182 +1,171 @@
-"""``make gpu-check`` / ``python -m s2camp_ns.benchmarks.gpu_check``: the stages in order, the report, the exit status.
+"""``make gpu-check`` / ``python -m s2camp_ns.benchmarks.gpu_check``: the stages in order within a deadline.
 
-1. the machine: CUDA devices (refused without one), tiny-cuda-nn (missing: said so, nerfstudio's torch fallback
-   runs), nvcc, gsplat; ``--tcnn-source`` builds a local tiny-cuda-nn checkout;
-2. ``pytest -m cuda``: every test marked ``cuda`` must pass, none may skip;
-3. the scene: mip-NeRF 360 room at images_4 size (``config.ROOM_IMAGES_4``);
-4. nerfacto, s2camp-so3xr3, s2camp and s2camp-camp trained one after the other on the perturbed scene: time per
-   iteration against nerfacto, peak CUDA memory, camera errors from the perturbed start, held-out PSNR;
-5. with two GPUs, ``ns-train s2camp --machine.num-devices 2`` (NCCL).
+1. the machine (refused without CUDA), written first; gsplat's kernels start building in the background;
+2. the scene and its image tracks, then the timing of each pair at the methods' defaults (nerfacto against s2camp,
+   splatfacto against s2camp-splat), one process per pair;
+3. ``pytest -m cuda`` on the files that hold the ``cuda`` tests;
+4. while time remains: the four methods trained and evaluated side by side, and with two GPUs NCCL.
 
-The exit status is 0 only if every stage that ran passed; 2 when the check cannot run (no CUDA, bad options).
+Every stage's result is appended to ``stages.jsonl`` as it ends and the report is rebuilt from the folder after each
+stage; ``--report-from FOLDER`` rebuilds it for a check that was cut. A stage that would start with too little time
+left before ``--deadline`` is recorded as skipped; a training run stops cleanly before it. The exit status is 0 only
+if every stage that ran passed; 2 when the check cannot run (no CUDA, bad options).
 """
 
 from __future__ import annotations
 
-import json
-import shutil
 import time
-from dataclasses import replace
+from dataclasses import dataclass
 
 import tyro
 from rich.console import Console
 
-from . import report
-from .config import DOCS_REPORT, GpuCheckConfig
+from . import gsplat_kernels, report
+from .config import SPLAT_METHODS, STAGE_MINIMUM_S, GpuCheckConfig, parse_pair
 from .environment import GpuCheckError, describe, detect_environment, install_tinycudann, require_cuda
-from .runs import (
-    EXPERIMENT,
-    cuda_tests_result,
-    generate_scene,
-    junit_counts,
-    method_result,
-    run_cuda_tests,
-    run_nccl,
-    train_method,
-)
+from .processes import Deadline, stop
+from .records import StageResult, append_record, skipped
+from .rest import run_nccl, train_and_evaluate
+from .scene_stage import prepare_scene
+from .tests_stage import run_cuda_tests
+from .timing import run_pair
 
 CONSOLE = Console()
 
 
-def setup_text(config: GpuCheckConfig) -> str:
-    """How the runs were made, above the training table."""
-    s = config.scene
-    a = config.alignment
-    smoke = (
-        "**CPU smoke run of the script itself (`--cpu-smoke`): tiny scene, small nerfacto, a few steps on the CPU. "
-        "Not a GPU check; the numbers mean nothing.** "
-        if config.cpu_smoke
-        else ""
-    )
-    return smoke + (
-        f"Each method trains {config.iterations} steps of {config.rays_per_batch} rays from scratch with its default "
-        f"options (mixed precision on) on a generated scene of {s.num_cameras} images {s.width}x{s.height} "
-        f"(every 8th held out) whose training cameras are perturbed by CamP's protocol "
-        f"(`s2camp-data --perturbation.enabled True`); s2camp refreshes P every {config.refresh_every} steps "
-        f"(its default is 1000). Time per iteration: mean over the steps after the first {config.warmup_steps}, "
-        "each stamped after `torch.cuda.synchronize()`. Peak memory: `torch.cuda.max_memory_allocated()` of the "
-        "training process at the end of training. Camera errors: perturbed start → end, mean over the training "
-        "cameras after a similarity alignment to the true ones (rotation in degrees, position in scene units, "
-        f"focal in px). PSNR: held-out views after {a.steps} test-time alignment steps of {a.rays} rays "
-        "(`s2camp-eval`'s protocol). nerfacto is nerfstudio's stock method, fed the same data by `s2camp-data`."
-    )
+@dataclass
+class CheckRun:
+    """A check under way: its configuration, deadline and the gsplat build in the background."""
+
+    config: GpuCheckConfig
+    deadline: Deadline
+    build: gsplat_kernels.KernelBuild | None = None
+    passed: bool = True
+
+    def record(self, stage: StageResult) -> StageResult:
+        """Append ``stage`` to the folder's records, say it, and rebuild the report."""
+        append_record(self.config.folder.stages_path, stage)
+        CONSOLE.print(f"    {stage.name}: {stage.outcome}: {stage.detail}", highlight=False)
+        self.passed = self.rebuild_report()
+        return stage
+
+    def rebuild_report(self) -> bool:
+        return report.build(self.config, self.config.folder, report.COMMAND, rebuilt=False)[1]
+
+    def allows(self, stage: str, name: str) -> bool:
+        """Whether ``stage`` may start now; if not, it is recorded as skipped under ``name``."""
+        if self.deadline.allows(STAGE_MINIMUM_S[stage]):
+            CONSOLE.print(f">>> {name}", highlight=False)
+            return True
+        self.record(skipped(name, STAGE_MINIMUM_S[stage], self.deadline.remaining()))
+        return False
+
+    def gsplat_ready(self) -> bool:
+        """Wait for gsplat's kernels (recorded once); whether they load."""
+        if self.build is None:
+            return False
+        if self.build.result is None:  # waited for while a timing run still fits before the deadline
+            end = None if self.deadline.end is None else self.deadline.end - STAGE_MINIMUM_S["timing"]
+            self.record(gsplat_kernels.finish(self.build, Deadline(end), self.config.run_timeout_s))
+        return bool(self.build.result.passed)
 
 
 def run(config: GpuCheckConfig) -> bool:
-    """Run the check; write the report; True when everything that ran passed. Raises GpuCheckError when it
-    cannot run at all."""
-    began = time.perf_counter()
+    """Run the check; True when every stage that ran passed. Raises GpuCheckError when it cannot run at all."""
     config = config.effective()
     config.validate()
     if config.report_from is not None:
         return rebuild_report(config)
+    check = CheckRun(config, Deadline.after(config.deadline))
     environment = detect_environment()
     if not config.cpu_smoke:
         require_cuda(environment)
-    config.output_dir.mkdir(parents=True, exist_ok=True)
-    stages: list[report.StageResult] = []
+    folder = config.folder
+    folder.root.mkdir(parents=True, exist_ok=True)
+    folder.stages_path.unlink(missing_ok=True)
+    began = time.perf_counter()
     if config.tcnn_source is not None:
-        stages.append(build_tinycudann(config, environment))
+        check.record(build_tinycudann(config, environment))
         environment = detect_environment()
     lines = describe(environment)
-    for line in lines:
-        CONSOLE.print(line)
-    config.environment_path.write_text("\n".join(lines) + "\n", encoding="utf8")
-    if "tests" in config.stages:
-        stages.append(announced("pytest -m cuda", lambda: run_cuda_tests(config)))
-    results: list[report.MethodResult] = []
-    if "train" in config.stages or "nccl" in config.stages:
-        stages.append(announced("scene", lambda: generate_scene(config)))
-        scene = config.scene_dir if stages[-1].passed else None
-        if scene is not None and "train" in config.stages:
-            results, notes = train_all(config, scene)
-            lines.extend(notes)
-        if scene is not None and "nccl" in config.stages:
-            command = "ns-train s2camp --machine.num-devices 2"
-            stages.append(announced(command, lambda: run_nccl(config, scene, environment.device_count)))
-
-    minutes = (time.perf_counter() - began) / 60.0
-    return write_reports(config, lines, stages, results, minutes, "make gpu-check")
+    folder.environment_path.write_text("\n".join(lines) + "\n", encoding="utf8")
+    check.record(StageResult("machine", True, "; ".join(lines[:2]), time.perf_counter() - began))
+    if not config.cpu_smoke and needs_gsplat(config):
+        check.build = gsplat_kernels.start(folder.logs_dir / "gsplat-kernels.log", config.gsplat_jobs, environment.nvcc)
+    try:
+        run_stages(check, environment.device_count)
+    finally:
+        stop_build(check)
+    print(folder.report_path.read_text(), flush=True)
+    CONSOLE.print(f"report: {folder.report_path}")
+    return check.passed
 
 
-def write_reports(
-    config: GpuCheckConfig,
-    lines: list[str],
-    stages: list[report.StageResult],
-    results: list[report.MethodResult],
-    minutes: float | None,
-    command: str,
-) -> bool:
-    """Write the report (and with ``write_docs`` the committed one), print it; True when all of it passed."""
-    arguments = (lines, stages, results, setup_text(config), config.baseline, minutes, config.time_budget_minutes)
-    config.output_dir.mkdir(parents=True, exist_ok=True)
-    path = report.write(config.report_path, *arguments, command)
-    if config.write_docs:
-        report.write(DOCS_REPORT / "gpu-check.md", *arguments, command)
-    print(path.read_text(), flush=True)
-    CONSOLE.print(f"report: {path}")
-    return report.all_passed(stages, results)
+def needs_gsplat(config: GpuCheckConfig) -> bool:
+    pairs = [method for pair in config.pairs for method in parse_pair(pair)] if "timing" in config.stages else []
+    return "tests" in config.stages or any(method in SPLAT_METHODS for method in pairs)
+
+
+def run_stages(check: CheckRun, device_count: int) -> None:
+    config, deadline = check.config, check.deadline
+    if not {"timing", "rest", "nccl"} & set(config.stages):
+        scene = None
+    else:
+        CONSOLE.print(">>> scene and image tracks", highlight=False)
+        stage = check.record(prepare_scene(config.scene, config.folder.scene_dir, config.folder.logs_dir / "tracks.log",
+                                           deadline))  # fmt: skip
+        scene = config.folder.scene_dir if stage.passed else None
+    if "timing" in config.stages and scene is not None:
+        for pair in config.pairs:
+            name = f"timing {pair}"
+            if any(method in SPLAT_METHODS for method in parse_pair(pair)) and not check.gsplat_ready():
+                check.record(StageResult(name, None, "not run: gsplat's CUDA kernels are not available (see above)"))
+            elif check.allows("timing", name):
+                check.record(run_pair(config, pair, scene, deadline))
+    if "tests" in config.stages and check.allows("tests", "`pytest -m cuda`"):
+        if check.build is not None:
+            check.gsplat_ready()  # the gsplat tests would otherwise build the kernels inside their time limit
+        check.record(run_cuda_tests(config, deadline))
+    if "rest" in config.stages and scene is not None:
+        for method in config.rest_methods:
+            if check.allows("rest", f"rest: {method}"):
+                check.record(train_and_evaluate(config, method, scene, deadline))
+    if "nccl" in config.stages and scene is not None and check.allows("nccl", "nccl"):
+        check.record(run_nccl(config, scene, device_count, deadline))
+
+
+def stop_build(check: CheckRun) -> None:
+    """A build the check never waited for: its result if it ended, else stopped (not needed before the end)."""
+    build = check.build
+    if build is None or build.result is not None:
+        return
+    if build.process is not None and build.process.poll() is None:
+        stop(build.process)
+        seconds = time.perf_counter() - build.began
+        check.record(StageResult(gsplat_kernels.STAGE, None, f"not needed; stopped after {seconds:.0f} s", seconds))
+        return
+    check.gsplat_ready()
 
 
 def rebuild_report(config: GpuCheckConfig) -> bool:
-    """The report of the check whose output folder is ``config.report_from``, from what it left there: the machine
-    (``environment.txt``), the ``cuda`` tests' JUnit file and each method's measurements (``runs/<method>.json``; a
-    run without its evaluation is a failed row). Written like a finished check's; True when all of it passed."""
-    folder = config.report_from
-    earlier = replace(config, output_dir=folder)  # the layout of the earlier check's folder
-    environment = earlier.environment_path
-    lines = environment.read_text(encoding="utf8").splitlines() if environment.is_file() else []
-    lines = lines or ["the machine is not recorded in this folder (no environment.txt)"]
-    lines.append(
-        f"Rebuilt from `{folder.as_posix()}` (`--report-from`): the stages that left nothing there (the scene, NCCL) "
-        "are not in the tables."
-    )
-    stages = []
-    junit = earlier.junit_path
-    if junit.is_file():  # pytest's own counts: passed only if every collected test ran and passed
-        stages.append(cuda_tests_result(0, junit_counts(junit), junit.with_suffix(".log"), 0.0))
-    results = []
-    for method in config.methods:
-        path = earlier.measurements_path(method)
-        if path.is_file():
-            results.append(method_result(method, json.loads(path.read_text()), config.warmup_steps, None))
-    command = f"python -m s2camp_ns.benchmarks.gpu_check --report-from {folder.as_posix()}" + (
-        " --write-docs" if config.write_docs else ""
-    )
-    return write_reports(config, lines, stages, results, None, command)
+    """The report of the check whose folder is ``config.report_from``, from what it left there."""
+    folder = type(config.folder)(config.report_from)
+    command = f"{report.COMMAND} --report-from {folder.root.as_posix()}"
+    command += " --write-docs" if config.write_docs else ""
+    path, passed = report.build(config, folder, command, rebuilt=True)
+    print(path.read_text(), flush=True)
+    CONSOLE.print(f"report: {path}")
+    return passed
 
 
-def announced(what: str, stage) -> report.StageResult:
-    """Run ``stage`` (returns a StageResult) between a line naming it and a line with its outcome."""
-    CONSOLE.print(f">>> {what}", highlight=False)
-    result = stage()
-    CONSOLE.print(f"    {result.detail}", highlight=False)
-    return result
-
-
-def build_tinycudann(config: GpuCheckConfig, environment) -> report.StageResult:
+def build_tinycudann(config: GpuCheckConfig, environment) -> StageResult:
     name = "tiny-cuda-nn build"
-    log_path = config.logs_dir / "tinycudann.log"
+    log_path = config.folder.logs_dir / "tinycudann.log"
     try:
-        install_tinycudann(config.tcnn_source, environment, log_path, 60 * config.run_timeout_minutes)
+        install_tinycudann(config.tcnn_source, environment, log_path, config.run_timeout_s)
     except GpuCheckError as error:
-        return report.StageResult(name, False, str(error))
-    return report.StageResult(name, True, f"from {config.tcnn_source}")
-
-
-def train_all(config: GpuCheckConfig, scene) -> tuple[list[report.MethodResult], list[str]]:
-    """Every method, one after the other; the results and notes for the report (LPIPS left out)."""
-    results, notes = [], []
-    for method in config.methods:
-        CONSOLE.print(f">>> ns-train {method}", highlight=False)
-        result, measured = train_method(config, method, scene)
-        results.append(result)
-        if measured is not None and measured.get("lpips_left_out"):
-            notes.append(f"{method}: LPIPS left out (torchvision's AlexNet weights are not cached and not reachable)")
-        CONSOLE.print(f"    {'passed' if result.error is None else result.error}", highlight=False)
-    for checkpoints in config.runs_dir.glob(f"{EXPERIMENT}/*/*/nerfstudio_models"):
-        shutil.rmtree(checkpoints)  # nerfacto-sized checkpoints with Adam's moments: not needed afterwards
-    return results, notes
+        return StageResult(name, False, str(error))
+    return StageResult(name, True, f"from {config.tcnn_source}")
 
 
 def main(config: GpuCheckConfig) -> int:
