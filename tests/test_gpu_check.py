@@ -1,6 +1,6 @@
-"""The GPU check (benchmarks/gpu_check) on the CPU: options, the refusal without CUDA, the deadline, the records
-written as results are made and the report rebuilt from them (also for a cut run), the ``cuda`` test selection and
-its collection from an installed package."""
+"""The GPU check and the regime command (benchmarks/gpu_check) on the CPU: options, the refusal without CUDA, the
+deadline, the records written as results are made and the reports rebuilt from them (also for a cut run), the
+``cuda`` test selection and its collection from an installed package."""
 
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ from conftest import CUDA_SKIP_REASON
 from hang_guard import HANG_GUARD_S
 from test_camera_optimizer import NUM_CAMERAS, make_cameras
 
-from s2camp_ns.benchmarks.gpu_check import report
+from s2camp_ns.benchmarks.gpu_check import regime_report, report
+from s2camp_ns.benchmarks.gpu_check.camera_error_log import REFINED, START, ErrorRecord
 from s2camp_ns.benchmarks.gpu_check.cli import CheckRun
 from s2camp_ns.benchmarks.gpu_check.config import (
     CUDA_TEST_FILES,
@@ -33,6 +34,7 @@ from s2camp_ns.benchmarks.gpu_check.environment import Environment, GpuCheckErro
 from s2camp_ns.benchmarks.gpu_check.measured_train import TrainPlan, share_of_time
 from s2camp_ns.benchmarks.gpu_check.processes import Deadline
 from s2camp_ns.benchmarks.gpu_check.records import StageResult, append_record, read_lines, read_records
+from s2camp_ns.benchmarks.gpu_check.regime import RegimeConfig, RegimeFolder, variant_arguments
 from s2camp_ns.benchmarks.gpu_check.rest import MethodResult, check_nccl_checkpoint, method_result
 from s2camp_ns.benchmarks.gpu_check.scene_stage import generate_scene
 from s2camp_ns.benchmarks.gpu_check.step_log import RunEnd, StepLog, read_step_log
@@ -40,6 +42,7 @@ from s2camp_ns.benchmarks.gpu_check.stock_nerfacto import StockNerfactoModel
 from s2camp_ns.benchmarks.gpu_check.tests_stage import cuda_tests_result, junit_counts, log_counts, pytest_command
 from s2camp_ns.benchmarks.gpu_check.timing import pair_plan, timing_rows
 from s2camp_ns.benchmarks.gpu_check.train_arguments import rest_arguments, timing_arguments
+from s2camp_ns.nerfstudio.train_commands import PHOTOMETRIC_ONLY
 from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -174,7 +177,7 @@ def test_refuses_without_cuda_with_a_clear_message(monkeypatch: pytest.MonkeyPat
     require_cuda(replace(NO_GPU, cuda_available=True, device_names=("NVIDIA H200",)))  # no error
 
 
-@pytest.mark.parametrize("command", ["s2camp_ns.benchmarks.gpu_check"])
+@pytest.mark.parametrize("command", ["s2camp_ns.benchmarks.gpu_check", "s2camp_ns.benchmarks.gpu_check.regime"])
 def test_the_commands_exit_non_zero_without_cuda_and_write_nothing(tmp_path: Path, command: str) -> None:
     output = tmp_path / "out"
     result = subprocess.run(
@@ -552,6 +555,65 @@ def test_the_committed_check_of_the_last_lease_is_rebuilt(tmp_path: Path) -> Non
     assert "| s2camp-camp | 98.7 | 1.27x | 2.79 | - | - | - | - | FAILED: no evaluation written |" in text
 
 
+# ----------------------------------------------------------------------------------------------------- regime
+def test_the_regime_run_is_one_pass_over_the_lease_scene() -> None:
+    config = RegimeConfig()
+    config.validate()
+    assert config.training_pixels == 35 * 640 * 480  # every 8th of 40 images held out
+    assert config.iterations == 2625  # ceil(10,752,000 / 4096)
+    assert RegimeConfig(passes=0.5).iterations == 1313
+    with pytest.raises(ValueError, match=r"variants must be one of .*got 'photometric'"):
+        RegimeConfig(variants=("s2camp", "photometric")).validate()
+    with pytest.raises(ValueError, match="passes must be a number > 0, got 0"):
+        RegimeConfig(passes=0).validate()
+
+
+def test_the_regime_variants_share_their_evidence_and_differ_only_in_their_options() -> None:
+    config = RegimeConfig()
+    runs = {v: variant_arguments(config, v, Path("scene")) for v in ("s2camp", "tracks-alone", "images-alone")}
+    for arguments in runs.values():
+        assert arguments[0] == "s2camp"
+        assert arguments[-3:] == ["s2camp-data", "--perturbation.enabled", "True"]  # tracks from the images
+        assert "--image-tracks" not in arguments and "--reference-model" not in arguments
+        assert not [a for a in arguments if "log2-hashmap-size" in a or a == "--machine.device-type"]  # own field
+        assert arguments[arguments.index("--max-num-iterations") + 1] == "2625"
+    extra = {v: [a for a in args if a not in runs["s2camp"]] for v, args in runs.items()}
+    assert extra["tracks-alone"] == ["tracks-alone", "--pipeline.model.camera-optimizer.photometric", "False"]
+    assert extra["images-alone"] == ["images-alone", *PHOTOMETRIC_ONLY]
+
+
+def _errors(path: Path, records: list[ErrorRecord]) -> None:
+    for record in records:
+        append_record(path, record)
+
+
+def test_the_regime_report_has_its_figures_even_when_the_run_was_cut(tmp_path: Path) -> None:
+    config = RegimeConfig(output_dir=tmp_path)
+    folder = RegimeFolder(tmp_path)
+    _errors(folder.errors_log("tracks-alone"), [ErrorRecord(START, 0, 0.3, 4e-3, 22.0, 7.0),
+                                                ErrorRecord(REFINED, 0, 0.08, 2e-3, 1.5, 1.2)])  # fmt: skip
+    _errors(folder.errors_log("s2camp"), [ErrorRecord(START, 0, 0.3, 4e-3, 22.0, 7.0),
+                                          ErrorRecord(REFINED, 0, 0.3, 4e-3, 22.0, 6.9),
+                                          ErrorRecord(REFINED, 250, 0.07, 1.9e-3, 1.2, 1.0)])  # fmt: skip
+    with open(folder.errors_log("s2camp"), "a") as file:
+        file.write('{"label": "refined", "step": 500, "rot')  # cut while writing
+    append_record(folder.runs_path, StageResult("tracks-alone", True, "ended", 20.0))
+    path = regime_report.build(config, folder, regime_report.COMMAND)
+    text = path.read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| ") and "evidence" not in line]
+    assert rows[:4] == [
+        "| start (CamP's perturbation) | - | - | 0.3000 | 4.00e-03 | 22.000 | 7.000 |",
+        "| tracks alone (the track prior's anchor, no training) | - | - | 0.0800 | 2.00e-03 | 1.500 | 1.200 |",
+        "| s2camp (tracks and images) | 0 | 0.00 | 0.3000 | 4.00e-03 | 22.000 | 6.900 |",
+        "| s2camp (tracks and images) | 250 | 0.10 | 0.0700 | 1.90e-03 | 1.200 | 1.000 |",
+    ]
+    assert "| tracks-alone | passed | 20 | ended |" in text
+    assert "2625 steps of 4096 rays, 1 pass(es) over the training pixels" in text
+    assert regime_report.progress(folder, ("s2camp", "images-alone")) == (
+        "s2camp: step 250; images-alone: no errors logged yet"
+    )
+
+
 # ---------------------------------------------------------------------------------------------- end to end
 @pytest.mark.slow
 def test_a_cpu_check_cut_by_its_deadline_keeps_what_it_measured(tmp_path: Path) -> None:
@@ -584,3 +646,35 @@ def test_a_cpu_check_cut_by_its_deadline_keeps_what_it_measured(tmp_path: Path) 
     assert times.end.stopped_early and times.end.refresh_seconds and times.end.steps == len(times.steps)
     environment = (output / "environment.txt").read_text().splitlines()
     assert environment[0].startswith("torch ") and environment[1] == "CUDA devices: none"
+
+
+@pytest.mark.slow
+def test_the_regime_command_on_the_cpu_logs_errors_as_it_goes(tmp_path: Path) -> None:
+    """The regime command end to end on the CPU (``--cpu-smoke``): tracks alone read after set-up, s2camp's errors
+    logged every few steps, images alone after it, the report with all three; then rebuilt by --report-from."""
+    output = tmp_path / "regime"
+    result = subprocess.run(
+        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
+         "--output-dir", str(output)],
+        capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    folder = RegimeFolder(output)
+    tracks = [r for r in read_records(folder.errors_log("tracks-alone"), ErrorRecord) if r.label == REFINED]
+    s2camp = [r for r in read_records(folder.errors_log("s2camp"), ErrorRecord) if r.label == REFINED]
+    start = next(r for r in read_records(folder.errors_log("s2camp"), ErrorRecord) if r.label == START)
+    assert [r.step for r in s2camp] == [0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30]  # 30 steps: ceil(0.01 x 768,000 / 256)
+    assert tracks and tracks[0].focal_err != start.focal_err  # the anchor is not the start
+    assert s2camp[-1].rot_err != s2camp[0].rot_err  # the cameras moved
+    assert [r.name for r in read_records(folder.runs_path, StageResult)] == [
+        "scene", "tracks-alone", "s2camp", "images-alone"
+    ]  # fmt: skip
+    text = folder.report_path.read_text()
+    assert "| images alone | 30 |" in text and "| tracks alone (the track prior's anchor, no training) |" in text
+    folder.report_path.unlink()
+    again = subprocess.run(
+        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
+         "--report-from", str(output)],
+        capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
+    )  # fmt: skip
+    assert again.returncode == 0 and "| images alone | 30 |" in folder.report_path.read_text()

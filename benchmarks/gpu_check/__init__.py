@@ -1,4 +1,4 @@
-"""The GPU check: what one lent GPU answers, within one lease (docs/GPU-CHECK.md).
+"""The GPU check and the regime command: what one lent GPU answers, within one lease (docs/GPU-CHECK.md).
 
 - ``config``: the check's options, its scene and the layout of its folder;
 - ``environment``: what the machine has (CUDA devices, tiny-cuda-nn, nvcc, gsplat) and the refusal without CUDA;
@@ -13,5 +13,6 @@
 - ``stock_nerfacto``: the camera interface S2CamP's evaluation needs, for a stock ``nerfacto`` run;
 - ``timing``, ``tests_stage``, ``rest``: the stages;
 - ``report``: the report, rebuilt from the folder;
-- ``cli``: the stages in order (``python -m s2camp_ns.benchmarks.gpu_check``).
+- ``cli``: the stages in order (``python -m s2camp_ns.benchmarks.gpu_check``);
+- ``regime``, ``regime_report``: the regime command (``python -m s2camp_ns.benchmarks.gpu_check.regime``).
 """
