@@ -1,6 +1,6 @@
 """The GPU check and the regime command (benchmarks/gpu_check) on the CPU: options, the refusal without CUDA, the
 deadline, the records written as results are made and the reports rebuilt from them (also for a cut run), the
-``cuda`` test selection and its collection from an installed package."""
+``cuda`` test selection and its collection from an installed package, the offline bundle."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import re
 import subprocess
 import sys
 import time
+import zipfile
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
@@ -21,6 +22,7 @@ from hang_guard import HANG_GUARD_S
 from test_camera_optimizer import NUM_CAMERAS, make_cameras
 
 from s2camp_ns.benchmarks.gpu_check import regime_report, report
+from s2camp_ns.benchmarks.gpu_check.bundle import SLIM, normalized, to_carry
 from s2camp_ns.benchmarks.gpu_check.camera_error_log import REFINED, START, ErrorRecord
 from s2camp_ns.benchmarks.gpu_check.cli import CheckRun
 from s2camp_ns.benchmarks.gpu_check.config import (
@@ -42,6 +44,7 @@ from s2camp_ns.benchmarks.gpu_check.stock_nerfacto import StockNerfactoModel
 from s2camp_ns.benchmarks.gpu_check.tests_stage import cuda_tests_result, junit_counts, log_counts, pytest_command
 from s2camp_ns.benchmarks.gpu_check.timing import pair_plan, timing_rows
 from s2camp_ns.benchmarks.gpu_check.train_arguments import rest_arguments, timing_arguments
+from s2camp_ns.benchmarks.gpu_check.wheels import slim_wheel
 from s2camp_ns.nerfstudio.train_commands import PHOTOMETRIC_ONLY
 from s2camp_ns.scene.make_scene import MakeSceneConfig
 
@@ -612,6 +615,50 @@ def test_the_regime_report_has_its_figures_even_when_the_run_was_cut(tmp_path: P
     assert regime_report.progress(folder, ("s2camp", "images-alone")) == (
         "s2camp: step 250; images-alone: no errors logged yet"
     )
+
+
+# ------------------------------------------------------------------------------------------------------ bundle
+def test_the_bundle_carries_what_the_machine_lacks_and_never_this_package_from_the_registry() -> None:
+    imported = {"torch": "2.14.1", "numpy": "2.3.0", "nerfstudio": "1.1.5", "PySocks": "1.7.1",
+                "typing_extensions": "4.12", "s2camp-ns": "0.1.0", "docstring_parser": "0.18.0"}  # fmt: skip
+    assert to_carry(imported) == {"nerfstudio": "1.1.5", "PySocks": "1.7.1", "docstring_parser": "0.18.0"}
+    assert normalized("Docstring_Parser") == "docstring-parser" and normalized("torch_fidelity") in SLIM
+
+
+def test_a_slimmed_wheel_loses_the_folders_and_their_record_lines(tmp_path: Path) -> None:
+    wheel = tmp_path / "gsplat-1.4.0-py3-none-any.whl"
+    with zipfile.ZipFile(wheel, "w") as archive:
+        archive.writestr("gsplat/__init__.py", "x = 1\n")
+        archive.writestr("gsplat/cuda/csrc/third_party/glm/glm/glm.hpp", "// header\n")
+        archive.writestr("gsplat/cuda/csrc/third_party/glm/doc/manual.pdf", b"%PDF" + bytes(200_000))
+        archive.writestr("gsplat-1.4.0.dist-info/RECORD", "gsplat/__init__.py,,\n"
+                         "gsplat/cuda/csrc/third_party/glm/glm/glm.hpp,,\n"
+                         "gsplat/cuda/csrc/third_party/glm/doc/manual.pdf,,\n")  # fmt: skip
+    assert slim_wheel(wheel, SLIM["gsplat"]) > 0
+    with zipfile.ZipFile(wheel) as archive:
+        assert archive.namelist() == [
+            "gsplat/__init__.py", "gsplat/cuda/csrc/third_party/glm/glm/glm.hpp", "gsplat-1.4.0.dist-info/RECORD"
+        ]  # fmt: skip
+        assert archive.read("gsplat-1.4.0.dist-info/RECORD").decode().splitlines() == [
+            "gsplat/__init__.py,,", "gsplat/cuda/csrc/third_party/glm/glm/glm.hpp,,"
+        ]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_the_bundle_dry_run_lists_the_training_paths_packages() -> None:
+    """``bundle --dry-run`` imports the training path in a fresh process and lists what the machine lacks, at this
+    checkout's versions, fetching nothing."""
+    result = subprocess.run(
+        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.bundle", "--dry-run"],
+        capture_output=True, text=True, env={**NO_CUDA, "PIP_NO_INDEX": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    listed = re.findall(r"^  (\S+?)==(\S+)", result.stdout, re.MULTILINE)
+    names = {normalized(name) for name, _ in listed}
+    assert {"nerfstudio", "gsplat", "pycolmap", "tyro", "viser", "fpsample", "nerfacc", "tensorly"} <= names
+    assert not names & {"torch", "numpy", "pytest", "rich", "s2camp-ns"}  # the machine has these, or it is ours
+    assert "  s2camp-ns (this checkout, built as a wheel)" in result.stdout
+    assert dict(listed)["nerfstudio"] == "1.1.5"
 
 
 # ---------------------------------------------------------------------------------------------- end to end

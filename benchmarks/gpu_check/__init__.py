@@ -14,5 +14,7 @@
 - ``timing``, ``tests_stage``, ``rest``: the stages;
 - ``report``: the report, rebuilt from the folder;
 - ``cli``: the stages in order (``python -m s2camp_ns.benchmarks.gpu_check``);
-- ``regime``, ``regime_report``: the regime command (``python -m s2camp_ns.benchmarks.gpu_check.regime``).
+- ``regime``, ``regime_report``: the regime command (``python -m s2camp_ns.benchmarks.gpu_check.regime``);
+- ``bundle``, ``wheels``, ``device_image``: the offline bundle of wheels a lent GPU machine needs
+  (``python -m s2camp_ns.benchmarks.gpu_check.bundle``).
 """
