@@ -527,9 +527,9 @@ def test_a_report_is_rebuilt_from_the_folder_of_a_check_that_was_cut(tmp_path: P
     from s2camp_ns.benchmarks.gpu_check.cli import run
 
     folder = _cut_check_folder(tmp_path / "check")
-    config = GpuCheckConfig(report_from=folder.root)
+    config = GpuCheckConfig(report_from=folder.root, output_dir=tmp_path / "report")
     assert run(config) is True  # every stage that ended passed
-    text = folder.report_path.read_text()
+    text = (tmp_path / "report" / "gpu-check.md").read_text()
     assert f"Regenerate with `python -m s2camp_ns.benchmarks.gpu_check --report-from {folder.root.as_posix()}`." in text
     assert "_measured on the machine listed below; report rebuilt " in text
     assert "- torch 2.11.0+cu130 (CUDA 13.0)\n- CUDA devices: cuda:0 H100\n" in text
@@ -550,8 +550,10 @@ def test_the_committed_check_of_the_last_lease_is_rebuilt(tmp_path: Path) -> Non
 
     folder = tmp_path / "gpu-check-h100"
     shutil.copytree(REPOSITORY / "docs" / "benchmarks" / "gpu-check-h100", folder)
-    assert run(GpuCheckConfig(report_from=folder, warmup_steps=30)) is False  # 8 errors, s2camp-camp not evaluated
-    text = (folder / "gpu-check.md").read_text()
+    config = GpuCheckConfig(report_from=folder, output_dir=tmp_path / "report", warmup_steps=30)
+    assert run(config) is False  # 8 errors, s2camp-camp not evaluated
+    assert not (folder / "gpu-check.md").exists()  # the folder read is left as it was
+    text = (tmp_path / "report" / "gpu-check.md").read_text()
     assert "| `pytest -m cuda` | FAILED | - | 8 errors; log " in text
     assert "| nerfacto | 78.0 | 1.00x | 2.79 | 0.278 → 0.712 |" in text
     assert "| s2camp | 100.6 | 1.29x | 2.79 | 0.278 → 0.060 |" in text
@@ -718,10 +720,42 @@ def test_the_regime_command_on_the_cpu_logs_errors_as_it_goes(tmp_path: Path) ->
     ]  # fmt: skip
     text = folder.report_path.read_text()
     assert "| images alone | 30 |" in text and "| tracks alone (the track prior's anchor, no training) |" in text
-    folder.report_path.unlink()
     again = subprocess.run(
         [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
-         "--report-from", str(output)],
+         "--report-from", str(output), "--output-dir", str(tmp_path / "rebuilt")],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
-    assert again.returncode == 0 and "| images alone | 30 |" in folder.report_path.read_text()
+    assert again.returncode == 0 and "| images alone | 30 |" in (tmp_path / "rebuilt" / "regime.md").read_text()
+
+
+@pytest.mark.slow
+def test_the_lease_script_runs_the_commands_in_order_and_packs_their_results(tmp_path: Path) -> None:
+    """``benchmarks/gpu_check/lease.sh`` on the CPU (``SMOKE``: each command's ``--cpu-smoke``; ``NO_INSTALL``: this
+    checkout's package): the check's timing, the regime's tracks alone, the tests step (nothing to run on the CPU),
+    each under its deadline, and after each the reports and the archive of records in ``$OUT``."""
+    work, out = tmp_path / "lease", tmp_path / "out"
+    environment = {
+        **NO_CUDA, "OMP_NUM_THREADS": "1", "SMOKE": "1", "NO_INSTALL": "1", "PYTHON": sys.executable,
+        "PYTHONPATH": str(REPOSITORY), "WORK": str(work), "OUT": str(out), "CHECK_S": "200", "REGIME_S": "320",
+        "TESTS_S": "400", "REGIME_VARIANTS": "tracks-alone",
+    }  # fmt: skip
+    result = subprocess.run(
+        ["bash", "benchmarks/gpu_check/lease.sh"],
+        capture_output=True, text=True, env=environment, cwd=REPOSITORY, timeout=HANG_GUARD_S,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    lines = (work / "lease.log").read_text().splitlines()
+    assert [line.split(" (")[0] for line in lines if line.startswith(">>> ")] == [
+        ">>> gpu-check", ">>> regime", ">>> cuda-tests"
+    ]  # fmt: skip
+    assert all(" exit status 0 at " in line for line in lines if line.startswith("    "))
+    assert sorted(path.name for path in out.iterdir()) == ["cuda-tests.md", "gpu-check.md", "lease.tgz", "regime.md"]
+    assert "| nerfacto/s2camp | s2camp | cpu |" in (out / "gpu-check.md").read_text()
+    assert "| tracks alone (the track prior's anchor, no training) |" in (out / "regime.md").read_text()
+    import tarfile
+
+    with tarfile.open(out / "lease.tgz") as archive:
+        names = set(archive.getnames())
+    kept = {"./gpu-check/stages.jsonl", "./gpu-check/timing/s2camp.jsonl", "./regime/errors/tracks-alone.jsonl"}
+    assert kept <= names
+    assert not [name for name in names if "/scene/" in name or "/ns-train/" in name]

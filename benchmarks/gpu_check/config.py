@@ -132,8 +132,9 @@ class GpuCheckConfig:
     the run)."""
     log_every: int = 10
     """Steps between appends to a step log."""
-    gsplat_jobs: int = 8
-    """Compiler jobs (MAX_JOBS) of gsplat's kernel build in the background."""
+    gsplat_jobs: int = 12
+    """Compiler jobs (MAX_JOBS) of gsplat's kernel build in the background (at the lowest CPU priority; the rest of
+    the cores stay for the check's own work)."""
     write_docs: bool = False
     """Also write the report to docs/benchmarks/gpu-check.md (for a committed result)."""
     rest_methods: tuple[str, ...] = REST_METHODS
@@ -157,7 +158,7 @@ class GpuCheckConfig:
     """A local tiny-cuda-nn checkout to build and install (needs nvcc; takes minutes). Without it, a missing
     tiny-cuda-nn is reported and nerfacto runs on nerfstudio's pure-torch fallback."""
     report_from: Path | None = None
-    """Run nothing: rebuild the report from the folder of an earlier check, finished or cut."""
+    """Run nothing: rebuild the report from the folder of an earlier check, finished or cut, into output_dir."""
     cpu_smoke: bool = False
     """Test this script itself without a GPU: the nerfacto/s2camp pair and the rest stage's nerfacto, on the CPU, on
     a tiny scene with a small field for a few steps. Its numbers mean nothing and its report says it is no GPU

@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,15 +47,28 @@ class Deadline:
         return min(timeout_s, self.remaining())
 
 
-def run_logged(command: list[str], log_path: Path, timeout_s: float, env: dict[str, str] | None = None) -> int | None:
+def run_logged(
+    command: list[str],
+    log_path: Path,
+    timeout_s: float,
+    env: dict[str, str] | None = None,
+    progress: Callable[[], str] | None = None,
+    every_s: float = 30.0,
+) -> int | None:
     """Run ``command`` with its output in ``log_path``; its exit status, or None when it was killed for running past
-    ``timeout_s``."""
+    ``timeout_s``. ``progress``: a line printed every ``every_s`` seconds while it runs."""
     process = start_logged(command, log_path, env)
+    ends = time.monotonic() + max(timeout_s, 0.0)
     try:
-        return process.wait(timeout=max(timeout_s, 0.0))
-    except subprocess.TimeoutExpired:
-        stop(process)
-        return None
+        while True:
+            try:
+                return process.wait(timeout=max(0.0, min(every_s, ends - time.monotonic())))
+            except subprocess.TimeoutExpired:
+                if time.monotonic() >= ends:
+                    stop(process)
+                    return None
+                if progress is not None:
+                    print(f"    {progress()}", flush=True)
     except BaseException:  # Ctrl-C does not reach the command's own session: stop it here, then stop
         stop(process)
         raise

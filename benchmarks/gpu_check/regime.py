@@ -107,7 +107,7 @@ class RegimeConfig:
     run_timeout_minutes: float = 30.0
     """A run's process taking longer than this is stopped."""
     report_from: Path | None = None
-    """Run nothing: rebuild the report from the folder of an earlier run of this command."""
+    """Run nothing: rebuild the report from the folder of an earlier run of this command, into output_dir."""
     cpu_smoke: bool = False
     """Test this command itself without a GPU: a small scene, the small nerfacto field, a few steps on the CPU. Its
     numbers mean nothing and its report says so."""

@@ -83,7 +83,7 @@ def setup_text(config) -> str:
 
 
 def build(config, folder, command: str) -> Path:
-    """Write ``<folder>/regime.md`` from the folder's files; return its path."""
+    """Write ``<output_dir>/regime.md`` from the files of ``folder``; return its path."""
     per_pass = config.iterations / config.passes
     rows = error_rows(folder, per_pass)
     runs = read_runs(folder)
@@ -102,4 +102,4 @@ def build(config, folder, command: str) -> Path:
         "## Runs",
         markdown_table(run_rows, ["run", "result", "seconds", "detail"]) if run_rows else "No run has ended.",
     ]
-    return write_report(folder.root, "regime", "The regime at real resolution", command, sections)
+    return write_report(config.output_dir, "regime", "The regime at real resolution", command, sections)

@@ -129,7 +129,8 @@ def rest_text(config: GpuCheckConfig) -> str:
     a = config.alignment
     return (
         f"Each method trains {config.rest_iterations} steps of {config.rays_per_batch} rays from scratch with its "
-        f"default options on the same perturbed scene; s2camp refreshes P every {config.refresh_every} steps. Time "
+        "default options on the check's scene, its training cameras perturbed by CamP's protocol; s2camp refreshes P "
+        f"every {config.refresh_every} steps. Time "
         f"per iteration: mean over the steps after the first {config.warmup_steps}. Camera errors: perturbed start "
         "→ end, mean over the training cameras after a similarity alignment to the true ones (rotation in degrees, "
         f"position in scene units, focal in px). PSNR: held-out views after {a.steps} test-time alignment steps of "
@@ -166,8 +167,8 @@ def whole_time(stages: list[StageResult]) -> str:
 
 
 def build(config: GpuCheckConfig, folder: CheckFolder, command: str, rebuilt: bool) -> tuple[Path, bool]:
-    """Write the report of ``folder`` (and with ``write_docs`` the committed one); (its path, whether every stage
-    that ran passed)."""
+    """Write the report of what ``folder`` holds to ``<output_dir>/gpu-check.md`` (and with ``write_docs`` the
+    committed one); (its path, whether every stage that ran passed)."""
     environment = folder.environment_path
     lines = environment.read_text(encoding="utf8").splitlines() if environment.is_file() else []
     lines = lines or ["the machine is not recorded in this folder (no environment.txt)"]
@@ -178,14 +179,18 @@ def build(config: GpuCheckConfig, folder: CheckFolder, command: str, rebuilt: bo
     rest = rest_results(folder, config)
     baseline = REST_BASELINE if REST_BASELINE in config.rest_methods else None
     sections = ["\n".join(f"- {line}" for line in lines), "## Stages", stage_table(stages), whole_time(stages)]
-    sections += ["## Time per step at the methods' defaults", timing_text(config), timing_table(timing)]
+    sections.append("## Time per step at the methods' defaults")
+    if any(row.state != "not run" for row in timing):
+        sections += [timing_text(config), timing_table(timing)]
+    else:
+        sections.append("No timing run left a step log in this folder.")
     if rest:
         sections += ["## The methods trained and evaluated side by side", rest_text(config)]
         sections.append(method_table(rest, baseline))
     measured_on = None  # this machine (write_report's environment line)
     if rebuilt:
         measured_on = f"measured on the machine listed below; report rebuilt {time.strftime('%Y-%m-%d')}"
-    path = write_report(folder.root, "gpu-check", TITLE, command, sections, measured_on)
+    path = write_report(config.output_dir, "gpu-check", TITLE, command, sections, measured_on)
     if config.write_docs:
         write_report(DOCS_REPORT, "gpu-check", TITLE, command, sections, measured_on)
     passed = all(s.passed is not False for s in stages) and all(r.error is None for r in rest)

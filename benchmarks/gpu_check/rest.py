@@ -10,6 +10,8 @@ finite, non-zero camera latent in its final checkpoint.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import statistics
 import sys
 import time
@@ -72,8 +74,6 @@ def method_result(method: str, measured: dict | None, warmup_steps: int, problem
 
 def train_and_evaluate(config: GpuCheckConfig, method: str, scene: Path, deadline: Deadline) -> StageResult:
     """One ``rest`` run in a process of its own; the stage's result names its measurements."""
-    import dataclasses
-
     folder = config.folder
     result_path = folder.measurements_path(method)
     result_path.unlink(missing_ok=True)
@@ -86,7 +86,7 @@ def train_and_evaluate(config: GpuCheckConfig, method: str, scene: Path, deadlin
     timeout_s = deadline.limit(config.run_timeout_s)
     began = time.perf_counter()
     command = [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.measured_train", str(plan)]
-    status = run_logged(command, log_path, timeout_s)
+    status = run_logged(command, log_path, timeout_s, progress=lambda: f"{method}: {last_line(log_path)}")
     remove_checkpoints(folder.ns_train_dir)
     problem = None if status == 0 else failure(f"ns-train {method}", status, log_path, timeout_s)
     row = method_result(method, read_json(result_path), config.warmup_steps, problem)
@@ -95,9 +95,14 @@ def train_and_evaluate(config: GpuCheckConfig, method: str, scene: Path, deadlin
 
 
 def read_json(path: Path) -> dict | None:
-    import json
-
     return json.loads(path.read_text()) if path.is_file() else None
+
+
+def last_line(log_path: Path) -> str:
+    """The last progress line of a training log (``measured_train`` prints one every 100 steps)."""
+    text = log_path.read_text(encoding="utf8", errors="replace") if log_path.is_file() else ""
+    steps = [line for line in text.splitlines() if line.startswith(("step ", ">>> ", "stopped "))]
+    return steps[-1][:80] if steps else "starting"
 
 
 def nccl_checkpoint(config: GpuCheckConfig) -> Path:

@@ -50,6 +50,11 @@ def log_counts(log_path: Path) -> dict[str, int]:
     return counts
 
 
+def progress(log_path: Path) -> str:
+    counts = log_counts(log_path)
+    return f"pytest: {counts['tests']} tests finished, {counts['passed']} passed"
+
+
 def cuda_tests_result(
     status: int | None, counts: dict[str, int] | None, log_path: Path, timeout_s: float, seconds: float | None = None
 ) -> StageResult:
@@ -75,7 +80,7 @@ def run_cuda_tests(config: GpuCheckConfig, deadline: Deadline) -> StageResult:
     log_path = folder.logs_dir / "cuda-tests.log"
     timeout_s = deadline.limit(config.run_timeout_s)
     began = time.perf_counter()
-    status = run_logged(pytest_command(junit_path), log_path, timeout_s)
+    status = run_logged(pytest_command(junit_path), log_path, timeout_s, progress=lambda: progress(log_path))
     seconds = time.perf_counter() - began
     counts = junit_counts(junit_path) if junit_path.is_file() else (log_counts(log_path) if status is None else None)
     return cuda_tests_result(status, counts, log_path, timeout_s, seconds)

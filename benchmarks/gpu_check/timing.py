@@ -70,7 +70,7 @@ def run_pair(config: GpuCheckConfig, pair: str, scene: Path, deadline: Deadline)
     log_path = folder.logs_dir / f"timing-{pair.replace('/', '-')}.log"
     timeout_s = deadline.limit(config.run_timeout_s)
     command = [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.measured_train", str(plan)]
-    status = run_logged(command, log_path, timeout_s)
+    status = run_logged(command, log_path, timeout_s, progress=lambda: progress(folder, pair))
     remove_checkpoints(folder.ns_train_dir)
     rows = timing_rows(folder, pair, config.warmup_steps)
     seconds = time.perf_counter() - began
@@ -79,6 +79,15 @@ def run_pair(config: GpuCheckConfig, pair: str, scene: Path, deadline: Deadline)
     if missing:
         problem = (problem + "; " if problem else "") + f"no time per step of {', '.join(missing)}; log {log_path}"
     return StageResult(name, problem is None, problem or summary(rows), seconds)
+
+
+def progress(folder, pair: str) -> str:
+    """Steps logged so far by each method of ``pair``."""
+    parts = []
+    for method in parse_pair(pair):
+        times = read_step_log(folder.steps_log(method))
+        parts.append(f"{method}: {'not started' if times is None else f'{len(times.steps)} steps timed'}")
+    return "; ".join(parts)
 
 
 def summary(rows: list[TimingRow]) -> str:
