@@ -759,3 +759,16 @@ def test_the_lease_script_runs_the_commands_in_order_and_packs_their_results(tmp
     kept = {"./gpu-check/stages.jsonl", "./gpu-check/timing/s2camp.jsonl", "./regime/errors/tracks-alone.jsonl"}
     assert kept <= names
     assert not [name for name in names if "/scene/" in name or "/ns-train/" in name]
+
+
+def test_a_new_check_in_an_old_folder_reports_none_of_the_old_records(tmp_path: Path) -> None:
+    """The records of an earlier check in the same folder are removed when a check starts (the scene is kept)."""
+    from s2camp_ns.benchmarks.gpu_check.cli import run
+
+    folder = _cut_check_folder(tmp_path / "check")
+    folder.scene_dir.mkdir()
+    config = GpuCheckConfig(output_dir=folder.root, stages=(), cpu_smoke=True)
+    assert run(config) is True
+    assert not folder.timing_dir.exists() and folder.scene_dir.is_dir()
+    assert [s.name for s in read_records(folder.stages_path, StageResult)] == ["machine"]
+    assert "No timing run left a step log in this folder." in folder.report_path.read_text()

@@ -121,6 +121,8 @@ def mib(size: int) -> str:
 
 def main(config: BundleConfig) -> int:
     repository = Path(__file__).resolve().parents[2]
+    if not (repository / "setup.py").is_file():
+        raise SystemExit(f"the bundle is made from a checkout of this repository (editable install), not {repository}")
     packages = to_carry(training_distributions())
     print(f"the training path imports {len(packages)} packages the machine lacks:", flush=True)
     for name, version in packages.items():

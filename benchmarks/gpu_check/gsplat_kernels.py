@@ -54,7 +54,8 @@ def finish(build: KernelBuild, deadline: Deadline, timeout_s: float) -> StageRes
         build.result = StageResult(STAGE, False, build.detail)
         return build.result
     try:
-        status = build.process.wait(timeout=deadline.limit(timeout_s - (time.perf_counter() - build.began)))
+        left_s = deadline.limit(timeout_s - (time.perf_counter() - build.began))
+        status = build.process.wait(timeout=max(0.0, left_s))
     except subprocess.TimeoutExpired:
         stop(build.process)
         status = None

@@ -263,6 +263,9 @@ def run(config: RegimeConfig) -> bool:
     folder = config.folder
     folder.root.mkdir(parents=True, exist_ok=True)
     folder.runs_path.unlink(missing_ok=True)
+    for variant in VARIANTS:  # an earlier run's, which this report must not show
+        folder.errors_log(variant).unlink(missing_ok=True)
+        folder.steps_log(variant).unlink(missing_ok=True)
     CONSOLE.print(">>> scene and image tracks", highlight=False)
     scene = prepare_scene(config.scene, config.scene_folder, folder.logs_dir / "tracks.log", deadline)
     append_record(folder.runs_path, scene)

@@ -55,7 +55,7 @@ def pair_plan(config: GpuCheckConfig, pair: str, scene: Path, stop_at: float | N
                 refresh_repeats=repeats,
             )
         )
-    return TrainPlan(runs, None if stop_at is None else stop_at)
+    return TrainPlan(runs, stop_at)
 
 
 def run_pair(config: GpuCheckConfig, pair: str, scene: Path, deadline: Deadline) -> StageResult:
