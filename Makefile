@@ -10,14 +10,15 @@ STAMP := $(VENV)/.s2camp-installed
 # Installed first, on their own, so resolving the package cannot pull in a different torch.
 TORCH_PINS := torch==2.14.1 torchvision==0.29.1
 
-.PHONY: help venv demo test lint bench gpu-check mutation clean
+.PHONY: help venv demo test lint bench gpu-check gpu-bundle mutation clean
 
 help:
 	@echo "make demo   generate a synthetic scene and run the S2CamP demo (creates $(VENV) on first use)"
 	@echo "make test   ruff + the whole pytest suite, end-to-end tests included"
 	@echo "make lint   ruff only"
 	@echo "make bench  all benchmarks (s2camp-bench all) into outputs/benchmarks (BENCH_DIR=docs/benchmarks rewrites the committed tables)"
-	@echo "make gpu-check  on a CUDA machine: the cuda tests, 4 methods side by side, NCCL with 2 GPUs (docs/GPU-CHECK.md)"
+	@echo "make gpu-check  on a CUDA machine: time per step at the defaults, the cuda tests, then the rest (docs/GPU-CHECK.md)"
+	@echo "make gpu-bundle the offline wheels a lent GPU machine needs, into .whl/ (docs/GPU-CHECK.md)"
 	@echo "make mutation  mutation testing of the core and the camera optimizer (mutmut, about 40 min on one CPU)"
 	@echo "make venv   create/refresh $(VENV) (VENV=path to use another one, PYTHON=python3.x to pick the interpreter)"
 	@echo "make clean  remove caches, build outputs and generated scenes (keeps $(VENV) and ns-train outputs/)"
@@ -62,10 +63,16 @@ bench: venv
 	$(BIN)/s2camp-bench all --output-dir $(BENCH_DIR)
 
 # The GPU check (docs/GPU-CHECK.md): refuses to run without CUDA; report in outputs/gpu-check/gpu-check.md.
-# Options go through GPU_CHECK_ARGS, e.g. make gpu-check GPU_CHECK_ARGS="--write-docs".
+# Options go through GPU_CHECK_ARGS, e.g. make gpu-check GPU_CHECK_ARGS="--deadline 600 --write-docs".
 gpu-check: venv
-	@echo ">>> python -m s2camp_ns.gpu_check $(GPU_CHECK_ARGS)"
-	$(BIN)/python -m s2camp_ns.gpu_check $(GPU_CHECK_ARGS)
+	@echo ">>> python -m s2camp_ns.benchmarks.gpu_check $(GPU_CHECK_ARGS)"
+	$(BIN)/python -m s2camp_ns.benchmarks.gpu_check $(GPU_CHECK_ARGS)
+
+# The wheels a lent GPU machine without a package registry needs (Python 3.12), into .whl/ (ignored by git); needs
+# the registry and a Python 3.12 (GPU_BUNDLE_ARGS="--python312 PATH", or PYENV_VERSION=3.12.1 with pyenv).
+gpu-bundle: venv
+	@echo ">>> python -m s2camp_ns.benchmarks.gpu_check.bundle $(GPU_BUNDLE_ARGS)"
+	$(BIN)/python -m s2camp_ns.benchmarks.gpu_check.bundle $(GPU_BUNDLE_ARGS)
 
 # Mutation testing (docs/mutation-testing.md): mutmut (the "mutation" extra) mutates the modules listed under
 # [tool.mutmut] in pyproject.toml and runs their unit tests against each mutant, one worker at a time. The run

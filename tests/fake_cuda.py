@@ -23,9 +23,10 @@ op implementations of ``torch._subclasses.fake_impls``), plus the generator rule
 - ``copy_`` / ``_to_copy`` move between devices;
 - indexing a CUDA tensor accepts CPU index tensors; a CPU tensor indexed by a CUDA index fails;
 - a random op on CUDA needs a CUDA generator (a CPU ``torch.Generator()`` fails).
-A violation raises ``DeviceMismatchError``, a subclass of torch's ``FakeTensorDeviceMismatchError`` whose message
-reads like FakeTensorMode's ("Expected all tensors to be on the same device, but found at least two devices,
-cuda:0 and cpu!") followed by the op and its tensor arguments, or ``RuntimeError`` for the index and generator rules.
+A violation raises ``DeviceMismatchError``, a subclass of torch's ``FakeTensorDeviceMismatchError`` where torch has
+it (``MISMATCH_BASE``), whose message reads like FakeTensorMode's ("Expected all tensors to be on the same device,
+but found at least two devices, cuda:0 and cpu!") followed by the op and its tensor arguments, or ``RuntimeError``
+for the index and generator rules.
 
 How it is built, and its limits:
 - a ``FakeCudaTensor``'s C++ metadata says CPU (see the class), so C++ code that copies a tensor's options (autograd's
@@ -47,10 +48,18 @@ from collections.abc import Iterator
 from typing import Any
 
 import torch
-from torch._subclasses.fake_tensor import FakeTensorDeviceMismatchError
 from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten, tree_map
+
+try:
+    from torch._subclasses.fake_tensor import FakeTensorDeviceMismatchError
+except ImportError:  # torch 2.11 (the GPU machines' image) has no such class: the emulation's error is then its own
+    FakeTensorDeviceMismatchError = None
+MISMATCH_BASE: type[RuntimeError] = FakeTensorDeviceMismatchError or RuntimeError
+"""What FakeTensorMode raises on a device mismatch in this torch (its own class where it has one, else a plain
+``RuntimeError``): the base of ``DeviceMismatchError``, so this module and the tests that import it are collected
+under every torch version the ``cuda`` tests run with."""
 
 aten = torch.ops.aten
 
@@ -193,13 +202,18 @@ class _Moves(TorchFunctionMode):
         return func(*args, **kwargs)
 
 
-class DeviceMismatchError(FakeTensorDeviceMismatchError):
-    """FakeTensorMode's device-mismatch error, its message extended by the op and its tensor arguments."""
+class DeviceMismatchError(MISMATCH_BASE):
+    """FakeTensorMode's device-mismatch error (``MISMATCH_BASE``), its message extended by the op and its tensor
+    arguments."""
 
     def __init__(self, func, common_device: torch.device, device: torch.device, tensors: list[torch.Tensor]) -> None:
-        super().__init__(func, common_device, device)
+        self.func, self.common_device, self.device = func, common_device, device
         described = ", ".join(f"{_device_of(t)} {t.dtype} {tuple(t.shape)}" for t in tensors)
-        self.args = (f"{self.args[0]} (fake CUDA: {func} on tensors [{described}])",)
+        RuntimeError.__init__(
+            self,
+            "Expected all tensors to be on the same device, but found at least two devices, "
+            f"{common_device} and {device}! (fake CUDA: {func} on tensors [{described}])",
+        )
 
 
 def _device_of(value: Any) -> torch.device | None:

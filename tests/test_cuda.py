@@ -3,7 +3,7 @@
 
 - the camera optimizer on CUDA: P, ``apply_to_raybundle`` and the backward pass agree with the CPU;
 - nerfstudio's own Trainer on CUDA with mixed precision (autocast + GradScaler, as nerfacto trains on a GPU) for
-  each method of the plugin, then the evaluation of ``make gpu-check`` on the trained pipeline: no "No inf checks
+  each method of the plugin, then the evaluation the benchmarks run on the trained pipeline: no "No inf checks
   were recorded for this optimizer" (nerfstudio issue 1684), finite losses, refined cameras, finite PSNR;
 - gsplat imports (splatfacto's rasterizer; its CUDA kernels compile on first use, which is not done here).
 """
@@ -80,9 +80,9 @@ def test_camera_optimizer_on_cuda_matches_the_cpu() -> None:
 
 @pytest.mark.parametrize("method", ["s2camp", "s2camp-camp", "s2camp-so3xr3"])
 def test_training_steps_on_cuda_with_mixed_precision(method: str, tiny_scene: Path, tmp_path: Path) -> None:
-    """nerfstudio's Trainer as ``ns-train`` runs it on a GPU (autocast, GradScaler), then the gpu-check evaluation."""
-    from s2camp_ns.gpu_check.measured_train import evaluate
+    """nerfstudio's Trainer as ``ns-train`` runs it on a GPU (autocast, GradScaler), then the benchmarks' evaluation."""
     from s2camp_ns.method_config import s2camp_camp_method, s2camp_method, s2camp_so3xr3_method
+    from s2camp_ns.nerfstudio.evaluation import evaluate_pipeline
     from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 
     specification = {"s2camp": s2camp_method, "s2camp-camp": s2camp_camp_method, "s2camp-so3xr3": s2camp_so3xr3_method}
@@ -118,7 +118,7 @@ def test_training_steps_on_cuda_with_mixed_precision(method: str, tiny_scene: Pa
         assert int(model.camera_optimizer.refiner.num_refreshes) == 1 + 19 // 5  # the initial P and steps 5, 10, 15
     assert model._camera_errors and all(math.isfinite(v) for v in model._camera_errors.values())
 
-    evaluation = evaluate(trainer.pipeline, AlignmentConfig(steps=3, rays=64))
+    evaluation = evaluate_pipeline(trainer.pipeline, AlignmentConfig(steps=3, rays=64))
     for key in ("psnr", "rot_err", "pos_err", "focal_err", "start_rot_err"):
         assert math.isfinite(evaluation[key]), key
 

@@ -1,13 +1,15 @@
-"""``make gpu-check`` (s2camp_ns/gpu_check) on the CPU: its options, the refusal without CUDA, the scene, the
-``cuda`` test selection and skip reason, the command lines, the measurements and the report."""
+"""The GPU check and the regime command (benchmarks/gpu_check) on the CPU: options, the refusal without CUDA, the
+deadline, the records written as results are made and the reports rebuilt from them (also for a cut run), the
+``cuda`` test selection and its collection from an installed package, the offline bundle."""
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import subprocess
 import sys
+import time
+import zipfile
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
@@ -19,21 +21,31 @@ from conftest import CUDA_SKIP_REASON
 from hang_guard import HANG_GUARD_S
 from test_camera_optimizer import NUM_CAMERAS, make_cameras
 
-from s2camp_ns.gpu_check import report
-from s2camp_ns.gpu_check.config import GpuCheckConfig
-from s2camp_ns.gpu_check.environment import Environment, GpuCheckError, describe, require_cuda
-from s2camp_ns.gpu_check.measured_train import StepClock
-from s2camp_ns.gpu_check.report import MethodResult, StageResult
-from s2camp_ns.gpu_check.runs import (
-    check_nccl_checkpoint,
-    cuda_tests_result,
-    generate_scene,
-    junit_counts,
-    method_result,
-    seconds_per_iteration,
-    train_arguments,
+from s2camp_ns.benchmarks.gpu_check import regime_report, report
+from s2camp_ns.benchmarks.gpu_check.bundle import SLIM, normalized, to_carry
+from s2camp_ns.benchmarks.gpu_check.camera_error_log import REFINED, START, ErrorRecord
+from s2camp_ns.benchmarks.gpu_check.cli import CheckRun
+from s2camp_ns.benchmarks.gpu_check.config import (
+    CUDA_TEST_FILES,
+    LEASE_SCENE,
+    STAGE_MINIMUM_S,
+    CheckFolder,
+    GpuCheckConfig,
 )
-from s2camp_ns.gpu_check.stock_nerfacto import StockNerfactoModel
+from s2camp_ns.benchmarks.gpu_check.environment import Environment, GpuCheckError, describe, require_cuda
+from s2camp_ns.benchmarks.gpu_check.measured_train import TrainPlan, share_of_time
+from s2camp_ns.benchmarks.gpu_check.processes import Deadline
+from s2camp_ns.benchmarks.gpu_check.records import StageResult, append_record, read_lines, read_records
+from s2camp_ns.benchmarks.gpu_check.regime import RegimeConfig, RegimeFolder, variant_arguments
+from s2camp_ns.benchmarks.gpu_check.rest import MethodResult, check_nccl_checkpoint, method_result
+from s2camp_ns.benchmarks.gpu_check.scene_stage import generate_scene
+from s2camp_ns.benchmarks.gpu_check.step_log import RunEnd, StepLog, read_step_log
+from s2camp_ns.benchmarks.gpu_check.stock_nerfacto import StockNerfactoModel
+from s2camp_ns.benchmarks.gpu_check.tests_stage import cuda_tests_result, junit_counts, log_counts, pytest_command
+from s2camp_ns.benchmarks.gpu_check.timing import pair_plan, timing_rows
+from s2camp_ns.benchmarks.gpu_check.train_arguments import rest_arguments, timing_arguments
+from s2camp_ns.benchmarks.gpu_check.wheels import slim_wheel
+from s2camp_ns.nerfstudio.train_commands import PHOTOMETRIC_ONLY
 from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -53,14 +65,6 @@ CUDA_TESTS = [
     "tests/test_splat_alignment.py::test_gsplat_cuda_alignment_gradients_match_the_reference",
     "tests/test_splat_identity.py::test_gsplat_cuda_intrinsics_gradient_through_view_matrix",
 ]
-CUDA_MODULES = [
-    "test_cuda.py",
-    "test_device_audit.py",
-    "test_mixed_precision.py",
-    "test_splat_alignment.py",
-    "test_splat_identity.py",
-]
-"""The test modules that use the ``cuda`` marker."""
 NO_GPU = Environment(
     cuda_available=False, device_names=(), torch_version="2.14.1", torch_cuda="13.0", tinycudann=False, nvcc=None,
     gsplat=True,
@@ -72,39 +76,44 @@ def test_options_parse_from_the_command_line() -> None:
     config = tyro.cli(
         GpuCheckConfig,
         args=[
-            "--stages", "tests", "train", "--methods", "nerfacto", "s2camp", "--iterations", "50",
-            "--warmup-steps", "5", "--write-docs", "--scene.num-cameras", "16",
+            "--stages", "timing", "tests", "--pairs", "nerfacto/s2camp", "--timing-steps", "50", "--warmup-steps",
+            "5", "--deadline", "240", "--write-docs", "--scene.num-cameras", "16",
         ],
     )  # fmt: skip
-    assert config.stages == ("tests", "train")
-    assert config.methods == ("nerfacto", "s2camp")
-    assert (config.iterations, config.warmup_steps, config.write_docs) == (50, 5, True)
+    assert config.stages == ("timing", "tests")
+    assert config.pairs == ("nerfacto/s2camp",)
+    assert (config.timing_steps, config.warmup_steps, config.deadline, config.write_docs) == (50, 5, 240.0, True)
     assert config.scene.num_cameras == 16
     config.validate()
 
 
-def test_defaults_are_a_room_sized_scene_and_the_four_methods() -> None:
+def test_defaults_are_the_lease_scene_the_pairs_and_the_stage_order() -> None:
     config = GpuCheckConfig()
     config.validate()
-    assert (config.scene.width, config.scene.height) == (778, 518)
-    assert config.methods == ("nerfacto", "s2camp-so3xr3", "s2camp", "s2camp-camp")
-    assert config.baseline == "nerfacto"
-    assert config.report_path == Path("outputs/gpu-check/gpu-check.md")
-    assert not config.write_docs
+    assert config.scene == LEASE_SCENE and (config.scene.width, config.scene.height) == (640, 480)
+    assert config.stages == ("timing", "tests", "rest", "nccl")
+    assert config.pairs == ("nerfacto/s2camp", "splatfacto/s2camp-splat")
+    assert config.rest_methods == ("nerfacto", "s2camp-so3xr3", "s2camp", "s2camp-camp")
+    assert config.deadline is None
+    assert config.folder.report_path == Path("outputs/gpu-check/gpu-check.md")
 
 
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
         ({"stages": ("tests", "bogus")}, "stages must be one of"),
-        ({"stages": ()}, "stages must name at least one"),
-        ({"methods": ("s2camp", "nerfacto-huge")}, "methods must be one of"),
-        ({"methods": ("s2camp", "s2camp")}, "must not repeat"),
-        ({"warmup_steps": 299}, r"warmup_steps must be an integer in \[0, iterations - 1\) = \[0, 299\)"),
-        ({"iterations": 0}, "iterations"),
+        ({"pairs": ("nerfacto-s2camp",)}, "pairs must be 'baseline/method' with two different methods, got"),
+        ({"pairs": ("nerfacto/nerfacto",)}, "pairs must be 'baseline/method' with two different methods"),
+        ({"pairs": ("nerfacto/instant-ngp",)}, "pairs' methods must be one of"),
+        ({"rest_methods": ("s2camp", "s2camp")}, "must not repeat"),
+        ({"warmup_steps": 199}, r"warmup_steps must be an integer in \[0, 199\)"),
+        ({"timing_steps": 0}, "timing_steps"),
+        ({"deadline": -5.0}, r"deadline must be a number of seconds > 0 \(or None: no deadline\), got -5.0"),
+        ({"refresh_repeats": -1}, "refresh_repeats must be an integer >= 0, got -1"),
         ({"run_timeout_minutes": 0.0}, "run_timeout_minutes must be > 0"),
         ({"tcnn_source": Path("/nonexistent/tcnn")}, "tcnn_source must be a tiny-cuda-nn checkout"),
         ({"cpu_smoke": True, "write_docs": True}, "write_docs must be False with cpu_smoke"),
+        ({"report_from": Path("/nonexistent/check")}, "report_from must be the folder of an earlier check"),
     ],
 )
 def test_bad_options_are_refused_by_name(overrides: dict, message: str) -> None:
@@ -112,48 +121,50 @@ def test_bad_options_are_refused_by_name(overrides: dict, message: str) -> None:
         replace(GpuCheckConfig(), **overrides).validate()
 
 
-def test_cpu_smoke_runs_only_the_training_on_a_tiny_cpu_scene() -> None:
-    config = GpuCheckConfig(cpu_smoke=True).effective()
-    config.validate()
-    assert config.stages == ("train",)
-    assert (config.scene.num_cameras, config.scene.width, config.scene.height) == (9, 48, 36)
-    assert config.iterations == 8
-    arguments = train_arguments(config, "nerfacto", Path("scene"))
-    assert arguments[arguments.index("--machine.device-type") + 1] == "cpu"
+def test_cpu_smoke_keeps_what_the_command_line_chose() -> None:
+    smoke = GpuCheckConfig(cpu_smoke=True).effective()
+    smoke.validate()
+    assert smoke.stages == ("timing", "rest")  # the CPU cannot run the cuda tests or NCCL
+    assert smoke.pairs == ("nerfacto/s2camp",)  # splatfacto needs gsplat's CUDA kernels
+    assert (smoke.timing_steps, smoke.scene.width, smoke.scene.height) == (8, 320, 240)
+    chosen = GpuCheckConfig(cpu_smoke=True, timing_steps=500).effective()
+    assert chosen.timing_steps == 500 and chosen.warmup_steps == 2
     assert GpuCheckConfig().effective() == GpuCheckConfig()
 
 
-def test_train_arguments_of_the_methods() -> None:
+def test_timing_runs_at_the_methods_defaults_and_rest_runs_as_before() -> None:
     config = GpuCheckConfig(output_dir=Path("out"))
-    shared = [
-        "--data", "scene",
-        "--output-dir", "out/runs",
-        "--experiment-name", "gpu-check",
-    ]  # fmt: skip
-    run = [
-        "--max-num-iterations", "300",
-        "--steps-per-save", "300",
-        "--steps-per-eval-batch", "0",
-        "--steps-per-eval-image", "0",
-        "--steps-per-eval-all-images", "0",
-        "--vis", "tensorboard",
-        "--pipeline.datamanager.train-num-rays-per-batch", "4096",
-    ]  # fmt: skip
-    perturbed = ["s2camp-data", "--perturbation.enabled", "True"]
-    assert train_arguments(config, "s2camp", Path("scene")) == [
-        "s2camp", *shared, "--timestamp", "s2camp", *run,
-        "--pipeline.model.camera-optimizer.refresh-every", "100",
-        *perturbed,
-    ]  # fmt: skip
-    for method in ("nerfacto", "s2camp-so3xr3", "s2camp-camp"):
-        assert train_arguments(config, method, Path("scene")) == [
-            method,
-            *shared,
-            "--timestamp",
-            method,
-            *run,
-            *perturbed,
-        ]
+    timing = timing_arguments(config, "s2camp", Path("scene"))
+    assert timing[:9] == ["s2camp", "--data", "scene", "--output-dir", "out/ns-train", "--experiment-name", "timing",
+                          "--timestamp", "s2camp"]  # fmt: skip
+    assert timing[-3:] == ["s2camp-data", "--perturbation.enabled", "True"]
+    assert timing[timing.index("--max-num-iterations") + 1] == "200"
+    # The method's defaults: no ray batch, no refresh interval, no device, no model size given.
+    assert not [a for a in timing if a.startswith(("--pipeline.", "--machine."))]
+    rest = rest_arguments(config, "s2camp", Path("scene"))
+    assert rest[rest.index("--pipeline.datamanager.train-num-rays-per-batch") + 1] == "4096"
+    assert rest[rest.index("--pipeline.model.camera-optimizer.refresh-every") + 1] == "100"
+    assert "--pipeline.model.camera-optimizer.refresh-every" not in rest_arguments(config, "nerfacto", Path("s"))
+    smoke = timing_arguments(GpuCheckConfig(cpu_smoke=True).effective(), "nerfacto", Path("scene"))
+    assert smoke[smoke.index("--machine.device-type") + 1] == "cpu"
+
+
+def test_a_pair_is_one_plan_baseline_first_with_p_timed_after_s2camp(tmp_path: Path) -> None:
+    config = GpuCheckConfig(output_dir=tmp_path)
+    plan = pair_plan(config, "splatfacto/s2camp-splat", Path("scene"), stop_at=123.0)
+    assert [spec.arguments[0] for spec in plan.runs] == ["splatfacto", "s2camp-splat"]
+    assert [spec.refresh_repeats for spec in plan.runs] == [0, 3]
+    assert [spec.steps_log for spec in plan.runs] == [str(tmp_path / "timing" / f"{m}.jsonl") for m in
+                                                       ("splatfacto", "s2camp-splat")]  # fmt: skip
+    assert TrainPlan.read(plan.write(tmp_path / "plan.json")) == plan
+
+
+def test_the_time_left_is_shared_among_the_runs_of_a_plan() -> None:
+    now = time.time()
+    first = share_of_time(now + 100.0, 2)
+    assert first == pytest.approx(now + 50.0, abs=1.0)
+    assert share_of_time(now + 100.0, 1) == pytest.approx(now + 100.0, abs=1e-6)
+    assert share_of_time(None, 2) is None
 
 
 # ------------------------------------------------------------------------------------------------- no CUDA
@@ -169,15 +180,16 @@ def test_refuses_without_cuda_with_a_clear_message(monkeypatch: pytest.MonkeyPat
     require_cuda(replace(NO_GPU, cuda_available=True, device_names=("NVIDIA H200",)))  # no error
 
 
-def test_the_command_exits_non_zero_without_cuda_and_writes_no_report(tmp_path: Path) -> None:
+@pytest.mark.parametrize("command", ["s2camp_ns.benchmarks.gpu_check", "s2camp_ns.benchmarks.gpu_check.regime"])
+def test_the_commands_exit_non_zero_without_cuda_and_write_nothing(tmp_path: Path, command: str) -> None:
     output = tmp_path / "out"
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_ns.gpu_check", "--output-dir", str(output)],
+        [sys.executable, "-m", command, "--output-dir", str(output)],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     text = " ".join((result.stdout + result.stderr).split())
     assert result.returncode == 2, text
-    assert "gpu-check: gpu-check needs a CUDA device, and torch.cuda.is_available() is False here" in text
+    assert "gpu-check needs a CUDA device, and torch.cuda.is_available() is False here" in text
     assert "CUDA_VISIBLE_DEVICES=''" in text
     assert not output.exists()
 
@@ -194,44 +206,90 @@ def test_a_missing_tinycudann_is_reported_with_the_fallback() -> None:
     assert describe(with_gpus)[2].startswith("tiny-cuda-nn: installed")
 
 
+# ----------------------------------------------------------------------------------------------- deadline
+def test_the_deadline() -> None:
+    assert Deadline.after(None).remaining() == float("inf") and Deadline().allows(1e9)
+    deadline = Deadline.after(100.0)
+    assert 99.0 < deadline.remaining() <= 100.0
+    assert deadline.allows(90.0) and not deadline.allows(101.0)
+    assert deadline.limit(10.0) == 10.0 and 99.0 < deadline.limit(500.0) <= 100.0
+    assert Deadline(time.time() - 5.0).remaining() == 0.0
+    with pytest.raises(ValueError, match=r"deadline must be a number of seconds > 0, got 0"):
+        Deadline.after(0)
+
+
+def test_a_stage_with_too_little_time_left_is_recorded_as_skipped(tmp_path: Path) -> None:
+    config = GpuCheckConfig(output_dir=tmp_path)
+    tmp_path.joinpath("environment.txt").write_text("torch 2.11.0+cu130 (CUDA 13.0)\nCUDA devices: cuda:0 H100\n")
+    check = CheckRun(config, Deadline(time.time() + 30.0))
+    assert not check.allows("tests", "`pytest -m cuda`")
+    assert check.allows("timing", "timing nerfacto/s2camp") is False  # 30 s < 45 s
+    stages = read_records(config.folder.stages_path, StageResult)
+    assert [(s.name, s.passed) for s in stages] == [("`pytest -m cuda`", None), ("timing nerfacto/s2camp", None)]
+    assert re.fullmatch(r"skipped: (29|30) s left before the deadline, it needs about 60 s", stages[0].detail)
+    text = config.folder.report_path.read_text()  # rebuilt after each record
+    assert "| `pytest -m cuda` | not run | - | skipped: " in text
+    assert CheckRun(config, Deadline()).allows("rest", "rest: s2camp")
+    assert STAGE_MINIMUM_S["timing"] > 30.0
+
+
 # ------------------------------------------------------------------------------------------------------ scene
 def test_the_scene_is_generated_once_and_reused(tmp_path: Path) -> None:
     scene = MakeSceneConfig(num_cameras=4, width=64, height=48, points_per_image=150, k1=0.0, k2=0.0)
-    config = GpuCheckConfig(output_dir=tmp_path, scene=scene)
-    stage = generate_scene(config)
     path = tmp_path / "scene"
-    assert stage.passed
-    assert re.fullmatch(r"4 images 64x48, generated in \d+ s", stage.detail)
+    done, detail = generate_scene(scene, path)
+    assert done and re.fullmatch(r"4 images 64x48, generated in \d+ s", detail)
     assert len(list((path / "images").glob("*.png"))) == 4
     assert (path / "sparse" / "0" / "cameras.bin").is_file()
-    again = generate_scene(config)
-    assert again.detail == f"4 images 64x48, reused from {tmp_path / 'scene'}"
-    other = generate_scene(replace(config, scene=replace(scene, seed=1)))
-    assert "generated in" in other.detail
+    assert generate_scene(scene, path) == (True, f"4 images 64x48, reused from {path}")
+    assert "generated in" in generate_scene(replace(scene, seed=1), path)[1]
 
 
 # -------------------------------------------------------------------------------------- the cuda test selection
-def test_the_cuda_marker_selects_exactly_the_cuda_tests() -> None:
-    """``-m cuda`` selects exactly the marked tests of the modules that use the marker and nothing unmarked (here:
-    this module's tests). (Collecting the whole suite would say the same in about 30 s of CPU time.)"""
+def test_the_cuda_files_are_exactly_those_with_cuda_tests() -> None:
     uses_marker = re.compile(r"mark\.cuda\b")
-    marked = [path.name for path in sorted((REPOSITORY / "tests").glob("*.py")) if uses_marker.search(path.read_text())]
-    assert marked == CUDA_MODULES
+    modules = sorted((REPOSITORY / "tests").glob("*.py"))
+    assert tuple(f"tests/{p.name}" for p in modules if uses_marker.search(p.read_text())) == CUDA_TEST_FILES
+    command = pytest_command(Path("junit.xml"))
+    first = command.index("cuda") + 1
+    assert command[first : first + len(CUDA_TEST_FILES)] == list(CUDA_TEST_FILES)
+    assert "tests" not in command and "tests/" not in command  # never the whole folder
+
+
+COLLECT_AS_INSTALLED = """
+import sys, importlib.abc
+class NoBenchmarks(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "s2camp_ns.benchmarks" or name.startswith("s2camp_ns.benchmarks."):
+            raise ImportError(f"{name} is not installed here")
+sys.meta_path.insert(0, NoBenchmarks())
+import torch._subclasses.fake_tensor as fake_tensor
+if hasattr(fake_tensor, "FakeTensorDeviceMismatchError"):
+    del fake_tensor.FakeTensorDeviceMismatchError  # as torch 2.11, the GPU machines' torch
+try:
+    import s2camp_ns.benchmarks
+except ImportError:
+    print("s2camp_ns.benchmarks blocked")
+import pytest
+sys.exit(pytest.main(["--collect-only", "-q", "-m", "cuda", "-p", "no:cacheprovider", *sys.argv[1:]]))
+"""
+
+
+def test_the_cuda_tests_collect_without_the_benchmarks_and_with_torch_2_11s_fake_tensor() -> None:
+    """On the GPU machine the package comes from a wheel and torch 2.11 has no FakeTensorDeviceMismatchError: the
+    files of the ``cuda`` tests must collect without ``s2camp_ns.benchmarks`` and without that class."""
     result = subprocess.run(
-        [
-            sys.executable, "-m", "pytest", "--collect-only", "-q", "-m", "cuda",
-            *[f"tests/{name}" for name in CUDA_MODULES], "tests/test_gpu_check.py", "-p", "no:cacheprovider",
-        ],
+        [sys.executable, "-c", COLLECT_AS_INSTALLED, *CUDA_TEST_FILES],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    selected = [line for line in result.stdout.splitlines() if "::" in line]
-    assert selected == CUDA_TESTS
+    assert result.stdout.startswith("s2camp_ns.benchmarks blocked\n")  # the hook works: the check can fail
+    assert [line for line in result.stdout.splitlines() if "::" in line] == CUDA_TESTS
 
 
 def test_without_cuda_the_cuda_tests_skip_with_the_reason_and_nothing_else_does(tmp_path: Path) -> None:
     junit = tmp_path / "junit.xml"
-    unmarked = "tests/test_gpu_check.py::test_the_report_tables_are_exact"
+    unmarked = "tests/test_gpu_check.py::test_the_deadline"
     result = subprocess.run(
         [
             sys.executable, "-m", "pytest", "-q", "tests/test_cuda.py", unmarked, "-p", "no:cacheprovider",
@@ -244,7 +302,7 @@ def test_without_cuda_the_cuda_tests_skip_with_the_reason_and_nothing_else_does(
     import xml.etree.ElementTree as ElementTree
 
     cases = {case.get("name"): case for case in ElementTree.parse(junit).getroot().iter("testcase")}
-    assert cases["test_the_report_tables_are_exact"].find("skipped") is None
+    assert cases["test_the_deadline"].find("skipped") is None
     skipped = {name: case.find("skipped") for name, case in cases.items() if case.get("classname") == "tests.test_cuda"}
     assert len(skipped) == 5
     for name, element in skipped.items():
@@ -270,23 +328,82 @@ def test_cuda_tests_pass_only_when_all_ran_and_passed(tmp_path: Path) -> None:
     log = Path("logs/cuda-tests.log")
     every = junit_counts(_junit(tmp_path, errors=0, failures=0, skipped=0, tests=5))
     assert every == {"tests": 5, "failures": 0, "errors": 0, "skipped": 0, "passed": 5}
-    assert cuda_tests_result(0, every, log, 60.0) == StageResult("`pytest -m cuda`", True, "5 passed")
+    passed = cuda_tests_result(0, every, log, 60.0)
+    assert (passed.name, passed.passed, passed.detail) == ("`pytest -m cuda`", True, "5 passed")
     failed = junit_counts(_junit(tmp_path, errors=1, failures=1, skipped=0, tests=5))
-    assert cuda_tests_result(1, failed, log, 60.0) == StageResult(
-        "`pytest -m cuda`", False, "3 passed, 1 failures, 1 errors; log logs/cuda-tests.log"
-    )
+    assert cuda_tests_result(1, failed, log, 60.0).detail == "3 passed, 1 failures, 1 errors; log logs/cuda-tests.log"
     none = junit_counts(_junit(tmp_path, errors=0, failures=0, skipped=0, tests=0))
     assert cuda_tests_result(5, none, log, 60.0).detail == "no test marked cuda was collected; log logs/cuda-tests.log"
-    assert cuda_tests_result(None, None, log, 120.0) == StageResult(
-        "`pytest -m cuda`", False, "pytest ran past 2 minutes and was stopped; log logs/cuda-tests.log"
+    assert cuda_tests_result(None, None, log, 120.0).detail == (
+        "pytest ran past 2 minutes and was stopped; log logs/cuda-tests.log"
     )
 
 
-def test_step_times_and_seconds_per_iteration() -> None:
-    clock = StepClock(synchronize=False, stamps=[1.0, 1.5, 2.5, 2.75])
-    assert clock.step_seconds() == [0.5, 1.0, 0.25]
-    assert seconds_per_iteration([1.0, 0.5, 0.1, 0.2, 0.3], warmup_steps=2) == pytest.approx(0.2)
-    assert seconds_per_iteration([1.0, 0.5, 0.1, 0.2, 0.3], warmup_steps=4) is None
+def test_a_stopped_pytest_is_counted_from_its_verbose_log(tmp_path: Path) -> None:
+    log = tmp_path / "cuda-tests.log"
+    log.write_text(
+        "tests/test_cuda.py::test_camera_optimizer_on_cuda_matches_the_cpu PASSED [  8%]\n"
+        "tests/test_cuda.py::test_training_steps_on_cuda_with_mixed_precision[s2camp] FAILED [ 16%]\n"
+        "tests/test_cuda.py::test_training_steps_on_cuda_with_mixed_precision[s2camp-camp] "
+    )
+    counts = log_counts(log)
+    assert counts == {"tests": 2, "failures": 1, "errors": 0, "skipped": 0, "passed": 1}
+    stage = cuda_tests_result(None, counts, log, 90.0, 91.0)
+    assert stage.passed is False
+    assert stage.detail == f"1 passed, 1 failures before pytest was stopped after 1.5 minutes; log {log}"
+
+
+def test_records_are_appended_and_a_cut_last_line_is_left_out(tmp_path: Path) -> None:
+    path = tmp_path / "stages.jsonl"
+    append_record(path, StageResult("machine", True, "H100", 1.5, 10.0))
+    append_record(path, StageResult("scene", False, "failed", float("nan"), 11.0))
+    assert read_records(path, StageResult) == [
+        StageResult("machine", True, "H100", 1.5, 10.0), StageResult("scene", False, "failed", None, 11.0)
+    ]  # fmt: skip
+    with open(path, "a") as file:
+        file.write('{"name": "timing", "pas')  # the check was killed while writing
+    assert [s.name for s in read_records(path, StageResult)] == ["machine", "scene"]
+    path.write_text('{"a": 1}\nnot json\n{"b": 2}\n')
+    with pytest.raises(ValueError, match=r"stages.jsonl: line 2 is not JSON"):
+        read_lines(path)
+    assert read_records(tmp_path / "missing.jsonl", StageResult) == []
+
+
+def _step_log(path: Path, method: str, seconds: list[float], refresh_at: tuple[int, ...] = (), end: bool = True):
+    log = StepLog(path, method, "NVIDIA H100 80GB HBM3", every=4)
+    for step, value in enumerate(seconds):
+        log.add(step, value, step in refresh_at)
+    if end:
+        log.end(RunEnd(len(seconds), 3 * 2**30, stopped_early=False, refresh_seconds=[0.5, 0.7, 0.6]))
+    return log
+
+
+def test_step_logs_are_written_every_few_steps_and_read_back(tmp_path: Path) -> None:
+    path = tmp_path / "s2camp.jsonl"
+    log = _step_log(path, "s2camp", [9.0, 8.0, 0.05, 0.04, 0.06, 0.05, 0.9], refresh_at=(6,), end=False)
+    cut = read_step_log(path)  # a run cut now: the steps of the last flush are there, the others are lost
+    assert cut.end is None and [s.step for s in cut.steps] == [0, 1, 2, 3]
+    log.end(RunEnd(7, 123, stopped_early=True, refresh_seconds=[0.5]))
+    times = read_step_log(path)
+    assert (times.method, times.device) == ("s2camp", "NVIDIA H100 80GB HBM3")
+    assert times.ordinary_seconds(warmup_steps=2) == [0.05, 0.04, 0.06, 0.05]  # the refresh step kept apart
+    assert times.median_seconds(2) == pytest.approx(0.05)
+    assert times.median_seconds(6) is None  # fewer than two timed steps
+    assert times.refresh_seconds() == [0.9, 0.5]
+    assert times.end == RunEnd(7, 123, True, [0.5])
+    assert read_step_log(tmp_path / "never.jsonl") is None
+
+
+def test_timing_rows_give_the_ratio_to_the_baseline_of_the_pair(tmp_path: Path) -> None:
+    folder = CheckFolder(tmp_path)
+    _step_log(folder.steps_log("nerfacto"), "nerfacto", [1.0] * 3 + [0.080, 0.082, 0.078, 0.080])
+    _step_log(folder.steps_log("s2camp"), "s2camp", [1.0] * 3 + [0.084, 0.084, 0.090, 0.080, 0.084], end=False)
+    baseline, method = timing_rows(folder, "nerfacto/s2camp", warmup_steps=3)
+    assert (baseline.median_s, baseline.ratio, baseline.state) == (pytest.approx(0.080), None, "ended")
+    assert method.median_s == pytest.approx(0.084) and method.ratio == pytest.approx(0.084 / 0.080)
+    assert method.state == "cut" and method.timed_steps == 5  # the 8 steps written before the cut
+    assert baseline.refresh_s == 0.6 and baseline.peak_memory_bytes == 3 * 2**30
+    assert [row.state for row in timing_rows(folder, "splatfacto/s2camp-splat", 3)] == ["not run", "not run"]
 
 
 def test_method_result_from_the_measurements() -> None:
@@ -355,13 +472,9 @@ RESULTS = [
     MethodResult("s2camp", None, 0.044, int(3.5 * 2**30), 0.3, 0.05, 4.1e-3, 1.0e-3, 3.38, 0.4, 26.0),
     MethodResult("s2camp-camp", "ns-train s2camp-camp exited with status 1; log x.log"),
 ]
-STAGES = [
-    StageResult("`pytest -m cuda`", True, "5 passed"),
-    StageResult("2-process NCCL training (s2camp)", None, "needs 2 CUDA devices, this machine has 1"),
-]
 
 
-def test_the_report_tables_are_exact() -> None:
+def test_the_report_tables_are_exact(tmp_path: Path) -> None:
     assert report.method_table(RESULTS, "nerfacto") == "\n".join(
         [
             "| method | ms / iter | vs nerfacto | peak CUDA memory (GiB) | rotation err (deg) | position err | "
@@ -373,116 +486,289 @@ def test_the_report_tables_are_exact() -> None:
             "log x.log |",
         ]
     )
-    assert report.stage_table(STAGES) == "\n".join(
+    stages = [StageResult("`pytest -m cuda`", True, "5 passed", 61.4), StageResult("nccl", None, "needs 2 GPUs")]
+    assert report.stage_table(stages) == "\n".join(
         [
-            "| check | result | detail |",
-            "|---|---|---|",
-            "| `pytest -m cuda` | passed | 5 passed |",
-            "| 2-process NCCL training (s2camp) | not run | needs 2 CUDA devices, this machine has 1 |",
+            "| check | result | seconds | detail |",
+            "|---|---|---|---|",
+            "| `pytest -m cuda` | passed | 61 | 5 passed |",
+            "| nccl | not run | - | needs 2 GPUs |",
         ]
     )
-    # Without the baseline's time there is no ratio.
-    without_baseline = report.method_table(RESULTS[1:2], None).splitlines()
-    assert without_baseline[0].split(" | ")[2] == "vs baseline"
-    assert without_baseline[2].split(" | ")[2] == "-"
+    folder = CheckFolder(tmp_path)
+    _step_log(folder.steps_log("nerfacto"), "nerfacto", [1.0] * 3 + [0.080, 0.082, 0.078, 0.080])
+    _step_log(folder.steps_log("s2camp"), "s2camp", [1.0] * 3 + [0.084, 0.084, 0.090, 0.080])
+    assert report.timing_table(timing_rows(folder, "nerfacto/s2camp", 3)).splitlines()[2:] == [
+        "| nerfacto/s2camp | nerfacto | NVIDIA H100 80GB HBM3 | 4 | 80.00 | - | 600.0 | 3.00 | ended |",
+        "| nerfacto/s2camp | s2camp | NVIDIA H100 80GB HBM3 | 4 | 84.00 | 1.050 | 600.0 | 3.00 | ended |",
+    ]
 
 
-def test_pass_and_fail_of_the_whole_check() -> None:
-    assert report.all_passed(STAGES, RESULTS[:2])  # a stage that did not run fails nothing
-    assert not report.all_passed(STAGES, RESULTS)  # a method that failed
-    assert not report.all_passed([*STAGES, StageResult("scene", False, "s2camp-make-scene failed")], RESULTS[:2])
+def _cut_check_folder(root: Path) -> CheckFolder:
+    """The folder a check leaves when its machine is lost during the splat pair: no report, no end records."""
+    folder = CheckFolder(root)
+    root.mkdir(parents=True)
+    folder.environment_path.write_text("torch 2.11.0+cu130 (CUDA 13.0)\nCUDA devices: cuda:0 H100\n")
+    append_record(folder.stages_path, StageResult("machine", True, "H100", 2.0, 1000.0))
+    append_record(folder.stages_path, StageResult("scene", True, "40 images 640x480", 60.0, 1060.0))
+    append_record(folder.stages_path, StageResult("timing nerfacto/s2camp", True, "s2camp / nerfacto = 1.050", 70.0,
+                                                  1130.0))  # fmt: skip
+    _step_log(folder.steps_log("nerfacto"), "nerfacto", [1.0] * 30 + [0.080] * 10)
+    _step_log(folder.steps_log("s2camp"), "s2camp", [1.0] * 30 + [0.084] * 10)
+    _step_log(folder.steps_log("splatfacto"), "splatfacto", [1.0] * 30 + [0.010] * 10, end=False)
+    with open(folder.steps_log("splatfacto"), "a") as file:
+        file.write('{"step": 40, "seco')
+    return folder
 
 
-def test_the_report_file(tmp_path: Path) -> None:
-    path = report.write(
-        tmp_path / "gpu-check.md", ["torch 2.14.1 (CUDA 13.0)"], STAGES, RESULTS, "Setup text.", "nerfacto", 9.46, 8.0
-    )
-    assert path == tmp_path / "gpu-check.md"
-    text = path.read_text()
-    assert text.startswith("# GPU check\n\nRegenerate with `make gpu-check`.\n")
-    for part in (
-        "- torch 2.14.1 (CUDA 13.0)\n",
-        "## Checks\n",
-        report.stage_table(STAGES),
-        "## Training side by side\n",
-        "Setup text.\n",
-        report.method_table(RESULTS, "nerfacto"),
-        "Whole check: 9.5 minutes, over its budget of 8 minutes.\n",
-    ):
-        assert part in text
-    assert not list(tmp_path.glob("*.tmp"))
-    json.dumps(text)  # plain text, no objects
+def test_a_report_is_rebuilt_from_the_folder_of_a_check_that_was_cut(tmp_path: Path) -> None:
+    """A check whose machine was lost mid-stage: --report-from writes its report from what it left, on a machine
+    without CUDA, with the time per step of every run that had started."""
+    from s2camp_ns.benchmarks.gpu_check.cli import run
 
-
-def test_a_report_is_rebuilt_from_the_folder_of_a_check_that_was_stopped(tmp_path: Path) -> None:
-    """A check whose machine was lost before the report: --report-from writes it from what the check left, on a
-    machine without CUDA, and a method whose evaluation is missing is a failed row."""
-    from s2camp_ns.gpu_check.cli import run
-
-    folder = tmp_path / "check"
-    (folder / "runs").mkdir(parents=True)
-    (folder / "logs").mkdir()
-    (folder / "environment.txt").write_text("torch 2.11.0+cu130 (CUDA 13.0)\nCUDA devices: cuda:0 H100\n")
-    (folder / "logs" / "cuda-tests.xml").write_text(
-        '<testsuites><testsuite tests="5" failures="0" errors="0" skipped="0"/></testsuites>'
-    )
-    evaluation = {
-        "start_rot_err": 0.3, "rot_err": 0.25, "start_pos_err": 4.1e-3, "pos_err": 3e-3, "start_focal_err": 3.38,
-        "focal_err": 3.0, "psnr": 25.123,
-    }  # fmt: skip
-    steps = [9.0] * 30 + [0.04] * 270
-    (folder / "runs" / "nerfacto.json").write_text(
-        json.dumps({"step_seconds": steps, "peak_memory_bytes": 3 * 2**30, "evaluation": evaluation})
-    )
-    (folder / "runs" / "s2camp.json").write_text(json.dumps({"step_seconds": [0.05] * 299, "peak_memory_bytes": 1}))
-    config = GpuCheckConfig(report_from=folder, output_dir=tmp_path / "out")
-    assert run(config) is False  # s2camp has no evaluation
-    text = config.report_path.read_text()
-    assert f"Regenerate with `python -m s2camp_ns.gpu_check --report-from {folder.as_posix()}`." in text
-    assert "_measured on the machine listed below; report rebuilt " in text and "Python" not in text
+    folder = _cut_check_folder(tmp_path / "check")
+    config = GpuCheckConfig(report_from=folder.root, output_dir=tmp_path / "report")
+    assert run(config) is True  # every stage that ended passed
+    text = (tmp_path / "report" / "gpu-check.md").read_text()
+    assert f"Regenerate with `python -m s2camp_ns.benchmarks.gpu_check --report-from {folder.root.as_posix()}`." in text
+    assert "_measured on the machine listed below; report rebuilt " in text
     assert "- torch 2.11.0+cu130 (CUDA 13.0)\n- CUDA devices: cuda:0 H100\n" in text
-    assert "| `pytest -m cuda` | passed | 5 passed |" in text
-    assert (
-        "| nerfacto | 40.0 | 1.00x | 3.00 | 0.300 → 0.250 | 4.10e-03 → 3.00e-03 | 3.38 → 3.00 | 25.12 | passed |"
-        in text
+    assert "| timing nerfacto/s2camp | passed | 70 | s2camp / nerfacto = 1.050 |" in text
+    assert "| nerfacto/s2camp | s2camp | NVIDIA H100 80GB HBM3 | 10 | 84.00 | 1.050 | 600.0 | 3.00 | ended |" in text
+    assert "| splatfacto/s2camp-splat | splatfacto | NVIDIA H100 80GB HBM3 | 10 | 10.00 | - | - | - | cut |" in text
+    assert "| splatfacto/s2camp-splat | s2camp-splat | - | 0 | - | - | - | - | not run |" in text
+    assert "Whole check: 2.2 minutes" in text
+    assert "## The methods trained and evaluated side by side" not in text  # no rest stage ran
+
+
+def test_the_committed_check_of_the_last_lease_is_rebuilt(tmp_path: Path) -> None:
+    """The folder the last lease left (docs/benchmarks/gpu-check-h100, written before stage records) still gives
+    its report: the tests' JUnit file and the four evaluated runs."""
+    import shutil
+
+    from s2camp_ns.benchmarks.gpu_check.cli import run
+
+    folder = tmp_path / "gpu-check-h100"
+    shutil.copytree(REPOSITORY / "docs" / "benchmarks" / "gpu-check-h100", folder)
+    config = GpuCheckConfig(report_from=folder, output_dir=tmp_path / "report", warmup_steps=30)
+    assert run(config) is False  # 8 errors, s2camp-camp not evaluated
+    assert not (folder / "gpu-check.md").exists()  # the folder read is left as it was
+    text = (tmp_path / "report" / "gpu-check.md").read_text()
+    assert "| `pytest -m cuda` | FAILED | - | 8 errors; log " in text
+    assert "| nerfacto | 78.0 | 1.00x | 2.79 | 0.278 → 0.712 |" in text
+    assert "| s2camp | 100.6 | 1.29x | 2.79 | 0.278 → 0.060 |" in text
+    assert "| s2camp-camp | 98.7 | 1.27x | 2.79 | - | - | - | - | FAILED: no evaluation written |" in text
+
+
+# ----------------------------------------------------------------------------------------------------- regime
+def test_the_regime_run_is_one_pass_over_the_lease_scene() -> None:
+    config = RegimeConfig()
+    config.validate()
+    assert config.training_pixels == 35 * 640 * 480  # every 8th of 40 images held out
+    assert config.iterations == 2625  # ceil(10,752,000 / 4096)
+    assert RegimeConfig(passes=0.5).iterations == 1313
+    with pytest.raises(ValueError, match=r"variants must be one of .*got 'photometric'"):
+        RegimeConfig(variants=("s2camp", "photometric")).validate()
+    with pytest.raises(ValueError, match="passes must be a number > 0, got 0"):
+        RegimeConfig(passes=0).validate()
+
+
+def test_the_regime_variants_share_their_evidence_and_differ_only_in_their_options() -> None:
+    config = RegimeConfig()
+    runs = {v: variant_arguments(config, v, Path("scene")) for v in ("s2camp", "tracks-alone", "images-alone")}
+    for arguments in runs.values():
+        assert arguments[0] == "s2camp"
+        assert arguments[-3:] == ["s2camp-data", "--perturbation.enabled", "True"]  # tracks from the images
+        assert "--image-tracks" not in arguments and "--reference-model" not in arguments
+        assert not [a for a in arguments if "log2-hashmap-size" in a or a == "--machine.device-type"]  # own field
+        assert arguments[arguments.index("--max-num-iterations") + 1] == "2625"
+    extra = {v: [a for a in args if a not in runs["s2camp"]] for v, args in runs.items()}
+    assert extra["tracks-alone"] == ["tracks-alone", "--pipeline.model.camera-optimizer.photometric", "False"]
+    assert extra["images-alone"] == ["images-alone", *PHOTOMETRIC_ONLY]
+
+
+def _errors(path: Path, records: list[ErrorRecord]) -> None:
+    for record in records:
+        append_record(path, record)
+
+
+def test_the_regime_report_has_its_figures_even_when_the_run_was_cut(tmp_path: Path) -> None:
+    config = RegimeConfig(output_dir=tmp_path)
+    folder = RegimeFolder(tmp_path)
+    _errors(folder.errors_log("tracks-alone"), [ErrorRecord(START, 0, 0.3, 4e-3, 22.0, 7.0),
+                                                ErrorRecord(REFINED, 0, 0.08, 2e-3, 1.5, 1.2)])  # fmt: skip
+    _errors(folder.errors_log("s2camp"), [ErrorRecord(START, 0, 0.3, 4e-3, 22.0, 7.0),
+                                          ErrorRecord(REFINED, 0, 0.3, 4e-3, 22.0, 6.9),
+                                          ErrorRecord(REFINED, 250, 0.07, 1.9e-3, 1.2, 1.0)])  # fmt: skip
+    with open(folder.errors_log("s2camp"), "a") as file:
+        file.write('{"label": "refined", "step": 500, "rot')  # cut while writing
+    append_record(folder.runs_path, StageResult("tracks-alone", True, "ended", 20.0))
+    path = regime_report.build(config, folder, regime_report.COMMAND)
+    text = path.read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| ") and "evidence" not in line]
+    assert rows[:4] == [
+        "| start (CamP's perturbation) | - | - | 0.3000 | 4.00e-03 | 22.000 | 7.000 |",
+        "| tracks alone (the track prior's anchor, no training) | - | - | 0.0800 | 2.00e-03 | 1.500 | 1.200 |",
+        "| s2camp (tracks and images) | 0 | 0.00 | 0.3000 | 4.00e-03 | 22.000 | 6.900 |",
+        "| s2camp (tracks and images) | 250 | 0.10 | 0.0700 | 1.90e-03 | 1.200 | 1.000 |",
+    ]
+    assert "| tracks-alone | passed | 20 | ended |" in text
+    assert "2625 steps of 4096 rays, 1 pass(es) over the training pixels" in text
+    assert regime_report.progress(folder, ("s2camp", "images-alone")) == (
+        "s2camp: step 250; images-alone: no errors logged yet"
     )
-    assert "| s2camp | 50.0 | 1.25x | 0.00 | - | - | - | - | FAILED: no evaluation written |" in text
-    # A method that left no measurements is not a row.
-    assert not [line for line in text.splitlines() if line.startswith("| s2camp-camp ")]
-    assert "Whole check: its wall time was not recorded" in text
-    with pytest.raises(ValueError, match="report_from must be the output folder of an earlier check"):
-        GpuCheckConfig(report_from=tmp_path / "out").validate()
+
+
+# ------------------------------------------------------------------------------------------------------ bundle
+def test_the_bundle_carries_what_the_machine_lacks_and_never_this_package_from_the_registry() -> None:
+    imported = {"torch": "2.14.1", "numpy": "2.3.0", "nerfstudio": "1.1.5", "PySocks": "1.7.1",
+                "typing_extensions": "4.12", "s2camp-ns": "0.1.0", "docstring_parser": "0.18.0"}  # fmt: skip
+    assert to_carry(imported) == {"nerfstudio": "1.1.5", "PySocks": "1.7.1", "docstring_parser": "0.18.0"}
+    assert normalized("Docstring_Parser") == "docstring-parser" and normalized("torch_fidelity") in SLIM
+
+
+def test_a_slimmed_wheel_loses_the_folders_and_their_record_lines(tmp_path: Path) -> None:
+    wheel = tmp_path / "gsplat-1.4.0-py3-none-any.whl"
+    with zipfile.ZipFile(wheel, "w") as archive:
+        archive.writestr("gsplat/__init__.py", "x = 1\n")
+        archive.writestr("gsplat/cuda/csrc/third_party/glm/glm/glm.hpp", "// header\n")
+        archive.writestr("gsplat/cuda/csrc/third_party/glm/doc/manual.pdf", b"%PDF" + bytes(200_000))
+        archive.writestr("gsplat-1.4.0.dist-info/RECORD", "gsplat/__init__.py,,\n"
+                         "gsplat/cuda/csrc/third_party/glm/glm/glm.hpp,,\n"
+                         "gsplat/cuda/csrc/third_party/glm/doc/manual.pdf,,\n")  # fmt: skip
+    assert slim_wheel(wheel, SLIM["gsplat"]) > 0
+    with zipfile.ZipFile(wheel) as archive:
+        assert archive.namelist() == [
+            "gsplat/__init__.py", "gsplat/cuda/csrc/third_party/glm/glm/glm.hpp", "gsplat-1.4.0.dist-info/RECORD"
+        ]  # fmt: skip
+        assert archive.read("gsplat-1.4.0.dist-info/RECORD").decode().splitlines() == [
+            "gsplat/__init__.py,,", "gsplat/cuda/csrc/third_party/glm/glm/glm.hpp,,"
+        ]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_the_bundle_dry_run_lists_the_training_paths_packages() -> None:
+    """``bundle --dry-run`` imports the training path in a fresh process and lists what the machine lacks, at this
+    checkout's versions, fetching nothing."""
+    result = subprocess.run(
+        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.bundle", "--dry-run"],
+        capture_output=True, text=True, env={**NO_CUDA, "PIP_NO_INDEX": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    listed = re.findall(r"^  (\S+?)==(\S+)", result.stdout, re.MULTILINE)
+    names = {normalized(name) for name, _ in listed}
+    assert {"nerfstudio", "gsplat", "pycolmap", "tyro", "viser", "fpsample", "nerfacc", "tensorly"} <= names
+    assert not names & {"torch", "numpy", "pytest", "rich", "s2camp-ns"}  # the machine has these, or it is ours
+    assert "  s2camp-ns (this checkout, built as a wheel)" in result.stdout
+    assert dict(listed)["nerfstudio"] == "1.1.5"
 
 
 # ---------------------------------------------------------------------------------------------- end to end
 @pytest.mark.slow
-def test_cpu_smoke_run_trains_and_evaluates_stock_nerfacto(tmp_path: Path) -> None:
-    """The training stage end to end on the CPU (``--cpu-smoke``): measured_train runs stock nerfacto (offline
-    without its LPIPS weights), evaluates it through StockNerfactoModel, and the report holds its row. About 35 s of
-    CPU time. Its training run gets the suite's hang guard as gpu-check's run timeout, whose default (6 minutes) is
-    sized for a GPU, not for a busy CPU."""
+def test_a_cpu_check_cut_by_its_deadline_keeps_what_it_measured(tmp_path: Path) -> None:
+    """The check end to end on the CPU (``--cpu-smoke``) with a deadline that falls inside the timing pair: both
+    runs are stopped cleanly with their time shared, each keeps its timed steps, the report gives their medians, and
+    the stage after it is recorded as skipped. About 100 s of CPU time."""
     output = tmp_path / "out"
+    began = time.monotonic()
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_ns.gpu_check", "--cpu-smoke", "--methods", "nerfacto", "--output-dir",
-         str(output), "--run-timeout-minutes", str(HANG_GUARD_S / 60)],
+        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check", "--cpu-smoke", "--timing-steps", "5000",
+         "--deadline", "100", "--output-dir", str(output)],
         capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
-    assert result.returncode == 0, result.stdout[-3000:] + (output / "logs" / "train-nerfacto.log").read_text()[-3000:]
+    elapsed = time.monotonic() - began
+    log = (output / "logs" / "timing-nerfacto-s2camp.log").read_text(errors="replace")
+    assert result.returncode == 0, result.stdout[-3000:] + log[-3000:]
+    assert elapsed < 100 + 20, elapsed  # stopped before its deadline (the interpreter's start and exit aside)
     text = (output / "gpu-check.md").read_text()
-    assert "**CPU smoke run of the script itself (`--cpu-smoke`)" in text
-    assert "| scene | passed | 9 images 48x36, generated in" in text
-    row = next(line for line in text.splitlines() if line.startswith("| nerfacto |")).split(" | ")
-    assert row[2] == "1.00x" and row[3] == "-"  # its own baseline; no CUDA memory on the CPU
-    start_rot, final_rot = (float(value) for value in row[4].split(" → "))
-    assert start_rot > 0.05  # perturbed start (the table rounds to 1e-3 deg: seven steps may move less)
-    assert 5.0 < float(row[7]) < 60.0  # held-out PSNR after test-time alignment
-    assert row[8] == "passed |"
-    measured = json.loads((output / "runs" / "nerfacto.json").read_text())
-    evaluation = measured["evaluation"]  # unrounded: the stock optimizer moved the cameras
-    assert evaluation["rot_err"] != evaluation["start_rot_err"] and round(evaluation["start_rot_err"], 3) == start_rot
-    assert len(measured["step_seconds"]) == 7 and all(seconds > 0 for seconds in measured["step_seconds"])
-    assert not list((output / "runs").glob("gpu-check/*/*/nerfstudio_models"))  # checkpoints removed
-    # The machine is written first, for a report rebuilt from this folder (--report-from).
+    for method in ("nerfacto", "s2camp"):
+        row = next(line for line in text.splitlines() if line.startswith(f"| nerfacto/s2camp | {method} |"))
+        cells = [cell.strip() for cell in row.strip("|").split("|")]
+        assert cells[2] == "cpu" and int(cells[3]) >= 2 and float(cells[4]) > 0
+        assert cells[8] == "stopped at the deadline"
+    stages = read_records(output / "stages.jsonl", StageResult)
+    assert [(s.name, s.passed) for s in stages] == [
+        ("machine", True), ("scene", True), ("timing nerfacto/s2camp", True), ("rest: nerfacto", None)
+    ]  # fmt: skip
+    assert stages[-1].detail.startswith("skipped: ")
+    times = read_step_log(output / "timing" / "s2camp.jsonl")
+    assert times.end.stopped_early and times.end.refresh_seconds and times.end.steps == len(times.steps)
     environment = (output / "environment.txt").read_text().splitlines()
     assert environment[0].startswith("torch ") and environment[1] == "CUDA devices: none"
-    assert "- CUDA devices: none\n" in text
+
+
+@pytest.mark.slow
+def test_the_regime_command_on_the_cpu_logs_errors_as_it_goes(tmp_path: Path) -> None:
+    """The regime command end to end on the CPU (``--cpu-smoke``): tracks alone read after set-up, s2camp's errors
+    logged every few steps, images alone after it, the report with all three; then rebuilt by --report-from."""
+    output = tmp_path / "regime"
+    result = subprocess.run(
+        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
+         "--output-dir", str(output)],
+        capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    folder = RegimeFolder(output)
+    tracks = [r for r in read_records(folder.errors_log("tracks-alone"), ErrorRecord) if r.label == REFINED]
+    s2camp = [r for r in read_records(folder.errors_log("s2camp"), ErrorRecord) if r.label == REFINED]
+    start = next(r for r in read_records(folder.errors_log("s2camp"), ErrorRecord) if r.label == START)
+    assert [r.step for r in s2camp] == [0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30]  # 30 steps: ceil(0.01 x 768,000 / 256)
+    assert tracks and tracks[0].focal_err != start.focal_err  # the anchor is not the start
+    assert s2camp[-1].rot_err != s2camp[0].rot_err  # the cameras moved
+    assert [r.name for r in read_records(folder.runs_path, StageResult)] == [
+        "scene", "tracks-alone", "s2camp", "images-alone"
+    ]  # fmt: skip
+    text = folder.report_path.read_text()
+    assert "| images alone | 30 |" in text and "| tracks alone (the track prior's anchor, no training) |" in text
+    again = subprocess.run(
+        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
+         "--report-from", str(output), "--output-dir", str(tmp_path / "rebuilt")],
+        capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
+    )  # fmt: skip
+    assert again.returncode == 0 and "| images alone | 30 |" in (tmp_path / "rebuilt" / "regime.md").read_text()
+
+
+@pytest.mark.slow
+def test_the_lease_script_runs_the_commands_in_order_and_packs_their_results(tmp_path: Path) -> None:
+    """``benchmarks/gpu_check/lease.sh`` on the CPU (``SMOKE``: each command's ``--cpu-smoke``; ``NO_INSTALL``: this
+    checkout's package): the check's timing, the regime's tracks alone, the tests step (nothing to run on the CPU),
+    each under its deadline, and after each the reports and the archive of records in ``$OUT``."""
+    work, out = tmp_path / "lease", tmp_path / "out"
+    environment = {
+        **NO_CUDA, "OMP_NUM_THREADS": "1", "SMOKE": "1", "NO_INSTALL": "1", "PYTHON": sys.executable,
+        "PYTHONPATH": str(REPOSITORY), "WORK": str(work), "OUT": str(out), "CHECK_S": "200", "REGIME_S": "320",
+        "TESTS_S": "400", "REGIME_VARIANTS": "tracks-alone",
+    }  # fmt: skip
+    result = subprocess.run(
+        ["bash", "benchmarks/gpu_check/lease.sh"],
+        capture_output=True, text=True, env=environment, cwd=REPOSITORY, timeout=HANG_GUARD_S,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    lines = (work / "lease.log").read_text().splitlines()
+    assert [line.split(" (")[0] for line in lines if line.startswith(">>> ")] == [
+        ">>> gpu-check", ">>> regime", ">>> cuda-tests"
+    ]  # fmt: skip
+    assert all(" exit status 0 at " in line for line in lines if line.startswith("    "))
+    assert sorted(path.name for path in out.iterdir()) == ["cuda-tests.md", "gpu-check.md", "lease.tgz", "regime.md"]
+    assert "| nerfacto/s2camp | s2camp | cpu |" in (out / "gpu-check.md").read_text()
+    assert "| tracks alone (the track prior's anchor, no training) |" in (out / "regime.md").read_text()
+    import tarfile
+
+    with tarfile.open(out / "lease.tgz") as archive:
+        names = set(archive.getnames())
+    kept = {"./gpu-check/stages.jsonl", "./gpu-check/timing/s2camp.jsonl", "./regime/errors/tracks-alone.jsonl"}
+    assert kept <= names
+    assert not [name for name in names if "/scene/" in name or "/ns-train/" in name]
+
+
+def test_a_new_check_in_an_old_folder_reports_none_of_the_old_records(tmp_path: Path) -> None:
+    """The records of an earlier check in the same folder are removed when a check starts (the scene is kept)."""
+    from s2camp_ns.benchmarks.gpu_check.cli import run
+
+    folder = _cut_check_folder(tmp_path / "check")
+    folder.scene_dir.mkdir()
+    config = GpuCheckConfig(output_dir=folder.root, stages=(), cpu_smoke=True)
+    assert run(config) is True
+    assert not folder.timing_dir.exists() and folder.scene_dir.is_dir()
+    assert [s.name for s in read_records(folder.stages_path, StageResult)] == ["machine"]
+    assert "No timing run left a step log in this folder." in folder.report_path.read_text()

@@ -10,7 +10,8 @@ parser's ``points3D_xyz``). Then the held-out views after test-time alignment
 
 The pipeline needs ``datamanager.train_dataparser_outputs.metadata["points3D_xyz"]`` and a model with S2CampModel's
 camera interface: ``_train_cameras``, ``reference_cameras()``, ``uses_s2camp_optimizer`` and, for nerfstudio's own
-pose optimizer, ``refined_train_cameras()`` (stock nerfacto gets it from ``s2camp_ns.gpu_check.stock_nerfacto``).
+pose optimizer, ``refined_train_cameras()`` (stock nerfacto gets it from
+``s2camp_ns.benchmarks.gpu_check.stock_nerfacto``).
 """
 
 from __future__ import annotations

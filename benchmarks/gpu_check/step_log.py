@@ -1,0 +1,107 @@
+"""The per-step times of a training run, appended to a JSON-lines file while it trains, and read back.
+
+The file holds one ``RunStart`` line, ``StepTime`` lines appended every few steps (a run cut at any moment leaves
+the steps written before), and one ``RunEnd`` line when the run stops. A step's time runs from the end of the
+previous step (or the start of training) to its own end, stamped once the device has finished its work. Steps in
+which S2CamP refreshed P are marked and kept apart from the ordinary ones.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .records import append_record, as_record, read_lines
+
+
+@dataclass
+class RunStart:
+    method: str
+    device: str
+    started: float = field(default_factory=time.time)
+    kind: str = "start"
+
+
+@dataclass
+class StepTime:
+    step: int
+    seconds: float
+    refresh: bool = False
+    """P was refreshed during this step."""
+    kind: str = "step"
+
+
+@dataclass
+class RunEnd:
+    steps: int
+    """Steps trained."""
+    peak_memory_bytes: int | None
+    """``torch.cuda.max_memory_allocated()`` of the run (None on the CPU)."""
+    stopped_early: bool = False
+    """Stopped before its last step to end before the deadline."""
+    refresh_seconds: list[float] = field(default_factory=list)
+    """P's refresh timed apart after training (S2CamP methods), once per repetition."""
+    kind: str = "end"
+
+
+class StepLog:
+    """Writes a run's ``RunStart`` at once, its ``StepTime`` lines every ``every`` steps, and its ``RunEnd``."""
+
+    def __init__(self, path: Path, method: str, device: str, every: int) -> None:
+        self.path, self.every = path, every
+        self.pending: list[StepTime] = []
+        path.unlink(missing_ok=True)
+        append_record(path, RunStart(method, device))
+
+    def add(self, step: int, seconds: float, refresh: bool) -> None:
+        self.pending.append(StepTime(step, seconds, refresh))
+        if len(self.pending) >= self.every:
+            self.flush()
+
+    def flush(self) -> None:
+        for record in self.pending:
+            append_record(self.path, record)
+        self.pending = []
+
+    def end(self, record: RunEnd) -> None:
+        self.flush()
+        append_record(self.path, record)
+
+
+@dataclass
+class StepTimes:
+    """A run's step log as read back."""
+
+    method: str
+    device: str
+    steps: list[StepTime]
+    end: RunEnd | None
+    """None: the run was cut before it ended (its steps so far are kept)."""
+
+    def ordinary_seconds(self, warmup_steps: int) -> list[float]:
+        """Seconds of the steps from ``warmup_steps`` on, without those that refreshed P."""
+        return [s.seconds for s in self.steps if s.step >= warmup_steps and not s.refresh]
+
+    def median_seconds(self, warmup_steps: int) -> float | None:
+        """Median of ``ordinary_seconds`` (None with fewer than two)."""
+        timed = self.ordinary_seconds(warmup_steps)
+        return statistics.median(timed) if len(timed) >= 2 else None
+
+    def refresh_seconds(self) -> list[float]:
+        """P's refreshes: the steps that held one, then those timed apart after training."""
+        inside = [s.seconds for s in self.steps if s.refresh]
+        return inside + (self.end.refresh_seconds if self.end is not None else [])
+
+
+def read_step_log(path: Path) -> StepTimes | None:
+    """The step log at ``path``; None when there is none (the run never started)."""
+    lines = read_lines(path)
+    starts = [line for line in lines if line.get("kind") == "start"]
+    if not starts:
+        return None
+    start = as_record(RunStart, starts[-1])
+    steps = [as_record(StepTime, line) for line in lines if line.get("kind") == "step"]
+    ends = [as_record(RunEnd, line) for line in lines if line.get("kind") == "end"]
+    return StepTimes(start.method, start.device, steps, ends[-1] if ends else None)

@@ -1,0 +1,96 @@
+"""Wheels for the lent GPU machine (Python 3.12, x86_64 Linux): fetched from the package registry, built from an
+sdist where the registry has no such wheel, this package's own, and wheels slimmed of files nothing there reads."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import tempfile
+import zipfile
+from pathlib import Path
+
+PLATFORMS = (
+    "manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
+    "manylinux1_x86_64",
+)  # fmt: skip
+"""The wheel platforms pip may pick (the machine's glibc is newer than 2.28)."""
+PYTHON_VERSION = "3.12"
+
+
+def download_command(requirement: str, folder: Path) -> list[str]:
+    """``pip download`` of one binary wheel for the machine's Python, without its dependencies."""
+    platforms = [option for platform in PLATFORMS for option in ("--platform", platform)]
+    return [
+        sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
+        "--python-version", PYTHON_VERSION, "--implementation", "cp", *platforms, "--dest", str(folder), requirement,
+    ]  # fmt: skip
+
+
+def build_command(python: str, requirement: str, folder: Path) -> list[str]:
+    """``pip wheel`` of one requirement from its sdist with a Python 3.12 interpreter (for a package with no wheel)."""
+    return [python, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-binary", ":all:", "--wheel-dir", str(folder),
+            requirement]  # fmt: skip
+
+
+def python_version(python: str) -> str | None:
+    """``major.minor`` of the interpreter ``python`` (a name on PATH or a path); None when it does not run."""
+    try:
+        result = subprocess.run(
+            [python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return result.stdout.strip() if result.returncode == 0 else None
+
+
+def run_quietly(command: list[str]) -> str | None:
+    """Run ``command``; None when it succeeded, else the end of its output."""
+    result = subprocess.run(command, capture_output=True, text=True)
+    if result.returncode == 0:
+        return None
+    output = (result.stdout + result.stderr).strip()
+    return output.splitlines()[-1] if output else f"exit status {result.returncode}"
+
+
+def own_wheel(repository: Path, folder: Path) -> Path:
+    """A wheel of this package built from the files git tracks or would track (no build outputs, no local links),
+    copied aside first so that the working tree gets no build folders."""
+    listed = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        cwd=repository, capture_output=True, check=True,
+    ).stdout.decode().split("\0")  # fmt: skip
+    with tempfile.TemporaryDirectory(prefix="s2camp-wheel-") as temporary:
+        source = Path(temporary) / "source"
+        for name in filter(None, listed):
+            path = repository / name
+            if path.is_file() and not path.is_symlink():
+                (source / name).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(path, source / name)
+        before = set(folder.glob("*.whl"))
+        subprocess.run(
+            [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation", "--wheel-dir",
+             str(folder), str(source)],
+            check=True, capture_output=True,
+        )  # fmt: skip
+    (built,) = set(folder.glob("*.whl")) - before
+    return built
+
+
+def slim_wheel(path: Path, drop: tuple[str, ...]) -> int:
+    """Rewrite the wheel ``path`` without its members under the folders ``drop`` (their lines left out of RECORD
+    too); the bytes saved."""
+    size = path.stat().st_size
+    temporary = path.with_suffix(".slim")
+    with zipfile.ZipFile(path) as source, zipfile.ZipFile(temporary, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as out:
+        for member in source.infolist():
+            if member.filename.startswith(drop):
+                continue
+            data = source.read(member)
+            if member.filename.endswith(".dist-info/RECORD"):
+                lines = data.decode().splitlines(keepends=True)
+                data = "".join(line for line in lines if not line.startswith(drop)).encode()
+            out.writestr(member, data, compress_type=zipfile.ZIP_DEFLATED, compresslevel=9)
+    temporary.replace(path)
+    return size - path.stat().st_size

@@ -1,3 +1,0 @@
-from s2camp_ns.gpu_check.cli import entrypoint
-
-entrypoint()
