@@ -5,8 +5,9 @@
 - ``--reference-model``: the true cameras of a COLMAP model as the reference cameras (``reference_model``), the
   sfm starts' truth.
 
-Everything else is ``s2camp-data``'s (``s2camp_ns.nerfstudio.dataparser``). Registered with nerfstudio as an entry
-point of ``nerfstudio.dataparser_configs`` (pyproject.toml), so ``ns-train`` takes it after the method's options:
+Everything else is ``s2camp-data``'s (``s2camp_ns.nerfstudio.dataparser``). It is not an installed entry point, so
+a user's ``ns-train`` never imports the benchmarks: the benchmarks' ``ns-train`` runs get it through nerfstudio's
+``NERFSTUDIO_DATAPARSER_CONFIGS`` variable (``ns_train_environment``) and take it after the method's options:
 ``ns-train s2camp --data D s2camp-bench-data --reference-model truth/sparse/0``.
 """
 
@@ -22,12 +23,15 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParser, S2CampDataParserConfig
 from s2camp_ns.nerfstudio.scene_formats import ParsedSplit
+from s2camp_ns.nerfstudio.train_commands import training_environment
 
 from .phone_drift import DriftConfig, perturb_with_drift
 from .reference_model import reference_from_model
 
 SUBCOMMAND = "s2camp-bench-data"
-"""The data parser's subcommand (its entry point's name in pyproject.toml)."""
+"""The data parser's subcommand."""
+REGISTRY_VARIABLE = "NERFSTUDIO_DATAPARSER_CONFIGS"
+"""nerfstudio's list of extra data parsers, ``name=module:attribute`` separated by commas."""
 
 
 @dataclass
@@ -97,6 +101,16 @@ def _specification():
 
 
 bench_dataparser = _specification()
-"""Registered as ``s2camp-bench-data`` (entry point ``nerfstudio.dataparser_configs``)."""
+"""Registered as ``s2camp-bench-data`` in the ``ns-train`` runs of the benchmarks (``ns_train_environment``)."""
 
-__all__ = ["SUBCOMMAND", "BenchDataParser", "BenchDataParserConfig", "bench_dataparser"]
+
+def ns_train_environment() -> dict[str, str]:
+    """``training_environment`` with ``s2camp-bench-data`` added to ``REGISTRY_VARIABLE``'s data parsers."""
+    environment = training_environment()
+    entry = f"{SUBCOMMAND}={__name__}:bench_dataparser"
+    present = [item for item in environment.get(REGISTRY_VARIABLE, "").split(",") if item and item != entry]
+    environment[REGISTRY_VARIABLE] = ",".join([*present, entry])
+    return environment
+
+
+__all__ = ["SUBCOMMAND", "BenchDataParser", "BenchDataParserConfig", "bench_dataparser", "ns_train_environment"]

@@ -44,11 +44,11 @@ from s2camp_ns.nerfstudio.train_commands import (
     camera_schedule_arguments,
     ns_train_arguments,
     perturbation_arguments,
-    training_environment,
 )
 from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import log
+from .data_parser import ns_train_environment
 
 SCENES = {
     "narrow": MakeSceneConfig(num_cameras=16, width=96, height=72, fov="narrow", seed=0),
@@ -178,7 +178,7 @@ def _run_ns_train(command: list[str], log_path: Path, what: str) -> None:
     log(f"  ns-train {what}: " + " ".join(command[1:3]) + f" ... (log: {log_path})")
     log_path.parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "w", encoding="utf8") as output:
-        result = subprocess.run(command, stdout=output, stderr=subprocess.STDOUT, env=training_environment())
+        result = subprocess.run(command, stdout=output, stderr=subprocess.STDOUT, env=ns_train_environment())
     if result.returncode != 0:
         tail = "\n".join(log_path.read_text(encoding="utf8", errors="replace").splitlines()[-30:])
         raise RuntimeError(f"ns-train {what} failed with status {result.returncode}; log {log_path}:\n{tail}")

@@ -43,7 +43,6 @@ from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 from s2camp_ns.nerfstudio.train_commands import (
     DATAPARSER_SUBCOMMAND,
     ns_train_arguments,
-    training_environment,
 )
 from s2camp_ns.report import markdown_table
 from s2camp_ns.scene.make_scene import MakeSceneConfig
@@ -59,6 +58,7 @@ from .common import (
     write_report,
 )
 from .data_parser import SUBCOMMAND as BENCH_DATAPARSER
+from .data_parser import ns_train_environment
 
 
 def focal_for_fov(width: int, fov_degrees: float) -> float:
@@ -413,7 +413,7 @@ def _train(
 def train_logged(command: list[str], log_path: Path, run: RunSpec) -> float:
     """Run one ``ns-train`` command on one CPU thread, its output in ``log_path``; return its wall-clock seconds
     (start-up included). A failed run raises with the log's last 30 lines."""
-    environment = training_environment() | {"OMP_NUM_THREADS": "1"}
+    environment = ns_train_environment() | {"OMP_NUM_THREADS": "1"}
     began = time.perf_counter()
     with open(log_path, "w", encoding="utf8") as output:
         result = subprocess.run(command, stdout=output, stderr=subprocess.STDOUT, env=environment)

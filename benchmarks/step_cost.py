@@ -312,6 +312,7 @@ def _row(method: str, camera_model: str, intrinsics: str, viewer: bool, counts: 
 def with_added(rows: list[dict]) -> list[dict]:
     """Each row's ops and syncs minus those of its model's "off" row on the same camera model, and ratios of the
     added ops to nerfstudio's SO3xR3's (same model and camera)."""
+
     def find(method: str, row: dict) -> dict | None:
         matches = [r for r in rows if r["method"] == method and r["camera_model"] == row["camera_model"]]
         return matches[0] if matches else None

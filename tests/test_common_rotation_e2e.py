@@ -32,7 +32,7 @@ def test_the_trained_cameras_share_no_rotation_but_still_move(tiny_scene: Path, 
     assert result.returncode == 0, _failure(result, "ns-train s2camp")
     checkpoint = tmp_path / "gauge" / "s2camp" / "run" / "nerfstudio_models" / f"step-{STEPS - 1:09d}.ckpt"
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)["pipeline"]
-    prefix = "_model.camera_optimizer."
+    prefix = "_model.camera_optimizer.refiner."
     pose, intrinsics = state[prefix + "whitened_delta"].double(), state[prefix + "whitened_intrinsics"].double()
     assert intrinsics.shape[0] == 1  # the generated scene has one physical camera, shared by every image
     latent = torch.cat([pose, intrinsics.expand(pose.shape[0], -1)], dim=-1)  # [z_i; w_c] (eq. 15)

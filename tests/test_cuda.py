@@ -67,13 +67,13 @@ def _optimizer_step(device: str) -> dict[str, torch.Tensor]:
 def test_camera_optimizer_on_cuda_matches_the_cpu() -> None:
     on_cuda = _optimizer_step(CUDA)
     on_cpu = _optimizer_step("cpu")
-    assert on_cuda["refiner.precond"].device.type == CUDA and on_cuda["refiner.precond"].dtype == torch.float64
+    assert on_cuda["precond"].device.type == CUDA and on_cuda["precond"].dtype == torch.float64
     for name in ("origins", "directions", "grad", "intrinsics_grad"):
         assert on_cuda[name].device.type == CUDA, name
         assert torch.isfinite(on_cuda[name]).all(), name
     assert on_cuda["grad"].abs().max() > 0 and on_cuda["intrinsics_grad"].abs().max() > 0
     # P is float64 on both devices (eigensolves differ in the last bits); the rays and gradients are float32.
-    torch.testing.assert_close(on_cuda["refiner.precond"].cpu(), on_cpu["refiner.precond"], rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(on_cuda["precond"].cpu(), on_cpu["precond"], rtol=1e-6, atol=1e-9)
     for name in ("origins", "directions", "grad", "intrinsics_grad"):
         torch.testing.assert_close(on_cuda[name].cpu(), on_cpu[name], rtol=1e-4, atol=1e-6, msg=name)
 

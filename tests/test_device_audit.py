@@ -220,8 +220,10 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
     gradients = torch.cat([p.grad.reshape(-1) for p in optimizer.parameters()])
     adam.step()
     optimizer.refiner.refresh(10, adam)  # P at the refined intrinsics, latent and Adam's moments re-expressed
-    rays = cast_rays(optimizer.refiner,
-        torch.tensor([0, 2, 1], device=device), torch.tensor([[0.5, 0.5], [40.0, 20.0], [63.5, 47.5]], device=device)
+    rays = cast_rays(
+        optimizer.refiner,
+        torch.tensor([0, 2, 1], device=device),
+        torch.tensor([[0.5, 0.5], [40.0, 20.0], [63.5, 47.5]], device=device),
     )
     origins, directions, norms = rays.origins, rays.directions, rays.directions_norm
     refined = refined_cameras(optimizer.refiner, cameras)
@@ -253,8 +255,8 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
         "refined_fx": refined.fx,
         "refined_distortion": refined.distortion_params,
         "corrected": corrected.detach(),
-        "resumed_rays": cast_rays(resumed.refiner,
-            torch.tensor([0, 2], device=device), torch.ones(2, 2, device=device)
+        "resumed_rays": cast_rays(
+            resumed.refiner, torch.tensor([0, 2], device=device), torch.ones(2, 2, device=device)
         ).directions.detach(),
         "resumed_p": resumed.refiner.precond,
     }

@@ -146,7 +146,8 @@ def test_both_ranks_end_with_bit_identical_cameras_and_p(runs) -> None:
     rank0, rank1 = runs["two"]
     assert rank0["world_size"] == rank1["world_size"] == 2
     # The camera optimizer's whole state: latents (pose per image, intrinsics per physical camera), P, P^-1, counters.
-    assert {"whitened_delta", "whitened_intrinsics", "precond", "precond_inv"} <= rank0["camera_state"].keys()
+    names = {"whitened_delta", "whitened_intrinsics", "precond", "precond_inv"}
+    assert {f"refiner.{name}" for name in names} <= rank0["camera_state"].keys()
     for name, value in rank0["camera_state"].items():
         assert torch.equal(value, rank1["camera_state"][name]), f"{name} differs between the ranks"
     assert torch.equal(rank0["camera_deltas"], rank1["camera_deltas"])

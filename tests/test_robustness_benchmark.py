@@ -128,10 +128,9 @@ def test_rows_of_the_two_devices_are_summarized_and_resumed_apart(tmp_path: Path
 
 
 def test_phone_and_sfm_commands_parse_to_the_benchmarks_data_parser() -> None:
-    """ns-train's own parse of the two starts that need ``s2camp-bench-data`` (its entry point installed by
-    ``make venv``): the phone start's drift after CamP's steps with CamP's sigmas zero, the sfm start's truth."""
-    import tyro
-    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+    """ns-train's own parse of the two starts that need ``s2camp-bench-data`` (in the benchmarks' environment): the
+    phone start's drift after CamP's steps with CamP's sigmas zero, the sfm start's truth."""
+    from ns_train_parse import parse_ns_train
 
     from s2camp_ns.benchmarks.data_parser import BenchDataParserConfig
     from s2camp_ns.benchmarks.phone_drift import DriftConfig
@@ -139,8 +138,7 @@ def test_phone_and_sfm_commands_parse_to_the_benchmarks_data_parser() -> None:
     config = RobustnessConfig(iterations=10)
     phone = train_command(RunSpec("near-deep", "phone", "s2camp", 1), Path("scene"), Path("runs"), config)
     sfm = train_command(RunSpec("near-deep", "sfm", "s2camp", 1), Path("sfm"), Path("runs"), config, Path("truth"))
-    parsed = [tyro.cli(AnnotatedBaseConfigUnion, args=command[1:]).pipeline.datamanager.dataparser
-              for command in (phone, sfm)]  # fmt: skip
+    parsed = [config.pipeline.datamanager.dataparser for config in parse_ns_train([phone, sfm])]
     assert all(isinstance(dataparser, BenchDataParserConfig) for dataparser in parsed)
     perturbation = parsed[0].perturbation
     assert perturbation.enabled and perturbation.seed == SCENES["near-deep"].perturbation_seed + 1

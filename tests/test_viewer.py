@@ -399,7 +399,6 @@ TEST_SETUP = (
     "--pipeline.model.num-nerf-samples-per-ray", "8",
     "--pipeline.model.num-proposal-samples-per-ray", "8", "8",
     "--pipeline.model.camera-optimizer.parameters", "pose+focal",
-    "--pipeline.model.camera-optimizer.sampling.num-points", "64",
     "--pipeline.model.camera-optimizer.refresh-every", "0",
     "--optimizers.camera-opt.optimizer.lr", "5e-4",
     "--optimizers.camera-opt.scheduler.warmup-steps", "0",
