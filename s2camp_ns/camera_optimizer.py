@@ -1,10 +1,9 @@
 """S2CamP's camera optimizer for nerfstudio: nerfstudio's ``CameraOptimizer`` contract over the framework-free
-``CameraRefiner`` (``s2camp_ns.core.refiner``), which it holds as its submodule ``refiner``.
+``CameraRefiner`` (``s2camp_ns.core.refiner``), held as the submodule ``refiner``.
 
-It converts nerfstudio's cameras to the core's (``nerfstudio.camera_conversion``), fits the track prior's anchor from
-the data parser's tracks (``core.track_fit``), casts the training rays through the refined cameras
-(``nerfstudio.rays``), and after each optimizer step applies the track prior and removes the common rotation.
-Checkpoints written before the refiner became a submodule load through a key-renaming hook.
+It converts nerfstudio's cameras (``nerfstudio.camera_conversion``), fits the track prior's anchor
+(``core.track_fit``), casts the training rays through the refined cameras (``nerfstudio.rays``), and after each
+optimizer step applies the track prior and removes the common rotation.
 """
 
 from __future__ import annotations
@@ -27,11 +26,11 @@ from s2camp_ns.core.config_defaults import DefaultsOnLoad
 from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig
 from s2camp_ns.core.proxy_range import describe_proxy_ranges
 from s2camp_ns.core.refiner import CameraRefiner
-from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
 from s2camp_ns.core.track_fit import TrackEvidence, fit_anchor
 from s2camp_ns.core.track_prior import checked_evidence, describe_anchor_fit, evidence_from_fit
 from s2camp_ns.core.validation import check_range
 from s2camp_ns.nerfstudio import camera_conversion, rays
+from s2camp_ns.nerfstudio.checkpoint_compat import refiner_keys
 
 LOG = Console(stderr=True, width=120)
 """Start-up notes (the proxy range, the anchor fit), on stderr: a caller's stdout (JSON) stays clean."""
@@ -117,7 +116,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         """Whether ``get_metrics_dict`` computes the metrics: the model sets it before each step to whether the
         trainer logs that step."""
         self._warned_no_pixels = False
-        self._register_load_state_dict_pre_hook(_refiner_keys, with_module=True)
+        self._register_load_state_dict_pre_hook(refiner_keys, with_module=True)
 
     @property
     def enabled(self) -> bool:
@@ -235,48 +234,13 @@ class S2CampCameraOptimizer(CameraOptimizer):
             return
         with torch.no_grad():
             phi = self.refiner.deltas()
-            trans = phi[:, :3].norm(dim=-1)
-            rot = torch.rad2deg(phi[:, 3:6].norm(dim=-1))
-            metrics_dict["camera_opt_translation_max"] = trans.max().float()
-            metrics_dict["camera_opt_translation_mean"] = trans.mean().float()
-            metrics_dict["camera_opt_rotation_mean"] = rot.mean().float()
-            metrics_dict["camera_opt_rotation_max"] = rot.max().float()
+            sizes = {"translation": phi[:, :3].norm(dim=-1), "rotation": phi[:, 3:6].norm(dim=-1).rad2deg()}
+            for name, size in sizes.items():
+                metrics_dict[f"camera_opt_{name}_max"] = size.max().float()
+                metrics_dict[f"camera_opt_{name}_mean"] = size.mean().float()
             for name in self.refiner.layout.names[6:]:
                 column = PARAMETER_NAMES.index(name)
                 metrics_dict[f"camera_opt_{name}_abs_mean"] = phi[:, column].abs().mean().float()
 
 
-def split_per_image_adam_state(state: dict) -> dict:
-    """Adam's state of the ``camera_opt`` group written while a per-image latent was one tensor [n, K]: the same
-    moments for the pose [n, 6] and intrinsics [n, K - 6] latents that store it now (a state of two or more tensors
-    is returned as it is)."""
-    group = state["param_groups"][0]
-    if len(state["param_groups"]) != 1 or len(group["params"]) != 1:
-        return state
-    old = state["state"].get(group["params"][0])
-    if old is None or old["exp_avg"].shape[-1] <= NUM_POSE_PARAMS:
-        return state
-    parts = [{**old}, {**old}]
-    for key in ("exp_avg", "exp_avg_sq"):
-        parts[0][key], parts[1][key] = old[key][:, :NUM_POSE_PARAMS], old[key][:, NUM_POSE_PARAMS:]
-    return {"state": {0: parts[0], 1: parts[1]}, "param_groups": [{**group, "params": [0, 1]}]}
-
-
-def _refiner_keys(
-    module: S2CampCameraOptimizer, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
-) -> None:
-    """Checkpoints written while the refiner's tensors were the optimizer's own (``<prefix>precond``) load as the
-    submodule's (``<prefix>refiner.precond``)."""
-    names = set(module.refiner.state_dict()) | {"whitened_delta"}
-    for name in names:
-        if prefix + name in state_dict and prefix + "refiner." + name not in state_dict:
-            state_dict[prefix + "refiner." + name] = state_dict.pop(prefix + name)
-
-
-__all__ = [
-    "LOG",
-    "TRAIN_CAMERA_KEY",
-    "S2CampCameraOptimizer",
-    "S2CampCameraOptimizerConfig",
-    "split_per_image_adam_state",
-]
+__all__ = ["LOG", "TRAIN_CAMERA_KEY", "S2CampCameraOptimizer", "S2CampCameraOptimizerConfig"]

@@ -1,5 +1,4 @@
-"""COLMAP's log, sent to a file: pycolmap's C++ code (glog) writes to the process's stdout and stderr descriptors, which
-would bury a training run's console under thousands of lines."""
+"""COLMAP's log sent to a file: pycolmap's C++ code (glog) writes to the process's stdout and stderr descriptors."""
 
 from __future__ import annotations
 

@@ -1,35 +1,16 @@
 """``make demo``: generate a scene, perturb its cameras (CamP protocol), train ``s2camp``, print camera errors.
 
-Everything runs offline on the CPU in minutes, on a small procedural scene in the mip-NeRF 360 layout (images,
-COLMAP cameras and the sparse points with their tracks). Two recipes:
+Offline, on the CPU, in minutes, on a small procedural scene in the mip-NeRF 360 layout. Two recipes:
 
-- ``default`` (``make demo``): ``ns-train s2camp`` with every camera option at its default, from scratch, on the
-  perturbed training cameras (CamP's protocol: position, look-at, per-camera focal length and a shared dolly zoom,
-  radial distortion zeroed). The scene's own tracks were made with the true cameras, so the data parser never gives
-  them to perturbed cameras: the default's track prior gets tracks made from the images with the perturbed cameras
-  (the data parser's ``image_tracks``: SIFT matches, triangulated and bundle-adjusted, built once, then cached; cost:
-  docs/IMAGE-TRACKS.md, "Cost"), evidence that does not know the truth. Every camera starts where those tracks put it
-  (a camera-only adjustment against their points, ``s2camp_ns.core.track_fit``) and is held there by what they know
-  of it (``s2camp_ns.core.track_prior``). The table shows the perturbed start, the tracks alone (where the run
-  starts) and the cameras after refinement, all against the true cameras, and each row's mean errors against the
-  start's and the tracks alone's as "N.Nx smaller" or "larger". The scene is sized for that: with 16 images of 96x72
-  SIFT triangulates no point, with 24 of 192x144 too few.
-- ``warm-start``: the photometric refinement alone, shown in a demo-length run. nerfacto (CPU-sized) is first fitted
-  to the accurate cameras with the camera learning rate at zero; the run then resumes from that checkpoint on the
-  perturbed cameras without the track prior or the common-rotation removal (``PHOTOMETRIC_ONLY``), with the camera
-  learning rate raised and no warm-up. The warm start's P
-  was computed for the accurate intrinsics: on loading, the camera optimizer sees that the base cameras changed, says
-  so, and recomputes P for the perturbed ones before the first step
-  (``S2CampCameraOptimizer.recompute_stale_preconditioner``).
+- ``default``: ``ns-train s2camp`` with its default options, from scratch. The scene's tracks were made with the true
+  cameras, so the track prior gets tracks made from the images with the perturbed cameras (``image_tracks``: SIFT,
+  triangulated, bundle-adjusted, cached); each camera starts where they put it and is held by what they know of it.
+- ``warm-start``: the photometric refinement alone (``PHOTOMETRIC_ONLY``): nerfacto fitted to the accurate cameras
+  (camera learning rate zero), then resumed on the perturbed ones with a raised camera learning rate, no warm-up,
+  and P recomputed for them. From scratch, a run this short would let the field absorb the camera errors.
 
-Then the camera errors of the perturbed start and of the refined cameras against the unperturbed ones, after a
-similarity alignment, are read from the final checkpoint (nerfstudio's ``eval_setup``) and printed.
-
-Why the warm-start recipe needs its warm start: measured on this scene, a NeRF trained from scratch on perturbed
-cameras for a few hundred CPU iterations absorbs the inconsistencies, and the cameras then barely move. Against a
-NeRF that has already seen the scene, the focal error and the dolly zoom are recovered within tens of iterations.
-The sigmas are CamP's for focal and dolly, and larger for position and look-at: CamP's 0.005 is a fraction of a
-pixel at this resolution, below the gradient noise of a run this short.
+The errors of the start, the tracks alone and the refined cameras against the true ones, after a similarity
+alignment, are read from the final checkpoint and printed.
 """
 
 from __future__ import annotations
@@ -77,31 +58,28 @@ class DemoConfig:
     scene_dir: Path = Path("demo_scene")
     """Where the generated scene is written (reused when it already exists with the same size)."""
     output_dir: Path = Path("outputs/demo")
-    """nerfstudio output folder of the demo runs (its demo/<method>/{warm-start,refine} runs are replaced)."""
+    """nerfstudio output folder (its demo/<method>/{warm-start,refine} runs are replaced)."""
     num_cameras: int = 32
-    """Cameras of the generated scene (every 8th is held out for evaluation, the rest are trained on)."""
+    """Cameras of the generated scene (every 8th is held out for evaluation)."""
     width: int = 256
     """Image width of the generated scene (even)."""
     height: int = 192
     """Image height of the generated scene (even)."""
     recipe: Literal["default", "warm-start"] = "default"
-    """"default": the method's defaults from scratch on the perturbed cameras (the track prior takes them to where
-    the tracks made from the images put them); "warm-start": the photometric refinement alone, from a field fitted
-    to the accurate cameras, the camera learning rate raised, the track prior and the common-rotation removal off
-    (module docstring)."""
+    """"default": the method's defaults from scratch; "warm-start": the photometric refinement alone, from a field
+    fitted to the accurate cameras (module docstring)."""
     warm_start: int = 250
-    """Recipe "warm-start": iterations of the warm start on the accurate cameras (camera learning rate zero); 0 skips
-    it."""
+    """Recipe "warm-start": iterations on the accurate cameras (camera learning rate zero); 0 skips it."""
     iterations: int = 200
     """Iterations of the run on the perturbed cameras."""
     rays_per_batch: int = 1024
     """Training rays per iteration."""
     camera_lr: float = 1e-3
-    """Recipe "warm-start": learning rate of the whitened camera parameters at the start of the refinement run."""
+    """Recipe "warm-start": camera learning rate (whitened units) at the start of the refinement run."""
     camera_lr_final: float = 3e-4
-    """Recipe "warm-start": camera learning rate at the end of the refinement run (exponential decay)."""
+    """Recipe "warm-start": camera learning rate at the end of the refinement run."""
     sigma_position: float = 0.05
-    """Perturbation: camera centres move this far (normalized scene units, cameras within [-1, 1]^3; CamP 0.005)."""
+    """Perturbation: camera centres move this far (normalized scene units; CamP 0.005)."""
     sigma_look_at: float = 0.02
     """Perturbation: look-at points move this far (normalized scene units; CamP 0.005)."""
     sigma_focal_length: float = 0.02
@@ -115,8 +93,7 @@ class DemoConfig:
     viewer: bool = False
     """Also serve the viser viewer during the refinement run (ns-train --vis viewer+tensorboard)."""
     verbose: bool = False
-    """Stream ns-train's full output (config dump, warnings, progress table) instead of a progress bar; it is
-    always written to <output_dir>/{warm-start,refine}.log."""
+    """Stream ns-train's full output instead of a progress bar (always in <output_dir>/{warm-start,refine}.log)."""
 
 
 WARM_START_RECIPE_OPTIONS = ("warm_start", "camera_lr", "camera_lr_final")
@@ -164,7 +141,7 @@ def ensure_scene(config: DemoConfig) -> Path:
 
 
 def _common_arguments(config: DemoConfig, scene: Path, timestamp: str, iterations: int) -> list[str]:
-    """Options shared by both runs (the model must match for the refinement run to load the warm start)."""
+    """Options of both runs (the refinement run loads the warm start: the models must match)."""
     return [
         *ns_train_arguments(
             config.method, scene, config.output_dir, EXPERIMENT, timestamp, iterations, iterations,
@@ -193,9 +170,8 @@ def warm_start_command(config: DemoConfig, scene: Path) -> list[str]:
 
 
 def refine_command(config: DemoConfig, scene: Path) -> list[str]:
-    """The run on the perturbed cameras: recipe "default" with the method's camera options as they are; recipe
-    "warm-start" resuming the warm start (if any) with a fresh camera schedule compressed to its length, the
-    photometric loss alone moving the cameras."""
+    """The run on the perturbed cameras: the method's own camera options ("default"), or the warm start resumed
+    (if any) with a fresh camera schedule and the photometric loss alone ("warm-start")."""
     command = [
         *_common_arguments(config, scene, REFINE_TIMESTAMP, config.iterations),
         "--vis", "viewer+tensorboard" if config.viewer else "tensorboard",
@@ -223,22 +199,15 @@ _SHOWN = ("CUDA is not available: training on the CPU", "Viewer running", "Viewe
 
 
 def run(command: list[str], what: str, log_path: Path, iterations: int, verbose: bool = False) -> float:
-    """Run one ns-train command; return its wall time. Exits with ns-train's status (no traceback) if it fails.
-
-    Quiet mode writes ns-train's output (its full config, warnings, progress) to ``log_path`` and shows a progress bar
-    from the step numbers it prints; ``verbose`` streams it to the terminal instead.
-    """
+    """Run one ns-train command and return its wall time; exit with its status if it fails. Its output goes to
+    ``log_path`` behind a progress bar, or to the terminal with ``verbose``."""
     CONSOLE.rule(what)
     CONSOLE.print("[bold]running:[/bold] " + " ".join(command), soft_wrap=True, highlight=False)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     began = time.perf_counter()
     with open(log_path, "w", encoding="utf8") as log:
-        if verbose:
-            process = subprocess.Popen(command, env=training_environment())
-        else:
-            process = subprocess.Popen(
-                command, env=training_environment(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-            )
+        piped = {} if verbose else {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT, "text": True}
+        process = subprocess.Popen(command, env=training_environment(), **piped)
         try:
             if not verbose:
                 _follow(process, log, iterations)
@@ -281,7 +250,7 @@ def _follow(process: subprocess.Popen, log, iterations: int) -> None:
 
 @torch.no_grad()
 def camera_error_table(config_path: Path) -> dict[str, dict[str, float]]:
-    """Errors of the perturbed start and of the refined training cameras, read from the final checkpoint."""
+    """``camera_errors`` of the start, tracks-alone (with a track prior) and refined cameras, by row label."""
     from s2camp_ns.core.alignment import camera_errors
 
     captured = io.StringIO()
@@ -329,8 +298,8 @@ def change(before: float, after: float) -> str:
 
 
 def print_table(results: dict[str, dict[str, float]], title: str) -> None:
-    """The rows of ``camera_error_table`` (mean / max per error), then each refined row's means against the start and,
-    where there are tracks, the last row's against the tracks alone."""
+    """``camera_error_table``'s rows (mean / max), then each later row's means against the start's and the last
+    row's against the tracks alone's."""
     table = Table(title=title, title_justify="left")
     table.add_column("training cameras")
     table.add_column("rotation (deg)\nmean / max", justify="right")
@@ -361,8 +330,7 @@ def print_table(results: dict[str, dict[str, float]], title: str) -> None:
 
 
 def protocol_notice(config: DemoConfig) -> str:
-    """What this demo's run is, against a user's ``ns-train s2camp`` run (printed before training and saved with the
-    errors)."""
+    """What this demo's run is, against a user's ``ns-train s2camp`` run."""
     if config.recipe == "default" and config.method == "s2camp-camp":
         return (
             "s2camp-camp with its default options, from scratch, on perturbed cameras. CamP has no track prior: its "

@@ -1,18 +1,14 @@
-"""``ns-train s2camp`` and ``ns-train s2camp-camp``, registered through the ``nerfstudio.method_configs`` entry point.
+"""The ``ns-train`` methods, registered through the ``nerfstudio.method_configs`` entry point.
 
-Both are nerfacto (nerfstudio's proposal sampling, field and losses) with joint pose + intrinsics refinement;
-they differ only in the camera optimizer:
+Nerfacto with joint pose + intrinsics refinement, differing only in the camera optimizer:
 
-- ``s2camp``: 500 deterministic Frolov-lattice points in each camera's frustum, P refreshed during training
-  (paper sec. 4), the rotation all cameras share removed and the track prior on (``S2CAMP_CAMERA_OPTIMIZER``);
-- ``s2camp-camp``: the CamP baseline, 5000 random points, P computed once at the start, neither the track prior nor
-  the common-rotation removal (docs/DESIGN-NOTES.md sec. 5);
-- ``s2camp-so3xr3``: the nerfacto baseline, nerfstudio's stock SO3xR3 pose optimizer (no intrinsics) with
-  nerfacto's camera learning rate, in the same pipeline (data manager, offline LPIPS, camera-error logging), so
-  the three are compared with everything else equal.
+- ``s2camp``: deterministic Frolov-lattice points in each camera's frustum, P refreshed during training (paper
+  sec. 4), the common rotation removed and the track prior on (``S2CAMP_CAMERA_OPTIMIZER``);
+- ``s2camp-camp``: the CamP baseline: random points, P computed once, no track prior, no common-rotation removal;
+- ``s2camp-so3xr3``: nerfstudio's stock SO3xR3 pose optimizer with nerfacto's camera learning rate.
 
-Without CUDA the machine defaults to the CPU (``--machine.device-type cpu``), with one message at start-up.
-All three train with ``S2CampTrainer``: nerfstudio's Trainer with atomic checkpoints (``nerfstudio/trainer.py``).
+``s2camp-splat`` and ``s2camp-splat-so3xr3`` are the same for splatfacto. All train with ``S2CampTrainer`` in the
+S2CamP pipeline, on the CPU where CUDA is missing.
 """
 
 from __future__ import annotations
@@ -35,16 +31,14 @@ from s2camp_ns.nerfstudio.splat_model import S2CampSplatModelConfig
 from s2camp_ns.nerfstudio.trainer import S2CampTrainerConfig
 
 DEFAULT_DEVICE_TYPE = "cuda" if torch.cuda.is_available() else "cpu"
-"""nerfstudio's Trainer takes the device from the config and asserts CUDA; fall back to the CPU here instead."""
+"""nerfstudio's Trainer asserts CUDA for a "cuda" device: the CPU without CUDA."""
 
 
 def camera_schedule_for(camera_optimizer: CameraOptimizerConfig) -> dict:
     """The "camera_opt" optimizer and schedule of a method: S2CamP's in whitened units, nerfacto's otherwise."""
     if isinstance(camera_optimizer, S2CampCameraOptimizerConfig):
-        # Whitened units: a unit step of the latent moves the proxy projections by max(W, H) pixels RMS (Gram matrix
-        # normalized by the image size, docs/EQUATIONS.md eq. 5), so the rates are fractions of the image size and
-        # hold at any resolution. CamP's camera schedule (1e-4 -> 1e-5, warm-up 2.5k and decay to 25k of 30k
-        # steps), stated as fractions of the run so that any --max-num-iterations gets it compressed.
+        # Whitened units (a unit step moves the proxy projections by max(W, H) px RMS): rates hold at any
+        # resolution. CamP's camera schedule, as fractions of the run.
         camera_schedule = {
             "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
             "scheduler": RunLengthScheduleConfig(lr_pre_warmup=1e-8, lr_final=1e-5),
@@ -91,19 +85,14 @@ def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfi
             },
             "camera_opt": camera_schedule,
         },
-        # Float learning rates: nerfstudio's numpy ones make checkpoints unloadable with torch >= 2.6 defaults.
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",
     )
 
 
 S2CAMP_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig()
-"""s2camp's camera optimizer, the config's defaults: every parameter group, the rotation all cameras share removed
-after every step and the track prior on (a no-op for cameras without SfM tracks). Without these, in the regime real
-runs train in (each pixel seen about once), good SfM cameras ended much further off in rotation and further off in
-position; with them they end where SfM's own tracks put them, re-adjusted with a robust loss, closer to the truth
-than SfM left them (measured in docs/RESULTS.md, "The real-training regime"; docs/benchmarks/regime.md;
-docs/DESIGN-NOTES.md sec. 6-7). The CamP baseline switches both off, as CamP's code has neither."""
+"""s2camp's camera optimizer, the config's defaults: every parameter group, the common rotation removed after
+every step and the track prior on (a no-op without SfM tracks)."""
 
 s2camp_method = MethodSpecification(
     config=make_trainer_config("s2camp", S2CAMP_CAMERA_OPTIMIZER),
@@ -113,10 +102,8 @@ s2camp_method = MethodSpecification(
 s2camp_camp_method = MethodSpecification(
     config=make_trainer_config(
         "s2camp-camp",
-        # CamP's published camera-optimisation configuration (docs/benchmarks/camp-check.md): 5000 random pixels
-        # at power-ladder distances in [0.4, 1000], no contraction; damping 1e-8 / 0.1; P computed once; intrinsics
-        # per image with P the symmetric root per image, as CamP (not S2CamP's per-camera block factor); no track
-        # prior and no common-rotation removal (CamP's code has neither).
+        # CamP's published configuration: its random proxy points and damping, P computed once, per-image intrinsics
+        # (P the symmetric root per image), no track prior, no common-rotation removal.
         S2CampCameraOptimizerConfig(
             sampling=CAMP_SAMPLING,
             damping=DampingConfig(),
@@ -139,9 +126,8 @@ s2camp_so3xr3_method = MethodSpecification(
 
 
 def make_splat_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfig) -> S2CampTrainerConfig:
-    """splatfacto's trainer settings (nerfstudio 1.1.5's, float learning rates) with the S2CamP pipeline and data
-    parser. S2CamP's camera schedule is the nerfacto methods' (``camera_schedule_for``); nerfstudio's stock
-    optimizer gets splatfacto's own (1e-4 after a 1000-step warm-up, decaying to 5e-7)."""
+    """splatfacto's trainer settings with the S2CamP pipeline and data parser; S2CamP's camera schedule as
+    ``camera_schedule_for``, splatfacto's own for the stock optimizer."""
     if isinstance(camera_optimizer, S2CampCameraOptimizerConfig):
         camera_schedule = camera_schedule_for(camera_optimizer)
     else:
@@ -192,11 +178,8 @@ def make_splat_trainer_config(method_name: str, camera_optimizer: CameraOptimize
 
 
 SPLAT_CAMERA_OPTIMIZER = S2CampCameraOptimizerConfig(parameters="pose+intrinsics")
-"""s2camp-splat's camera optimizer: distortion fixed (splatfacto trains on undistorted images), otherwise the config's
-defaults: the rotation all cameras share removed after every step and the track prior on (splatfacto starts from SfM
-points, so its scenes have tracks). From the CamP perturbation without these the rotation error grew in every seed,
-and from true or SfM cameras every refining variant moved them (measured in docs/SPLAT.md sec. 6,
-docs/benchmarks/splat.md)."""
+"""s2camp-splat's camera optimizer: distortion fixed (splatfacto trains on undistorted images), otherwise the
+config's defaults."""
 
 s2camp_splat_method = MethodSpecification(
     config=make_splat_trainer_config("s2camp-splat", SPLAT_CAMERA_OPTIMIZER),

@@ -1,9 +1,5 @@
-"""Markdown reports of measurements: tables and the report file (the benchmarks' and ``make gpu-check``'s).
-
-A report is ``<folder>/<name>.md``: a title, the command that regenerates it, the line naming the machine it ran on
-(``environment_line``), then its sections. The file is written under a temporary name and renamed, so a reader never
-sees half a report.
-"""
+"""Markdown reports of measurements: ``<folder>/<name>.md`` with a title, the command that regenerates it, the
+machine line (``environment_line``) and its sections, written atomically (temporary name, then renamed)."""
 
 from __future__ import annotations
 
@@ -26,8 +22,7 @@ def environment_line() -> str:
 
 
 def format_value(value: object) -> str:
-    """A table cell: floats with 4 significant digits (scientific notation below 1e-3 or from 1e4 on, 0 as is),
-    anything else as ``str``."""
+    """A table cell: floats to 4 significant digits (scientific below 1e-3 and from 1e4), anything else ``str``."""
     if isinstance(value, float):
         if value == 0 or 1e-3 <= abs(value) < 1e4:
             return f"{value:.4g}"
@@ -36,8 +31,7 @@ def format_value(value: object) -> str:
 
 
 def markdown_table(rows: Sequence[dict], columns: Sequence[str], headers: Sequence[str] | None = None) -> str:
-    """A markdown table of ``rows``, one line each, cells ``format_value(row[column])`` (empty where a row lacks
-    the column); ``headers`` name the columns (the column keys when None)."""
+    """A markdown table, one line per row, cells ``format_value`` (empty where a row lacks the column)."""
     headers = list(headers or columns)
     lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     for row in rows:
@@ -48,9 +42,8 @@ def markdown_table(rows: Sequence[dict], columns: Sequence[str], headers: Sequen
 def write_report(
     output_dir: Path, name: str, title: str, command: str, sections: Iterable[str], measured_on: str | None = None
 ) -> Path:
-    """Write ``<output_dir>/<name>.md`` (the folder created if needed) and return its path: ``# title``, "Regenerate
-    with `command`." as given, the machine line (``measured_on``, else ``environment_line`` of this machine: pass it
-    when the numbers were measured elsewhere), then each section, separated by blank lines."""
+    """Write ``<output_dir>/<name>.md`` and return its path: ``# title``, "Regenerate with `command`.", the machine
+    line (``measured_on``, default this machine's ``environment_line``), then the sections."""
     output_dir.mkdir(parents=True, exist_ok=True)
     path = output_dir / f"{name}.md"
     machine = environment_line() if measured_on is None else measured_on

@@ -38,6 +38,7 @@ REQUIRED_KEYS = {
         "train_seconds",
     },  # fmt: skip
     "image-tracks": {"images", "pairs", "seconds", "SIFT_seconds", "matching_seconds", "summary", "device"},
+    "step-cost": {"method", "camera_model", "ops", "syncs", "added_ops", "added_syncs", "camera_path_ms"},
 }
 REPORTS = {
     "dispersion": "dispersion.md",
@@ -49,6 +50,7 @@ REPORTS = {
     "proxy-range": "proxy-range.md",
     "robustness": "robustness.md",
     "image-tracks": "image-tracks.md",
+    "step-cost": "step-cost.md",
 }
 
 
@@ -80,6 +82,10 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
         assert REQUIRED_KEYS[name] <= row.keys(), f"{name} row misses {REQUIRED_KEYS[name] - row.keys()}"
     report = tmp_path / REPORTS[name]
     assert report.exists() and "Regenerate with" in report.read_text()
+    if name == "step-cost":  # the camera path adds no host read nerfstudio's own pose optimizer does not
+        added = {row["method"]: row["added_syncs"] for row in rows}
+        assert set(added) == {"off", "s2camp-so3xr3", "s2camp"}
+        assert added["s2camp"] <= added["s2camp-so3xr3"], added
     if name == "recovery":
         # --quick trains a subset in tiers 2 and 3; every variant's command is checked in test_recovery_seeds.py.
         everything = {"none", "so3xr3", "raw", "camp", "s2camp", "s2camp-once", "s2camp-per-camera"}

@@ -1,10 +1,8 @@
-"""Camera error metrics after a similarity (Umeyama / Procrustes) alignment, as CamP reports them.
+"""Camera error metrics after a similarity (Umeyama) alignment, as CamP reports them.
 
-Joint NeRF + camera optimization can only recover cameras up to a similarity of the world (gauge freedom: the
-radiance field moves with them), so estimated cameras are first aligned to the reference cameras by the
-similarity that best maps estimated centres onto reference centres (least squares, Umeyama 1991), and errors are
-measured afterwards. Rotation errors are the geodesic angle between rotations; they do not depend on whether
-both pose sets use the OpenCV or the OpenGL camera axes, as long as they use the same one.
+Joint field and camera optimization recovers cameras only up to a similarity of the world, so the estimated poses
+are first mapped onto the reference ones by the least-squares similarity of their centres (Umeyama 1991). Rotation
+errors are geodesic angles, the same in OpenCV and OpenGL axes as long as both pose sets use one.
 """
 
 from __future__ import annotations
@@ -19,7 +17,7 @@ from torch import Tensor
 from s2camp_ns.core.validation import check_finite
 
 MIN_CAMERAS_FOR_ALIGNMENT = 3
-"""Fewer centres do not fix a similarity in 3D (two centres leave the rotation about their line free)."""
+"""Fewer centres do not fix a similarity in 3D."""
 
 
 @dataclass
@@ -74,16 +72,9 @@ def _relative_skew_and_angle(
     r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]
 ) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"]]:
     """Of R = r_a^T r_b: the vector of R - R^T (2 sin(angle) times the axis) and the angle, atan2 form."""
-    relative = r_a.transpose(-1, -2) @ r_b
-    trace = relative.diagonal(dim1=-2, dim2=-1).sum(dim=-1)
-    skew = torch.stack(
-        [
-            relative[:, 2, 1] - relative[:, 1, 2],
-            relative[:, 0, 2] - relative[:, 2, 0],
-            relative[:, 1, 0] - relative[:, 0, 1],
-        ],
-        dim=-1,
-    )
+    r = r_a.transpose(-1, -2) @ r_b
+    trace = r.diagonal(dim1=-2, dim2=-1).sum(dim=-1)
+    skew = torch.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], dim=-1)
     return skew, torch.atan2(0.5 * torch.linalg.norm(skew, dim=-1), 0.5 * (trace - 1.0))
 
 
@@ -93,8 +84,7 @@ def rotation_angle(r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]) -> 
 
 
 def rotation_vector(r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]) -> Float[Tensor, "n 3"]:
-    """Axis-angle vector (rad) of r_a^T r_b, the rotation from r_a to r_b in r_a's own frame, for angles below pi
-    (at pi the axis is not defined by R - R^T); zero for identical rotations."""
+    """Axis-angle vector (rad) of r_a^T r_b, the rotation from r_a to r_b in r_a's frame, for angles below pi."""
     skew, angle = _relative_skew_and_angle(r_a, r_b)
     norm = torch.linalg.norm(skew, dim=-1, keepdim=True)
     return torch.where(norm > 0, skew * (angle[:, None] / norm.clamp(min=torch.finfo(skew.dtype).tiny)), 0.0)
@@ -122,15 +112,10 @@ def camera_errors(
     ref_fx: Float[Tensor, " n"] | None = None,
     align: bool = True,
 ) -> dict[str, float]:
-    """Camera errors of estimated against reference cameras.
-
-    Returns floats: ``rot_err_mean/max`` (rad, geodesic), ``pos_err_mean/max`` (reference scene units) after the
-    similarity alignment of the estimated to the reference cameras, ``focal_err_mean/max`` (px, if both focal
-    lengths are given; a similarity does not change focal lengths), the same pose errors without alignment under
-    the prefix ``raw_``, plus ``aligned`` (1.0 or 0.0) and ``align_scale``. With fewer than 3 cameras, or centres
-    that all coincide, there is no similarity to fit: the aligned errors then equal the raw ones, ``aligned`` is
-    0.0 and a warning says so.
-    """
+    """Errors of estimated against reference poses: ``rot_err_mean/max`` (rad), ``pos_err_mean/max`` (reference
+    units) after the similarity alignment, the same unaligned under ``raw_``, ``focal_err_mean/max`` (px, when both
+    focal lengths are given), ``aligned`` (1.0 or 0.0) and ``align_scale``. With fewer than 3 images or coincident
+    centres the aligned errors are the raw ones, ``aligned`` is 0.0 and a warning says so."""
     if est_c2w.shape != ref_c2w.shape or est_c2w.ndim != 3 or est_c2w.shape[1:] != (3, 4):
         raise ValueError(
             f"est_c2w and ref_c2w must both have shape [N, 3, 4], got {tuple(est_c2w.shape)} and {tuple(ref_c2w.shape)}"
@@ -142,7 +127,6 @@ def camera_errors(
     ref = ref_c2w.detach().to(device=est.device, dtype=torch.float64)
     check_finite("est_c2w", est)
     check_finite("ref_c2w", ref)
-
     errors = _pose_errors("raw_", est, ref)
     similarity = None
     if align:
@@ -161,7 +145,6 @@ def camera_errors(
     errors.update(_pose_errors("", aligned, ref))
     errors["aligned"] = 1.0 if similarity is not None else 0.0
     errors["align_scale"] = similarity.scale if similarity is not None else 1.0
-
     if (est_fx is None) != (ref_fx is None):
         raise ValueError("camera_errors: give both est_fx and ref_fx, or neither")
     if est_fx is not None and ref_fx is not None:

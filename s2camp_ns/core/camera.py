@@ -1,29 +1,18 @@
 """Camera models: perspective (OpenCV radial-tangential) and fisheye (OpenCV equidistant), with se(3) pose delta.
 
-Conventions (the same as COLMAP and pycolmap, so refined cameras export without conversion):
+Conventions (COLMAP's, so refined cameras export without conversion): camera frame x right, y down, z forward;
+continuous pixels, the image covering [0, W] x [0, H]; u = fx a_d + s b_d + cx, v = fy b_d + cy (paper eq. 2 with
+skew s and distortion) with (a_d, b_d) from the projection (``Intrinsics.model``):
 
-- camera frame: x right, y down, z forward;
-- continuous pixel coordinates, the image covering [0, W] x [0, H] (the centre of pixel (i, j) is (i + .5, j + .5));
-- pixels u = fx a_d + s b_d + cx, v = fy b_d + cy (paper eq. 2 with the skew s and distortion added), where the
-  distorted image-plane coordinates (a_d, b_d) depend on the projection (``Intrinsics.model``):
+- ``"perspective"`` (COLMAP SIMPLE_PINHOLE ... FULL_OPENCV with k4 = k5 = k6 = 0): a = x / z, b = y / z,
+  D = 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8, a_d = a D + 2 p1 a b + p2 (r^2 + 2 a^2), b_d likewise; k4 is
+  nerfstudio's polynomial r^8 term (FULL_OPENCV's k4 divides);
+- ``"fisheye"`` (COLMAP OPENCV_FISHEYE): theta = atan2(sqrt(x^2 + y^2), z), theta_d = theta D(theta^2),
+  (a_d, b_d) = theta_d (x, y) / sqrt(x^2 + y^2).
 
-  ``"perspective"`` (COLMAP SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV with k4 = k5 = k6 = 0):
-      tangents a = x / z, b = y / z, r^2 = a^2 + b^2, D = 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8,
-      a_d = a D + 2 p1 a b + p2 (r^2 + 2 a^2),  b_d = b D + 2 p2 a b + p1 (r^2 + 2 b^2).
-      k4 is nerfstudio's (a polynomial r^8 term); it has no COLMAP counterpart (FULL_OPENCV's k4 divides).
-  ``"fisheye"`` (COLMAP OPENCV_FISHEYE, equidistant):
-      theta = atan2(sqrt(x^2 + y^2), z) (defined beyond 90 degrees), theta_d = theta (1 + k1 theta^2 + k2 theta^4
-      + k3 theta^6 + k4 theta^8), (a_d, b_d) = theta_d (x, y) / sqrt(x^2 + y^2).
-
-The camera-parameter deltas of the paper (sec. 4, "Camera Parameterization") are ordered as ``PARAMETER_NAMES``: a
-local se(3) pose delta (rho, omega) applied on the right of the camera-to-world pose, then focal length (pixels,
-added to fx and fy), principal point (pixels), skew (pixels) and the distortion coefficients k1, k2, k3, k4, p1, p2.
-The paper's K = 12 are the first twelve; which distortion columns a layout refines follows the COLMAP camera model
-(``CAMERA_MODEL_DISTORTION``).
-
-This module holds the intrinsics, the parameter layout, the forward projection and the se(3) pose update. The
-distortion maps, their inverses and the one-to-one check live in ``core.distortion`` (imported here, never the other
-way); pixels to rays (``unproject``, ``pixel_to_ray_direction``, ``tangent_bounds``) in ``core.unprojection``.
+Deltas (paper sec. 4) are ordered as ``PARAMETER_NAMES``: a local se(3) twist (rho, omega) applied on the right of
+c2w, focal (pixels, added to fx and fy), principal point, skew, then k1, k2, k3, k4, p1, p2; the paper's K = 12 are
+the first twelve. Distortion maps and inverses live in ``core.distortion``, pixels to rays in ``core.unprojection``.
 """
 
 from __future__ import annotations
@@ -47,37 +36,16 @@ from s2camp_ns.core.distortion import (
 from s2camp_ns.core.validation import check_choice, check_finite, check_range
 
 PARAMETER_NAMES: tuple[str, ...] = (
-    "rho_x",
-    "rho_y",
-    "rho_z",
-    "omega_x",
-    "omega_y",
-    "omega_z",
-    "focal",
-    "cx",
-    "cy",
-    "skew",
-    "k1",
-    "k2",
-    "k3",
-    "k4",
-    "p1",
-    "p2",
-)
+    "rho_x", "rho_y", "rho_z", "omega_x", "omega_y", "omega_z", "focal", "cx", "cy", "skew",
+    "k1", "k2", "k3", "k4", "p1", "p2",
+)  # fmt: skip
 NUM_CAMERA_PARAMS = len(PARAMETER_NAMES)
-PAPER_NUM_PARAMS = 12
-"""The paper's K: pose, focal, principal point, skew, k1, k2 (the first twelve ``PARAMETER_NAMES``)."""
+PAPER_NUM_PARAMS = 12  # the paper's K: pose, focal, principal point, skew, k1, k2
 
 PARAMETER_GROUPS: dict[str, tuple[int, ...]] = {
-    "pose": (0, 1, 2, 3, 4, 5),
-    "focal": (6,),
-    "principal_point": (7, 8),
-    "skew": (9,),
-    "radial": (10, 11),
-    "radial_k3": (12,),
-    "radial_k4": (13,),
-    "tangential": (14, 15),
-}
+    "pose": (0, 1, 2, 3, 4, 5), "focal": (6,), "principal_point": (7, 8), "skew": (9,), "radial": (10, 11),
+    "radial_k3": (12,), "radial_k4": (13,), "tangential": (14, 15),
+}  # fmt: skip
 
 PROJECTIONS: tuple[str, ...] = ("perspective", "fisheye")
 
@@ -90,8 +58,7 @@ CAMERA_MODEL_DISTORTION: dict[str, tuple[str, ...]] = {
     "FULL_OPENCV": ("radial", "radial_k3", "tangential"),
     "OPENCV_FISHEYE": ("radial", "radial_k3", "radial_k4"),
 }
-"""Distortion groups the ``"all"`` preset refines per COLMAP camera model. Pinhole and one-coefficient models get
-k1 and k2 as RADIAL does (the paper's K = 12: distortion is refined from zero)."""
+"""Distortion groups the ``"all"`` preset refines per COLMAP model; pinhole models get k1, k2 (the paper's K = 12)."""
 
 CAMERA_MODEL_PROJECTION: dict[str, str] = {
     name: ("fisheye" if name == "OPENCV_FISHEYE" else "perspective") for name in CAMERA_MODEL_DISTORTION
@@ -102,10 +69,7 @@ PRESETS: tuple[str, ...] = ("pose", "pose+focal", "pose+intrinsics", "all")
 
 @dataclass(frozen=True)
 class ParameterLayout:
-    """Which parameter groups are refined; the enabled columns keep the order of ``PARAMETER_NAMES``.
-
-    ``distortion`` enables the distortion groups of ``camera_model`` (``CAMERA_MODEL_DISTORTION``).
-    """
+    """Refined parameter groups, in ``PARAMETER_NAMES`` order; ``distortion``: ``camera_model``'s groups."""
 
     pose: bool = True
     focal: bool = True
@@ -119,8 +83,7 @@ class ParameterLayout:
 
     @classmethod
     def from_preset(cls, preset: str, camera_model: str = "RADIAL") -> ParameterLayout:
-        """``"pose"``, ``"pose+focal"``, ``"pose+intrinsics"`` (no distortion) or ``"all"`` (the distortion
-        coefficients of ``camera_model``)."""
+        """One of ``PRESETS``; only ``"all"`` refines distortion (that of ``camera_model``)."""
         presets = {
             "pose": dict(focal=False, principal_point=False, skew=False, distortion=False),
             "pose+focal": dict(principal_point=False, skew=False, distortion=False),
@@ -151,7 +114,7 @@ class ParameterLayout:
         return len(self.indices)
 
     def expand(self, delta: Float[Tensor, "*batch k"]) -> Float[Tensor, "*batch 16"]:
-        """Scatter enabled-parameter deltas into the full 16-vector (disabled entries are zero)."""
+        """[..., K] -> [..., 16], zeros in disabled columns."""
         if delta.shape[-1] != self.num_params:
             raise ValueError(f"delta must have {self.num_params} columns for this layout, got {delta.shape[-1]}")
         full = delta.new_zeros(*delta.shape[:-1], NUM_CAMERA_PARAMS)
@@ -160,25 +123,17 @@ class ParameterLayout:
 
 
 TENSOR_FIELDS: tuple[str, ...] = ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "width", "height", "k3", "k4", "p1", "p2")
-"""Per-camera tensor fields of ``Intrinsics`` in declaration order (the first nine are the historical layout)."""
+"""Per-camera tensor fields of ``Intrinsics`` in declaration order."""
 
 DELTA_FIELDS: dict[str, tuple[str, ...]] = {
-    "focal": ("fx", "fy"),
-    "cx": ("cx",),
-    "cy": ("cy",),
-    "skew": ("skew",),
-    "k1": ("k1",),
-    "k2": ("k2",),
-    "k3": ("k3",),
-    "k4": ("k4",),
-    "p1": ("p1",),
-    "p2": ("p2",),
-}
-"""The ``TENSOR_FIELDS`` each intrinsics delta adds to (the focal length to fx and fy alike)."""
+    "focal": ("fx", "fy"), "cx": ("cx",), "cy": ("cy",), "skew": ("skew",),
+    "k1": ("k1",), "k2": ("k2",), "k3": ("k3",), "k4": ("k4",), "p1": ("p1",), "p2": ("p2",),
+}  # fmt: skip
+"""The ``TENSOR_FIELDS`` each intrinsics delta adds to."""
 
 
 def full_delta(delta: Float[Tensor, "n k"]) -> Float[Tensor, "n 16"]:
-    """Deltas of all 16 ``PARAMETER_NAMES``: as given, or the paper's first 12 padded with zeros (k3, k4, p1, p2)."""
+    """[n, 16] deltas: as given, or the paper's 12 padded with zeros; ValueError otherwise."""
     if delta.shape[-1] == PAPER_NUM_PARAMS:
         delta = torch.cat([delta, delta.new_zeros(*delta.shape[:-1], NUM_CAMERA_PARAMS - PAPER_NUM_PARAMS)], dim=-1)
     if delta.shape[-1] != NUM_CAMERA_PARAMS:
@@ -190,8 +145,7 @@ def full_delta(delta: Float[Tensor, "n k"]) -> Float[Tensor, "n 16"]:
 
 
 def delta_field_map(dtype: torch.dtype, device: torch.device | str | None = None) -> Float[Tensor, "16 13"]:
-    """[16, 13] matrix M with Phi' = Phi + dPhi M on ``Intrinsics.tensors`` columns: ones where a delta of
-    ``PARAMETER_NAMES`` adds to a field (``DELTA_FIELDS``), zeros elsewhere, so the product adds each delta exactly."""
+    """[16, 13] 0/1 matrix M with Phi' = Phi + dPhi M on ``Intrinsics.tensors`` columns (``DELTA_FIELDS``)."""
     field_map = torch.zeros(NUM_CAMERA_PARAMS, len(TENSOR_FIELDS), dtype=dtype, device=device)
     for name, fields in DELTA_FIELDS.items():
         for field_name in fields:
@@ -201,17 +155,9 @@ def delta_field_map(dtype: torch.dtype, device: torch.device | str | None = None
 
 @dataclass(frozen=True)
 class Intrinsics:
-    """Batched intrinsics of N cameras; every tensor field has shape [N], on one device and dtype.
-
-    ``model`` is the projection of the whole batch (``"perspective"`` or ``"fisheye"``); k3, k4, p1, p2 default to
-    zero, so the nine leading fields alone describe a RADIAL camera as before.
-
-    ``distortion_terms`` declares the batch's form: the distortion coefficients that may be nonzero (a subset of
-    k1, k2, k3, k4, p1, p2; the others are left out of the arithmetic, not multiplied by zero), and
-    ``newton_iterations`` how many Newton steps invert it (``distortion.undistortion_iterations``). Declared where
-    the cameras are set (``refined_form``), they let the per-step path run without reading the coefficients on the
-    host; None (the default) reads the form from the values where an inverse needs it.
-    """
+    """Intrinsics of N cameras: tensor fields [N] on one device and dtype (k3, k4, p1, p2 default to zero);
+    ``model`` in ``PROJECTIONS``; ``distortion_terms`` (None: read from the values on the host) the coefficients
+    that may be nonzero, inverted in ``newton_iterations`` Newton steps."""
 
     fx: Float[Tensor, " n"]
     fy: Float[Tensor, " n"]
@@ -259,7 +205,7 @@ class Intrinsics:
         p2: float | Tensor = 0.0,
         model: str = "perspective",
     ) -> Intrinsics:
-        """Build from scalars or tensors (broadcast to a common [N]) and validate unless told not to."""
+        """From scalars or tensors broadcast to [N]; validated unless ``validate`` is False."""
         given = (fx, fy, cx, cy, skew, k1, k2, width, height, k3, k4, p1, p2)
         values = [torch.as_tensor(v, dtype=dtype, device=device) for v in given]
         values = [v.reshape(-1) for v in torch.broadcast_tensors(*[v.reshape(-1) for v in values])]
@@ -272,7 +218,7 @@ class Intrinsics:
         return replace(self, **{name: function(getattr(self, name)) for name in TENSOR_FIELDS})
 
     def tensors(self) -> Float[Tensor, "n 13"]:
-        """The tensor fields stacked in ``TENSOR_FIELDS`` order (``from_tensors`` inverts it)."""
+        """[n, 13] fields in ``TENSOR_FIELDS`` order."""
         return torch.stack([getattr(self, name) for name in TENSOR_FIELDS], dim=-1)
 
     @classmethod
@@ -282,7 +228,7 @@ class Intrinsics:
 
     @property
     def form(self) -> dict:
-        """The declared form (``distortion_terms``, ``newton_iterations``) as keywords of ``from_tensors``."""
+        """``distortion_terms`` and ``newton_iterations`` as keywords of ``from_tensors``."""
         return {"distortion_terms": self.distortion_terms, "newton_iterations": self.newton_iterations}
 
     @property
@@ -311,26 +257,21 @@ class Intrinsics:
         return self._map(lambda v: v.detach())
 
     def image_scale(self) -> Float[Tensor, " n"]:
-        """max(W, H): pixels are divided by it so that the Gram matrix does not depend on resolution."""
+        """max(W, H), the pixel scale that makes the Gram matrix resolution-independent."""
         return torch.maximum(self.width, self.height)
 
     def with_delta(self, delta: Float[Tensor, "n 16"]) -> Intrinsics:
-        """Intrinsics after the additive residual update Phi' = Phi + dPhi (paper sec. 4) of the last ten deltas
-        (``delta_field_map``).
-
-        ``delta`` holds all 16 ``PARAMETER_NAMES``, or only the paper's first 12 (k3, k4, p1, p2 then stay).
-        """
+        """Phi' = Phi + dPhi (paper sec. 4) for [n, 16] or the paper's [n, 12] deltas (``full_delta``)."""
         delta = full_delta(delta)
         fields = torch.addmm(self.tensors(), delta, delta_field_map(delta.dtype, delta.device))
         return Intrinsics.from_tensors(fields, model=self.model, **self.form)
 
     def general(self) -> Intrinsics:
-        """The same cameras with no declared form: every distortion term evaluated and the inverse run to convergence
-        (``UNDISTORT_ITERATIONS``), so what is computed from them (P, the checks) depends on their values only."""
+        """The same cameras without a declared form, so what is computed from them depends on their values only."""
         return replace(self, distortion_terms=None, newton_iterations=UNDISTORT_ITERATIONS)
 
     def validate(self) -> None:
-        """Positive focal lengths and image sizes, finite values, and distortion one-to-one inside the image."""
+        """ValueError unless finite, fx, fy, W, H > 0 and the distortion one-to-one in the image."""
         for name in TENSOR_FIELDS:
             check_finite(name, getattr(self, name))
         check_range("fx", self.fx, low=0.0, low_inclusive=False)
@@ -341,9 +282,8 @@ class Intrinsics:
 
 
 def distortion_form(base: Intrinsics, layout: ParameterLayout | None) -> tuple[str, ...]:
-    """The distortion terms cameras refined with ``layout`` (None: not refined) from ``base`` can have
-    (``Intrinsics.distortion_terms``): those the layout refines and those some base camera has nonzero (read on the
-    host, once, where the cameras are set); k1 and k2 together wherever a radial term is."""
+    """``Intrinsics.distortion_terms`` of ``base`` refined with ``layout`` (None: not refined): the refined and the
+    nonzero terms (a host read), k1 and k2 with any radial term."""
     live = {name for name in (layout.names if layout is not None else ()) if name in DISTORTION_NAMES}
     live |= {name for name in DISTORTION_NAMES if bool((getattr(base, name) != 0).any())}
     if live & {"k1", "k2", "k3", "k4"}:
@@ -352,12 +292,7 @@ def distortion_form(base: Intrinsics, layout: ParameterLayout | None) -> tuple[s
 
 
 def camera_model_of(intrinsics: Intrinsics) -> str:
-    """The COLMAP camera model whose distortion groups the "all" preset refines: OPENCV_FISHEYE for fisheye
-    cameras; FULL_OPENCV when some camera has k3; OPENCV when some camera has p1 or p2; RADIAL otherwise.
-
-    Decided by the values (nerfstudio's cameras do not keep the model's name): an OPENCV camera with
-    p1 = p2 = 0 is a RADIAL camera, as COLMAP's models nest.
-    """
+    """COLMAP model from the values: OPENCV_FISHEYE (fisheye), FULL_OPENCV (some k3), OPENCV (some p1, p2), RADIAL."""
     if intrinsics.is_fisheye:
         return "OPENCV_FISHEYE"
     if bool((intrinsics.k3 != 0).any()):
@@ -370,13 +305,8 @@ def camera_model_of(intrinsics: Intrinsics) -> str:
 def project(
     points_cam: Float[Tensor, "n l 3"], intrinsics: Intrinsics
 ) -> tuple[Float[Tensor, "n l 2"], Float[Tensor, "n l"]]:
-    """Project camera-frame points to pixels (paper eq. 2, with skew and distortion); also return a validity margin.
-
-    The margin is positive where the projection is valid and one-to-one: the depth z for perspective cameras; for
-    fisheye cameras the angle theta_fold - theta (radians) to the first fold of theta_d(theta)
-    (``fisheye_fold_angle``), so points beyond 90 degrees count and those past the fold or at the centre do not.
-    Invalid points get finite but meaningless pixels; callers mask them with the margin (``in_image``).
-    """
+    """Pixels [n, l, 2] of camera-frame points (paper eq. 2) and a margin [n, l], positive where the projection is
+    valid: z (perspective) or theta_fold - theta in radians (fisheye). Invalid points get finite, meaningless pixels."""
     if intrinsics.is_fisheye:
         terms = fisheye_terms(points_cam)
         k1, k2, k3, k4 = per_camera_columns(intrinsics, "k1", "k2", "k3", "k4")
@@ -399,10 +329,7 @@ def project(
 
 
 def opengl_to_opencv(c2w: Float[Tensor, "*batch 3 4"]) -> Float[Tensor, "*batch 3 4"]:
-    """Switch a camera-to-world matrix between the OpenGL (nerfstudio, viser: y up, z backwards) and the OpenCV
-    (COLMAP, this module: y down, z forward) camera frames: c2w F with F = diag(1, -1, -1), its own inverse, so the
-    same function also maps OpenCV to OpenGL. Works on [..., 3, 4] and [..., 4, 4] matrices and keeps dtype/device.
-    """
+    """c2w F with F = diag(1, -1, -1): OpenGL (y up, z back) <-> OpenCV (y down, z forward), either way."""
     if c2w.shape[-2:] not in ((3, 4), (4, 4)):
         raise ValueError(f"c2w must have shape [..., 3, 4] or [..., 4, 4], got {tuple(c2w.shape)}")
     flip = c2w.new_ones(c2w.shape[-1])
@@ -413,24 +340,16 @@ def opengl_to_opencv(c2w: Float[Tensor, "*batch 3 4"]) -> Float[Tensor, "*batch 
 def skew_matrix(v: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3 3"]:
     """[v]_x, the matrix with [v]_x w = v x w."""
     zero = torch.zeros_like(v[..., 0])
-    return torch.stack(
-        [
-            torch.stack([zero, -v[..., 2], v[..., 1]], dim=-1),
-            torch.stack([v[..., 2], zero, -v[..., 0]], dim=-1),
-            torch.stack([-v[..., 1], v[..., 0], zero], dim=-1),
-        ],
-        dim=-2,
-    )
+    return torch.stack([
+        torch.stack([zero, -v[..., 2], v[..., 1]], dim=-1),
+        torch.stack([v[..., 2], zero, -v[..., 0]], dim=-1),
+        torch.stack([-v[..., 1], v[..., 0], zero], dim=-1),
+    ], dim=-2)  # fmt: skip
 
 
 def se3_exp(xi: Float[Tensor, "*batch 6"]) -> Float[Tensor, "*batch 3 4"]:
-    """Exponential map of a twist xi = (rho, omega) in se(3) to a rigid transform [R | t] (screw-axis form).
-
-    R = I + A [w]x + B [w]x^2 and t = V rho with V = I + B [w]x + C [w]x^2, A = sin(th)/th,
-    B = (1 - cos th)/th^2, C = (th - sin th)/th^3; Taylor series below th = 1e-3 keep it smooth at zero.
-    With [w]x^2 = w w^T - th^2 I, written as R = (1 - B th^2) I + A [w]x + B w w^T and
-    t = rho + B (w x rho) + C (w x (w x rho)): no 3 x 3 product, few kernels on a GPU.
-    """
+    """[..., 3, 4] [R | t] = exp(xi), xi = (rho, omega): R = (1 - B th^2) I + A [w]x + B w w^T,
+    t = rho + B (w x rho) + C (w x (w x rho)), A = sin(th)/th, B = (1 - cos th)/th^2, C = (th - sin th)/th^3."""
     rho, omega = xi[..., :3], xi[..., 3:]
     theta2 = (omega * omega).sum(dim=-1, keepdim=True)  # [*, 1]
     small = theta2 < 1e-6
@@ -452,38 +371,29 @@ def se3_exp(xi: Float[Tensor, "*batch 6"]) -> Float[Tensor, "*batch 3 4"]:
 def apply_local_transform(
     points_cam: Float[Tensor, "n l 3"], transform: Float[Tensor, "n 3 4"]
 ) -> Float[Tensor, "n l 3"]:
-    """Camera-frame coordinates after the local update c2w' = c2w T with T = [R_d | t_d]: x' = R_d^T (x - t_d)."""
+    """Camera-frame points after c2w' = c2w [R_d | t_d]: x' = R_d^T (x - t_d)."""
     rotation, translation = transform[:, :, :3], transform[:, :, 3]
     return torch.einsum("nji,nlj->nli", rotation, points_cam - translation[:, None, :])
 
 
 def apply_pose_delta(points_cam: Float[Tensor, "n l 3"], pose_delta: Float[Tensor, "n 6"]) -> Float[Tensor, "n l 3"]:
-    """Camera-frame coordinates after the local pose update c2w' = c2w exp(xi): x' = R_d^T (x - t_d)."""
+    """Camera-frame points after c2w' = c2w exp(xi)."""
     return apply_local_transform(points_cam, se3_exp(pose_delta))
 
 
 def project_with_delta(
     points_cam: Float[Tensor, "n l 3"], intrinsics: Intrinsics, delta: Float[Tensor, "n 16"]
 ) -> Float[Tensor, "n l 2"]:
-    """Pixels of the stacked projection Pi_P(Phi + dPhi) (paper eq. 4's function) for full 16-parameter deltas
-    (or the paper's 12, see ``Intrinsics.with_delta``).
-
-    This is the reference that the analytic Jacobian is tested against with autodiff and finite differences.
-    """
+    """Pixels of Pi_P(Phi + dPhi) (paper eq. 4) for [n, 16] (or [n, 12]) deltas: the analytic Jacobian's reference."""
     moved = apply_pose_delta(points_cam, delta[:, :6])
     pixels, _ = project(moved, intrinsics.with_delta(delta))
     return pixels
 
 
 def in_image(pixels: Float[Tensor, "n l 2"], depth: Float[Tensor, "n l"], intrinsics: Intrinsics) -> Tensor:
-    """Mask of valid points (``depth``: the margin ``project`` returns, positive in front of a perspective camera
-    and inside a fisheye's one-to-one range) that project inside [0, W] x [0, H]."""
+    """Mask of points with positive ``depth`` (``project``'s margin) and finite pixels inside [0, W] x [0, H]."""
     u, v = pixels[..., 0], pixels[..., 1]
     return (
-        (depth > 0)
-        & (u >= 0)
-        & (v >= 0)
-        & (u <= intrinsics.width[:, None])
-        & (v <= intrinsics.height[:, None])
+        (depth > 0) & (u >= 0) & (v >= 0) & (u <= intrinsics.width[:, None]) & (v <= intrinsics.height[:, None])
         & torch.isfinite(pixels).all(dim=-1)
-    )
+    )  # fmt: skip

@@ -1,19 +1,11 @@
-"""CamP's published proxy-point sampler (the random baseline of paper sec. 5, "5000 random samples").
+"""CamP's published proxy-point sampler (the random baseline of paper sec. 5), ``'frustum_raydist_fn'``.
 
-The paper adopts CamP (Park et al. 2023) as its baseline; this module reproduces the sampling of CamP's published
-camera-optimisation configuration (``precondition_point_sample_method = 'frustum_raydist_fn'``), checked against
-CamP's own code by ``tools/camp_check`` (docs/benchmarks/camp-check.md):
+- a uniform random pixel in ``[0, W - 1/2] x [0, H - 1/2]`` (CamP scales uniform draws by ``size - 1 + 1/2``),
+  unprojected through the camera model to a unit ray;
+- a Euclidean distance ``t`` along it, uniform in ``s = (L(t) - L(t_near)) / (L(t_far) - L(t_near))`` with Tukey's
+  power ladder ``L(x) = |p - 1| / p ((1 + x / |p - 1|)^p - 1)`` (published ``p = -1.5``, ``t`` in ``[0.4, 1000]``).
 
-- a uniform random pixel ``(u, v)`` in ``[0, W - 1/2] x [0, H - 1/2]`` (CamP scales uniform draws by
-  ``image_size - 1 + 1/2``), unprojected through the camera model (distortion included) to a unit ray;
-- a Euclidean distance ``t`` along that unit ray from the camera centre, uniform in the power-ladder warp
-  ``s = (L(t) - L(t_near)) / (L(t_far) - L(t_near))`` with Tukey's power ladder (mip-NeRF 360 / Zip-NeRF ray warp)
-  ``L(x) = |p - 1| / p ((1 + x / |p - 1|)^p - 1)``, published ``p = -1.5``, ``t_near = 0.4``, ``t_far = 1000``.
-
-There is no scene contraction: everything is relative to the camera centre, so the points (and the Gram matrix)
-depend on the intrinsics only. Along a ray the density of ``t`` is ``L'(t) / (L(t_far) - L(t_near))`` with
-``L'(t) = (1 + t / |p - 1|)^(p - 1)``; with the published values a quarter of the points lie within 1.0 scene
-units of the camera, half within 2.1 and 90% within 11.
+No scene contraction: the points, and the Gram matrix, depend on the intrinsics only.
 """
 
 from __future__ import annotations
@@ -27,27 +19,17 @@ from s2camp_ns.core.unprojection import pixel_to_ray_direction
 from s2camp_ns.core.validation import check_positive_int, check_range
 
 __all__ = [
-    "CAMP_LADDER_P",
-    "CAMP_T_FAR",
-    "CAMP_T_NEAR",
-    "camp_frustum_points",
-    "inverse_power_ladder",
-    "ladder_distance",
-    "ladder_distance_density",
-    "power_ladder",
-    "validate_ladder",
-]
+    "CAMP_LADDER_P", "CAMP_T_FAR", "CAMP_T_NEAR", "camp_frustum_points", "inverse_power_ladder", "ladder_distance",
+    "ladder_distance_density", "power_ladder", "validate_ladder",
+]  # fmt: skip
 
-CAMP_T_NEAR = 0.4
-"""CamP's ``PRECONDITION_NEAR`` (configs/camp/camera_optim.gin): near distance along the unit ray, scene units."""
-CAMP_T_FAR = 1000.0
-"""CamP's ``PRECONDITION_FAR``: far distance along the unit ray, scene units."""
-CAMP_LADDER_P = -1.5
-"""CamP's ``RAYDIST_FN_P``: exponent of the power-ladder ray warp (``premult`` 1)."""
+CAMP_T_NEAR = 0.4  # CamP's PRECONDITION_NEAR: near distance along the unit ray, scene units
+CAMP_T_FAR = 1000.0  # CamP's PRECONDITION_FAR
+CAMP_LADDER_P = -1.5  # CamP's RAYDIST_FN_P: exponent of the power-ladder ray warp
 
 
 def validate_ladder(t_near: float, t_far: float, ladder_p: float) -> None:
-    """Distances ``0 < t_near < t_far < inf`` and a negative exponent (a bounded warp, as CamP's -1.5)."""
+    """ValueError unless ``0 < t_near < t_far < inf`` and ``ladder_p < 0``."""
     check_range("t_near", t_near, low=0.0, low_inclusive=False)
     check_range("t_far", t_far, low=float(t_near), low_inclusive=False)
     check_range("ladder_p", ladder_p, high=0.0, high_inclusive=False)
@@ -60,23 +42,20 @@ def power_ladder(x: Tensor | float, p: float) -> Tensor | float:
 
 
 def inverse_power_ladder(y: Tensor | float, p: float) -> Tensor | float:
-    """Inverse of :func:`power_ladder`: ``x = |p - 1| ((1 + p y / |p - 1|)^(1/p) - 1)``."""
+    """Inverse of ``power_ladder``: ``x = |p - 1| ((1 + p y / |p - 1|)^(1/p) - 1)``."""
     q = abs(p - 1.0)
     return q * ((1.0 + p * y / q) ** (1.0 / p) - 1.0)
 
 
 def ladder_distance(s: Tensor, t_near: float, t_far: float, ladder_p: float) -> Tensor:
-    """Distance ``t = L^-1((1 - s) L(t_near) + s L(t_far))`` for normalized distances ``s`` in ``[0, 1]``.
-
-    CamP's ``construct_ray_warps`` ``s_to_t``, clipped to ``[t_near, t_far]`` as there (rounding only).
-    """
+    """``t = L^-1((1 - s) L(t_near) + s L(t_far))`` for ``s`` in ``[0, 1]``, clipped to ``[t_near, t_far]``."""
     near, far = power_ladder(t_near, ladder_p), power_ladder(t_far, ladder_p)
     t = inverse_power_ladder((1.0 - s) * near + s * far, ladder_p)
     return t.clamp(min=t_near, max=t_far)
 
 
 def ladder_distance_density(t: Tensor, t_near: float, t_far: float, ladder_p: float) -> Tensor:
-    """Probability density of :func:`ladder_distance` of a uniform ``s``: ``L'(t) / (L(t_far) - L(t_near))``."""
+    """Density of ``ladder_distance`` of a uniform ``s``: ``L'(t) / (L(t_far) - L(t_near))``."""
     near, far = power_ladder(t_near, ladder_p), power_ladder(t_far, ladder_p)
     inside = (t >= t_near) & (t <= t_far)
     density = (1.0 + t / abs(ladder_p - 1.0)) ** (ladder_p - 1.0) / (far - near)
@@ -84,9 +63,8 @@ def ladder_distance_density(t: Tensor, t_near: float, t_far: float, ladder_p: fl
 
 
 def _pixel_directions(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 3"]:
-    """Unit rays through pixels; for a perspective camera without distortion the inverse intrinsics directly (as
-    jaxcam does), the same numbers as :func:`pixel_to_ray_direction`, whose Newton undistortion returns exactly 1
-    there, at a fraction of the cost (it dominated the sampling time of the speed benchmark's CamP baseline)."""
+    """Unit rays through pixels; without distortion the inverse intrinsics directly, the same numbers as
+    ``pixel_to_ray_direction`` without its Newton iterations."""
     distortion = torch.stack([getattr(intrinsics, name) for name in ("k1", "k2", "k3", "k4", "p1", "p2")])
     if intrinsics.is_fisheye or bool((distortion != 0).any()):
         return pixel_to_ray_direction(pixels, intrinsics)
@@ -105,12 +83,9 @@ def camp_frustum_points(
     generator: torch.Generator | None = None,
     seed: int = 0,
 ) -> Float[Tensor, "n l 3"]:
-    """CamP's random proxy points in each camera's frame (x right, y down, z forward), float64.
-
-    Per point three uniform draws ``(d_u, d_v, s)``: pixel ``(d_u (W - 1/2), d_v (H - 1/2))`` unprojected to a
-    unit ray, distance :func:`ladder_distance` of ``s``. Random numbers come from ``generator`` (CPU) or a CPU
-    generator seeded with ``seed`` and then move to the intrinsics' device, so every device gets the same points.
-    """
+    """[n, l, 3] float64 random proxy points in each OpenCV camera frame from draws ``(d_u, d_v, s)``: pixel
+    ``(d_u (W - 1/2), d_v (H - 1/2))``, distance ``ladder_distance(s)``. Drawn on the CPU (``generator`` or
+    ``seed``), so every device gets the same points."""
     check_positive_int("num_points", num_points)
     validate_ladder(t_near, t_far, ladder_p)
     intrinsics = intrinsics.detach().to(dtype=torch.float64)

@@ -1,6 +1,6 @@
-"""COLMAP camera models <-> ``Intrinsics``, explicitly, in COLMAP's meaning of every coefficient.
+"""COLMAP camera models <-> ``Intrinsics``, in COLMAP's meaning of every coefficient.
 
-Parameter orders are COLMAP's (src/colmap/sensor/models.h, also what pycolmap's ``Camera.params`` holds):
+Parameter orders are COLMAP's (src/colmap/sensor/models.h, pycolmap's ``Camera.params``):
 
 ==================  ====================================================  =================================
 COLMAP model        parameters                                            ``Intrinsics``
@@ -14,9 +14,9 @@ FULL_OPENCV         fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6        perspe
 OPENCV_FISHEYE      fx, fy, cx, cy, k1, k2, k3, k4                        fisheye (equidistant)
 ==================  ====================================================  =================================
 
-FULL_OPENCV's radial factor is rational, (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6); only
-its polynomial part (k4 = k5 = k6 = 0) is an ``Intrinsics`` camera, whose k4 is a polynomial r^8 term instead
-(nerfstudio's meaning) that no COLMAP model has. Skew has no COLMAP counterpart either.
+FULL_OPENCV's radial factor is rational, (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6), only its
+polynomial part an ``Intrinsics`` camera; ``Intrinsics``' k4 (an r^8 term, nerfstudio's) and skew have no COLMAP
+counterpart.
 """
 
 from __future__ import annotations
@@ -50,8 +50,8 @@ def check_colmap_model(model: str) -> None:
 
 
 def colmap_to_values(model: str, params) -> dict[str, float]:
-    """fx, fy, cx, cy, k1, k2, k3, k4, p1, p2 (``Intrinsics`` meaning) of one COLMAP camera; raises for FULL_OPENCV
-    with a rational part (k4, k5, k6 not all zero) and for a wrong number of parameters."""
+    """fx, fy, cx, cy, k1..k4, p1, p2 (``Intrinsics`` meaning) of one COLMAP camera; raises for a wrong parameter
+    count and for FULL_OPENCV with a rational part."""
     check_colmap_model(model)
     names = COLMAP_PARAMETERS[model]
     params = [float(p) for p in params]
@@ -85,8 +85,8 @@ def intrinsics_from_colmap(
 
 
 def colmap_model_for(values: dict[str, float], projection: str, tolerance: float = 1e-9) -> str:
-    """The simplest COLMAP model that holds a camera exactly: OPENCV_FISHEYE for fisheye cameras; for perspective
-    ones RADIAL (fx = fy, radial k1, k2), OPENCV (+ fy, p1, p2) or FULL_OPENCV (+ k3)."""
+    """The simplest COLMAP model that holds a camera exactly: OPENCV_FISHEYE, or RADIAL (fx = fy, k1, k2), OPENCV
+    (+ fy, p1, p2) or FULL_OPENCV (+ k3)."""
     if projection == "fisheye":
         return "OPENCV_FISHEYE"
     if values.get("k3", 0.0) != 0.0:
@@ -97,8 +97,8 @@ def colmap_model_for(values: dict[str, float], projection: str, tolerance: float
 
 
 def values_to_colmap(model: str, values: dict[str, float], projection: str, tolerance: float = 1e-9) -> list[float]:
-    """COLMAP parameters of ``model`` (``COLMAP_PARAMETERS`` order) for a camera given by ``Intrinsics`` values;
-    raises, naming the coefficient, when the model cannot hold the camera."""
+    """COLMAP parameters of ``model`` for ``Intrinsics`` values; raises, naming the coefficient, when the model cannot
+    hold the camera."""
     check_colmap_model(model)
     if CAMERA_MODEL_PROJECTION[model] != projection:
         raise ValueError(f"COLMAP {model} is a {CAMERA_MODEL_PROJECTION[model]} model, the camera is {projection}")

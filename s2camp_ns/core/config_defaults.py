@@ -1,10 +1,8 @@
-"""Configs saved before a field existed load with that field's default.
+"""Configs saved without a field load with that field's default.
 
-nerfstudio writes the whole config into a run's ``config.yml`` and ``eval_setup`` (ns-render, ns-eval,
-s2camp-export-cameras) rebuilds it with PyYAML, which fills the object's ``__dict__`` from the saved fields without
-calling ``__init__``. A field added to a config after the run was trained would then be missing, and the first read
-of it an AttributeError. ``__setstate__`` (also what unpickling calls) gives every missing field its default.
-A config class that an earlier version saved and this one no longer has loads as a ``RemovedConfig``.
+nerfstudio's ``eval_setup`` rebuilds a run's ``config.yml`` with PyYAML, filling ``__dict__`` without ``__init__``;
+``__setstate__`` (also used by unpickling) gives every missing field its default. A saved config class that no longer
+exists loads as a ``RemovedConfig``.
 """
 
 from __future__ import annotations
@@ -13,7 +11,7 @@ from dataclasses import MISSING, fields
 
 
 class DefaultsOnLoad:
-    """Mixin for config dataclasses: missing fields of a loaded config take their defaults (module docstring)."""
+    """Mixin for config dataclasses: missing fields of a loaded config take their defaults."""
 
     def __setstate__(self, state: dict) -> None:
         defaults = {
@@ -25,8 +23,7 @@ class DefaultsOnLoad:
 
 
 class RemovedConfig:
-    """A config class of an earlier version, named in its runs' config.yml: loads as the saved fields, which the
-    config that holds it may check (a saved option that was on and is no longer applied is refused there)."""
+    """A saved config class that no longer exists: loads as its saved fields, for the config holding it to check."""
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)

@@ -1,10 +1,7 @@
 """mip-NeRF 360 scene contraction about the camera centre (paper eq. 10) and its closed-form inverse on radii.
 
-The contraction maps Euclidean camera-frame points into the ball of radius 2 and keeps directions:
-``|x| <= 1`` is left alone, ``|x| > 1`` goes to radius ``2 - 1/|x|``. The inverse on radii is
-``t -> t`` for ``t <= 1`` and ``t -> 1 / (2 - t)`` for ``1 < t < 2``; ``t >= 2`` is the point at infinity and
-is rejected. All functions work on any leading batch shape and keep the input dtype and device; the two radial maps
-are exact inverses of each other up to rounding.
+``|x| <= 1`` is kept, ``|x| > 1`` goes to radius ``2 - 1/|x|`` in the same direction; radius ``t >= 2`` has no
+preimage. Any leading batch shape; dtype and device kept.
 """
 
 from __future__ import annotations
@@ -21,16 +18,13 @@ __all__ = ["contract", "contract_radius", "uncontract_radius"]
 def contract_radius(radius: Float[Tensor, "*batch"]) -> Float[Tensor, "*batch"]:
     """Contracted radius ``s = r`` for ``r <= 1`` else ``2 - 1/r`` (radial part of paper eq. 10)."""
     check_range("radius", radius, low=0.0)
-    # torch.where evaluates both branches; clamping keeps 1/r finite for r = 0 so no NaN leaks into gradients.
+    # both torch.where branches are evaluated: keep 1/r finite at r = 0
     safe = radius.clamp_min(1.0)
     return torch.where(radius <= 1.0, radius, 2.0 - 1.0 / safe)
 
 
 def uncontract_radius(t: Float[Tensor, "*batch"]) -> Float[Tensor, "*batch"]:
-    """Inverse of the radial contraction (paper eq. 10): ``r = t`` for ``t <= 1`` else ``1 / (2 - t)``.
-
-    Raises ``ValueError`` for ``t`` outside ``[0, 2)``: ``t = 2`` is the point at infinity.
-    """
+    """``r = t`` for ``t <= 1`` else ``1 / (2 - t)`` (paper eq. 10); ValueError outside ``[0, 2)``."""
     check_range("t", t, low=0.0, high=2.0, high_inclusive=False)
     far = t.clamp_min(1.0)  # the discarded branch of torch.where must stay finite as well
     return torch.where(t <= 1.0, t, 1.0 / (2.0 - far))
@@ -44,7 +38,7 @@ def contract(points: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
     """Contract camera-centred Euclidean points into the radius-2 ball (paper eq. 10)."""
     check_finite("points", points)
     radius = _norm(points)
-    # Scaling by s(r)/r keeps the direction; for r <= 1 the factor is exactly 1 (no rounding of near points).
+    # s(r) / r, exactly 1 for r <= 1
     far = radius.clamp_min(1.0)
     factor = torch.where(radius <= 1.0, torch.ones_like(radius), (2.0 - 1.0 / far) / far)
     return points * factor

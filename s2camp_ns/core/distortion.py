@@ -1,32 +1,15 @@
-"""Lens distortion of the camera model (``core.camera``): the forward maps, their derivatives, their inverses, and
-the check that they are one-to-one over the image.
+"""Lens distortion of ``core.camera``: forward maps, their derivatives and inverses, and the one-to-one check.
 
-Every function reads the distortion coefficients k1, k2, k3, k4, p1, p2 of a batch of N ``Intrinsics`` (the checks
-also the image size and the pixel map fx, fy, cx, cy, skew) as per-camera [N, 1] columns that broadcast against
-per-point [N, L] tensors (``per_camera_columns``). Nothing here builds ``Intrinsics``: this module imports
-``core.camera`` for type checking only, and ``core.camera`` imports it (``Intrinsics.validate`` runs
-``check_distortion_monotonic``, ``project`` the forward maps), so the dependency goes one way.
+Coefficients k1, k2, k3, k4, p1, p2 of N ``Intrinsics`` are read as [N, 1] columns broadcasting against per-point
+[N, L] tensors (``per_camera_columns``). ``core.camera`` imports this module; it imports ``core.camera`` only for types.
 
-Forward maps (``core.camera``'s module docstring has the pixel map around them):
+- perspective (OpenCV) on tangents (a, b) = (x / z, y / z), r^2 = a^2 + b^2:
+  a_d = a D + 2 p1 a b + p2 (r^2 + 2 a^2), b_d = b D + 2 p2 a b + p1 (r^2 + 2 b^2),
+  D = 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 (``distortion_factor``);
+- fisheye (OpenCV equidistant): theta = atan2(sqrt(x^2 + y^2), z), theta_d = theta D(theta^2) (``fisheye_terms``).
 
-- perspective (OpenCV radial-tangential) on the tangents (a, b) = (x / z, y / z), r^2 = a^2 + b^2:
-  a_d = a D + 2 p1 a b + p2 (r^2 + 2 a^2), b_d = b D + 2 p2 a b + p1 (r^2 + 2 b^2), with the radial polynomial
-  D = 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 (``distortion_factor``, its slope ``distortion_slope``;
-  ``distort_tangents`` and its Jacobian ``tangent_distortion_jacobian``);
-- fisheye (OpenCV equidistant): theta = atan2(sqrt(x^2 + y^2), z), theta_d = theta D(theta^2) (``fisheye_terms``:
-  the per-point factors, with Taylor branches on the optical axis; ``fisheye_fold_angle``: where theta_d(theta)
-  stops increasing).
-
-Inverses: radial-only perspective and fisheye cameras solve the scalar equation s D(s^2 r_d^2) = 1 for the scale
-s = r / r_d (``undistort_scale``; theta / theta_d for fisheyes), tangential terms the 2-D system
-distort_tangents(a, b) = (a_d, b_d) (``undistort_tangents``). Both run Newton without autograd to convergence, then
-one Newton step with autograd on, which gives the exact implicit-function gradient without back-propagating through
-the iterations. ``distorted_coordinates`` inverts the affine pixel map and gives their input (a_d, b_d).
-
-One-to-one (``check_distortion_monotonic``): the distortion must not fold inside the image, or a pixel would have two
-rays. Radial k1, k2 are checked by the analytic fold radius, other perspective cameras by undistortion converging
-with an invertible Jacobian on a grid over the image (``image_grid``), fisheye cameras by theta_d increasing up to
-the image corners.
+Inverses (``undistort_scale``, ``undistort_tangents``) run Newton without autograd, then one Newton step with autograd
+for the exact implicit-function gradient. ``check_distortion_monotonic`` rejects distortion that folds in the image.
 """
 
 from __future__ import annotations
@@ -45,15 +28,11 @@ if TYPE_CHECKING:
 UNDISTORT_ITERATIONS = 20
 
 
-Coefficient = Tensor | float | None
-"""A distortion coefficient: a tensor, a number, or None where the camera's form has no such term (the term is then
-left out of the arithmetic, not multiplied by zero: ``distortion_columns``)."""
+Coefficient = Tensor | float | None  # None: the form has no such term, left out of the arithmetic
 
 
 def distortion_factor(r2: Tensor, k1: Tensor, k2: Tensor, k3: Coefficient = 0.0, k4: Coefficient = 0.0) -> Tensor:
-    """Radial polynomial 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 (COLMAP RADIAL / OPENCV; with theta^2 for r^2 the
-    fisheye's theta_d / theta). Written so that k3 = k4 = 0 adds an exact zero to the two-coefficient value; with both
-    None the two-coefficient value alone, with no term at all 1."""
+    """1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 (fisheye: theta_d / theta for r^2 = theta^2); k1 None: 1."""
     if k1 is None:
         return 1.0
     if k3 is None and k4 is None:
@@ -63,7 +42,7 @@ def distortion_factor(r2: Tensor, k1: Tensor, k2: Tensor, k3: Coefficient = 0.0,
 
 
 def distortion_slope(r2: Tensor, k1: Tensor, k2: Tensor, k3: Coefficient = 0.0, k4: Coefficient = 0.0) -> Tensor:
-    """d(distortion_factor)/d(r^2) = k1 + 2 k2 r^2 + 3 k3 r^4 + 4 k4 r^6 (k3, k4 None: k1 + 2 k2 r^2; no term: 0)."""
+    """d(distortion_factor)/d(r^2) = k1 + 2 k2 r^2 + 3 k3 r^4 + 4 k4 r^6; k1 None: 0."""
     if k1 is None:
         return 0.0
     if k3 is None and k4 is None:
@@ -81,8 +60,7 @@ DISTORTION_NAMES: tuple[str, ...] = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 def distortion_columns(intrinsics: Intrinsics) -> tuple[Tensor | None, ...]:
-    """k1, k2, k3, k4, p1, p2 as [N, 1] columns (``per_camera_columns``), None for each term the cameras' form leaves
-    out (``Intrinsics.distortion_terms``; every term when the form is not declared)."""
+    """k1, k2, k3, k4, p1, p2 as [N, 1] columns, None for terms outside ``Intrinsics.distortion_terms``."""
     terms = intrinsics.distortion_terms
     return tuple(
         getattr(intrinsics, name)[:, None] if terms is None or name in terms else None for name in DISTORTION_NAMES
@@ -90,7 +68,7 @@ def distortion_columns(intrinsics: Intrinsics) -> tuple[Tensor | None, ...]:
 
 
 def _tangential_terms(a: Tensor, b: Tensor, r2: Tensor, p1: Coefficient, p2: Coefficient) -> tuple:
-    """The OpenCV tangential terms (2 p1 a b + p2 (r^2 + 2 a^2), 2 p2 a b + p1 (r^2 + 2 b^2)); (0, 0) without them."""
+    """OpenCV tangential terms (2 p1 a b + p2 (r^2 + 2 a^2), 2 p2 a b + p1 (r^2 + 2 b^2)), (0, 0) without."""
     if p1 is None and p2 is None:
         return 0.0, 0.0
     p1, p2 = (0.0 if p is None else p for p in (p1, p2))
@@ -98,7 +76,7 @@ def _tangential_terms(a: Tensor, b: Tensor, r2: Tensor, p1: Coefficient, p2: Coe
 
 
 def distort_tangents(a: Tensor, b: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
-    """Perspective distortion (a, b) -> (a_d, b_d): radial polynomial and OpenCV tangential terms (module doc)."""
+    """Perspective distortion (a, b) -> (a_d, b_d) (module doc)."""
     return _distort(a, b, distortion_columns(intrinsics))
 
 
@@ -123,38 +101,21 @@ def _distortion_jacobian(a: Tensor, b: Tensor, columns: tuple) -> Float[Tensor, 
     r2 = a * a + b * b
     factor = distortion_factor(r2, k1, k2, k3, k4)
     slope = distortion_slope(r2, k1, k2, k3, k4)
-    return torch.stack(
-        [
-            torch.stack(
-                [
-                    factor + 2.0 * slope * a * a + (2.0 * p1 * b + 6.0 * p2 * a),
-                    2.0 * slope * a * b + (2.0 * p1 * a + 2.0 * p2 * b),
-                ],
-                dim=-1,
-            ),
-            torch.stack(
-                [
-                    2.0 * slope * a * b + (2.0 * p2 * b + 2.0 * p1 * a),
-                    factor + 2.0 * slope * b * b + (2.0 * p2 * a + 6.0 * p1 * b),
-                ],
-                dim=-1,
-            ),
-        ],
-        dim=-2,
-    )
+    return torch.stack([
+        torch.stack([factor + 2.0 * slope * a * a + (2.0 * p1 * b + 6.0 * p2 * a),
+                     2.0 * slope * a * b + (2.0 * p1 * a + 2.0 * p2 * b)], dim=-1),
+        torch.stack([2.0 * slope * a * b + (2.0 * p2 * b + 2.0 * p1 * a),
+                     factor + 2.0 * slope * b * b + (2.0 * p2 * a + 6.0 * p1 * b)], dim=-1),
+    ], dim=-2)  # fmt: skip
 
 
-FISHEYE_SERIES_BELOW = 1e-4
-"""Below this ratio sqrt(x^2 + y^2) / z the fisheye's theta / rho is taken from its Taylor series (exact to 1e-24)."""
+FISHEYE_SERIES_BELOW = 1e-4  # below this rho / z, theta / rho comes from its Taylor series
 
 
 @dataclass(frozen=True)
 class FisheyeTerms:
-    """Per-point quantities of the equidistant projection, safe on the optical axis and behind the camera.
-
-    h = theta / rho (-> 1 / z on the axis), theta2 = theta^2, q = (z / R - h) / rho^2 (the derivative factor
-    dh/dx = x q, -> -2 / (3 z^3) on the axis), R = x^2 + y^2 + z^2, and the true angle theta (no gradient).
-    """
+    """Per-point terms of the equidistant projection, safe on the optical axis and behind the camera: h = theta / rho,
+    theta2, q = (z / R - h) / rho^2 (dh/dx = x q), norm2 = R = x^2 + y^2 + z^2, theta (no gradient)."""
 
     h: Tensor
     theta2: Tensor
@@ -164,7 +125,7 @@ class FisheyeTerms:
 
 
 def fisheye_terms(points_cam: Float[Tensor, "n l 3"]) -> FisheyeTerms:
-    """theta = atan2(rho, z), rho = sqrt(x^2 + y^2), with Taylor branches where rho << z (module doc)."""
+    """``FisheyeTerms`` of [n, l, 3] camera points: theta = atan2(rho, z), Taylor branches where rho << z."""
     x, y, z = points_cam.unbind(dim=-1)
     rho2 = x * x + y * y
     norm2 = rho2 + z * z
@@ -197,11 +158,7 @@ FOLD_SCAN_SAMPLES = 4097
 
 
 def fisheye_fold_angle(intrinsics: Intrinsics) -> tuple[Float[Tensor, " n"], Float[Tensor, " n"]]:
-    """Angle theta_fold in (0, pi] up to which theta_d(theta) increases, and theta_d there (no gradient).
-
-    theta_d' = 1 + 3 k1 theta^2 + 5 k2 theta^4 + 7 k3 theta^6 + 9 k4 theta^8 is scanned on a uniform grid of
-    [0, pi]; the first sample where it is not positive ends the one-to-one range (pi if there is none).
-    """
+    """([n] theta_fold in (0, pi] up to which theta_d increases, [n] theta_d there), scanned on a grid; no gradient."""
     k1, k2, k3, k4 = (
         getattr(intrinsics, name).detach().to(torch.float64)[:, None] for name in ("k1", "k2", "k3", "k4")
     )
@@ -223,7 +180,7 @@ def fisheye_fold_angle(intrinsics: Intrinsics) -> tuple[Float[Tensor, " n"], Flo
 def _radial_residual(
     s: Tensor, r_d2: Tensor, k1: Tensor, k2: Tensor, k3: Coefficient, k4: Coefficient
 ) -> tuple[Tensor, Tensor]:
-    """g(s) = s D(s^2 r_d^2) - 1 and g'(s) (``undistort_scale``); k3, k4 None leave their terms out."""
+    """g(s) = s D(s^2 r_d^2) - 1 and g'(s) (``undistort_scale``)."""
     s2r = s * s * r_d2
     if k3 is None and k4 is None:  # Horner in u = s^2 r_d^2: g = s (1 + u (k1 + k2 u)) - 1, g' = 1 + u (3 k1 + 5 k2 u)
         u_poly = s2r * torch.addcmul(k1, k2, s2r)
@@ -243,13 +200,8 @@ def undistort_scale(
     k4: Coefficient = 0.0,
     iterations: int = UNDISTORT_ITERATIONS,
 ) -> Tensor:
-    """Scale s = r / r_d solving s (1 + k1 r_d^2 s^2 + k2 r_d^4 s^4 + k3 r_d^6 s^6 + k4 r_d^8 s^8) = 1.
-
-    The inverse of the radial polynomial: r = s r_d for perspective cameras, theta = s theta_d for fisheye ones.
-    Newton's method from s = 1 runs ``iterations`` steps without autograd; one more Newton step with autograd on then
-    gives the exact implicit-function gradient ds/dtheta = -(dg/dtheta) / g'(s) at the converged s, so undistortion
-    stays differentiable without back-propagating through the iterations. k3 and k4 None leave their terms out.
-    """
+    """s = r / r_d (fisheye: theta / theta_d) solving s D(s^2 r_d^2) = 1: Newton from s = 1 without autograd, then
+    one step with autograd, giving the implicit-function gradient ds/dtheta = -(dg/dtheta) / g'(s)."""
     with torch.no_grad():
         s = torch.ones_like(r_d2)
         for _ in range(iterations):
@@ -260,8 +212,7 @@ def undistort_scale(
 
 
 def _tangential_newton_step(a: Tensor, b: Tensor, a_d: Tensor, b_d: Tensor, columns: tuple) -> tuple[Tensor, Tensor]:
-    """One 2-D Newton step on distort(a, b) = (a_d, b_d); a step whose Jacobian is (nearly) singular is skipped, so a
-    fold shows as a residual (``undistort_tangents``)."""
+    """One 2-D Newton step on distort(a, b) = (a_d, b_d); skipped where the Jacobian is (nearly) singular."""
     fa, fb = _distort(a, b, columns)
     jac = _distortion_jacobian(a, b, columns)
     ra, rb = fa - a_d, fb - b_d
@@ -276,8 +227,7 @@ def _tangential_newton_step(a: Tensor, b: Tensor, a_d: Tensor, b_d: Tensor, colu
 def _newton_tangential(
     a_d: Tensor, b_d: Tensor, columns: tuple, iterations: int = UNDISTORT_ITERATIONS
 ) -> tuple[Tensor, Tensor]:
-    """Undistorted tangents (a, b) with distort(a, b) = (a_d, b_d) by 2-D Newton from (a_d, b_d), without autograd
-    (``_tangential_newton_step``; ``columns``: ``distortion_columns``)."""
+    """(a, b) with distort(a, b) = (a_d, b_d) by 2-D Newton from (a_d, b_d), without autograd."""
     with torch.no_grad():
         a, b = a_d.detach().clone(), b_d.detach().clone()
         for _ in range(iterations):
@@ -286,9 +236,7 @@ def _newton_tangential(
 
 
 def _undistortion_form(intrinsics: Intrinsics) -> tuple[tuple[str, ...], int]:
-    """The distortion terms an inverse must handle and its Newton iterations: the declared form
-    (``Intrinsics.distortion_terms``, ``Intrinsics.newton_iterations``), or, undeclared, the terms read from the
-    values (a host read of the coefficients) and ``UNDISTORT_ITERATIONS``."""
+    """(terms, Newton iterations): the declared form, or, undeclared, read from the values (a host read)."""
     if intrinsics.distortion_terms is not None:
         return intrinsics.distortion_terms, intrinsics.newton_iterations
     tangential = not (bool((intrinsics.p1.detach() == 0).all()) and bool((intrinsics.p2.detach() == 0).all()))
@@ -296,17 +244,12 @@ def _undistortion_form(intrinsics: Intrinsics) -> tuple[tuple[str, ...], int]:
 
 
 def undistort_tangents(a_d: Tensor, b_d: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
-    """Inverse of ``distort_tangents``, differentiable through the implicit-function theorem.
-
-    No distortion term: the tangents are the distorted ones. Radial-only cameras solve the scalar equation of
-    ``undistort_scale``. With tangential terms, 2-D Newton converges without autograd, then one Newton step with
-    autograd and the Jacobian detached gives d(a, b)/dtheta = -J^-1 dF/dtheta, the implicit-function gradient
-    (F(a, b) = distortion - (a_d, b_d)). The form and the iteration count: ``_undistortion_form``.
-    """
+    """Inverse of ``distort_tangents``: radial-only via ``undistort_scale``; tangential by 2-D Newton, then one step
+    with the Jacobian detached, the implicit-function gradient d(a, b)/dtheta = -J^-1 dF/dtheta."""
     terms, iterations = _undistortion_form(intrinsics)
     if not terms:
         return a_d, b_d
-    if intrinsics.distortion_terms is None:  # undeclared: every radial term, as read (bit-for-bit the general path)
+    if intrinsics.distortion_terms is None:  # undeclared: every term read
         intrinsics = replace(intrinsics, distortion_terms=terms)
     columns = distortion_columns(intrinsics)
     k1, k2, k3, k4, p1, p2 = columns
@@ -324,27 +267,14 @@ def undistort_tangents(a_d: Tensor, b_d: Tensor, intrinsics: Intrinsics) -> tupl
     )
 
 
-MIN_NEWTON_ITERATIONS = 2
-"""Fewest Newton steps a camera with distortion gets: from s = 1 the first error is about |k1| r^2, and two steps
-plus the final one bring |k1| r^2 = 0.15 (a strong wide-angle barrel) to about 1e-10."""
-NEWTON_TOLERANCE = 1e-10
-"""Largest relative error of the undistorted tangents the iteration count allows, far below float32's rounding."""
-COEFFICIENT_MARGIN = 2.0
-"""The count is taken with every declared coefficient this many times as large: room for the refinement to move the
-distortion before the count is taken again (at each refresh of P)."""
+MIN_NEWTON_ITERATIONS = 2  # fewest Newton steps for a camera with distortion
+NEWTON_TOLERANCE = 1e-10  # largest relative error of the undistorted tangents
+COEFFICIENT_MARGIN = 2.0  # counted with coefficients this many times as large: room to refine until the next refresh
 
 
 def undistortion_iterations(intrinsics: Intrinsics) -> int:
-    """Newton steps that invert the distortion of every pixel of these cameras to ``NEWTON_TOLERANCE``.
-
-    Measured rather than bounded analytically: the iterates of ``undistort_tangents`` (fisheyes: of
-    ``undistort_scale`` on theta_d) on a grid over each image (``image_grid``: border and interior) are compared with
-    their limit after ``UNDISTORT_ITERATIONS`` steps, every coefficient of the declared form
-    (``Intrinsics.distortion_terms``) multiplied by ``COEFFICIENT_MARGIN`` (the given ones where that folds), and the
-    smallest count whose largest error is below the tolerance is returned, at least ``MIN_NEWTON_ITERATIONS``, at most
-    ``UNDISTORT_ITERATIONS``. The undistortion then adds one Newton step with autograd, which only shrinks the error.
-    No distortion term: 0.
-    """
+    """Newton steps (0 without distortion, else at least ``MIN_NEWTON_ITERATIONS``) inverting every ``image_grid``
+    pixel to ``NEWTON_TOLERANCE``, the coefficients scaled by ``COEFFICIENT_MARGIN`` unless that folds."""
     terms = intrinsics.distortion_terms
     if terms is not None and not terms:
         return 0
@@ -406,13 +336,8 @@ def _coefficients(intrinsics: Intrinsics, index: int, names: tuple[str, ...]) ->
 
 
 def check_distortion_monotonic(intrinsics: Intrinsics) -> None:
-    """Raise unless the distortion is one-to-one over the image, naming the coefficients and the camera.
-
-    - radial k1, k2 only: the analytic fold radius must exceed the image corners' radius (``_check_radial``);
-    - other perspective cameras (k3, k4, p1, p2): the distortion map's Jacobian must stay invertible and
-      undistortion must converge on a grid over the image (``_check_perspective_grid``);
-    - fisheye: theta_d(theta) must increase up to the image corners (``fisheye_fold_angle``).
-    """
+    """ValueError, naming the coefficients and the camera, unless the distortion is one-to-one over the image:
+    analytic fold radius (k1, k2 only), a grid check (other perspective) or ``fisheye_fold_angle`` (fisheye)."""
     if intrinsics.is_fisheye:
         _check_fisheye(intrinsics)
         return
@@ -424,12 +349,8 @@ def check_distortion_monotonic(intrinsics: Intrinsics) -> None:
 
 
 def _check_radial(intrinsics: Intrinsics) -> None:
-    """The distorted radius r (1 + k1 r^2 + k2 r^4) must increase up to the image corners.
-
-    Its derivative 1 + 3 k1 r^2 + 5 k2 r^4 first vanishes at the smallest positive root s* of the quadratic in
-    s = r^2; beyond it the projection folds back and undistortion has two solutions. Require that the distorted
-    radius at that fold exceeds the corner radius of every image.
-    """
+    """r (1 + k1 r^2 + k2 r^4) must increase up to the corners: its distorted radius at the fold, the smallest
+    positive root of 1 + 3 k1 s + 5 k2 s^2 (s = r^2), must exceed the corner radius."""
     k1 = intrinsics.k1.detach().double()
     k2 = intrinsics.k2.detach().double()
     a, b = 5.0 * k2, 3.0 * k1
@@ -456,7 +377,7 @@ def _check_radial(intrinsics: Intrinsics) -> None:
 
 
 def _check_fisheye(intrinsics: Intrinsics) -> None:
-    """theta_d(theta) must increase from the optical axis up to the image corners (no fold inside the image)."""
+    """theta_d(theta) must increase from the optical axis up to the image corners."""
     intrinsics64 = intrinsics.detach().to(dtype=torch.float64)
     theta_fold, theta_d_fold = fisheye_fold_angle(intrinsics64)
     corner = _corner_distorted_radius(intrinsics64)
@@ -488,7 +409,7 @@ def image_grid(intrinsics: Intrinsics, edge: int = GRID_EDGE_SAMPLES, interior: 
 
 
 def _check_perspective_grid(intrinsics: Intrinsics) -> None:
-    """Undistortion must converge with an invertible distortion Jacobian on a grid over the image (incl. border)."""
+    """Undistortion must converge with an invertible Jacobian on ``image_grid``."""
     intrinsics64 = intrinsics.detach().to(dtype=torch.float64)
     pixels = image_grid(intrinsics64)
     a_d, b_d = distorted_coordinates(pixels, intrinsics64)

@@ -1,15 +1,9 @@
 """Reprojection drift: how far refined cameras move the images of the scene's 3D points, in pixels.
 
-Pose and focal errors are in different units and weigh differently per scene (a position error matters less for
-a distant background than for a near object). The drift measures them together where it matters: every 3D point
-that a true camera sees is projected through the true camera and through the refined one (paper eq. 2, with the
-camera's distortion), and the RMS over all these (camera, point) pairs of the pixel displacement is reported. The
-refined cameras are first similarity-aligned to the true ones by their centres (Umeyama, as ``core.alignment``
-does for the camera errors), since joint refinement recovers cameras only up to a similarity of the world.
-
-Points are taken as visible when they project inside the true camera's image in front of it; occlusion is not
-tested (the displacement of an occluded point still measures the camera). Cameras use the OpenCV convention
-(x right, y down, z forward), like the rest of ``s2camp_ns.core``.
+It measures pose and focal errors together, in pixels: every 3D point a true image sees (in front of it, inside it;
+no occlusion test) is projected through the true and the refined camera (paper eq. 2, distortion included), and the
+RMS of the pixel displacement over these (image, point) pairs is reported. The refined poses are first aligned to the
+true ones by the similarity of their centres (``core.alignment``). Cameras are OpenCV (x right, y down, z forward).
 """
 
 from __future__ import annotations
@@ -31,11 +25,11 @@ class Drift:
     """Result of :func:`reprojection_drift`."""
 
     rms_px: float
-    """RMS pixel displacement over every (camera, point) pair visible in the true camera."""
+    """RMS pixel displacement over the (image, point) pairs visible in the true image."""
     max_px: float
     """Largest pixel displacement of those pairs."""
     pairs: int
-    """Number of (camera, point) pairs measured."""
+    """Number of (image, point) pairs measured."""
     behind: int
     """Pairs visible in the true camera but behind the refined one (left out: their pixels are meaningless)."""
 
@@ -61,12 +55,9 @@ def reprojection_drift(
     refined_intrinsics: Intrinsics,
     align: bool = True,
 ) -> Drift:
-    """RMS reprojection displacement (pixels) of ``points`` between the true and the refined cameras (module
-    docstring); projections by paper eq. 2. With ``align`` the refined cameras are first mapped onto the true ones
-    by the similarity of their centres (needs at least 3 cameras with distinct centres).
-
-    Raises ``ValueError`` for mismatched shapes, non-finite input, or when no point is visible in any true camera.
-    """
+    """Reprojection displacement (px) of ``points`` between the true and the refined cameras (module docstring);
+    ``align``: refined poses first mapped onto the true ones (needs 3 distinct centres). Raises ``ValueError`` for
+    mismatched shapes, non-finite input, or when no point is visible in any true image."""
     if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0:
         raise ValueError(f"points must have shape [P, 3] with P >= 1, got {tuple(points.shape)}")
     n = true_c2w.shape[0] if true_c2w.ndim == 3 else -1
@@ -85,7 +76,6 @@ def reprojection_drift(
     true_intrinsics = true_intrinsics.to(device=true_c2w.device, dtype=torch.float64)
     refined_intrinsics = refined_intrinsics.to(device=true_c2w.device, dtype=torch.float64)
     points = points.to(true_c2w.device)
-
     true_pixels, true_margin = project(_world_to_camera(points, true_c2w), true_intrinsics)
     refined_pixels, refined_margin = project(_world_to_camera(points, refined_c2w), refined_intrinsics)
     width, height = true_intrinsics.width[:, None], true_intrinsics.height[:, None]

@@ -1,48 +1,22 @@
-"""Inverse transforms from the unit cube to the normalized (contracted) camera view frustum (paper eqs. 6-14).
+"""Inverse transforms from the unit cube to the contracted camera view frustum (paper eqs. 6-14).
 
-A point ``u = (u1, u2, u3)`` of ``[0, 1]^3`` is mapped to contracted radius ``r = Q_r(u1)`` (paper eq. 12,
-cube root, so that equal volumes get equal mass), a vertical coordinate from ``u2`` and a horizontal one from
-``u3``, then to the Euclidean camera frame through the inverse contraction (paper eq. 10). The camera frame is
-OpenCV (x right, y down, z forward); the angular extent is given per camera as ``tangent_bounds [N, 4] =
-(a_min, a_max, b_min, b_max)`` of the image-plane tangents ``a = x/z``, ``b = y/z``.
+``u = (u1, u2, u3)`` in ``[0, 1]^3`` maps to contracted radius ``r = Q_r(u1)``, a vertical coordinate from ``u2`` and
+a horizontal one from ``u3``, then to the Euclidean OpenCV camera frame by the inverse contraction (paper eq. 10). The
+angular extent per camera is ``tangent_bounds [N, 4] = (a_min, a_max, b_min, b_max)`` of ``a = x/z``, ``b = y/z``.
 
-Three angular transforms; the first two are volume preserving up to the constant frustum volume (with the
-``"volume"`` radial map, uniform in ``u`` means uniform in the contracted frustum):
+Angular transforms:
 
-``"spherical"``
-    The paper's separable transform (eqs. 11-12) written with a well-defined angle pair. Eq. 14 takes the polar
-    angle theta in ``[-alpha_y, alpha_y]``, which makes the eq. 11 denominator ``cos(theta_min) - cos(theta_max)``
-    zero; we use azimuth ``az`` about the y axis and elevation ``el`` from the x-z plane instead, with volume
-    element ``r^2 cos(el) dr d(el) d(az)``: ``az = Q_az(u3)`` uniform in ``[atan a_min, atan a_max]``,
-    ``el = Q_el(u2) = asin(sin e0 + u2 (sin e1 - sin e0))`` with ``e = atan b``. This region is a latitude-longitude
-    rectangle, not the pinhole pyramid: near the left and right image edges some samples project above or below
-    the image (a few percent of the volume for typical cameras).
-``"pyramid"``
-    The exact pinhole pyramid. On tangents the solid-angle density is ``(1 + a^2 + b^2)^(-3/2)``; a conditional
-    (Rosenblatt) transform samples ``a`` from its marginal and ``b`` given ``a``:
+- ``"spherical"``: the paper's separable transform (eqs. 11-12) in azimuth ``az`` about y, uniform in
+  ``[atan a_min, atan a_max]``, and elevation ``el = asin(sin e0 + u2 (sin e1 - sin e0))``, ``e = atan b`` (eq. 14's
+  polar angle makes eq. 11's denominator zero); near the left and right edges some samples leave the image.
+- ``"pyramid"``: the exact pinhole pyramid, density ``(1 + a^2 + b^2)^(-3/2)`` on tangents; ``a`` from its marginal
+  CDF ``c(a) = asin(x s1) - asin(x s0)``, ``x = sin(atan a)``, ``s_j = sin(atan b_j)``, inverted as
+  ``x = sin c / sqrt((s1 - s0)^2 + 4 s0 s1 sin^2(c/2))``, ``a = x / sqrt(1 - x^2)``; then ``b`` given ``a`` from
+  ``h(b) = b / sqrt(1 + a^2 + b^2)``, ``b = h sqrt(1 + a^2) / sqrt(1 - h^2)``. Every sample projects into the image.
+- ``"pixel"``: uniform in tangents (CamP's angular measure); not volume preserving.
 
-    - marginal CDF of ``a`` is proportional to ``c(a) = G(a, b1) - G(a, b0)`` with
-      ``G(a, b) = atan(a b / sqrt(1 + a^2 + b^2)) = asin(sin(atan a) sin(atan b))``. Writing
-      ``x = sin(atan a)`` and ``s_j = sin(atan b_j)``, ``c = asin(x s1) - asin(x s0)`` inverts in closed form for
-      any (also asymmetric) b range: ``x = sin c / sqrt((s1 - s0)^2 + 4 s0 s1 sin^2(c/2))`` (take the cosine of
-      both sides; the ``x^4`` terms cancel), then ``a = x / sqrt(1 - x^2)``.
-    - conditional CDF of ``b`` given ``a`` is proportional to ``h(b) = b / sqrt(1 + a^2 + b^2)``, inverted by
-      ``b = h sqrt(1 + a^2) / sqrt(1 - h^2)``.
-
-    Every sample lies inside the tangent box, so every sample projects into the image.
-``"pixel"``
-    Uniform in the image-plane tangents, ``a = a0 + u3 (a1 - a0)``, ``b = b0 + u2 (b1 - b0)``: a uniform pixel of
-    the undistorted pinhole camera, CamP's angular measure (without distortion). Not volume preserving: the
-    solid-angle density grows towards the image corners as ``(1 + a^2 + b^2)^(3/2)``.
-
-Two radial maps (``radial``):
-
-``"volume"``
-    The paper's ``Q_r`` (eq. 12): uniform in the contracted volume, so most points lie near ``t_far``.
-``"ray"``
-    Uniform in contracted distance along each ray, ``r = t0 + u1 (t1 - t0)`` (volume density ``1 / r^2`` in the
-    contracted ball, weighting near points). This is not CamP's radial measure: CamP's published configuration
-    warps Euclidean distance with a power ladder and does not contract (s2camp_ns/core/camp_sampling.py).
+Radial maps: ``"volume"`` is the paper's ``Q_r`` (eq. 12), uniform in contracted volume; ``"ray"`` is uniform in
+contracted distance along each ray, ``r = t0 + u1 (t1 - t0)``.
 """
 
 from __future__ import annotations
@@ -58,19 +32,9 @@ from s2camp_ns.core.contraction import uncontract_radius
 from s2camp_ns.core.validation import check_choice, check_finite, check_range
 
 __all__ = [
-    "RADIALS",
-    "TRANSFORMS",
-    "Range",
-    "FrustumSamples",
-    "Radial",
-    "Transform",
-    "directions_from_unit",
-    "map_unit_to_frustum",
-    "radius_from_unit",
-    "radius_per_camera",
-    "sample_frustum",
-    "validate_frustum",
-]
+    "RADIALS", "TRANSFORMS", "Range", "FrustumSamples", "Radial", "Transform", "directions_from_unit",
+    "map_unit_to_frustum", "radius_from_unit", "radius_per_camera", "sample_frustum", "validate_frustum",
+]  # fmt: skip
 
 Transform = Literal["pyramid", "spherical", "pixel"]
 TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical", "pixel")
@@ -80,7 +44,7 @@ RADIALS: tuple[str, ...] = ("volume", "ray")
 
 @dataclass(frozen=True)
 class FrustumSamples:
-    """Frustum samples per camera: contracted points (radius in ``[t_near, t_far]``) and their Euclidean preimages."""
+    """[n, l, 3] contracted points (radius in ``[t_near, t_far]``) and their Euclidean camera-frame preimages."""
 
     contracted: Float[Tensor, "n l 3"]
     camera: Float[Tensor, "n l 3"]
@@ -93,7 +57,7 @@ def validate_frustum(
     transform: str = "pyramid",
     radial: str = "volume",
 ) -> Float[Tensor, "n 4"]:
-    """Check the frustum description and return the bounds as float64 on their own device."""
+    """ValueError unless the frustum is valid; returns the bounds as float64 on their device."""
     check_choice("transform", transform, TRANSFORMS)
     check_choice("radial", radial, RADIALS)
     check_range("t_far", t_far, low=0.0, high=2.0, low_inclusive=False, high_inclusive=False)
@@ -114,7 +78,7 @@ def validate_frustum(
         shape = tuple(tangent_bounds.shape) if isinstance(tangent_bounds, Tensor) else type(tangent_bounds).__name__
         raise ValueError(f"tangent_bounds must have shape [N, 4] (a_min, a_max, b_min, b_max), got {shape}")
     bounds = tangent_bounds.detach().to(torch.float64)
-    # Finite tangents also exclude fields of view of 180 degrees or more.
+    # finite tangents also exclude fields of view of 180 degrees or more
     check_finite("tangent_bounds", bounds)
     check_range("tangent_bounds a_max - a_min", bounds[:, 1] - bounds[:, 0], low=0.0, low_inclusive=False)
     check_range("tangent_bounds b_max - b_min", bounds[:, 3] - bounds[:, 2], low=0.0, low_inclusive=False)
@@ -126,12 +90,8 @@ Range = float | Tensor
 
 
 def radius_per_camera(u1: Float[Tensor, " l"], t_near: Tensor, t_far: Tensor, radial: str = "volume") -> Tensor:
-    """Radii [N, L] of shared unit coordinates ``u1`` [L] for per-camera ranges ``t_near``, ``t_far`` [N].
-
-    Each distinct range is mapped on its own by ``radius_from_unit`` with Python floats, exactly as a range given for
-    all cameras is: a camera's radii are then the same bits whatever the batch it is computed in (vectorised and
-    scalar ``pow`` loops round differently, and which elements take which loop depends on the batch layout).
-    """
+    """Radii [N, L] of ``u1`` [L] for ranges [N], each distinct range mapped with Python floats, so a camera's
+    radii are the same bits whatever its batch (vectorised and scalar ``pow`` round differently)."""
     ranges = torch.stack([t_near.reshape(-1), t_far.reshape(-1)], dim=-1).detach().to(torch.float64).cpu()
     unique, index = torch.unique(ranges, dim=0, return_inverse=True)
     radii = [radius_from_unit(u1, float(near), float(far), radial) for near, far in unique.tolist()]
@@ -139,8 +99,7 @@ def radius_per_camera(u1: Float[Tensor, " l"], t_near: Tensor, t_far: Tensor, ra
 
 
 def radius_from_unit(u1: Tensor, t_near: float, t_far: float, radial: str = "volume") -> Tensor:
-    """Radial inverse CDF: ``Q_r(u1) = [t0^3 + u1 (t1^3 - t0^3)]^(1/3)`` (paper eq. 12, ``"volume"``) or
-    ``t0 + u1 (t1 - t0)`` (``"ray"``, uniform contracted distance)."""
+    """``[t0^3 + u1 (t1^3 - t0^3)]^(1/3)`` (``"volume"``, paper eq. 12) or ``t0 + u1 (t1 - t0)`` (``"ray"``)."""
     if radial == "ray":
         return t_near + u1 * (t_far - t_near)
     cube = t_near**3 + u1 * (t_far**3 - t_near**3)
@@ -148,7 +107,7 @@ def radius_from_unit(u1: Tensor, t_near: float, t_far: float, radial: str = "vol
 
 
 def _column(bounds: Tensor, index: int, like: Tensor) -> Tensor:
-    """Bound ``index`` of each camera, shaped to broadcast against ``like`` of shape [N, ...]."""
+    """Bound ``index`` per camera, broadcastable against ``like`` [N, ...]."""
     return bounds[:, index].reshape((-1,) + (1,) * (like.ndim - 1))
 
 
@@ -159,7 +118,7 @@ def _pyramid_strip(a: Tensor, s0: Tensor, s1: Tensor) -> Tensor:
 
 
 def _pyramid_strip_inverse(c: Tensor, s0: Tensor, s1: Tensor) -> Tensor:
-    """Closed-form inverse of :func:`_pyramid_strip` (derivation in the module docstring)."""
+    """Closed-form inverse of ``_pyramid_strip`` (module docstring)."""
     half = torch.sin(0.5 * c)
     x = torch.sin(c) / torch.sqrt((s1 - s0) ** 2 + 4.0 * s0 * s1 * half * half)
     x = x.clamp(-1.0 + 1e-16, 1.0 - 1e-16)
@@ -172,10 +131,7 @@ def directions_from_unit(
     bounds: Float[Tensor, "n 4"],
     transform: str,
 ) -> Float[Tensor, "*batch 3"]:
-    """Unit ray directions from the two angular CDF coordinates (paper eqs. 8-9, 12, 14).
-
-    ``u_vertical`` (``u2``) drives elevation / the ``b`` tangent, ``u_horizontal`` (``u3``) azimuth / ``a``.
-    """
+    """Unit ray directions from ``u_vertical`` (u2: elevation / ``b``) and ``u_horizontal`` (u3: azimuth / ``a``)."""
     a0, a1 = _column(bounds, 0, u_horizontal), _column(bounds, 1, u_horizontal)
     b0, b1 = _column(bounds, 2, u_vertical), _column(bounds, 3, u_vertical)
     if transform == "pixel":
@@ -192,7 +148,7 @@ def directions_from_unit(
     s0, s1 = b0 / torch.sqrt(1.0 + b0 * b0), b1 / torch.sqrt(1.0 + b1 * b1)
     c_lo, c_hi = _pyramid_strip(a0, s0, s1), _pyramid_strip(a1, s0, s1)
     a = _pyramid_strip_inverse(c_lo + u_horizontal * (c_hi - c_lo), s0, s1)
-    # The inverse can overshoot the box by an ulp; clamping keeps "every sample projects inside" exact.
+    # the inverse can overshoot the box by an ulp
     a = torch.minimum(torch.maximum(a, a0), a1)
     rho = 1.0 + a * a
     h0, h1 = b0 / torch.sqrt(rho + b0 * b0), b1 / torch.sqrt(rho + b1 * b1)
@@ -223,13 +179,8 @@ def map_unit_to_frustum(
     transform: str,
     radial: str = "volume",
 ) -> Float[Tensor, "n l 3"]:
-    """Contracted frustum points ``Q(u)`` (paper eqs. 8-9, 12), no validation (internal fast path).
-
-    With points shared by all cameras ([L, 3]) and one range the radius does not depend on the camera and is
-    computed once; this also keeps each camera's points bit-identical whatever the batch it is computed in
-    (vectorised and scalar loops of ``pow`` round differently, and which elements take which loop depends on the
-    batch's layout). Per-camera ranges (tensors [N]) keep that property with shared points (``radius_per_camera``).
-    """
+    """Contracted points ``Q(u)`` (paper eqs. 8-9, 12) without validation; shared points ([L, 3]) give each camera
+    the same bits whatever its batch."""
     if isinstance(t_near, Tensor) or isinstance(t_far, Tensor):
         n = bounds.shape[0]
         near = torch.as_tensor(t_near, dtype=torch.float64, device=bounds.device).expand(n)
@@ -254,20 +205,14 @@ def sample_frustum(
     transform: Transform = "pyramid",
     radial: Radial = "volume",
 ) -> FrustumSamples:
-    """Map unit-cube points into each camera's contracted frustum and back to Euclidean camera-frame points.
-
-    With the default ``"pyramid"`` / ``"volume"`` maps, uniform points in ``[0, 1]^3`` become uniform points in the
-    contracted frustum with radius in ``[t_near, t_far]`` (paper eqs. 6-14; the other maps are described in the
-    module docstring); the Euclidean points follow from the inverse contraction (paper eq. 10). Output is float64
-    on the device of ``tangent_bounds``. With ``t_near = 0`` a point with ``u1 = 0`` sits on the camera centre.
-    ``t_near`` and ``t_far`` are floats (every camera) or tensors [N] (one range per camera).
-    """
+    """Unit-cube points [L, 3] or [N, L, 3] into each contracted frustum and back to Euclidean (paper eqs. 6-14),
+    float64 on the bounds' device. ``t_near``, ``t_far``: floats or [N]."""
     bounds = validate_frustum(tangent_bounds, t_near, t_far, transform, radial)
     u = _as_batched_unit(unit_points, bounds.shape[0], bounds.device)
     if not isinstance(t_near, Tensor) and not isinstance(t_far, Tensor):
         t_near, t_far = float(t_near), float(t_far)
     contracted = map_unit_to_frustum(u, bounds, t_near, t_far, transform, radial)
     radius = torch.linalg.vector_norm(contracted, dim=-1, keepdim=True)
-    # Scale by r_euclid / r_contracted; for r <= 1 the ratio is exactly 1 (the contraction is the identity there).
+    # r_euclid / r_contracted, exactly 1 for r <= 1
     scale = torch.where(radius <= 1.0, torch.ones_like(radius), uncontract_radius(radius) / radius.clamp_min(1.0))
     return FrustumSamples(contracted=contracted, camera=contracted * scale)

@@ -1,8 +1,7 @@
 """Analytic Jacobian of the stacked projection (paper eq. 4) and the sensitivity Gram matrix (paper eq. 5).
 
-The Jacobian is taken with respect to the 16 deltas of ``camera.PARAMETER_NAMES`` at the current camera: the pose
-delta is the local twist xi at zero, so the pose columns depend only on the camera-frame proxy points and the
-preconditioner is independent of where the camera sits in the world. Closed forms at xi = 0:
+Derivatives with respect to the 16 deltas of ``camera.PARAMETER_NAMES`` at the current camera, the pose delta a local
+twist at xi = 0 (so P does not depend on where the camera sits in the world):
 
     dx'/drho = -I,    dx'/domega = [x]_x            (x' = R_d^T (x - t_d), R_d = exp([omega]_x))
     u = fx a_d + s b_d + cx,  v = fy b_d + cy
@@ -24,8 +23,6 @@ theta^2, Q = dP/d(theta^2); (a_d, b_d) = (x, y) m with m = h P):
     dm/d(x, y) = (x, y) c with c = q P + 2 z h^2 Q / R,   dm/dz = -(P + 2 rho^2 h^2 Q) / R
     d(a_d, b_d)/d(x, y, z) = [[m + x^2 c, x y c, x dm/dz], [x y c, m + y^2 c, y dm/dz]]
     d(a_d, b_d)/dk_j = (x, y) h theta^(2j)
-
-(``distortion.fisheye_terms`` evaluates h and q by their Taylor series near the optical axis.)
 """
 
 from __future__ import annotations
@@ -41,11 +38,7 @@ from s2camp_ns.core.distortion import distortion_factor, distortion_slope, fishe
 def _perspective_terms(
     points_cam: Float[Tensor, "n l 3"], intrinsics: Intrinsics, duv_dd: Float[Tensor, "n 1 2 2"]
 ) -> tuple[Float[Tensor, "n l 2 3"], list[Float[Tensor, "n l 2"]], Tensor, Tensor]:
-    """d(u, v)/d(x, y, z), d(u, v)/d(k1, k2, k3, k4, p1, p2) and (a_d, b_d) of a perspective camera.
-
-    Evaluated in the same order as the two-coefficient radial model always was, so RADIAL cameras get the same
-    bits (k3, k4, p1, p2 = 0 add exact zeros).
-    """
+    """d(u, v)/d(x, y, z), d(u, v)/d(k1, k2, k3, k4, p1, p2) and (a_d, b_d) of a perspective camera."""
     x, y, z = points_cam.unbind(dim=-1)
     safe_z = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
     inv_z = 1.0 / safe_z
@@ -89,13 +82,10 @@ def _fisheye_terms(
     m = h * poly
     c = q * poly + 2.0 * z * h * h * slope / norm2
     m_z = -(poly + 2.0 * (x * x + y * y) * h * h * slope) / norm2
-    dd_dx = torch.stack(
-        [
-            torch.stack([m + x * x * c, x * y * c, x * m_z], dim=-1),
-            torch.stack([x * y * c, m + y * y * c, y * m_z], dim=-1),
-        ],
-        dim=-2,
-    )
+    dd_dx = torch.stack([
+        torch.stack([m + x * x * c, x * y * c, x * m_z], dim=-1),
+        torch.stack([x * y * c, m + y * y * c, y * m_z], dim=-1),
+    ], dim=-2)  # fmt: skip
     fx, fy, skew = intrinsics.fx[:, None], intrinsics.fy[:, None], intrinsics.skew[:, None]
     power = torch.ones_like(theta2)
     coefficients = []
@@ -109,15 +99,10 @@ def _fisheye_terms(
 
 
 def projection_jacobian(
-    points_cam: Float[Tensor, "n l 3"],
-    intrinsics: Intrinsics,
-    layout: ParameterLayout | None = None,
+    points_cam: Float[Tensor, "n l 3"], intrinsics: Intrinsics, layout: ParameterLayout | None = None
 ) -> tuple[Float[Tensor, "n l 2"], Float[Tensor, "n l 2 k"], Bool[Tensor, "n l"]]:
-    """Pixels, the analytic Jacobian d(u, v)/dPhi (paper eq. 4) per point, and the in-image mask.
-
-    Columns follow ``layout.indices`` (the paper's 12 parameters by default). Computed in the dtype of the inputs;
-    pass float64 inputs when the result feeds a Gram matrix. Fisheye coefficients p1, p2 do not exist (zero columns).
-    """
+    """Pixels, the Jacobian d(u, v)/dPhi (paper eq. 4) with columns ``layout.indices``, and the in-image mask, in the
+    inputs' dtype (float64 for a Gram matrix). Fisheye p1, p2 columns are zero."""
     layout = layout or ParameterLayout()
     pixels, depth = project(points_cam, intrinsics)
     mask = in_image(pixels, depth, intrinsics)
@@ -126,23 +111,15 @@ def projection_jacobian(
     duv_dd = torch.stack([torch.stack([fx, skew], dim=-1), torch.stack([torch.zeros_like(fy), fy], dim=-1)], dim=-2)
     terms = _fisheye_terms if intrinsics.is_fisheye else _perspective_terms
     duv_dx, coefficients, a_d, b_d = terms(points_cam, intrinsics, duv_dd)  # duv_dx: [n, l, 2, 3]
-    # Local twist at zero: dx'/drho = -I, dx'/domega = [x]_x.
-    d_rho = -duv_dx
-    d_omega = duv_dx @ skew_matrix(points_cam)
-
+    d_rho = -duv_dx  # dx'/drho = -I
+    d_omega = duv_dx @ skew_matrix(points_cam)  # dx'/domega = [x]_x
     ones, zeros = torch.ones_like(a_d), torch.zeros_like(a_d)
     columns = [
-        d_rho[..., 0],
-        d_rho[..., 1],
-        d_rho[..., 2],
-        d_omega[..., 0],
-        d_omega[..., 1],
-        d_omega[..., 2],
-        torch.stack([a_d, b_d], dim=-1),
-        torch.stack([ones, zeros], dim=-1),
-        torch.stack([zeros, ones], dim=-1),
-        torch.stack([b_d, zeros], dim=-1),
-    ]
+        d_rho[..., 0], d_rho[..., 1], d_rho[..., 2], d_omega[..., 0], d_omega[..., 1], d_omega[..., 2],
+        torch.stack([a_d, b_d], dim=-1),  # focal
+        torch.stack([ones, zeros], dim=-1), torch.stack([zeros, ones], dim=-1),  # cx, cy
+        torch.stack([b_d, zeros], dim=-1),  # skew
+    ]  # fmt: skip
     columns += coefficients
     jacobian = torch.stack([columns[i] for i in layout.indices], dim=-1)
     return pixels, jacobian, mask
@@ -151,19 +128,12 @@ def projection_jacobian(
 def gram_matrix(
     jacobian: Float[Tensor, "n l 2 k"], mask: Bool[Tensor, "n l"], image_scale: Float[Tensor, " n"]
 ) -> tuple[Float[Tensor, "n k k"], Tensor]:
-    """Sensitivity Gram matrix Sigma = J^T J (paper eq. 5) in float64, and the number of points used per camera.
-
-    Two choices that eq. 5 leaves open (docs/DESIGN-NOTES.md sec. 3 and 5): pixels are divided by max(W, H), so
-    Sigma does not depend on the image resolution, and the sum is replaced by the mean over the points that project
-    inside the image, so Sigma (and with it the effective learning rate) does not grow with the number of points L.
-    A camera with no valid point gets Sigma = 0; the preconditioner's damping then keeps P finite.
-    """
+    """Float64 Sigma = J^T J (paper eq. 5) per camera and its number of valid points: pixels divided by max(W, H)
+    and the mean over valid points, so Sigma depends on neither resolution nor L; no valid point: Sigma = 0."""
     jac = jacobian.to(torch.float64) / image_scale.to(torch.float64)[:, None, None, None]
     jac = jac * mask[..., None, None].to(torch.float64)
     count = mask.sum(dim=-1)
-    # One matrix product per camera, not one batched product: a batched product's summation order depends on how
-    # many cameras it holds (with two CPU threads the whole batch and chunks of it differed in the last bit of Sigma,
-    # on an AVX-512 machine), and P must be bit-identical for any chunk size (tests/test_preconditioner.py).
+    # one product per camera: a batched product's summation order depends on the batch, and P must not
     flat = jac.flatten(1, 2)
     k = jac.shape[-1]
     sigma = torch.stack([rows.T @ rows for rows in flat]) if len(flat) else jac.new_zeros((0, k, k))

@@ -1,41 +1,21 @@
 """Point sets in the unit cube ``[0, 1]^3`` (float64, exactly ``L`` points) for frustum sampling (paper Sec. 3).
 
 Frolov lattice (``frolov_lattice``)
-    Frolov (1976) lattices are the Minkowski embeddings of the ring of integers of a totally real number field:
-    for a monic irreducible integer polynomial with three real roots ``theta_i`` the generator is the Vandermonde
-    matrix ``V[i, j] = theta_i^j`` and every nonzero lattice vector ``x = V k`` (``k`` in ``Z^3``) has
-    ``|x1 x2 x3| = |norm(k)| >= 1`` while ``det V = sqrt(discriminant)``. This product bound is kept by every
-    diagonal scaling of determinant one, which is what the frustum transforms apply locally (the spherical
-    transform has orthogonal coordinates, its local metric in ``u`` is diagonal with constant determinant), so the
-    points stay separated after the strongly anisotropic map to the frustum (radial stretch near the apex,
-    lateral stretch at the far face). That is why the paper, following Frisch et al. (2021, 2023, 2025), uses
-    Frolov-type lattices. We use the two totally real cubic fields of smallest discriminant:
-    ``x^3 + x^2 - 2x - 1`` (roots ``2 cos(2 pi k / 7)``, discriminant 49, the default family) and ``x^3 - 3x + 1``
-    (roots ``2 cos(2 pi k / 9)``, discriminant 81). Both fields are cyclic, so cyclic coordinate permutations and
-    multiplication by the units ``theta`` and ``theta^2 - 2`` map the lattice to itself; the remaining free
-    parameters are a unit-group scaling ``D = exp(t1 log|theta| + t2 log|theta'|)``, ``(t1, t2)`` in
-    ``[0, 1)^2``, a shift ``c`` in ``[0, 1)^3``, coordinate sign flips and a transposition.
+    The Minkowski embedding of the ring of integers of a totally real cubic field: generator ``V[i, j] = theta_i^j``
+    for the roots ``theta_i`` of a monic irreducible integer polynomial; every nonzero ``x = V k`` has
+    ``|x1 x2 x3| >= 1`` with ``det V = sqrt(discriminant)``. The bound survives every diagonal scaling of
+    determinant one, which the frustum transforms apply locally, so the points stay separated in the frustum
+    (Frisch et al.). Fields: ``x^3 + x^2 - 2x - 1`` (discriminant 49, the default) and ``x^3 - 3x + 1`` (81). Free
+    parameters: a unit-group scaling ``D = exp(t1 log|theta| + t2 log|theta'|)``, ``(t1, t2)`` in ``[0, 1)^2``, a
+    shift ``c`` in ``[0, 1)^3``, coordinate sign flips and a transposition.
 
 Exact ``L`` (scale sweep)
-    Points are ``x_k(s) = s M k + c`` with ``M`` of determinant 1. Because the cube is convex and contains ``c``,
-    each ``x_k`` stays in the cube for all ``0 < s <= s_max(k)`` with ``s_max(k) = min_i`` of ``(1 - c_i) / m_i``
-    (``m_i > 0``) or ``c_i / |m_i|`` (``m_i < 0``), ``m = M k``. The count is therefore a non-increasing step
-    function of ``s``: sorting ``s_max`` in decreasing order and taking ``s`` strictly between the ``L``-th and
-    ``(L + 1)``-th value gives exactly ``L`` points for every ``L >= 1`` (the scale ends within a few percent of
-    the nominal ``L^(-1/3)``). Candidates ``k`` are enumerated exactly: for each ``(k1, k2)`` in a bounding box the
-    admissible ``k3`` form an interval.
+    Points ``x_k(s) = s M k + c`` (``det M = 1``) stay in the cube for ``0 < s <= s_max(k)``, ``s_max(k) = min_i``
+    of ``(1 - c_i) / m_i`` (``m_i > 0``) or ``c_i / |m_i|`` (``m_i < 0``), ``m = M k``; ``s`` strictly between the
+    ``L``-th and ``(L + 1)``-th largest ``s_max`` gives exactly ``L`` points.
 
-Parameter choice
-    The free parameters are chosen offline by a deterministic two-stage search over Halton candidates in the
-    parameter box (``benchmarks/lattice_search.py``, ``s2camp-bench lattice-search``). The points exist to integrate
-    the Gram matrix (paper eq. 5), so candidates are ranked first by their worst relative Gram error on two *search
-    cameras* (40 degrees 4:3 and 75 degrees 16:9, off-centre principal points; pyramid transform, contracted radius
-    in ``[0.4, 1.99]``); among those within a factor 1.5 of the best, the lowest worst dispersion / body-centred-cubic
-    covering ratio wins: the points integrate first, cover second. At run time this module only looks the parameters up
-    in ``_TABLE``; a size without an entry takes the entry of the nearest tabulated size (``table_params``), so no
-    search ever runs when training starts and this module imports nothing above ``validation``.
-
-Also here: seeded uniform random points, scrambled Sobol points and Halton points.
+Parameters come from ``_TABLE``, found offline (Gram-matrix error first, covering second); a size without an entry
+takes the nearest tabulated size's (``table_params``). Also here: seeded random, scrambled Sobol and Halton points.
 """
 
 from __future__ import annotations
@@ -52,22 +32,14 @@ from torch import Tensor
 from s2camp_ns.core.validation import check_choice, check_positive_int, check_range
 
 __all__ = [
-    "FrolovParams",
-    "PointSetKind",
-    "halton_sequence",
-    "frolov_lattice",
-    "frolov_points",
-    "halton_points",
-    "random_points",
-    "sobol_points",
-    "table_params",
-    "unit_cube_points",
-]
+    "FrolovParams", "PointSetKind", "halton_sequence", "frolov_lattice", "frolov_points", "halton_points",
+    "random_points", "sobol_points", "table_params", "unit_cube_points",
+]  # fmt: skip
 
 PointSetKind = Literal["frolov", "random", "sobol", "halton"]
 POINT_SET_KINDS: tuple[str, ...] = ("frolov", "random", "sobol", "halton")
 
-# Real roots, ordered so that the Galois action theta -> theta^2 - 2 is a cyclic shift of the coordinates.
+# real roots, ordered so that the Galois action theta -> theta^2 - 2 shifts the coordinates cyclically
 _ROOTS: dict[int, tuple[float, float, float]] = {
     49: tuple(2.0 * math.cos(2.0 * math.pi * k / 7.0) for k in (1, 2, 4)),  # x^3 + x^2 - 2x - 1
     81: tuple(2.0 * math.cos(2.0 * math.pi * k / 9.0) for k in (1, 2, 4)),  # x^3 - 3x + 1
@@ -76,7 +48,7 @@ _ROOTS: dict[int, tuple[float, float, float]] = {
 
 @dataclass(frozen=True)
 class FrolovParams:
-    """Free parameters of a Frolov lattice (see the module docstring)."""
+    """Free parameters of a Frolov lattice (module docstring)."""
 
     discriminant: int = 49
     t1: float = 0.0
@@ -105,7 +77,7 @@ def _generator(params: FrolovParams) -> list[list[float]]:
 
 
 def _enumerate(matrix: Tensor, shift: Tensor, scale: float) -> Tensor:
-    """All integer ``k`` with ``scale * M k + shift`` in the closed unit cube, as float64 [K, 3]."""
+    """[K, 3] float64: every integer ``k`` with ``scale * M k + shift`` in the closed unit cube."""
     corners = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.float64)
     k_corners = torch.linalg.solve(matrix, ((corners - shift) / scale).T).T
     low, high = k_corners.amin(0).floor(), k_corners.amax(0).ceil()
@@ -116,7 +88,7 @@ def _enumerate(matrix: Tensor, shift: Tensor, scale: float) -> Tensor:
     )
     k1, k2 = k1.reshape(-1), k2.reshape(-1)
     base = k1[:, None] * matrix[:, 0] + k2[:, None] * matrix[:, 1]
-    # Each coordinate bounds k3 to an interval (no coordinate of M is zero: the entries are powers of roots).
+    # each coordinate bounds k3 to an interval (no entry of M is zero)
     edge_a = (-shift / scale - base) / matrix[:, 2]
     edge_b = ((1.0 - shift) / scale - base) / matrix[:, 2]
     k3_low = torch.minimum(edge_a, edge_b).amax(1).ceil()
@@ -130,7 +102,7 @@ def _enumerate(matrix: Tensor, shift: Tensor, scale: float) -> Tensor:
 
 
 def frolov_points(num_points: int, params: FrolovParams = FrolovParams()) -> Float[Tensor, "l 3"]:
-    """Exactly ``num_points`` points of the Frolov lattice ``params`` in ``[0, 1]^3`` (scale sweep, module doc)."""
+    """Exactly ``num_points`` points of the Frolov lattice ``params`` in ``[0, 1]^3`` (scale sweep)."""
     check_positive_int("num_points", num_points)
     check_choice("discriminant", params.discriminant, tuple(_ROOTS))
     for i, value in enumerate(params.shift):
@@ -144,7 +116,7 @@ def frolov_points(num_points: int, params: FrolovParams = FrolovParams()) -> Flo
         if ks.shape[0] > num_points:
             break
         scale *= 0.85
-    # Elementwise products (no BLAS) keep the coordinates bit-identical across runs and thread counts.
+    # elementwise products (no BLAS): bit-identical across runs and thread counts
     m = ks[:, 0:1] * matrix[:, 0] + ks[:, 1:2] * matrix[:, 1] + ks[:, 2:3] * matrix[:, 2]
     inf = torch.full_like(m, math.inf)
     s_max = torch.where(m > 0, (1.0 - shift) / m, torch.where(m < 0, shift / (-m), inf)).amin(1)
@@ -154,7 +126,7 @@ def frolov_points(num_points: int, params: FrolovParams = FrolovParams()) -> Flo
     chosen = ks[order[:num_points]]
     points = s * (chosen[:, 0:1] * matrix[:, 0] + chosen[:, 1:2] * matrix[:, 1] + chosen[:, 2:3] * matrix[:, 2])
     points = (points + shift).clamp(0.0, 1.0)
-    # Sort by the radial coordinate for a canonical order independent of the enumeration.
+    # canonical order: by the radial coordinate
     return points[torch.argsort(points[:, 0], stable=True)].contiguous()
 
 
@@ -175,29 +147,22 @@ def halton_sequence(num_points: int, bases: tuple[int, ...], start: int = 1) -> 
     return torch.stack([_radical_inverse(index, b) for b in bases], dim=1)
 
 
-# From the offline search (``s2camp-bench lattice-search``, benchmarks/lattice_search.py) with 2^18 reference points
-# and n = 1024, 1024, 256 candidates; comments: (worst Gram error, worst dispersion / BCC covering ratio), both on the
-# search cameras.
+# from the offline search, by the number of points
 _TABLE: dict[int, FrolovParams] = {
-    100: FrolovParams(  # (1.27e-2, 1.94)
+    100: FrolovParams(
         49, 0.5126953125, 0.14677640603566527, (0.06432, 0.7559350270720533, 0.169045830202855), (1, 1, -1), False
     ),
-    500: FrolovParams(  # (4.02e-3, 1.85)
+    500: FrolovParams(
         81, 0.1796875, 0.9053497942386831, (0.352, 0.6180758017492711, 0.6280991735537189), (1, 1, 1), True
     ),
-    5000: FrolovParams(  # (5.19e-4, 1.83)
+    5000: FrolovParams(
         49, 0.3359375, 0.6337448559670782, (0.272, 0.16909620991253643, 0.7107438016528925), (1, 1, -1), False
     ),
 }
 
 
 def table_params(num_points: int) -> FrolovParams:
-    """Parameters for ``num_points``: the table's entry, else that of the tabulated size nearest in log L.
-
-    No search runs here: the lattice with any parameters has exactly ``num_points`` points (scale sweep), and the
-    entries of nearby sizes integrate about as well (the table's comments give their Gram errors). Sizes that matter
-    get their own entry from the offline search (``s2camp-bench lattice-search``).
-    """
+    """``_TABLE``'s entry for ``num_points``, else that of the tabulated size nearest in log L (no search runs)."""
     check_positive_int("num_points", num_points)
     if num_points in _TABLE:
         return _TABLE[num_points]
@@ -224,7 +189,7 @@ def random_points(num_points: int, seed: int = 0) -> Float[Tensor, "l 3"]:
 
 
 def sobol_points(num_points: int, seed: int = 0) -> Float[Tensor, "l 3"]:
-    """First ``num_points`` points of a scrambled 3-D Sobol sequence (Owen-type scrambling seeded by ``seed``)."""
+    """First ``num_points`` points of a 3-D Sobol sequence, scrambled with ``seed``."""
     check_positive_int("num_points", num_points)
     engine = torch.quasirandom.SobolEngine(dimension=3, scramble=True, seed=int(seed))
     return engine.draw(num_points, dtype=torch.float64)
@@ -237,7 +202,7 @@ def halton_points(num_points: int) -> Float[Tensor, "l 3"]:
 
 
 def unit_cube_points(kind: PointSetKind, num_points: int, seed: int = 0) -> Float[Tensor, "l 3"]:
-    """Dispatch to the point set ``kind``; ``seed`` is used by ``random`` and ``sobol`` only."""
+    """Points of ``kind``; ``seed`` is used by ``random`` and ``sobol`` only."""
     check_choice("kind", kind, POINT_SET_KINDS)
     if kind == "frolov":
         return frolov_lattice(num_points)

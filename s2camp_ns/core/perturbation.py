@@ -1,25 +1,18 @@
-"""Camera perturbation protocol of CamP, used to evaluate how well camera refinement recovers from bad cameras.
+"""CamP's camera perturbation protocol (its configs/camp/camera_optim_perturbed.gin), to test recovery from bad
+cameras.
 
-CamP (configs/camp/camera_optim_perturbed.gin of its public code) perturbs the training cameras of a scene that is
-already normalized (centred and scaled), in this order, with one seeded random stream:
+The training images of a normalized scene are perturbed in this order, with one seeded random stream:
 
-1. dolly zoom: the z component of every camera's world-to-camera translation t = -R^T c is multiplied by one scale
-   s = exp(N(0, 1) log1p(sigma_dolly_z)) shared by all cameras ("single dolly"), the focal lengths by the same s,
-   and the centre is recomputed from the new translation. Objects near the world origin keep their image size,
-   which makes the perturbation hard to undo from images alone (focal against forward translation);
-2. focal length: every camera's focal lengths are multiplied by its own exp(N(0, 1) log1p(sigma_focal_length));
-3. position: every centre moves by sigma_position times a random unit vector;
-4. orientation: the look-at point (the point of the optical axis closest to the world origin, after step 1) moves
-   by sigma_look_at times a random unit vector and the camera is re-aimed at it from its new centre, keeping its
-   old up vector;
-5. radial distortion is zeroed (done by the caller, which owns the distortion parameters).
+1. dolly zoom: the z of every world-to-camera translation t = -R^T c and the focal lengths scale by one shared
+   s = exp(N(0, 1) log1p(sigma_dolly_z)), the centre recomputed: objects near the origin keep their image size;
+2. focal length: each image's focal lengths scale by its own exp(N(0, 1) log1p(sigma_focal_length));
+3. position: each centre moves by sigma_position times a random unit vector;
+4. orientation: the look-at point (the optical axis' point closest to the origin, after step 1) moves by
+   sigma_look_at times a random unit vector and the camera is re-aimed at it from its new centre, same up vector;
+5. radial distortion is zeroed (by the caller, which owns the distortion parameters).
 
-The sigmas are in the units of the normalized scene, so perturb after the data parser's normalization.
-Cameras here use the OpenCV convention (x right, y down, z forward), like the rest of ``s2camp_ns.core``.
-
-Runs saved by earlier versions name a ``DriftConfig`` of this module in their config.yml (a visual-inertial drift
-these cameras could be given then): it loads as ``RemovedConfig``, and a saved drift that was on is refused by
-``PerturbationConfig.validate`` rather than silently left out.
+Sigmas are in normalized scene units; cameras are OpenCV (x right, y down, z forward). A ``DriftConfig`` that a saved
+config.yml names loads as ``RemovedConfig``; one that is on is refused by ``PerturbationConfig.validate``.
 """
 
 from __future__ import annotations
@@ -37,8 +30,7 @@ from s2camp_ns.core.validation import check_finite, check_range
 
 @dataclass
 class PerturbationConfig(DefaultsOnLoad):
-    """CamP's camera perturbation (one dolly shared by all cameras, distortion zeroed); the defaults are its
-    ``camera_optim_perturbed`` setting."""
+    """CamP's camera perturbation; the defaults are its ``camera_optim_perturbed`` setting."""
 
     enabled: bool = False
     """Perturb the training cameras (an evaluation protocol; off for normal training)."""
@@ -47,10 +39,9 @@ class PerturbationConfig(DefaultsOnLoad):
     sigma_position: float = 0.005
     """Distance (normalized scene units) the camera centre moves, along a random direction."""
     sigma_dolly_z: float = 0.05
-    """Relative strength of the shared dolly zoom: the z translation and the focal lengths scale by
-    exp(N(0,1) log1p(sigma))."""
+    """Shared dolly zoom: the z translation and the focal lengths scale by exp(N(0,1) log1p(sigma))."""
     sigma_focal_length: float = 0.02
-    """Relative strength of the per-camera focal length change: focal scales by exp(N(0,1) log1p(sigma))."""
+    """Per-image focal length change: focal scales by exp(N(0,1) log1p(sigma))."""
     seed: int = 0
     """Seed of the random stream; the same seed and cameras give the same perturbation."""
 
@@ -69,7 +60,7 @@ class PerturbationConfig(DefaultsOnLoad):
 
 @dataclass
 class PerturbedCameras:
-    """Result of ``perturb_cameras``; every tensor has leading dimension N and dtype float64."""
+    """Result of ``perturb_cameras``: float64, leading dimension N."""
 
     c2w: Float[Tensor, "n 3 4"]
     """Perturbed OpenCV camera-to-world poses."""
@@ -90,10 +81,8 @@ def _unit_vectors(n: int, generator: torch.Generator) -> Tensor:
 def look_at_rotation(
     eye: Float[Tensor, "n 3"], target: Float[Tensor, "n 3"], up: Float[Tensor, "n 3"]
 ) -> Float[Tensor, "n 3 3"]:
-    """Camera-to-world rotation of an OpenCV camera at ``eye`` looking at ``target`` with ``up`` as world up.
-
-    Columns: z = unit forward, x = z cross up (image right), y = z cross x (image down).
-    """
+    """Camera-to-world rotation of an OpenCV camera at ``eye`` looking at ``target``, ``up`` the world up: columns
+    z = unit forward, x = z cross up (image right), y = z cross x (image down)."""
     forward = target - eye
     norm = torch.linalg.norm(forward, dim=-1, keepdim=True)
     if bool((norm < 1e-12).any()):
@@ -116,13 +105,9 @@ def perturb_cameras(
     seed: int | None = None,
     generator: torch.Generator | None = None,
 ) -> PerturbedCameras:
-    """Perturb OpenCV cameras with CamP's protocol (module docstring); ``config.enabled`` is not consulted here.
-
-    ``seed`` overrides ``config.seed``. ``generator``: the CPU random stream to draw from instead of a new one seeded
-    with the seed (a caller that draws more after CamP's steps passes its own). Works in float64 on the CPU so that
-    the random stream, and hence the perturbation, is the same on every machine; the result is moved back to the
-    input device.
-    """
+    """Perturb OpenCV cameras with CamP's protocol (module docstring), ignoring ``config.enabled``. ``seed``
+    overrides ``config.seed``; ``generator``: a CPU stream to draw from instead of a new seeded one. Computed in
+    float64 on the CPU (the same on every machine), returned on the input device."""
     config = config or PerturbationConfig()
     config.validate()
     seed = config.seed if seed is None else seed
@@ -141,29 +126,22 @@ def perturb_cameras(
     fy = fy.detach().to(device="cpu", dtype=torch.float64)
     if generator is None:
         generator = torch.Generator(device="cpu").manual_seed(int(seed))
-
     rotation, centre = c2w[:, :, :3], c2w[:, :, 3]
     # World-to-camera translation t = -R^T c: its z is the depth of the world origin in front of the camera.
     translation = -torch.einsum("nji,nj->ni", rotation, centre)
-
     # 1. Dolly zoom (always draw, so the later draws do not depend on whether it is enabled).
     dolly_draw = torch.randn(1, dtype=torch.float64, generator=generator)
     dolly_scale = torch.exp(dolly_draw * math.log1p(config.sigma_dolly_z)).expand(n).clone()
     translation = translation.clone()
     translation[:, 2] = translation[:, 2] * dolly_scale
     centre = -torch.einsum("nij,nj->ni", rotation, translation)
-
     # 2. Focal length, per camera.
     focal_draw = torch.randn(n, dtype=torch.float64, generator=generator)
     focal_scale = dolly_scale * torch.exp(focal_draw * math.log1p(config.sigma_focal_length))
-
     # 3. Position.
     new_centre = centre + config.sigma_position * _unit_vectors(n, generator)
-
-    # 4. Look-at point: the optical-axis point closest to the origin, from the dollied (not yet moved) centre.
-    # CamP takes that point even when it lies behind the camera, which turns the camera around; a camera that
-    # looks away from the origin uses the point at the same distance in front instead (unit distance if the
-    # axis passes through its own centre's foot point), which keeps the angular size of the perturbation.
+    # 4. Look-at point: the optical-axis point closest to the origin, from the dollied centre; unlike CamP, mirrored
+    # in front of a camera that looks away from the origin (unit distance when it is the centre itself).
     axis = rotation[:, :, 2]
     depth = -(centre * axis).sum(dim=-1)
     depth = torch.where(depth.abs() > 1e-9, depth.abs(), torch.ones_like(depth))
@@ -171,7 +149,6 @@ def perturb_cameras(
     look_at = look_at + config.sigma_look_at * _unit_vectors(n, generator)
     up = -rotation[:, :, 1]  # OpenCV y points down in the image
     new_rotation = look_at_rotation(new_centre, look_at, up)
-
     new_c2w = torch.cat([new_rotation, new_centre[:, :, None]], dim=-1)
     return PerturbedCameras(
         c2w=new_c2w.to(device),
@@ -183,7 +160,7 @@ def perturb_cameras(
 
 
 def __getattr__(name: str) -> type:
-    """``DriftConfig``, the name runs saved by earlier versions give their drift's config: ``RemovedConfig``."""
+    """``DriftConfig`` (a name saved configs use) is ``RemovedConfig``."""
     if name == "DriftConfig":
         return RemovedConfig
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,14 +1,10 @@
 """The camera-parameter preconditioner P = (Sigma + damping)^(1/2) (paper eqs. 15-20).
 
-Whitening requires P^T P = Sigma (eq. 17); every solution is Q Sigma^(1/2) with Q orthogonal (eqs. 18-19), and
-the paper picks Q = I, the symmetric (Mahalanobis / ZCA) square root (eq. 20). The optimizer then works on
-phi_hat = P phi and the camera uses phi = P^-1 phi_hat (eq. 15).
-
-Sigma is often nearly singular: focal length against forward translation and principal point against rotation
-are almost indistinguishable from projections alone (Sigma's condition number on real frusta is measured in
-docs/DESIGN-NOTES.md sec. 3, "Damping is not optional"). A diagonal damping,
-diag(max(damping_abs, damping_rel * diag(Sigma))), is added before the square root, as in CamP; it also keeps P finite
-and invertible for parameters that the proxy points cannot observe at all.
+Whitening requires P^T P = Sigma (eq. 17); the solutions are Q Sigma^(1/2), Q orthogonal (eqs. 18-19), and the paper
+picks the symmetric root Q = I (eq. 20). The optimizer works on phi_hat = P phi, the camera uses phi = P^-1 phi_hat
+(eq. 15). Sigma is often nearly singular (focal against forward translation, principal point against rotation), so
+the diagonal damping diag(max(damping_abs, damping_rel * diag(Sigma))) is added first, as in CamP; it also keeps P
+finite and invertible for parameters the proxy points cannot observe.
 """
 
 from __future__ import annotations
@@ -27,13 +23,7 @@ from s2camp_ns.core.contraction import uncontract_radius
 from s2camp_ns.core.frustum import RADIALS, Radial, radius_from_unit, radius_per_camera, sample_frustum
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
 from s2camp_ns.core.lattice import unit_cube_points
-from s2camp_ns.core.proxy_range import (
-    DEFAULT_T_FAR,
-    DEFAULT_T_NEAR,
-    ProxyRangeConfig,
-    fixed_range,
-    validate_overrides,
-)
+from s2camp_ns.core.proxy_range import DEFAULT_T_FAR, DEFAULT_T_NEAR, ProxyRangeConfig, fixed_range, validate_overrides
 from s2camp_ns.core.unprojection import pixel_to_ray_direction, tangent_bounds
 from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
 
@@ -41,9 +31,7 @@ SamplerName = Literal["frolov", "sobol", "halton", "random", "camp-random"]
 TransformName = Literal["pyramid", "spherical", "pixel"]
 SAMPLERS: tuple[str, ...] = ("frolov", "sobol", "halton", "random", "camp-random")
 TRANSFORMS: tuple[str, ...] = ("pyramid", "spherical", "pixel")
-DEFAULT_CHUNK_SIZE = 1024
-"""Cameras per chunk of ``compute_preconditioner``: bounds its float64 intermediates whatever the number of cameras
-(the peak memory at L = 500, all 12 parameters, measured in docs/benchmarks/scaling.md, "P for many cameras")."""
+DEFAULT_CHUNK_SIZE = 1024  # cameras per chunk of ``compute_preconditioner``: bounds its float64 intermediates
 
 
 @dataclass(frozen=True)
@@ -53,37 +41,25 @@ class SamplingConfig(DefaultsOnLoad):
     num_points: int = 500
     """L, proxy points per camera."""
     sampler: SamplerName = "frolov"
-    """Unit-cube point set: the deterministic Frolov lattice (S2CamP), a quasi-random or random baseline, or
-    CamP's published sampler ("camp-random": random pixel, random power-ladder distance along the ray, no
-    contraction; s2camp_ns/core/camp_sampling.py). For "camp-random", ``t_near`` and ``t_far`` are Euclidean
-    distances along the unit ray (CamP's 0.4 and 1000, see ``CAMP_SAMPLING``) and ``transform`` / ``radial`` are
-    not used."""
+    """Unit-cube point set: the Frolov lattice, a quasi-random or random baseline, or CamP's "camp-random" (random
+    pixel and power-ladder ray distance, ``core.camp_sampling``; ``t_near`` / ``t_far`` then ray distances)."""
     transform: TransformName = "pyramid"
-    """Unit cube to frustum directions: the exact pinhole pyramid, the paper's separable spherical transform, or
-    uniform image-plane tangents ("pixel", CamP's angular measure for an undistorted camera). Perspective cameras
-    only: fisheye cameras are always sampled uniformly in the image (``sample_fisheye_points``)."""
+    """Unit cube to directions: the pinhole pyramid, the paper's spherical transform, or uniform image-plane tangents
+    ("pixel"). Perspective only: fisheye cameras are sampled uniformly in the image."""
     radial: Radial = "volume"
-    """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray
-    ("ray", density 1 / r^2 in the contracted ball; CamP's own radial measure is the power ladder of "camp-random")."""
+    """Radial map: uniform in contracted volume ("volume", paper eq. 12) or in contracted distance along the ray."""
     t_near: float | None = None
-    """Near contracted radius of the frustum (scene units; the contraction is the identity below 1). None: chosen
-    per physical camera from the scene's points (``auto_range``, s2camp_ns/core/proxy_range.py), 0.4 without
-    points. A number overrides the choice for every camera. For "camp-random" the near distance along the ray
-    (None: 0.4; ``CAMP_SAMPLING`` sets CamP's 0.4)."""
+    """Near contracted radius (scene units). None: chosen per camera from the scene's points (``auto_range``), 0.4
+    without points; a number applies to every camera."""
     t_far: float | None = None
-    """Far contracted radius, below 2: Euclidean distance 1 / (2 - t_far) beyond 1 (paper eq. 10), so 1.5 reaches
-    2 scene units and the paper's 1.99 about 100 (sec. 4). None: chosen per physical camera from the scene's points
-    (``auto_range``), 1.5 without points (tuned on the recovery benchmark's scenes, docs/benchmarks/recovery.md:
-    volume-uniform samples out to 1.99 put most of the Gram's weight on far points, where rotation and translation
-    look alike). A number overrides the choice for every camera. For "camp-random" the far distance along the ray
-    (any value above ``t_near``; None: 1.5; ``CAMP_SAMPLING`` sets CamP's 1000)."""
+    """Far contracted radius, below 2 (distance 1 / (2 - t_far) beyond 1, paper eq. 10). None: chosen per camera
+    from the scene's points (``auto_range``), 1.5 without points; a number applies to every camera."""
     auto_range: ProxyRangeConfig = field(default_factory=ProxyRangeConfig)
-    """How an unset ``t_near`` / ``t_far`` is chosen from the points each physical camera sees: by default the range
-    whose proxy points have their mean 1/d and 1/d^2 (paper eqs. 10, 12), clamped (s2camp_ns/core/proxy_range.py)."""
+    """How an unset ``t_near`` / ``t_far`` is chosen from the points each camera sees (``core.proxy_range``)."""
     seed: int = 0
-    """Seed of the random and scrambled samplers; ignored by the deterministic lattice."""
+    """Seed of the random and scrambled samplers."""
     ladder_p: float = CAMP_LADDER_P
-    """Exponent of the power-ladder ray warp of "camp-random" (negative; CamP's -1.5); ignored by the others."""
+    """Negative exponent of "camp-random"'s power-ladder ray warp."""
 
     def validate(self) -> None:
         check_positive_int("num_points", self.num_points)
@@ -98,31 +74,27 @@ class SamplingConfig(DefaultsOnLoad):
 
     @property
     def auto(self) -> bool:
-        """True when some end of the range is chosen from the scene (unset, and not CamP's ray distances)."""
+        """Whether some end of the range is chosen from the scene."""
         return self.sampler != "camp-random" and (self.t_near is None or self.t_far is None)
 
     def fixed_range(self) -> tuple[float, float]:
-        """The range used without scene points: explicit ends as given, unset ones the defaults (0.4, 1.5; for
-        "camp-random" as ray distances), clamped to keep ``auto_range.min_width`` (``proxy_range.fixed_range``)."""
-        if self.sampler == "camp-random":  # ray distances, never chosen from the scene; CAMP_SAMPLING sets both
+        """(t_near, t_far) without scene points: given ends, else the defaults (``proxy_range.fixed_range``)."""
+        if self.sampler == "camp-random":  # ray distances, never from the scene
             near = DEFAULT_T_NEAR if self.t_near is None else self.t_near
             return near, DEFAULT_T_FAR if self.t_far is None else self.t_far
         return fixed_range(self.auto_range, self.t_near, self.t_far)
 
 
 CAMP_SAMPLING = SamplingConfig(num_points=5000, sampler="camp-random", t_near=CAMP_T_NEAR, t_far=CAMP_T_FAR)
-"""CamP's published proxy points (configs/camp/camera_optim.gin of Park et al.'s code): NUM_POINTS 5000,
-'frustum_raydist_fn' sampling, near 0.4, far 1000, power ladder p = -1.5. Checked against CamP's own code by
-tools/camp_check (docs/benchmarks/camp-check.md)."""
+"""CamP's published proxy points (configs/camp/camera_optim.gin): 5000 points, ray distances 0.4 to 1000."""
 
 
 @dataclass(frozen=True)
 class DampingConfig:
-    """Diagonal damping added to Sigma before the square root; the defaults are CamP's published camera-optimisation
-    values (precondition_diagonal_absolute_padding 1e-8, DIAG_RELPAD 0.1 in configs/camp/camera_optim.gin)."""
+    """Diagonal damping added to Sigma before the square root; defaults are CamP's (configs/camp/camera_optim.gin)."""
 
     damping_abs: float = 1e-8
-    """Absolute floor of the damping, > 0; it is what keeps P finite when a parameter is unobservable."""
+    """Absolute floor of the damping, > 0: keeps P finite for unobservable parameters."""
     damping_rel: float = 0.1
     """Damping relative to Sigma's diagonal."""
     diagonal_only: bool = False
@@ -135,7 +107,7 @@ class DampingConfig:
 
 @dataclass(frozen=True)
 class Preconditioner:
-    """P, P^-1, the undamped Gram matrix it came from, and how many proxy points projected inside each image."""
+    """P, P^-1, the undamped Gram matrix, and the proxy points projecting inside each image."""
 
     matrix: Float[Tensor, "n k k"]
     inverse: Float[Tensor, "n k k"]
@@ -154,11 +126,7 @@ def damped_gram(sigma: Float[Tensor, "n k k"], damping: DampingConfig) -> Float[
 def symmetric_sqrt_and_inverse(
     sigma: Float[Tensor, "n k k"], diagonal_only: bool = False
 ) -> tuple[Float[Tensor, "n k k"], Float[Tensor, "n k k"]]:
-    """Symmetric square root S = Sigma^(1/2) and S^-1 of an SPD matrix by eigendecomposition (paper eq. 20).
-
-    Computed in float64. Eigenvalues at or below zero (possible only for undamped, singular input) raise, because
-    the whitening transform does not exist there.
-    """
+    """Float64 Sigma^(1/2) and Sigma^(-1/2) by eigendecomposition (paper eq. 20); ValueError unless SPD."""
     sigma = sigma.to(torch.float64)
     check_finite("sigma", sigma)
     if diagonal_only:
@@ -175,15 +143,8 @@ def symmetric_sqrt_and_inverse(
 def sample_fisheye_points(
     intrinsics: Intrinsics, sampling: SamplingConfig, ranges: Float[Tensor, "n 2"] | None = None
 ) -> Float[Tensor, "n l 3"]:
-    """Proxy points of fisheye cameras: uniform in the image, unprojected, at the usual contracted radii.
-
-    The pinhole pyramid of ``sample_frustum`` does not exist past 90 degrees, so the two angular unit coordinates
-    (u2 vertical, u3 horizontal) become a pixel (u3 W, u2 H), whose ray (``pixel_to_ray_direction``, any angle)
-    carries the point at contracted radius Q_r(u1) (paper eq. 12) mapped back through the inverse contraction
-    (paper eq. 10). Every sample therefore projects inside the image. The angular measure is uniform in the image,
-    like the "pixel" transform (``transform`` is not used). ``ranges``: [t_near, t_far] per camera (None: the
-    sampling's fixed range for all).
-    """
+    """Fisheye proxy points: pixel (u3 W, u2 H) unprojected, at contracted radius Q_r(u1) (paper eqs. 10, 12).
+    ``ranges``: [t_near, t_far] per camera (None: the fixed range)."""
     intrinsics = intrinsics.detach().to(dtype=torch.float64)
     shared = unit_cube_points(sampling.sampler, sampling.num_points, seed=sampling.seed).to(torch.float64)
     shared = shared.to(intrinsics.device)
@@ -192,10 +153,10 @@ def sample_fisheye_points(
     pixels = torch.stack([unit[..., 2], unit[..., 1]], dim=-1) * size
     with torch.no_grad():
         directions = pixel_to_ray_direction(pixels, intrinsics)
-    if ranges is not None:  # per camera, once per distinct range: still independent of the batch
+    if ranges is not None:  # per camera: independent of the batch
         radius = radius_per_camera(shared[:, 0], ranges[:, 0], ranges[:, 1], sampling.radial).to(directions.device)
         return uncontract_radius(radius)[..., None] * directions
-    # The radius does not depend on the camera: computed once, so a camera's points do not depend on its batch.
+    # one radius for all cameras, so a camera's points do not depend on its batch
     t_near, t_far = sampling.fixed_range()
     radius = radius_from_unit(shared[:, 0], t_near, t_far, sampling.radial)
     return uncontract_radius(radius)[:, None] * directions
@@ -207,27 +168,15 @@ def sample_proxy_points(
     generator: torch.Generator | None = None,
     ranges: Float[Tensor, "n 2"] | None = None,
 ) -> Float[Tensor, "n l 3"]:
-    """Euclidean camera-frame proxy points filling each camera's contracted view frustum (paper eqs. 6-14).
-
-    Fisheye cameras are sampled in their image (``sample_fisheye_points``); "camp-random" samples pixels of any model.
-    ``generator`` only matters for CamP's per-camera random points: passing the same one to consecutive chunks of
-    cameras continues the random stream, so the chunks get the points of one unchunked call. ``ranges``: the
-    contracted [t_near, t_far] of each camera (``core.proxy_range.proxy_ranges``); None uses the sampling's fixed
-    range (``SamplingConfig.fixed_range``) for every camera. A camera's points depend on its own range only.
-    """
+    """[n, l, 3] camera-frame proxy points filling each contracted frustum (paper eqs. 6-14). ``generator``:
+    "camp-random"'s stream, continued across chunks. ``ranges``: [n, 2] contracted [t_near, t_far] (None: fixed)."""
     sampling.validate()
     if ranges is not None:
         ranges = _check_ranges(ranges, intrinsics.num_cameras, sampling)
     if sampling.sampler == "camp-random":  # random pixels, unprojected: any camera model
         t_near, t_far = sampling.fixed_range()
         return camp_frustum_points(
-            intrinsics,
-            sampling.num_points,
-            t_near,
-            t_far,
-            sampling.ladder_p,
-            generator=generator,
-            seed=sampling.seed,
+            intrinsics, sampling.num_points, t_near, t_far, sampling.ladder_p, generator=generator, seed=sampling.seed
         )
     if intrinsics.is_fisheye:
         return sample_fisheye_points(intrinsics, sampling, ranges)
@@ -241,7 +190,7 @@ def sample_proxy_points(
 
 
 def _check_ranges(ranges: Tensor, num_cameras: int, sampling: SamplingConfig) -> Tensor:
-    """Per-camera contracted ranges [N, 2]: 0 <= t_near < t_far < 2; not for CamP's ray distances."""
+    """[N, 2] float64 ranges with 0 <= t_near < t_far < 2, else ValueError."""
     if sampling.sampler == "camp-random":
         raise ValueError('ranges must be None for sampler "camp-random" (its t_near / t_far are ray distances)')
     if not isinstance(ranges, Tensor) or ranges.ndim != 2 or tuple(ranges.shape) != (num_cameras, 2):
@@ -257,7 +206,7 @@ def _check_ranges(ranges: Tensor, num_cameras: int, sampling: SamplingConfig) ->
 def gram_from_points(
     points_cam: Float[Tensor, "n l 3"], intrinsics: Intrinsics, layout: ParameterLayout | None = None
 ) -> tuple[Float[Tensor, "n k k"], Tensor]:
-    """Sigma (paper eq. 5) from explicit camera-frame proxy points, in float64."""
+    """Float64 Sigma (paper eq. 5) and the valid count from camera-frame proxy points."""
     intrinsics64 = intrinsics.detach().to(dtype=torch.float64)
     _, jacobian, mask = projection_jacobian(points_cam.detach().to(torch.float64), intrinsics64, layout)
     return gram_matrix(jacobian, mask, intrinsics64.image_scale())
@@ -272,19 +221,10 @@ def compute_preconditioner(
     share_intrinsics: bool = True,
     ranges: Float[Tensor, "n 2"] | None = None,
 ) -> Preconditioner:
-    """P and P^-1 for each camera from proxy points in its frustum (paper eqs. 4, 5 and 20).
-
-    ``ranges``: contracted [t_near, t_far] per camera (the scene's, ``core.proxy_range.proxy_ranges``); None: the
-    sampling's fixed range for all. Cameras are shared by bitwise-equal intrinsics and range.
-
-    Memory is bounded by ``chunk_size`` cameras at a time (None: all at once). With the point sets shared by all
-    cameras (the lattice, Sobol, Halton, random unit points) every camera's P depends only on its own intrinsics and
-    the result is bit-identical for any chunk size (tests/test_preconditioner.py); with ``share_intrinsics``,
-    cameras with bitwise-equal intrinsics share one computation. CamP's per-camera random points ("camp-random")
-    are never shared, and their last bits depend on the chunk size (their per-point ``pow`` and undistortion round
-    differently in vectorised and scalar loops, and which points take which loop depends on the batch layout).
-    Deterministic: the same intrinsics and chunk size give the same bits on every process, with no communication.
-    """
+    """P and P^-1 per camera from proxy points in its frustum (paper eqs. 4, 5, 20), ``chunk_size`` cameras at a time.
+    ``ranges``: [n, 2] contracted [t_near, t_far] (None: fixed). With ``share_intrinsics``, cameras with bitwise-equal
+    intrinsics and range share one computation. Bit-identical for any chunk size, except the last bits of
+    "camp-random" (per-point ``pow`` and undistortion round differently in vectorised and scalar loops)."""
     sampling = sampling or SamplingConfig()
     damping = damping or DampingConfig()
     sampling.validate()
@@ -320,7 +260,7 @@ def compute_preconditioner(
         matrix, inverse = symmetric_sqrt_and_inverse(damped_gram(sigma, damping), damping.diagonal_only)
         if step >= n:
             return Preconditioner(matrix=matrix, inverse=inverse, gram=sigma, num_valid=count)
-        if result is None:  # the outputs are filled in place: no second copy of them at the end
+        if result is None:  # filled in place, no second copy
             result = Preconditioner(
                 matrix=matrix.new_empty((n, *matrix.shape[1:])),
                 inverse=inverse.new_empty((n, *inverse.shape[1:])),
@@ -339,8 +279,7 @@ def compute_preconditioner(
 def unique_intrinsics(
     intrinsics: Intrinsics, ranges: Float[Tensor, "n 2"] | None = None
 ) -> tuple[Intrinsics, Tensor, Tensor | None]:
-    """The distinct cameras (bitwise-equal intrinsics and, if given, proxy range), per camera the index of its
-    distinct one, and the distinct cameras' ranges (None without ``ranges``)."""
+    """(Distinct cameras by bitwise intrinsics and range, [n] index into them, their ranges or None)."""
     stacked = intrinsics.tensors()
     width = stacked.shape[-1]
     if ranges is not None:
@@ -358,23 +297,16 @@ def whitening_error(inverse: Float[Tensor, "n k k"], sigma: Float[Tensor, "n k k
 
 
 def condition_number(sigma: Float[Tensor, "n k k"]) -> Float[Tensor, " n"]:
-    """Ratio of the largest to the smallest eigenvalue of a symmetric positive semi-definite matrix."""
+    """Largest over smallest eigenvalue of symmetric PSD matrices."""
     eigenvalues = torch.linalg.eigvalsh(sigma.to(torch.float64))
     return eigenvalues[..., -1] / eigenvalues[..., 0].clamp(min=torch.finfo(torch.float64).tiny)
 
 
 @torch.no_grad()
 def reexpress_latent(
-    latent: Float[Tensor, "n k"],
-    old: Preconditioner,
-    new: Preconditioner,
-    adam_state: dict | None = None,
+    latent: Float[Tensor, "n k"], old: Preconditioner, new: Preconditioner, adam_state: dict | None = None
 ) -> None:
-    """Switch whitened parameters from P_old to P_new in place without moving the cameras (paper eq. 15).
-
-    phi = P^-1 phi_hat must not change, so phi_hat_new = M phi_hat_old with M = P_new P_old^-1. Adam's state
-    follows the same change of variables (``reexpress_adam_state``) instead of being reset.
-    """
+    """phi_hat_new = P_new P_old^-1 phi_hat_old in place, so phi is unchanged (paper eq. 15); Adam's state too."""
     change = new.matrix @ old.inverse
     latent.copy_((change.to(latent.device) @ latent.to(torch.float64)[..., None])[..., 0].to(latent.dtype))
     if adam_state:
@@ -382,15 +314,8 @@ def reexpress_latent(
 
 
 def reexpress_adam_state(old: Preconditioner, new: Preconditioner, adam_state: dict) -> None:
-    """Map Adam's moments of a latent whitened with P_old to the latent whitened with P_new, in place (eq. 15).
-
-    A reset would restart the bias correction and give every camera a full-size step. Gradients transform as
-    g_new = M^-T g_old (M = P_new P_old^-1), so the first moment, a weighted sum of gradients, maps exactly:
-    m_new = M^-T m_old. The second moment (elementwise E[g^2]) has no exact linear image; it is mapped assuming
-    uncorrelated gradient components, v_new = (M^-T)^2 v_old with the elementwise square, which is exact when M is
-    diagonal or when each past gradient had a single nonzero component. P changes slowly between refreshes, so M
-    stays close to the identity and the approximation is mild. The step count is kept.
-    """
+    """Map Adam's moments from P_old to P_new in place (eq. 15), M = P_new P_old^-1: m_new = M^-T m_old (exact),
+    v_new = (M^-T)^2 v_old elementwise (exact for diagonal M). The step count is kept."""
     gradient_map = new.inverse.transpose(-1, -2) @ old.matrix.transpose(-1, -2)
     if "exp_avg" in adam_state:
         m = adam_state["exp_avg"]

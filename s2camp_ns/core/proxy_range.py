@@ -1,60 +1,25 @@
-"""Each physical camera's radial proxy range [t_near, t_far] from the scene's own points (paper eqs. 10-12).
+"""Each physical camera's contracted proxy range [t_near, t_far] from the scene's own points (paper eqs. 10-12).
 
-The proxy points of the preconditioner fill a camera's contracted view frustum between two contracted radii
-(paper sec. 4, eq. 12); the contraction is about the camera centre, t = d for d <= 1 and t = 2 - 1/d beyond
-(paper eq. 10), d the Euclidean distance in the scene's (normalized) units. The Gram matrix (eq. 5) is an average
-over the proxy points, so the range sets how much weight each depth gets: a far end beyond the content puts most of
-it where rotation and translation look alike, a near end in front of the content lets the 1/d^2 translation terms
-of points the camera never sees dominate. A fixed range fits one kind of scene only.
+The proxy points fill a camera's contracted frustum between two contracted radii (paper eq. 12; t = d for d <= 1,
+2 - 1/d beyond, eq. 10, d in normalized scene units). The Gram matrix (eq. 5) averages over them, so the range
+weighs the depths: too far, rotation and translation look alike; too near, the 1/d^2 translation terms of unseen
+points dominate. The range follows the distances d of the sparse points each image sees (in front of it, inside
+it), pooled over a physical camera's images. ``rule``:
 
-Here the range follows the content. For every image, the sparse points (an SfM reconstruction's, or any other
-sample of the surfaces) that lie in front of the camera and project inside its image give distances d; the
-images of one physical camera are pooled (its intrinsics, and so its proxy frustum, are shared). The range is
-chosen from these distances by one of three rules (``rule``):
+- "moments" (default): the proxy's E[1/d], E[1/d^2] match the content's (Sigma's translation block averages 1/z^2,
+  its coupling 1/z, eqs. 4-5; the rest depends on direction only): (t0, t1) is the ``GRID_STEP`` grid point in
+  [``T_NEAR_MIN``, ``T_FAR_MAX``], width >= ``min_width``, minimising (log M1/m1)^2 + (log M2/m2)^2, M the proxy's
+  moments (midpoint rule over eq. 12's radial law), m the content's, its distances first clipped to their
+  ``clip_quantile`` and 1 - ``clip_quantile`` quantiles.
+- "fit": the proxy's radial CDF (eq. 11: (t^3 - t0^3) / (t1^3 - t0^3) for "volume", (t - t0) / (t1 - t0) for
+  "ray") is a < b (``low_quantile``, ``high_quantile``) at the content's contracted quantiles c_a, c_b.
+- "span": [t0, t1] = [c_a, c_b].
 
-``"moments"`` (default)
-    The proxy points reproduce the content's inverse-distance moments E[1/d] and E[1/d^2]. They are what the depth
-    does to Sigma (eqs. 4-5): the translation columns of the Jacobian scale with 1/z, so the translation block of
-    Sigma averages 1/z^2 and its coupling to rotation and intrinsics averages 1/z, while every other block depends
-    on the direction only. The proxy moments of a range (t0, t1) follow from the radial law alone (eq. 12: radius
-    Q_r(u1), u1 uniform; Euclidean d by the inverse of eq. 10), computed by the midpoint rule on ``_MOMENT_NODES``
-    nodes; (t0, t1) is the point of a 0.01 grid in [``T_NEAR_MIN``, ``T_FAR_MAX``] (width >= ``min_width``) that
-    minimises (log M1/m1)^2 + (log M2/m2)^2, M the proxy's moments and m the content's. The distances are first
-    clipped to their ``clip_quantile`` and 1 - ``clip_quantile`` quantiles, so that a few stray points at the lens
-    (a mismatched track) cannot dominate E[1/d^2]; points far away (the sky, a background) add almost nothing, as
-    they add almost nothing to the translation columns of the real content.
-``"fit"``
-    The proxy radial law is matched to the content's at two quantiles c_a, c_b of the contracted distances (levels
-    a < b: ``low_quantile``, ``high_quantile``; linear interpolation between order statistics): its CDF F(t) (paper
-    eq. 11) is (t^3 - t0^3) / (t1^3 - t0^3) for the "volume" radial map (eq. 12) and (t - t0) / (t1 - t0) for "ray",
-    and F(c_a) = a, F(c_b) = b is linear in (t0^3, t1^3), resp. (t0, t1).
-``"span"``
-    [t0, t1] = [c_a, c_b]: the range covers the content between the two quantiles (e.g. 5% / 95%). The volume law then
-    crowds the points at the far end, and a background seen by more than 5% of the points sets t1 near 2.
-
-On the generated scenes of docs/benchmarks/proxy-range.md the moment rule is within a few percent of the fixed range
-or better in Gram error against the visible content, and "span" 5% / 95% is worse on every scene; the measured
-numbers are there. Occlusion is not tested (sparse points carry no surface): points hidden behind nearer content
-count, which biases the content towards larger distances.
-
-Then ``margin`` contracted units are added on each side and the range is clamped:
-
-- t_near >= ``T_NEAR_MIN`` (a negative t0^3 of "fit" included): below it the 1/d^2 growth of the translation
-  columns lets the nearest proxy points dominate Sigma;
-- t_far <= ``T_FAR_MAX`` = 1.99 (the paper's far radius, d = 100): t = 2 is the point at infinity;
-- t_far - t_near >= ``min_width``: content at one depth (a wall facing the camera) would otherwise give a thin
-  shell, on which translation across the view and rotation about the perpendicular axis are indistinguishable;
-  the width is grown about the middle of the range, then the range is shifted back inside the bounds.
-
-Fallback: a camera with fewer than ``min_points`` visible points (none at all when the scene has no points) gets the
-fixed defaults ``DEFAULT_T_NEAR`` = 0.4 and ``DEFAULT_T_FAR`` = 1.5 (tuned on the recovery benchmark's scenes,
-docs/benchmarks/recovery.md); the result marks those cameras (``ProxyRanges.fallback``) and the caller says so in
-its log. An explicit ``t_near`` or ``t_far`` overrides that end for every camera; the other end is still chosen
-(clamped to keep ``min_width``).
-
-Large scenes are thinned before projecting: at most ``max_points`` points (every k-th) and ``max_images`` images per
-physical camera (evenly spread). Everything is float64 and deterministic (strided thinning, sorting, a grid search;
-no random numbers).
+Points hidden behind nearer content count (sparse points carry no surface). ``margin`` is added on each side, then
+t_near >= ``T_NEAR_MIN``, t_far <= ``T_FAR_MAX`` (t = 2 is infinity) and t_far - t_near >= ``min_width`` (grown about
+the middle, then shifted back inside). A camera with fewer than ``min_points`` visible points gets ``DEFAULT_T_NEAR``,
+``DEFAULT_T_FAR`` (``ProxyRanges.fallback``). An explicit ``t_near`` or ``t_far`` overrides that end for every
+camera; the other is still chosen. Large scenes are thinned (``max_points``, ``max_images``). Float64, deterministic.
 """
 
 from __future__ import annotations
@@ -93,20 +58,20 @@ __all__ = [
 ]
 
 DEFAULT_T_NEAR = 0.4
-"""Fixed near contracted radius: the fallback without points, and the range before it was chosen per scene."""
+"""Near contracted radius of the fallback range (no points)."""
 DEFAULT_T_FAR = 1.5
-"""Fixed far contracted radius (Euclidean 2 scene units, paper eq. 10): the fallback without points."""
+"""Far contracted radius of the fallback range (Euclidean 2, paper eq. 10)."""
 T_NEAR_MIN = 0.1
 """Smallest chosen near radius (contracted = Euclidean below 1)."""
 T_FAR_MAX = 1.99
-"""Largest chosen far radius: the paper's 1.99, Euclidean distance 100 (paper eq. 10)."""
+"""Largest chosen far radius: the paper's, Euclidean 100 (paper eq. 10)."""
 RULES: tuple[str, ...] = ("moments", "fit", "span")
 GRID_STEP = 0.01
 """Resolution of the "moments" rule's search over (t0, t1), contracted units."""
 _MOMENT_NODES = 512
 """Midpoint-rule nodes of the proxy radial law's moments."""
 _PAIRS_PER_CHUNK = 1 << 20
-"""Image-point pairs projected at a time by ``visible_distances`` (about 0.2 GB of float64 intermediates)."""
+"""Image-point pairs projected at a time by ``visible_distances``."""
 
 
 @dataclass(frozen=True)
@@ -114,23 +79,21 @@ class ProxyRangeConfig:
     """How the proxy range is chosen from the scene's points (module docstring)."""
 
     rule: Literal["moments", "fit", "span"] = "moments"
-    """"moments": the proxy's E[1/d], E[1/d^2] matched to the visible points'; "fit": the proxy radial law matched
-    to their distances at two quantiles; "span": the range is the two quantiles (module docstring)."""
+    """"moments": match E[1/d], E[1/d^2]; "fit": match the radial law at two quantiles; "span": the two quantiles."""
     clip_quantile: float = 0.02
-    """"moments": the distances are clipped to this quantile and 1 - it before the moments are taken."""
+    """"moments": distances are clipped to this quantile and 1 - it first."""
     low_quantile: float = 0.25
-    """"fit" and "span": lower quantile level a of the visible points' distances."""
+    """"fit", "span": lower quantile level a of the distances."""
     high_quantile: float = 0.75
-    """"fit" and "span": upper quantile level b (above a)."""
+    """"fit", "span": upper quantile level b (above a)."""
     margin: float = 0.0
     """Contracted units added below t_near and above t_far before clamping."""
     min_width: float = 0.2
     """Smallest t_far - t_near, contracted units."""
     min_points: int = 20
-    """Fewest visible points (pooled over a physical camera's images) for a chosen range; fewer: the defaults."""
+    """Fewest visible points (pooled over a camera's images) for a chosen range; fewer: the defaults."""
     max_points: int = 50_000
-    """Scene points used at most: a larger scene keeps every k-th point (k = ceil(M / max_points)), so the start-up
-    cost stays near images x max_points projections."""
+    """Scene points used at most: a larger scene keeps every k-th point, k = ceil(M / max_points)."""
     max_images: int = 100
     """Images used at most per physical camera (evenly spread over its images, in their order)."""
 
@@ -162,8 +125,7 @@ class ProxyRanges:
 
 
 def validate_overrides(t_near: float | None, t_far: float | None, config: ProxyRangeConfig) -> None:
-    """Explicit ends: both given, 0 <= t_near < t_far < 2 (as a fixed range always was); one given, room is left
-    for the chosen other end (``min_width`` inside [``T_NEAR_MIN``, ``T_FAR_MAX``])."""
+    """Explicit ends: both, 0 <= t_near < t_far < 2; one, leaving ``min_width`` inside [T_NEAR_MIN, T_FAR_MAX]."""
     if t_near is not None and t_far is not None:
         check_range("t_near", t_near, low=0.0)
         check_range("t_far", t_far, low=t_near, high=2.0, low_inclusive=False, high_inclusive=False)
@@ -180,8 +142,7 @@ def clamp_range(
     near_override: float | None = None,
     far_override: float | None = None,
 ) -> tuple[Float[Tensor, " c"], Float[Tensor, " c"]]:
-    """Clamp chosen contracted ranges into [T_NEAR_MIN, T_FAR_MAX] with width >= ``min_width``; explicit ends are
-    kept exactly as given and only the chosen end moves (module docstring)."""
+    """Chosen ranges clamped into [T_NEAR_MIN, T_FAR_MAX] with width >= ``min_width``; explicit ends kept as given."""
     t_near, t_far = t_near.to(torch.float64), t_far.to(torch.float64)
     if near_override is not None and far_override is not None:
         return torch.full_like(t_near, near_override), torch.full_like(t_far, far_override)
@@ -216,8 +177,7 @@ def fixed_range(
 
 
 def interpolated_quantile(values: Float[Tensor, " m"], q: float) -> Tensor:
-    """Quantile ``q`` of ``values`` with linear interpolation between order statistics (numpy's default and
-    ``torch.quantile``'s "linear"), without ``torch.quantile``'s input size limit. ``values`` non-empty."""
+    """Quantile ``q`` of non-empty ``values``, linear between order statistics (numpy's default), any size."""
     ordered = torch.sort(values.to(torch.float64)).values
     position = q * (ordered.shape[0] - 1)
     low = int(position)
@@ -229,12 +189,8 @@ def interpolated_quantile(values: Float[Tensor, " m"], q: float) -> Tensor:
 def fit_radial_law(
     low: Tensor, high: Tensor, low_level: float, high_level: float, radial: str = "volume"
 ) -> tuple[Tensor, Tensor]:
-    """(t0, t1) whose radial CDF (paper eq. 11: "volume" (t^3 - t0^3) / (t1^3 - t0^3), the law of eq. 12; "ray"
-    (t - t0) / (t1 - t0)) takes the values ``low_level``, ``high_level`` at the contracted radii ``low`` <= ``high``.
-
-    Linear in (t0^3, t1^3) resp. (t0, t1). t0 may come out below zero (content spread towards the camera); it is
-    returned as 0 then and clamped later (``clamp_range``).
-    """
+    """(t0, t1) whose radial CDF (paper eq. 11; "volume" or "ray", module docstring) is ``low_level``,
+    ``high_level`` at the contracted radii ``low`` <= ``high``; a negative t0 is returned as 0."""
     if radial not in ("volume", "ray"):
         raise ValueError(f"radial must be one of 'volume', 'ray', got {radial!r}")
     power = 3.0 if radial == "volume" else 1.0
@@ -255,10 +211,8 @@ def inverse_distance_moments(distances: Float[Tensor, " m"], clip_quantile: floa
 
 @lru_cache(maxsize=8)
 def _moment_grid(radial: str, min_width: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Every (t0, t1) of the search grid with t1 - t0 >= min_width, and the proxy's E[1/d], E[1/d^2] there.
-
-    Radius Q_r(u) of the radial law (paper eq. 12) at midpoint nodes u, Euclidean d by the inverse contraction (eq. 10).
-    """
+    """Every (t0, t1) of the grid with t1 - t0 >= min_width, and the proxy's E[1/d], E[1/d^2] there (radius Q_r(u)
+    of paper eq. 12 at midpoint nodes u, d by the inverse of eq. 10)."""
     per_unit = round(1.0 / GRID_STEP)  # grid values k / 100: correctly rounded, 0.3 is the double nearest 0.3
     indices = torch.arange(round(T_NEAR_MIN * per_unit), round(T_FAR_MAX * per_unit) + 1, dtype=torch.float64)
     values = indices / per_unit
@@ -274,9 +228,8 @@ def _moment_grid(radial: str, min_width: float) -> tuple[Tensor, Tensor, Tensor,
 def match_inverse_moments(
     first: float, second: float, radial: str = "volume", min_width: float = 0.2
 ) -> tuple[float, float]:
-    """The grid range (t0, t1) whose proxy radial law (paper eqs. 10, 12) has E[1/d], E[1/d^2] closest to ``first``,
-    ``second`` in the sense of (log M1/first)^2 + (log M2/second)^2 (module docstring, "moments"). Deterministic:
-    ties go to the first grid point (smallest t0, then t1)."""
+    """The grid range (t0, t1) whose proxy E[1/d], E[1/d^2] minimise (log M1/first)^2 + (log M2/second)^2 (module
+    docstring, "moments"); ties go to the smallest t0, then t1."""
     if radial not in ("volume", "ray"):
         raise ValueError(f"radial must be one of 'volume', 'ray', got {radial!r}")
     check_range("first", first, low=0.0, low_inclusive=False)
@@ -297,12 +250,8 @@ def _spread(items: list[int], count: int) -> list[int]:
 def visible_distances(
     points: Float[Tensor, "m 3"], c2w: Float[Tensor, "n 3 4"], intrinsics: Intrinsics
 ) -> list[Float[Tensor, " v"]]:
-    """Per image, the Euclidean distances from its camera centre of the points it sees: in front of the camera and
-    inside its image (``project`` and ``in_image``, distortion included). ``c2w``: OpenCV camera-to-world.
-
-    Images are projected in chunks of about ``_PAIRS_PER_CHUNK`` image-point pairs; only the visible distances are
-    kept, so memory grows with what the cameras see, not with images x points.
-    """
+    """Per image, the Euclidean distances from its camera centre of the points it sees (in front of it and inside it,
+    distortion included). ``c2w``: OpenCV camera-to-world. Projected in chunks of ``_PAIRS_PER_CHUNK`` pairs."""
     points = points.detach().to(torch.float64)
     c2w = c2w.detach().to(device=points.device, dtype=torch.float64)
     intrinsics = intrinsics.detach().to(device=points.device, dtype=torch.float64)
@@ -331,13 +280,10 @@ def proxy_ranges(
     t_far: float | None = None,
     radial: str = "volume",
 ) -> ProxyRanges:
-    """Contracted proxy range per physical camera from the points it sees (module docstring; paper eqs. 10-12).
-
-    ``points``: world points in the cameras' units (None or empty: every camera falls back); ``c2w``: OpenCV
-    camera-to-world per image; ``camera_of_image``: physical camera 0..C-1 of each image (C = max + 1); ``t_near``,
-    ``t_far``: explicit ends that override the chosen ones; ``radial``: the proxy radial map the rules match
-    ("volume" or "ray", ``SamplingConfig.radial``). Returns float64 ranges on the cameras' device.
-    """
+    """Contracted proxy range per physical camera from the points it sees (module docstring), float64 on ``c2w``'s
+    device. ``points``: world points (None or empty: every camera falls back); ``c2w``: OpenCV camera-to-world per
+    image; ``camera_of_image``: camera 0..C-1 of each image; ``t_near``, ``t_far``: explicit ends; ``radial``: the
+    proxy radial map ("volume" or "ray", ``SamplingConfig.radial``)."""
     config = config or ProxyRangeConfig()
     config.validate()
     validate_overrides(t_near, t_far, config)
@@ -391,8 +337,7 @@ def proxy_ranges(
 def describe_proxy_ranges(
     ranges: ProxyRanges | None, num_points: int, fixed: tuple[float, float], min_points: int
 ) -> str:
-    """The start-up note on the proxy ranges chosen from ``num_points`` scene points (``fixed``: the range without
-    them; ``min_points``: the fewest points a camera's choice needs)."""
+    """The start-up note on the ranges chosen from ``num_points`` points (``fixed``: the fallback range)."""
     if ranges is None or num_points == 0:
         return (
             "S2CamP proxy range: the scene has no points (dataparser metadata 'points3D_xyz'), so every camera "

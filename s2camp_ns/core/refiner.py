@@ -1,21 +1,10 @@
 """Preconditioned camera refinement in plain PyTorch (paper sec. 4): ``CameraRefiner``, free of any framework.
 
-The refiner holds whitened deltas phi_hat and maps them to camera-parameter deltas phi = P^-1 phi_hat (paper eq. 15),
-with P from deterministic proxy points in each camera's frustum (eqs. 4, 5, 20). Cameras are the core's:
-``Intrinsics``, OpenCV camera-to-world poses [n, 3, 4] and the physical camera of each image. Refined camera = base
-camera plus phi: the pose c2w' = c2w exp(xi) with the local twist xi in the OpenCV camera frame (``core.camera``), the
-intrinsics the additive update Phi' = Phi + dPhi of the columns the ``ParameterLayout`` enables.
-
-One latent storage: the pose latent ``whitened_delta`` [n, 6], one row per image, and the intrinsics latent
-``whitened_intrinsics`` [C, K - 6], one row per intrinsics row (``row_of_image``): the physical camera when its images
-share their intrinsics, the image itself otherwise. The factorisation of each row's Sigma + damping is a choice of
-function: the block upper-triangular T of ``core.shared_intrinsics`` ("block", shared intrinsics) or the symmetric
-root of eq. 20 (``core.preconditioner``, "symmetric": per image, CamP's way); both satisfy P^T P = Sigma + damping.
-
-P is recomputed (``refresh``) at the current refined intrinsics; the latents and Adam's moments are re-expressed so
-no camera moves (``core.shared_intrinsics.reexpress_latents``). Checkpoints hold the latents, P, P^-1, the schedule
-and P's fingerprint (the base intrinsics and proxy range it was computed for): a resume onto the same cameras is
-bit-identical; other cameras flag P stale (``check_fingerprint``) and it is recomputed before the next step.
+Latents ``whitened_delta`` [n, 6] per image and ``whitened_intrinsics`` [C, K - 6] per ``row_of_image`` (camera or
+image); phi = P^-1 phi_hat (paper eq. 15), P^T P = Sigma + damping (eqs. 4, 5, 20), per row the block-triangular T
+of ``core.shared_intrinsics`` or the symmetric root of ``core.preconditioner``. Refined: c2w' = c2w exp(xi) (local
+twist, OpenCV frame), Phi' = Phi + dPhi. ``refresh`` recomputes P without moving any image; a checkpoint loaded onto
+other cameras flags its P stale (``check_fingerprint``).
 """
 
 from __future__ import annotations
@@ -56,22 +45,15 @@ from s2camp_ns.core.track_prior import (
     pose_radius,
 )
 
-ROTATION_COLUMNS = [3, 4, 5]
-"""The twist's rotation columns: (rho_x, rho_y, rho_z, omega_x, omega_y, omega_z)."""
-FACTORISATIONS = {"block": compute_shared_preconditioner, "symmetric": compute_preconditioner}
-"""Each row's P from its intrinsics: the block-triangular factor (shared intrinsics) or the symmetric root."""
+ROTATION_COLUMNS = [3, 4, 5]  # omega in the twist (rho_x, rho_y, rho_z, omega_x, omega_y, omega_z)
+FACTORISATIONS = {"block": compute_shared_preconditioner, "symmetric": compute_preconditioner}  # each row's P
 
 
 class CameraRefiner(nn.Module):
-    """Whitened camera-parameter deltas, their preconditioner P and its refresh, the track prior and the gauge fix.
-
-    ``parameters``: the refined groups (``ParameterLayout.from_preset``); ``per_camera_intrinsics``: share the
-    intrinsics among the images of a physical camera (``set_camera_groups``), P block-triangular; else per image, P
-    the symmetric root; ``precondition`` False: P = I; ``photometric`` False: the latents' gradients are zeroed (the
-    cameras stay at the track prior's anchor); ``enabled`` False: no latent, every delta zero; ``pose_prior_exponent``:
-    ``core.track_prior.pose_radius``; ``frozen_images``: images whose deltas are held at zero. Call ``set_cameras``
-    before use.
-    """
+    """Whitened deltas, their P and its refresh, the track prior and the gauge fix; call ``set_cameras`` first.
+    ``parameters``: a ``ParameterLayout`` preset; ``per_camera_intrinsics``: a camera's images share intrinsics
+    ("block"), else per image ("symmetric"); ``precondition`` False: P = I; ``photometric`` False: gradients zeroed;
+    ``enabled`` False: every delta zero; ``frozen_images``: deltas held at zero."""
 
     def __init__(
         self,
@@ -101,33 +83,26 @@ class CameraRefiner(nn.Module):
         self.pose_prior_exponent = pose_prior_exponent
         shared = enabled and per_camera_intrinsics and parameters != "pose"
         self.factorisation = "block" if shared else "symmetric"
-        self.num_physical_cameras = num_images
-        """Physical cameras C (``camera_of_image`` holds 0..C-1), on the host."""
+        self.num_physical_cameras = num_images  # C, on the host: ``camera_of_image`` holds 0..C-1
         self._register_state(device)
         if enabled:
             self.whitened_delta = self._latent(torch.zeros(num_images, NUM_POSE_PARAMS), device)
         self._size_intrinsics_latent()
         self.frozen_images = frozen_images
         self.projection = "perspective"
-        self.distortion_terms: tuple[str, ...] = ()
-        """The refined cameras' distortion form (``core.camera.distortion_form``), decided in ``set_cameras``."""
-        self.newton_iterations = 0
-        """Newton steps that undistort them (``core.distortion.undistortion_iterations``), taken at every refresh."""
-        self.last_refresh = -1
-        """``last_refresh_step`` on the host: the refresh schedule reads it without a device synchronisation."""
-        self.gram_known = False
-        """Whether ``gram`` holds a computed Gram matrix (a refresh with preconditioning wrote it)."""
+        self.distortion_terms: tuple[str, ...] = ()  # ``core.camera.distortion_form``, set in ``set_cameras``
+        self.newton_iterations = 0  # ``core.distortion.undistortion_iterations``, taken at every refresh
+        self.last_refresh = -1  # ``last_refresh_step`` on the host: read without a device synchronisation
+        self.gram_known = False  # whether ``gram`` holds a computed Gram matrix
         self.proxy_ranges: ProxyRanges | None = None
         self.groups_known = False
         self.has_cameras = False
         self.has_track_prior = False
-        self.cameras_required = "CameraRefiner.set_cameras must be called before use"
-        """The RuntimeError's message when the cameras are needed and not set (a framework names its own call)."""
+        self.cameras_required = "CameraRefiner.set_cameras must be called before use"  # a framework names its call
         self._stale_preconditioner: str | None = None  # why a loaded P does not fit the base cameras
 
     def _register_state(self, device: torch.device | str) -> None:
-        """Saved: P, P^-1, the schedule, P's fingerprint. From the scene on every run: the base cameras, Sigma, the
-        proxy range, the physical cameras and the track prior."""
+        """Persistent: P, P^-1, the schedule, P's fingerprint; the rest comes from the scene on every run."""
         n, k = self.num_images, self.layout.num_params
         eye = torch.eye(k, dtype=torch.float64, device=device).expand(n, k, k).clone()
         self.register_buffer("precond", eye.clone())
@@ -149,9 +124,8 @@ class CameraRefiner(nn.Module):
         self.register_buffer("prior_radius_intrinsics", no_prior.clone(), persistent=False)  # per intrinsics row
         self.register_buffer("prior_anchor", torch.zeros(n, k, dtype=torch.float64, device=device), persistent=False)
 
-    # ----------------------------------------------------------------------------------------------------- setup
     def _latent(self, values: Tensor, device: torch.device | str) -> nn.Parameter:
-        """A latent parameter on ``device``; with ``photometric`` False its gradient is zeroed (Adam steps by zero)."""
+        """A latent on ``device``; with ``photometric`` False its gradient is zeroed."""
         latent = nn.Parameter(values.to(device))
         if not self.photometric:
             latent.register_hook(torch.zeros_like)
@@ -159,7 +133,7 @@ class CameraRefiner(nn.Module):
 
     @property
     def row_of_image(self) -> Int[Tensor, " n"]:
-        """The intrinsics latent's row of each image: its physical camera ("block"), or itself ("symmetric")."""
+        """[n] intrinsics row of each image: its camera ("block") or itself ("symmetric")."""
         if self.factorisation == "block":
             return self.camera_of_image
         device = self.precond.device
@@ -170,7 +144,7 @@ class CameraRefiner(nn.Module):
         return self.num_physical_cameras if self.factorisation == "block" else self.num_images
 
     def _size_intrinsics_latent(self) -> None:
-        """[rows, K - 6] zeros where the layout refines intrinsics and the size changed; none otherwise."""
+        """(Re)size the intrinsics latent to zeros [rows, K - 6]; none where the layout refines no intrinsics."""
         m = self.layout.num_params - NUM_POSE_PARAMS
         existing = getattr(self, "whitened_intrinsics", None)
         if not self.enabled or m == 0:
@@ -186,8 +160,7 @@ class CameraRefiner(nn.Module):
         return first.scatter_reduce_(0, index, torch.arange(self.num_images, device=index.device), "amin")
 
     def set_camera_groups(self, camera_ids: Tensor | list[int]) -> None:
-        """Which images share a physical camera (any integer ids, one per image; relabelled 0..C-1 in order of first
-        appearance). Sizes a shared intrinsics latent [C, K - 6]: call it before the optimizers are built."""
+        """Camera id per image (relabelled 0..C-1 by first appearance); sizes the latent: call before optimizers."""
         ids = torch.as_tensor(camera_ids).reshape(-1)
         if ids.shape[0] != self.num_images:
             raise ValueError(f"camera_ids must hold {self.num_images} entries (one per image), got {ids.shape[0]}")
@@ -200,9 +173,7 @@ class CameraRefiner(nn.Module):
         self._size_intrinsics_latent()
 
     def set_camera_model(self, camera_model: str) -> None:
-        """Use the layout of the cameras' COLMAP model (``camera_model_of``): the "all" preset refines its distortion
-        coefficients. Resizes the latents, P, P^-1 and Sigma to the layout's K; a no-op when the layout is unchanged
-        (RADIAL, the default). Call it before an optimizer sees the parameters; ``set_cameras`` calls it again."""
+        """Resize latents, P, P^-1 and Sigma to a COLMAP model's layout (no-op if unchanged); call before optimizers."""
         layout = ParameterLayout.from_preset(self.preset, camera_model)
         if layout == self.layout:
             return
@@ -223,13 +194,8 @@ class CameraRefiner(nn.Module):
         groups: Int[Tensor, " n"] | None = None,
         stacklevel: int = 1,
     ) -> ProxyRanges | None:
-        """Store the base cameras (OpenCV c2w, float64), choose the proxy range from the scene's ``points`` and
-        compute the initial P, or check a P loaded before (``check_fingerprint``).
-
-        ``groups``: physical-camera ids where ``set_camera_groups`` was not called (default: images with identical
-        intrinsics share one). Returns the proxy ranges chosen from the points (None: the fixed range). A warning names
-        the caller ``stacklevel`` frames up.
-        """
+        """Store the base images (OpenCV c2w), the proxy range from ``points`` and P (or check a loaded P);
+        ``groups``: camera ids (default: by intrinsics). Returns the chosen proxy ranges (None: fixed)."""
         if c2w.shape[0] != self.num_images:
             raise ValueError(f"cameras must hold {self.num_images} training cameras, got {c2w.shape[0]}")
         if groups is None:
@@ -253,8 +219,7 @@ class CameraRefiner(nn.Module):
         return chosen
 
     def _row_means(self, base: Float[Tensor, "n 13"]) -> Float[Tensor, "n 13"]:
-        """The base intrinsics each image is refined from: the mean over the images of its intrinsics row (they agree
-        for SfM's cameras; a per-image perturbation averages out). A row's images must share one image size."""
+        """Base intrinsics per image: the mean over its intrinsics row; ValueError if the row mixes image sizes."""
         if self.factorisation == "symmetric":
             return base
         index, first = self.row_of_image, self.first_image_of_each_row()
@@ -272,9 +237,7 @@ class CameraRefiner(nn.Module):
     def choose_proxy_range(
         self, c2w: Tensor, intrinsics: Intrinsics, points: Tensor | None
     ) -> tuple[ProxyRanges | None, Float[Tensor, "n 2"]]:
-        """Contracted [t_near, t_far] per image: chosen per physical camera from the points it sees
-        (``core.proxy_range.proxy_ranges``) where the sampling config leaves an end unset, the config's range
-        otherwise. Returns the chosen per-camera ranges (None when fixed) and the range per image."""
+        """(Per-camera ranges, None when fixed; [n, 2] contracted [t_near, t_far] per image)."""
         sampling = self.sampling
         if not (sampling.auto and self.enabled and self.precondition):  # P = I needs no range
             return None, torch.tensor(sampling.fixed_range(), dtype=torch.float64).expand(self.num_images, 2).clone()
@@ -288,8 +251,7 @@ class CameraRefiner(nn.Module):
         return ranges, ranges.stacked()[groups]
 
     def _take_newton_iterations(self) -> None:
-        """The undistortion's Newton steps for the current refined cameras (``undistortion_iterations``, with room
-        for the refinement until the next refresh): taken when the cameras are set and at every refresh."""
+        """Newton steps of the undistortion at the refined intrinsics (``undistortion_iterations``)."""
         self.newton_iterations = 0
         if self.distortion_terms:
             with torch.no_grad():
@@ -304,11 +266,8 @@ class CameraRefiner(nn.Module):
     def base_intrinsics_struct(self) -> Intrinsics:
         return Intrinsics.from_tensors(self.base_intrinsics, model=self.projection)
 
-    # -------------------------------------------------------------------------------------------- derived state
     def _cached(self, name: str, key: tuple, build):
-        """``build()``, kept under ``name`` until ``key`` changes: keys name the tensors a value is derived from by
-        identity and in-place version (``Tensor._version``), so a refresh, a load or a reassignment rebuilds it and a
-        training step reads it without recomputing or synchronising."""
+        """``build()``, kept under ``name`` until ``key`` (tensors by id and ``_version``, see ``_key``) changes."""
         entry = self._caches.get(name)
         if entry is None or entry[0] != key:
             entry = (key, build())
@@ -321,7 +280,7 @@ class CameraRefiner(nn.Module):
 
     @property
     def frozen_images(self) -> Int[Tensor, " f"] | None:
-        """Images whose deltas are held at zero (None: none)."""
+        """[f] images whose deltas are held at zero, or None."""
         return self._frozen_images
 
     @frozen_images.setter
@@ -331,7 +290,7 @@ class CameraRefiner(nn.Module):
         self.num_trainable = self.num_images if images is None else int(self._trainable_mask().sum())
 
     def _trainable_mask(self) -> Float[Tensor, "n 1"]:
-        """1 for trainable images, 0 for frozen ones, float64."""
+        """[n, 1] float64: 1 for trainable images, 0 for frozen ones."""
 
         def build() -> Tensor:
             keep = torch.ones(self.num_images, 1, dtype=torch.float64, device=self.precond.device)
@@ -341,9 +300,8 @@ class CameraRefiner(nn.Module):
 
         return self._cached("trainable", (self.precond.device,), build)
 
-    # ------------------------------------------------------------------------------------------- refined cameras
     def latent(self, images: Int[Tensor, " m"] | slice | None = None) -> Float[Tensor, "m k"]:
-        """The whitened latent of every image (or of ``images``), all K columns, float64: [z_i; w_row(i)]."""
+        """[m, K] float64 whitened latent [z_i; w_row(i)] of every image or of ``images``."""
         pose, rows = self.whitened_delta, self.row_of_image
         if images is not None:
             pose, rows = pose[images], rows[images]
@@ -352,8 +310,7 @@ class CameraRefiner(nn.Module):
         return torch.cat([pose.to(torch.float64), self.whitened_intrinsics.to(torch.float64)[rows]], dim=-1)
 
     def deltas(self, images: Int[Tensor, " m"] | slice | None = None) -> Float[Tensor, "m 16"]:
-        """Camera-parameter deltas phi = P^-1 phi_hat (paper eq. 15), all 16 columns, float64, differentiable: of
-        every image, or of ``images`` (an index tensor or a slice). One batched product for every image."""
+        """[m, 16] float64 phi = P^-1 phi_hat (paper eq. 15), differentiable, of every image or of ``images``."""
         if isinstance(images, Tensor):
             images = images.to(self.precond.device)
         if not self.enabled:
@@ -373,15 +330,13 @@ class CameraRefiner(nn.Module):
 
     @property
     def intrinsics_form(self) -> dict:
-        """The refined cameras' declared form, ``Intrinsics`` keywords (``distortion_terms``, ``newton_iterations``)."""
+        """``Intrinsics`` keywords of the refined form (``distortion_terms``, ``newton_iterations``)."""
         return {"distortion_terms": self.distortion_terms, "newton_iterations": self.newton_iterations}
 
     def refined_fields(
         self, deltas: Tensor | None = None, images: Int[Tensor, " m"] | slice | None = None
     ) -> Float[Tensor, "m 13"]:
-        """The refined intrinsics as ``Intrinsics.tensors`` columns, Phi' = Phi + dPhi (paper sec. 4) in one product
-        (``core.camera.delta_field_map``), float64, differentiable: of every image, or of ``images`` (``deltas`` then
-        holds theirs)."""
+        """[m, 13] Phi' = Phi + dPhi as ``Intrinsics.tensors``, float64, differentiable; ``deltas``: of ``images``."""
         self.require_cameras()
         deltas = self.deltas(images) if deltas is None else full_delta(deltas)
         base = self.base_intrinsics
@@ -393,16 +348,14 @@ class CameraRefiner(nn.Module):
     def refined_intrinsics(
         self, deltas: Tensor | None = None, images: Int[Tensor, " m"] | slice | None = None
     ) -> Intrinsics:
-        """Intrinsics Phi' = Phi + dPhi, float64, differentiable, in the refined cameras' declared form
-        (``intrinsics_form``): of every image, or of ``images`` (``deltas`` then holds theirs)."""
+        """``refined_fields`` as ``Intrinsics`` in ``intrinsics_form``."""
         fields = self.refined_fields(deltas, images)
         return Intrinsics.from_tensors(fields, model=self.projection, **self.intrinsics_form)
 
     def refined_c2w(
         self, deltas: Tensor | None = None, opengl: bool = False, images: Int[Tensor, " m"] | slice | None = None
     ) -> Float[Tensor, "m 3 4"]:
-        """Refined c2w' = c2w exp(xi), float64, OpenCV frame unless ``opengl``: of every image, or of ``images``
-        (``deltas`` then holds theirs)."""
+        """[m, 3, 4] c2w' = c2w exp(xi), float64, OpenCV unless ``opengl``, of every image or of ``images``."""
         self.require_cameras()
         deltas = self.deltas(images) if deltas is None else deltas
         base = self.base_c2w_cv
@@ -414,12 +367,9 @@ class CameraRefiner(nn.Module):
         c2w = torch.cat([rotation, translation], dim=-1)
         return opengl_to_opencv(c2w) if opengl else c2w
 
-    # ------------------------------------------------------------------------------------- track prior, gauge
     def set_track_prior(self, evidence: TrackPriorEvidence | None) -> None:
-        """The track prior's anchor and scales per image (``core.track_prior``); None: no prior. Scales are in
-        whitened units (pixels over max(W, H), paper eq. 5): each pose the standard error of its image's fit
-        (``pose_radius``), each intrinsics row that of its images' pooled fit. Every image with a prior starts at its
-        anchor, the others where they are (the given camera at set-up)."""
+        """Track prior anchor and radii (``core.track_prior``; None: none) in pixels over max(W, H) (paper eq. 5);
+        images with a prior start at their anchor."""
         self.require_cameras()
         device, n, k = self.precond.device, self.num_images, self.layout.num_params
         radius = torch.full((n,), float("nan"), dtype=torch.float64, device=device)
@@ -444,8 +394,7 @@ class CameraRefiner(nn.Module):
                 place_at_anchor(latent, block_anchor, block_radius)
 
     def _prior_blocks(self) -> list[tuple[nn.Parameter, Tensor, Tensor]]:
-        """(latent, its anchor a_hat = P a in the whitened latent, radius) of each latent (paper eq. 15): the poses'
-        rows per image, the intrinsics rows from their first image (P is the same for a row's images)."""
+        """(latent, anchor a_hat = P a (paper eq. 15), radius) per latent; intrinsics rows from their first image."""
         anchor = (self.precond @ self.prior_anchor[..., None])[..., 0]  # [n, K]
         blocks = [(self.whitened_delta, anchor[:, :NUM_POSE_PARAMS], self.prior_radius)]
         if hasattr(self, "whitened_intrinsics"):
@@ -454,14 +403,13 @@ class CameraRefiner(nn.Module):
         return blocks
 
     def prior_anchor_latents(self) -> tuple[Float[Tensor, "n 6"], Float[Tensor, "c m"] | None]:
-        """The anchor in the pose latent (per image) and in the intrinsics latent (per row, None without one)."""
+        """([n, 6] pose anchor, [c, m] intrinsics anchor or None) in the whitened latents."""
         blocks = self._prior_blocks()
         return blocks[0][1], blocks[1][1] if len(blocks) > 1 else None
 
     @torch.no_grad()
     def apply_track_prior(self, lr: float) -> None:
-        """One proximal step of the track prior after an optimizer step of learning rate ``lr``
-        (``core.track_prior.apply_track_prior``); images without tracks are untouched. No host read."""
+        """The track prior's proximal step after an optimizer step of rate ``lr``; no host read."""
         if not self.enabled or not self.has_track_prior or lr <= 0:
             return
         latents = (id(self.whitened_delta), id(getattr(self, "whitened_intrinsics", None)))  # changed in place: by id
@@ -476,12 +424,8 @@ class CameraRefiner(nn.Module):
 
     @torch.no_grad()
     def remove_common_motion(self) -> None:
-        """Subtract the mean over trainable images of the rotation part omega of the pose deltas phi, each in its own
-        camera frame, from every image's, in the latents: phi_hat += P[:, :, c] d for the rotation columns c (paper
-        eq. 15; a block-triangular P changes no intrinsics). A rotation every camera makes at once is the similarity
-        gauge in disguise, which the photometric loss does not see. A no-op when disabled or with fewer than three
-        trainable images. With the track prior the rotation is measured from the anchors: the tracks fix the world,
-        so the rotation the anchors share is no gauge and stays. No host read."""
+        """Subtract the trainable images' mean rotation omega (relative to the anchors with a track prior), a gauge
+        the photometric loss does not see, via P's rotation columns (paper eq. 15); no-op under 3 trainable images."""
         if not self.enabled or self.num_trainable < 3:
             return
         key = self._key(self.precond, self.prior_anchor) + (self.has_track_prior,)
@@ -496,19 +440,13 @@ class CameraRefiner(nn.Module):
             self.whitened_intrinsics.sub_(correction[:, NUM_POSE_PARAMS:].to(self.whitened_intrinsics.dtype))
 
     def _gauge_terms(self) -> tuple[Tensor, Tensor, Tensor | None]:
-        """P's rotation columns [n, K, 3], the trainable mask [n, 1] and the anchors' rotation [n, 3] (None without
-        the prior): what ``remove_common_motion`` reads, once per P and prior."""
+        """P's rotation columns [n, K, 3], the trainable mask [n, 1], the anchors' rotation [n, 3] or None."""
         anchor = self.layout.expand(self.prior_anchor)[:, ROTATION_COLUMNS] if self.has_track_prior else None
         return self.precond[:, :, ROTATION_COLUMNS].to(torch.float64), self._trainable_mask(), anchor
 
-    # ------------------------------------------------------------------------------------------------- refresh
     @torch.no_grad()
     def refresh(self, step: int, optimizer: torch.optim.Optimizer | None = None, stacklevel: int = 1) -> None:
-        """Recompute P from the current refined intrinsics without moving the cameras (paper sec. 4): the latents and
-        Adam's moments are re-expressed in the new basis (``reexpress_latents``; the step count kept). The pose
-        columns use the local twist at the refined pose, exact up to SE(3)'s right Jacobian, the identity to
-        O(|xi|). Refined intrinsics that admit no P (distortion folding inside the image) keep P, with a warning
-        naming the caller ``stacklevel`` frames up: a refresh never stops training."""
+        """Recompute P and re-express latents and Adam's moments (no image moves); no P: keep P and warn."""
         self.require_cameras()
         try:
             self._recompute_preconditioner(optimizer)
@@ -525,9 +463,7 @@ class CameraRefiner(nn.Module):
         self._take_newton_iterations()
 
     def _recompute_preconditioner(self, optimizer: torch.optim.Optimizer | None) -> None:
-        """P at the current refined intrinsics, computed per intrinsics row by the factorisation's function, the
-        latents and Adam's moments re-expressed; ValueError (nothing changed) if no P exists. The fingerprint records
-        the cameras."""
+        """P per row at the refined intrinsics, latents re-expressed; ValueError (nothing changed) if none exists."""
         if self.precondition and self.enabled:
             device, first = self.precond.device, self.first_image_of_each_row()
             ranges = None if not self.sampling.auto else self.proxy_range[first].cpu()
@@ -546,12 +482,10 @@ class CameraRefiner(nn.Module):
         self.precond_base_intrinsics.copy_(self.base_intrinsics)
         self.precond_proxy_range.copy_(self.proxy_range)
 
-    # ---------------------------------------------------------------------------------------------- checkpoints
     def _load_from_state_dict(
         self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
     ) -> None:
-        """torch's loading, after refusing a checkpoint of another number of images by name; a checkpoint written
-        before P's fingerprint or the Newton steps were recorded leaves them unknown (recomputed as needed)."""
+        """torch's loading; ValueError for another number of images; a missing fingerprint or Newton count: unknown."""
         saved = state_dict.get(prefix + "precond")
         if saved is not None and saved.shape[0] != self.num_images:
             raise ValueError(
@@ -559,7 +493,7 @@ class CameraRefiner(nn.Module):
                 f"{self.num_images}: it is a checkpoint of another scene or of another train/eval split"
             )
         latent = state_dict.get(prefix + "whitened_delta")
-        if latent is not None and latent.shape[-1] > NUM_POSE_PARAMS:  # one per-image latent [n, K], as once stored
+        if latent is not None and latent.shape[-1] > NUM_POSE_PARAMS:  # a single per-image latent [n, K]
             state_dict[prefix + "whitened_delta"] = latent[:, :NUM_POSE_PARAMS]
             state_dict[prefix + "whitened_intrinsics"] = latent[:, NUM_POSE_PARAMS:]
         super()._load_from_state_dict(
@@ -578,8 +512,7 @@ class CameraRefiner(nn.Module):
             self.check_fingerprint()  # the warning names this line
 
     def after_load(self) -> None:
-        """The host's copies of loaded state (``last_refresh``, ``newton_iterations``), read once after loading; the
-        Newton steps taken from the loaded cameras where the checkpoint has none."""
+        """Host copies of loaded state (``last_refresh``, ``newton_iterations``)."""
         self.last_refresh = int(self.last_refresh_step)
         steps = int(self.undistortion_steps)
         if steps >= 0:
@@ -588,11 +521,8 @@ class CameraRefiner(nn.Module):
             self._take_newton_iterations()
 
     def check_fingerprint(self, stacklevel: int = 1) -> None:
-        """Flag a loaded P computed for other base intrinsics or another proxy range: it is never used for a step.
-        Same fingerprint (a resumed run): the saved P is kept, so the run continues bit-identically. Otherwise the
-        learned deltas phi = P_old^-1 phi_hat stand, and ``recompute_stale_preconditioner`` recomputes P and
-        re-expresses the latents and Adam's moments before the next step. The warning names the caller
-        ``stacklevel`` frames up."""
+        """Flag (and warn, ``stacklevel`` frames up) a loaded P computed for other base intrinsics or proxy range:
+        ``recompute_stale_preconditioner`` replaces it before the next step, keeping phi. A match keeps P."""
         self._stale_preconditioner = None
         same_intrinsics = torch.equal(self.precond_base_intrinsics, self.base_intrinsics)
         same_range = torch.equal(self.precond_proxy_range, self.proxy_range)
@@ -632,13 +562,12 @@ class CameraRefiner(nn.Module):
 
     @property
     def preconditioner_is_stale(self) -> bool:
-        """True between loading a checkpoint whose P was computed for other cameras and the next training step."""
+        """Whether a loaded P awaits ``recompute_stale_preconditioner``."""
         return self._stale_preconditioner is not None
 
     @torch.no_grad()
     def recompute_stale_preconditioner(self, step: int, optimizer: torch.optim.Optimizer | None) -> None:
-        """Before a training step: recompute a stale P (``check_fingerprint``) and re-express the latents and Adam's
-        loaded moments, as a refresh does. ValueError, naming why, if no P exists for these cameras."""
+        """Recompute a stale P as a refresh does; ValueError, naming why, if no P exists for these cameras."""
         if self._stale_preconditioner is None:
             return
         reason, self._stale_preconditioner = self._stale_preconditioner, None

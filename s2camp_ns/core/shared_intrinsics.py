@@ -1,38 +1,30 @@
 """Preconditioner for intrinsics shared by all images of one physical camera (pose per image).
 
-Setting. Image i of physical camera c refines its own pose delta d_i (the local twist, 6 columns) and shares the
-intrinsics delta e_c (m columns: focal, principal point, skew, distortion as the layout enables them) with the other
-images of c. Per image, the proxy-point Gram matrix (paper eq. 5) over (d_i, e_c) is
+Image i of camera c refines its pose delta d_i (local twist, 6 columns) and shares the intrinsics delta e_c (m
+columns, as the layout enables them). The proxy-point Gram (paper eq. 5) over (d_i, e_c),
 
-    Sigma = [[A, B], [B^T, C]]        A: 6 x 6 (pose), B: 6 x m (pose-intrinsics), C: m x m (intrinsics)
+    Sigma = [[A, B], [B^T, C]]        A: 6 x 6 (pose), B: 6 x m (pose-intrinsics), C: m x m (intrinsics),
 
-and it depends only on the intrinsics (the pose columns use the local twist), so all images of camera c share the
-same Sigma_c. The projections of all images of c stack into one objective, sum_i |J [d_i; e_c]|^2, whose Gram is the
-arrowhead matrix with blocks A on the diagonal, B in the last block column and n_c C in the corner.
+depends only on the intrinsics, so c's images share Sigma_c; their stacked objective sum_i |J [d_i; e_c]|^2 has the
+arrowhead Gram with A on the diagonal, B in the last block column and n_c C in the corner.
 
-Exact block factorization, no approximation of the cross terms. Completing the square per image,
+Exact block factorization. Completing the square per image,
 
     [d; e]^T Sigma [d; e] = |A^(1/2) (d + A^-1 B e)|^2 + e^T S e,    S = C - B^T A^-1 B  (Schur complement),
 
-so the latents z_i = A^(1/2) (d_i + G e_c) with G = A^-1 B, and w_c = S^(1/2) e_c, turn every image's Gram into the
-identity: per image the latent is T [d; e] with the block upper-triangular
+so z_i = A^(1/2) (d_i + G e_c), G = A^-1 B, and w_c = S^(1/2) e_c whiten every image: its latent is T [d; e] with
 
     T = [[A^(1/2), A^(1/2) G], [0, S^(1/2)]],    T^-1 = [[A^-(1/2), -G S^-(1/2)], [0, S^-(1/2)]],   T^T T = Sigma.
 
-T is an admissible preconditioner of paper eq. 17 (P^T P = Sigma); by eqs. 18-19 it is the symmetric root of eq. 20
-up to an orthogonal factor, T = Q Sigma^(1/2), chosen here because it keeps the shared block separate: with one
-image per camera it gives the same whitened spectrum as the per-image P. For the whole camera, the objective in the
-latents is sum_i |z_i|^2 + n_c |w_c|^2: the whitened arrowhead is diag(I, ..., I, n_c I). The n_c is kept on purpose
-(the "mean over images" convention): a unit step of w_c then moves every image's proxy points by one normalized unit
-RMS, exactly as a unit step of z_i moves image i's, so one learning rate means the same image-space step for every
-latent coordinate; the n_c-fold larger gradient of w_c (it sums n_c images) is what Adam's per-coordinate
-normalization removes. The pose latent carries the compensating pose change -G e_c: when the shared intrinsics move,
-each image's pose follows along the least-squares direction that keeps its proxy projections in place, which is what
-decouples focal length from forward translation.
+T satisfies paper eq. 17 (P^T P = Sigma); by eqs. 18-19 it is eq. 20's symmetric root up to an orthogonal factor,
+T = Q Sigma^(1/2), chosen to keep the shared block separate (one image per camera: the per-image P's spectrum). The
+camera's whitened arrowhead is diag(I, ..., I, n_c I): a unit step of w_c moves every image's proxy points by one
+unit RMS, as a unit step of z_i moves image i's, so one learning rate means the same image-space step for every
+latent (Adam's normalization removes w_c's n_c-fold gradient). The pose latent carries the compensating pose change
+-G e_c, which decouples focal length from forward translation.
 
-Damping (CamP's, as in ``s2camp_ns.core.preconditioner.damped_gram``) is added to Sigma before the factorization, so
-A is positive definite and S >= damping_rel diag(C) stays positive definite when the intrinsics are nearly
-unobservable. All of it is float64.
+Damping (``s2camp_ns.core.preconditioner.damped_gram``) is added to Sigma first, so A and S >= damping_rel diag(C)
+stay positive definite when the intrinsics are nearly unobservable. Float64.
 """
 
 from __future__ import annotations
@@ -59,7 +51,7 @@ NUM_POSE_PARAMS = 6
 
 @dataclass(frozen=True)
 class SharedPreconditioner:
-    """Block upper-triangular T and T^-1 per physical camera (latent = T phi), and the undamped Gram they came from."""
+    """Block upper-triangular T and T^-1 per physical camera (latent = T phi), and the undamped Gram."""
 
     matrix: Float[Tensor, "c k k"]
     inverse: Float[Tensor, "c k k"]
@@ -73,11 +65,8 @@ class SharedPreconditioner:
 def block_triangular_factor(
     sigma: Float[Tensor, "c k k"], damping: DampingConfig | None = None
 ) -> tuple[Float[Tensor, "c k k"], Float[Tensor, "c k k"]]:
-    """T and T^-1 with T^T T = Sigma + damping, T = [[A^(1/2), A^(1/2) G], [0, S^(1/2)]] (module docstring;
-    paper eqs. 17-19 with the block-triangular choice of Q).
-
-    The first ``NUM_POSE_PARAMS`` columns are the pose. With no intrinsics column T is the symmetric root of eq. 20.
-    """
+    """T and T^-1 with T^T T = Sigma + damping (module docstring; paper eqs. 17-19), the first ``NUM_POSE_PARAMS``
+    columns the pose; without intrinsics columns T is eq. 20's symmetric root."""
     damping = damping or DampingConfig()
     if sigma.ndim != 3 or sigma.shape[-1] != sigma.shape[-2] or sigma.shape[-1] < NUM_POSE_PARAMS:
         raise ValueError(f"sigma must have shape [C, K, K] with K >= {NUM_POSE_PARAMS}, got {tuple(sigma.shape)}")
@@ -109,8 +98,8 @@ def compute_shared_preconditioner(
     damping: DampingConfig | None = None,
     ranges: Float[Tensor, "c 2"] | None = None,
 ) -> SharedPreconditioner:
-    """T and T^-1 for each physical camera (one row of ``intrinsics`` per camera) from its proxy points; ``ranges``:
-    each camera's contracted [t_near, t_far] (``core.proxy_range``), None: the sampling's fixed range."""
+    """T and T^-1 per physical camera (one row of ``intrinsics`` each) from its proxy points; ``ranges``: contracted
+    [t_near, t_far] per camera (``core.proxy_range``), None: the sampling's fixed range."""
     layout = layout or ParameterLayout()
     if not layout.pose:
         raise ValueError("shared intrinsics need the pose group in the layout: the pose is what stays per image")
@@ -136,8 +125,7 @@ def deltas_from_latents(
 
 
 def joint_gram(sigma: Float[Tensor, "k k"], num_images: int) -> Float[Tensor, "kk kk"]:
-    """Gram of the stacked projections of ``num_images`` images sharing intrinsics (the arrowhead matrix), over
-    (d_1, ..., d_n, e), each image contributing ``sigma``."""
+    """Arrowhead Gram over (d_1, ..., d_n, e) of ``num_images`` images sharing intrinsics, each with ``sigma``."""
     check_range("num_images", num_images, low=1)
     p, k = NUM_POSE_PARAMS, sigma.shape[-1]
     m = k - p
@@ -180,15 +168,11 @@ def reexpress_latents(
     pose_state: dict | None = None,
     intrinsics_state: dict | None = None,
 ) -> None:
-    """Switch the latents from P_old to P_new in place without moving any camera (phi_i unchanged, paper eq. 15).
+    """Switch the latents from P_old to P_new in place without moving any image (phi_i unchanged, paper eq. 15).
 
-    Per intrinsics row c, M = P_new P_old^-1: z_i' = M_zz z_i + M_zw w_c and w_c' = M_ww w_c + sum_i M_wz z_i over
-    the row's images. A block-triangular P (shared intrinsics) has M_wz = 0; the symmetric root has one image per row,
-    so the sum is that image's term. Gradients map with G = M^-T = (P_old P_new^-1)^T the same way (g_z' = G_zz g_z
-    + G_zw g_w, g_w' = G_ww g_w + sum_i G_wz g_z_i), and so does Adam's first moment, linear in the gradients; the
-    second (elementwise) is mapped with the elementwise squares, assuming uncorrelated components (exact for a
-    diagonal M). P changes slowly between refreshes, so M stays near the identity. ``intrinsics_latent`` None: the
-    layout refines no intrinsics (K = 6).
+    Per intrinsics row c, M = P_new P_old^-1: z_i' = M_zz z_i + M_zw w_c, w_c' = M_ww w_c + sum_i M_wz z_i over the
+    row's images. Gradients, and Adam's first moment, map the same way with G = M^-T = (P_old P_new^-1)^T; the second
+    moment with G's elementwise squares (exact for a diagonal M). ``intrinsics_latent`` None: no intrinsics (K = 6).
     """
     index = row_of_image.to(new_matrix.device)
     _check_camera_index(index, new_matrix.shape[0], pose_latent.shape[0])
@@ -203,8 +187,7 @@ def reexpress_latents(
 
 
 def _map_pair(tensors: list[Tensor], matrix: Float[Tensor, "c k k"], index: Tensor) -> None:
-    """[z; w] <- matrix [z; w] in place per image and row (``reexpress_latents``): z [n, 6] per image, w [c, m] per
-    row, the rows' terms from their images summed in."""
+    """[z; w] <- matrix [z; w] in place: z [n, 6] per image, w [c, m] per row, each row's image terms summed in."""
     p = NUM_POSE_PARAMS
     z = tensors[0].to(torch.float64)
     new_z = (matrix[index, :p, :p] @ z[..., None])[..., 0]
@@ -220,8 +203,7 @@ def _map_pair(tensors: list[Tensor], matrix: Float[Tensor, "c k k"], index: Tens
 def mean_per_camera(
     values: Float[Tensor, "n d"], camera_of_image: Int[Tensor, " n"], num_cameras: int
 ) -> Float[Tensor, "n d"]:
-    """Each image's row replaced by the mean over the images of its physical camera (``camera_of_image``, one index
-    below ``num_cameras`` per image): the base intrinsics shared intrinsics start from, in ``values``' dtype."""
+    """Each image's row replaced by the mean over its physical camera's images, in ``values``' dtype."""
     count = torch.bincount(camera_of_image, minlength=num_cameras).to(values)  # [C]
     sums = torch.zeros(num_cameras, values.shape[1], dtype=values.dtype, device=values.device)
     sums = sums.index_add_(0, camera_of_image, values)  # [C, d]

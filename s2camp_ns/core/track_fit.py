@@ -1,41 +1,16 @@
-"""The cameras that agree best with a scene's SfM tracks: a robust camera-only bundle adjustment against fixed 3D
-points.
+"""Robust camera-only bundle adjustment against fixed 3D points: where a scene's SfM tracks put each image.
 
-The track prior (``S2CampCameraOptimizer.apply_track_prior``) anchors each camera where its tracks put it, with the
-tracks' own noise as its scale. For cameras straight out of a bundle adjustment of the same robust cost, points
-included, that is where they already are and the noise is its reprojection error (a model adjusted in plain least
-squares, as COLMAP's mapper ends, has its points re-adjusted with this cost first by the nerfstudio data parser's
-``robust_adjustment``). For cameras changed after SfM (perturbed, edited, re-estimated elsewhere) the tracks still
-say where the camera is: anchoring at the given camera would hold a wrong camera in place with the strength of a
-large reprojection error, which blocks recovery instead of guiding it. This module finds the anchor.
+The track prior (``S2CampCameraOptimizer.apply_track_prior``) anchors each image there. Unknowns are the camera
+optimizer's deltas (``core.camera.PARAMETER_NAMES``, paper sec. 4): each image's twist xi, c2w' = c2w exp(xi) in its
+OpenCV camera frame, and each physical camera's additive intrinsics deltas (``camera_of_image``); only the ``free``
+columns move. The points are fixed (no gauge). Each valid observation (paper eq. 2) costs rho(s) = c^2 log(1 + s / c^2)
+of its squared reprojection distance s (px^2), Ceres' Cauchy loss with c = ``LOSS_SCALE_PX``. Levenberg-Marquardt
+in float64 minimizes it by iteratively reweighted least squares (weights rho'(s) = 1 / (1 + s / c^2) at the current
+residuals; a step is taken only where it lowers the robust cost). Eliminating the poses from the block-sparse normal
+equations (Schur complement) leaves one m x m system per camera. Jacobians are exact (autodiff).
 
-Unknowns are the camera optimizer's own deltas (``core.camera.PARAMETER_NAMES``, paper sec. 4): the twist xi of each
-image's pose, c2w' = c2w exp(xi) in its OpenCV camera frame, and the additive intrinsics deltas of each physical
-camera (``camera_of_image``; per-image intrinsics are one camera per image). Only the ``free`` columns move. The
-points stay fixed, so there is no gauge. The cost is robust: each valid observation (paper eq. 2) costs
-rho(s) = c^2 log(1 + s / c^2) of its squared reprojection distance s (pixels^2), Ceres' Cauchy loss with the scale
-c = ``LOSS_SCALE_PX`` of the image tracks' bundle adjustment, so that a wrong match hundreds of pixels off pulls the
-cameras about as hard as an observation a few c off, not with its square. Levenberg-Marquardt in float64 minimizes it
-by iteratively reweighted least squares: each step solves the normal equations with every observation weighted by
-rho'(s) = 1 / (1 + s / c^2) at the current residuals (the robust cost's exact gradient, Gauss-Newton's curvature),
-and is taken only where it lowers the robust cost. Exact tracks have zero residuals, weight one: the truth is the
-fit. The normal equations are block-sparse (a 6x6 block per image, an m x m block per physical camera and their
-coupling); eliminating the poses (Schur complement) leaves one m x m system per physical camera, so the cost is
-linear in the number of images. Jacobians are exact (reverse-mode autodiff of the projection, two backward passes:
-each observation depends on its own camera only).
-
-Why our own solver and not pycolmap's bundle adjustment, which minimizes the same robust cost: the unknowns are the
-camera optimizer's deltas in its 16-column layout (a right-multiplied twist in the OpenCV camera frame, one focal
-column added to fx and fy, principal point, skew, k1-k4, p1, p2) with its ``free`` column mask and per-physical-camera
-intrinsics, which COLMAP's camera models and parametrization do not express (no skew, no polynomial k4, fx and fy of a
-PINHOLE camera refined apart, distortion freed all or none), so the anchor lands in the optimizer's coordinates with
-no conversion; and ``fit_anchor``'s test needs the costs of two nested fits on one objective. Where the two do the
-same job (all points fixed; poses alone, or poses and the one focal length of a SIMPLE_* camera) they agree to the
-tolerances tests/test_track_fit_pycolmap.py states.
-
-The residuals are in pixels; a camera's translation deltas are in the units of the world the tracks live in. A
-similarity of points and cameras (nerfstudio's normalization) leaves the rotation and intrinsics deltas unchanged and
-scales the translation deltas by the similarity's scale (``TrackEvidence.world_scale``).
+Residuals are in pixels, translation deltas in the tracks' world units: a similarity of the world scales the
+translation deltas by its scale (``TrackEvidence.world_scale``) and leaves the others unchanged.
 """
 
 from __future__ import annotations
@@ -51,20 +26,14 @@ from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
 from s2camp_ns.core.tracks import Tracks, per_image_rms
 
 INTRINSICS_REFIT_LEVEL = 1e-3
-"""Significance level at which the tracks must call for other intrinsics than the given ones before the anchor takes
-them (``fit_anchor``): a fixed statistical level, the same for every scene."""
+"""Significance level at which the tracks must call for other intrinsics than the given ones (``fit_anchor``)."""
 MIN_OBSERVATIONS = 10
-"""Valid observations an image needs to be fitted: with fewer its six pose parameters are barely determined (three
-points fit any pose exactly), so the RMS at the fit would say nothing of the noise and a prior of that scale would pin
-the camera to an arbitrary pose. Such images keep their given camera and get no RMS (NaN: no prior)."""
+"""Valid observations an image needs to be fitted (fewer barely determine its pose); others keep their given pose
+and get RMS NaN (no prior)."""
 LOSS_SCALE_PX = 1.0
-"""Scale c (px) of the fit's Cauchy loss (module docstring): residuals well within c count as in least squares, those
-far beyond it about logarithmically, so a few wrong matches do not pull the cameras. The bundle adjustments that place
-the tracks' points use the same loss (``s2camp_ns.nerfstudio.robust_adjustment.cauchy_adjustment_options``: the image
-tracks' and the re-adjustment of SfM's points), so the anchor weighs observations as they did. Against plain least
-squares the image tracks' adjustment ended with clearly smaller rotation errors on a small scene and on the regime
-scene, from noisy and from true cameras, and focal length errors no larger (docs/DESIGN-NOTES.md sec. 8, "Cauchy
-loss")."""
+"""Scale c (px) of the Cauchy loss: residuals well within c count as in least squares, those beyond it about
+logarithmically. The bundle adjustments that place the tracks' points use the same loss
+(``s2camp_ns.nerfstudio.robust_adjustment.cauchy_adjustment_options``)."""
 _MAX_ITERATIONS = 50
 
 
@@ -73,22 +42,18 @@ class TrackFit:
     """Result of ``fit_cameras_to_tracks``."""
 
     deltas: Float[Tensor, "n 16"]
-    """Deltas (``PARAMETER_NAMES`` columns, float64) that move each given camera to the minimum of the robust cost
-    (module docstring); zero in the columns that were not free and in the pose of images with too few observations."""
+    """Deltas (``PARAMETER_NAMES`` columns, float64) at the minimum of the robust cost; zero in the columns not free
+    and in the pose of images with too few observations."""
     rms_px: Float[Tensor, " n"]
-    """Plain (not robust) reprojection RMS per image at the fit over all its valid observations, outliers included
-    (pixels; NaN with fewer than ``MIN_OBSERVATIONS`` valid observations): the tracks' own noise. Only the fit is
-    robust: an outlier does not move the cameras much, but it does count here with its full square."""
+    """Plain reprojection RMS (px) per image at the fit, outliers included; NaN below ``MIN_OBSERVATIONS``."""
     rms_given_px: Float[Tensor, " n"]
-    """Plain reprojection RMS per image of the given cameras over all their valid observations (as
-    ``core.tracks.track_reprojection_rms``), for comparison."""
+    """Plain reprojection RMS per image as given (``core.tracks.track_reprojection_rms``)."""
     iterations: int
     """Levenberg-Marquardt iterations taken."""
     observations: Float[Tensor, " n"]
     """Valid observations per image at the fit (0 for an image that was not fitted)."""
     intrinsics_held: Bool[Tensor, " c"] | None = None
-    """``fit_anchor`` only: per physical camera, True where the tracks do not call for other intrinsics than the given
-    ones (``INTRINSICS_REFIT_LEVEL``), so the fit kept them and moved only the poses."""
+    """``fit_anchor`` only: per physical camera, True where the fit kept the given intrinsics (poses only)."""
 
 
 def cauchy_loss(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
@@ -98,8 +63,7 @@ def cauchy_loss(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
 
 
 def cauchy_weight(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
-    """rho'(s) = 1 / (1 + s / c^2): an observation's weight in the reweighted normal equations. For this loss
-    rho'(s) + s rho''(s) = rho'(s)^2 (``fit_anchor``'s scale uses it)."""
+    """rho'(s) = 1 / (1 + s / c^2), the reweighting; for this loss rho'(s) + s rho''(s) = rho'(s)^2."""
     return 1.0 / (1.0 + squared / LOSS_SCALE_PX**2)
 
 
@@ -120,9 +84,7 @@ def reprojection_residuals(
     intrinsics: Intrinsics,
     pixels: Float[Tensor, "o 2"],
 ) -> tuple[Float[Tensor, "o 2"], Float[Tensor, " o"]]:
-    """Projected minus observed pixel of each observation under its refined camera (``points_cam``: the point in the
-    given camera's frame, moved by c2w' = c2w exp(xi) as in ``core.camera.project_with_delta``), and the validity
-    margin."""
+    """Projected minus observed pixels under the deltas (``points_cam``: given camera frame), and validity margins."""
     projected, margin = project(
         apply_pose_delta(points_cam, deltas[:, :NUM_POSE_PARAMS]), intrinsics.with_delta(deltas)
     )
@@ -130,8 +92,7 @@ def reprojection_residuals(
 
 
 def points_in_given_cameras(tracks: Tracks, c2w: Float[Tensor, "n 3 4"]) -> Float[Tensor, "o 1 3"]:
-    """Each observation's point in its observing camera's frame, R^T (x - c) (float64, CPU): what the fits and the
-    track loss move by the deltas."""
+    """Each observation's point in its image's given camera frame, R^T (x - c) (float64, CPU)."""
     c2w = c2w.detach().to("cpu", torch.float64)
     image = tracks.image.to("cpu", torch.long)
     points = tracks.points.detach().to("cpu", torch.float64)[tracks.point.to("cpu", torch.long)]
@@ -143,13 +104,10 @@ class _Problem:
     """The fixed data of a fit, one row per observation (float64, CPU), and the free columns."""
 
     image: Int[Tensor, " o"]
-    group: Int[Tensor, " o"]
-    """Physical camera of each observation."""
-    groups: Int[Tensor, " n"]
-    """Physical camera of each image."""
+    group: Int[Tensor, " o"]  # physical camera of each observation
+    groups: Int[Tensor, " n"]  # physical camera of each image
     num_groups: int
-    points_cam: Float[Tensor, "o 1 3"]
-    """Each observed point in its given camera's frame, R^T (x - c)."""
+    points_cam: Float[Tensor, "o 1 3"]  # R^T (x - c) in the given camera frame
     intrinsics: Intrinsics
     pixels: Float[Tensor, "o 2"]
     pose_columns: list[int]
@@ -171,9 +129,8 @@ class _Problem:
         return residual, (margin > 0).to(torch.float64)
 
     def jacobian(self, pose: Float[Tensor, "n p"], intr: Float[Tensor, "c m"]) -> Float[Tensor, "o 2 k"]:
-        """Exact Jacobian of each observation's residual over the free columns (pose columns first): observation o
-        depends on its own row of deltas only, so the gradient of the sum of the u (then v) residuals with respect to
-        the [O, 16] rows is every observation's Jacobian row."""
+        """Exact Jacobian of each residual over the free columns (pose first): observation o depends on its own row of
+        deltas only, so the gradient of the summed u (then v) residuals over the [O, 16] rows is every Jacobian row."""
         base = self.deltas(pose, intr).requires_grad_(True)
         with torch.enable_grad():
             projected = reprojection_residuals(base, self.points_cam, self.intrinsics, self.pixels)[0]
@@ -214,8 +171,8 @@ def _problem(
 def _levenberg_marquardt(
     problem: _Problem, fitted: Float[Tensor, " n"], max_iterations: int
 ) -> tuple[Float[Tensor, "n p"], Float[Tensor, "c m"], Float[Tensor, "o 2"], Float[Tensor, " o"], int]:
-    """Robust Levenberg-Marquardt from zero deltas (module docstring) of the images with ``fitted`` 1; returns the
-    pose and intrinsics deltas, the residuals and validity (0 also for images not fitted) there, and the iterations."""
+    """Robust Levenberg-Marquardt from zero deltas of the images with ``fitted`` 1: pose and intrinsics deltas,
+    residuals and validity (0 for images not fitted) there, and the iterations."""
     n, p, m = fitted.shape[0], len(problem.pose_columns), len(problem.intrinsics_columns)
 
     def evaluate(pose: Tensor, intr: Tensor) -> tuple[Tensor, Tensor, float]:
@@ -245,8 +202,8 @@ def _levenberg_marquardt(
         trial_pose, trial_intr = pose + step_pose, intr + step_intr
         trial_residual, trial_valid, trial_cost = evaluate(trial_pose, trial_intr)
         if trial_cost < cost:
-            # Converged: the cost stopped falling (to about its rounding: reweighting converges linearly, so a fall
-            # of 1e-10 can leave the solution well short of its optimum), or the RMS is below 1e-10 px.
+            # Converged: the cost stopped falling (to about its rounding; reweighting converges linearly), or the
+            # RMS is below 1e-10 px.
             converged = cost - trial_cost <= 1e-14 * cost or trial_cost <= 1e-20 * problem.image.shape[0]
             pose, intr, residual, valid, cost = trial_pose, trial_intr, trial_residual, trial_valid, trial_cost
             damping = max(damping / 10.0, 1e-12)
@@ -294,13 +251,9 @@ def fit_cameras_to_tracks(
     camera_of_image: Int[Tensor, " n"] | None = None,
     max_iterations: int = _MAX_ITERATIONS,
 ) -> TrackFit:
-    """Robust Levenberg-Marquardt fit of the ``free`` deltas of every camera to its tracks (module docstring).
-
-    ``c2w``: OpenCV camera-to-world in the tracks' world; ``free``: a mask over, or the indices of, the 16
-    ``PARAMETER_NAMES`` columns that move (pose columns per image, intrinsics columns per physical camera);
-    ``camera_of_image``: physical camera 0..C-1 of each image (default: one per image). Runs in float64 on the CPU.
-    The deltas minimize the robust cost; the RMS values are plain (``TrackFit``).
-    """
+    """Robust fit of the ``free`` deltas to the tracks (module docstring), float64 on the CPU. ``c2w``: OpenCV
+    camera-to-world in the tracks' world; ``free``: mask or indices of the 16 ``PARAMETER_NAMES`` columns that move;
+    ``camera_of_image``: physical camera 0..C-1 of each image (default: one per image)."""
     return _fit(tracks, c2w, intrinsics, free, camera_of_image, max_iterations)[0]
 
 
@@ -311,27 +264,15 @@ def fit_anchor(
     free: Bool[Tensor, " 16"] | tuple[int, ...],
     camera_of_image: Int[Tensor, " n"] | None = None,
 ) -> TrackFit:
-    """The track prior's anchor: ``fit_cameras_to_tracks``, with each physical camera's intrinsics moved from the
-    given ones only where the tracks call for it.
+    """The track prior's anchor: ``fit_cameras_to_tracks`` with the intrinsics free (refit) and held (poses only);
+    a physical camera takes the refit only where the fall of the robust cost from the held fit is significant at
+    ``INTRINSICS_REFIT_LEVEL`` (freeing intrinsics SfM held moves the focal length by noise).
 
-    Cameras straight out of SfM sit at the optimum of SfM's own camera model, in which some intrinsics were held
-    (COLMAP's SIMPLE_RADIAL refines neither the principal point nor a second distortion term). Freeing those in a
-    camera-only refit moves the focal length a little along with them, by noise (on the regime scene's SfM cameras
-    further from the truth), for a fall of the cost that the freed parameters fitted to noise explain. So the
-    intrinsics are refitted (with the poses) and kept fixed (poses only), and the refit is the anchor of a physical
-    camera only where the fall of the robust cost from the held fit to the refit, over the cost's noise scale lambda,
-    is beyond ``INTRINSICS_REFIT_LEVEL`` of a chi-square with one degree of freedom per free intrinsic. Cameras
-    changed after SfM (a perturbation, another tool's calibration) fail that test by orders of magnitude and get the
-    refit.
-
-    The test is the robust likelihood ratio (drop in dispersion) of Schrader and Hettmansperger. Its noise model: the
-    points exact and the observations' pixel errors independent and isotropic, all of one distribution, whatever it
-    is (keypoint noise with a share of gross mismatches). Under the given intrinsics the fall is then asymptotically
-    lambda chi2_m, lambda = E[s rho'(s)^2] / (2 E[rho'(s) + s rho''(s)]) (s: an observation's squared residual),
-    estimated per physical camera from the refit's residuals with the factor N / dof (N valid observations, dof the
-    residuals less the fitted parameters), so that with the plain loss (rho(s) = s) lambda is the unbiased noise
-    variance per axis and the test is Wilks' for Gaussian noise. Both costs are the two fits' own objective at their
-    own optima: the fits are nested on one objective.
+    The test is Schrader and Hettmansperger's robust likelihood ratio (drop in dispersion; exact points, independent
+    isotropic pixel errors of one distribution): under the given intrinsics the fall is asymptotically lambda chi2_m
+    (m free intrinsics), lambda = E[s rho'(s)^2] / (2 E[rho'(s) + s rho''(s)]) (s: squared residual), estimated per
+    camera from the refit's residuals with the factor N / dof (N valid observations, dof residuals less fitted
+    parameters); with rho(s) = s it is the unbiased noise variance per axis and the test is Wilks'.
     """
     full, full_squared, full_valid = _fit(tracks, c2w, intrinsics, free, camera_of_image, _MAX_ITERATIONS)
     mask = _free_mask(free)
@@ -384,9 +325,8 @@ def _solve_normal_equations(
     m: int,
     damping: float,
 ) -> tuple[Float[Tensor, "n p"], Float[Tensor, "c m"]]:
-    """Levenberg-Marquardt step of the block-sparse normal equations: poses eliminated per image (Schur complement),
-    one m x m system per physical camera (``camera``: each image's). Marquardt's scaling (damping times the
-    diagonal) keeps the pixel, radian and scene units comparable; an image without observations gets a zero step."""
+    """Damped step of the normal equations, poses eliminated per image (Schur complement), one m x m system per
+    physical camera (``camera``: each image's); an image without observations gets a zero step."""
     num_images = camera.shape[0]
     j_pose, j_intr = jacobian[..., :p], jacobian[..., p:]
     a = torch.zeros(num_images, p, p, dtype=torch.float64).index_add_(0, image, j_pose.transpose(1, 2) @ j_pose)
@@ -417,12 +357,11 @@ def _solve_normal_equations(
 
 @dataclass(frozen=True)
 class TrackEvidence:
-    """A scene's tracks with the given cameras in the tracks' world: what ``fit_cameras_to_tracks`` needs, and the
-    scale that takes its translation deltas to the training frame."""
+    """A scene's tracks, the given cameras in the tracks' world, and the scale to the training frame."""
 
     tracks: Tracks
     c2w: Float[Tensor, "n 3 4"]
-    """The training cameras as given (after any perturbation), OpenCV camera-to-world in the tracks' world."""
+    """The training images' poses as given (after any perturbation), OpenCV camera-to-world, tracks' world."""
     world_scale: float
     """Training-frame units per unit of the tracks' world (nerfstudio's ``dataparser_scale``)."""
 

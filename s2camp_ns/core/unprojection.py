@@ -1,15 +1,9 @@
 """Pixels to rays, the inverse of ``core.camera.project``, and the image's extent in ray space.
 
-Pixels [N, L, 2] of N cameras (continuous coordinates, the image covering [0, W] x [0, H]) map to rays in the
-OpenCV camera frame (x right, y down, z forward): ``unproject`` gives the undistorted tangents (a, b) = (x / z, y / z)
-(perspective cameras, and fisheye ones below 90 degrees), ``pixel_to_ray_direction`` unit directions (fisheye
-cameras also beyond 90 degrees). The distortion is inverted by ``core.distortion`` (Newton, with implicit-function
-gradients), so both are differentiable in the pixels and the intrinsics; the inverse is unique where
-``core.distortion.check_distortion_monotonic`` holds, which ``Intrinsics.validate`` enforces.
-
-The image's extent: ``tangent_bounds``, the box of tangents whose rays land inside the image (perspective only; the
-paper's half angles alpha = atan(W / 2f) of eq. 13 with an off-centre principal point and distortion included), and
-``vertical_field_of_view``, the angle between the rays through the top and bottom edges (the viewer's frusta).
+Pixels [N, L, 2] map to OpenCV camera-frame rays: ``unproject`` to undistorted tangents (x / z, y / z),
+``pixel_to_ray_direction`` to unit directions (fisheye also beyond 90 degrees); both differentiable in the pixels and
+the intrinsics (``core.distortion``'s inverses). ``tangent_bounds`` is the box of tangents landing in the image (the
+paper's eq. 13 with an off-centre principal point and distortion), ``vertical_field_of_view`` the vertical angle.
 """
 
 from __future__ import annotations
@@ -21,17 +15,11 @@ from jaxtyping import Float
 from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics
-from s2camp_ns.core.distortion import (
-    distorted_coordinates,
-    distortion_columns,
-    undistort_scale,
-    undistort_tangents,
-)
+from s2camp_ns.core.distortion import distorted_coordinates, distortion_columns, undistort_scale, undistort_tangents
 
 
 def _fisheye_directions(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 3"]:
-    """Unit directions of fisheye pixels: theta from theta_d = |(a_d, b_d)| by ``undistort_scale`` (theta = theta_d
-    for a form without distortion terms)."""
+    """Unit directions of fisheye pixels, theta from theta_d = |(a_d, b_d)| by ``undistort_scale``."""
     a_d, b_d = distorted_coordinates(pixels, intrinsics)
     theta_d2 = a_d * a_d + b_d * b_d
     k1, k2, k3, k4, _, _ = distortion_columns(intrinsics)
@@ -40,17 +28,13 @@ def _fisheye_directions(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) 
     else:  # theta / theta_d
         scale = undistort_scale(theta_d2, k1, k2, k3, k4, intrinsics.newton_iterations)
     theta = scale * torch.sqrt(torch.clamp(theta_d2, min=torch.finfo(theta_d2.dtype).tiny))
-    # sin(theta) / theta_d = scale * sinc(theta), finite on the optical axis.
+    # sin(theta) / theta_d = scale * sinc(theta), finite on the optical axis
     lateral = scale * torch.sinc(theta / math.pi)
     return torch.stack([a_d * lateral, b_d * lateral, torch.cos(theta)], dim=-1)
 
 
 def unproject(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 2"]:
-    """Undistorted tangents (a, b) = (x/z, y/z) of the rays through the given pixels (inverse of ``project``).
-
-    For fisheye cameras these are tan(theta) times the ray's azimuth direction, defined only below 90 degrees; use
-    ``pixel_to_ray_direction`` for rays at any angle.
-    """
+    """[n, l, 2] undistorted tangents (x/z, y/z) of the rays through pixels (fisheye: below 90 degrees only)."""
     if intrinsics.is_fisheye:
         directions = _fisheye_directions(pixels, intrinsics)
         return directions[..., :2] / directions[..., 2:]
@@ -60,7 +44,7 @@ def unproject(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[T
 
 
 def pixel_to_ray_direction(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 3"]:
-    """Unit ray directions in the camera frame through the given pixels (fisheye: also beyond 90 degrees)."""
+    """[n, l, 3] unit camera-frame ray directions through pixels (fisheye: also beyond 90 degrees)."""
     if intrinsics.is_fisheye:
         return _fisheye_directions(pixels, intrinsics)
     tangents = unproject(pixels, intrinsics)
@@ -69,11 +53,7 @@ def pixel_to_ray_direction(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsic
 
 
 def vertical_field_of_view(intrinsics: Intrinsics) -> Float[Tensor, " n"]:
-    """Angle between the rays through the top and the bottom edge of the image at the principal point's column.
-
-    The sum of the two rays' angles to the optical axis, so distortion and an off-centre principal point count, and
-    a fisheye's field of view can exceed 180 degrees (pinhole with cy = h / 2: 2 atan(h / (2 fy))).
-    """
+    """[n] sum of the angles to the optical axis of the rays through the top and bottom edge at column cx."""
     zeros = torch.zeros_like(intrinsics.cx)
     edges = torch.stack([torch.stack([intrinsics.cx, zeros], -1), torch.stack([intrinsics.cx, intrinsics.height], -1)])
     directions = pixel_to_ray_direction(edges.transpose(0, 1), intrinsics)
@@ -82,14 +62,8 @@ def vertical_field_of_view(intrinsics: Intrinsics) -> Float[Tensor, " n"]:
 
 
 def tangent_bounds(intrinsics: Intrinsics, samples_per_edge: int = 129, inset: float = 1e-5) -> Float[Tensor, "n 4"]:
-    """Inner box (a_min, a_max, b_min, b_max) of undistorted tangents whose rays land inside the image.
-
-    The image border is unprojected at ``samples_per_edge`` points per edge. With barrel distortion the border
-    bends inwards in tangent space, so the box takes the innermost tangent of each edge; with pincushion
-    distortion it bends outwards and the box corners are the undistorted image corners. Between the border
-    samples the extreme tangent can lie slightly further in, so the box is inset by ``inset`` of its size.
-    Perspective cameras only: a fisheye's field of view need not fit a tangent box (none exists past 90 degrees).
-    """
+    """[n, 4] inner box (a_min, a_max, b_min, b_max) of tangents whose rays land in the image: the innermost
+    unprojected border sample per edge, inset by ``inset`` of its size. ValueError for fisheye cameras."""
     if intrinsics.is_fisheye:
         raise ValueError(
             "tangent_bounds needs a perspective camera, got model 'fisheye': a fisheye's field of view has no "

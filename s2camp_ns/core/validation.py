@@ -1,8 +1,7 @@
-"""Input checks that fail early with a message naming the parameter, its value and the allowed range.
+"""Input checks raising ``ValueError`` that names the parameter, its value and the allowed range.
 
-Silent NaNs are the worst failure mode of a preconditioner: a bad focal length or an empty frustum turns P
-into NaN and the optimizer then destroys the cameras. Every public entry point of the core validates its
-inputs with these helpers.
+A bad focal length or an empty frustum would turn P into NaN silently, so every public entry point of the core
+validates its inputs with these.
 """
 
 from __future__ import annotations

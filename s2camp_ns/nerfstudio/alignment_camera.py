@@ -1,9 +1,5 @@
-"""The held-out camera of test-time alignment and its two variables (``test_time_alignment``'s module docstring).
-
-A held-out view starts from an OpenGL camera-to-world matrix (nerfstudio's convention) in the model's frame and
-its intrinsics; the alignment moves it by a local se(3) twist, c2w' = c2w exp(xi) in the OpenCV camera frame (the
-S2CamP camera model, ``core.camera``), and scales its focal lengths by exp(log_focal). Shared by the ray renderer
-(nerfacto models, ``ray_alignment``) and the splat renderer (``splat_alignment``).
+"""The held-out camera of test-time alignment and its variables: an OpenGL c2w in the field's frame moved by a local
+se(3) twist (c2w' = c2w exp(xi), OpenCV camera frame), its focal lengths scaled by exp(log_focal).
 """
 
 from __future__ import annotations
@@ -33,8 +29,7 @@ def scale_focal(intrinsics: Intrinsics, factor: float | Tensor) -> Intrinsics:
 
 
 def twisted_c2w(c2w_gl: Float[Tensor, "3 4"], twist: Float[Tensor, 6]) -> Float[Tensor, "3 4"]:
-    """OpenCV camera-to-world c2w exp(twist) of an OpenGL ``c2w_gl``, in float64, differentiable in ``twist``
-    (rho, omega: ``core.camera.se3_exp``)."""
+    """OpenCV c2w exp(twist) (float64) of an OpenGL ``c2w_gl``; differentiable in ``twist`` (rho, omega)."""
     c2w_cv = opengl_to_opencv(c2w_gl.double())
     delta = se3_exp(twist.double())
     rotation = c2w_cv[:, :3] @ delta[:, :3]

@@ -1,21 +1,10 @@
-"""What an image tracks build (``image_tracks._build``) is doing and how long it takes, on the terminal.
+"""What an image tracks build (``image_tracks``) is doing and how long it takes, on the terminal.
 
-A build of hundreds of large images runs for minutes to hours in pycolmap's C++ calls, which block and send their own
-log to a file (``colmap_log``). ``BuildProgress`` shows one line per stage (rich's progress display, on stderr like the
-data parser's notices): a spinner, a bar, the counts done and the elapsed time. Stages whose work COLMAP writes to its
-feature database as it goes (SIFT features per image, matches per pair) show real per-item progress: while the C++
-call runs, a child process reads the database's row counts (``DatabaseCounter``; the database is in SQLite's WAL
-mode, in which a reader never blocks COLMAP's writes), so the build itself is unchanged. The reader must be another
-process: pycolmap links its own SQLite, and two SQLite libraries in one process break each other's POSIX locks (a
-process's locks on a file go when any of its descriptors on it closes), so a reader in this process that closed its
-connection took itself for the last one, truncated the write-ahead index that COLMAP had mapped, and the build died of
-a bus error. The other stages (triangulation,
-bundle adjustment) cannot be split without changing their result: their line shows the elapsed time while they run
-and their outcome (points, reprojection error) when done.
-
-The display writes to a duplicate of the stderr descriptor taken when the build starts, so it stays on the terminal
-while COLMAP's log has descriptors 1 and 2. Where stderr is not a terminal (a log file, a batch job) each stage is
-written as one line when it finishes, without the live bars.
+``BuildProgress`` shows one line per stage (rich, on a duplicate of the stderr descriptor, so it stays on the terminal
+while COLMAP's log holds descriptors 1 and 2; one plain line per stage where stderr is not a terminal). Stages that
+COLMAP records in its feature database as it goes (SIFT, matching) show per-item progress, read by a child process
+(``DatabaseCounter``): pycolmap links its own SQLite, and two SQLite libraries in one process break each other's
+POSIX locks. Other stages show their elapsed time, then their outcome.
 """
 
 from __future__ import annotations
@@ -36,17 +25,15 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
 POLL_SECONDS = 0.5
-"""How often (s) a stage with items reads its count from the feature database: twice a second is smooth on a
-terminal, and a count query costs well under a millisecond next to SIFT's tenths of a second per image."""
+"""How often (s) a stage with items reads its count from the feature database."""
 LOG_WIDTH = 120
-"""Line width where stderr is not a terminal (the data parser's notices use the same)."""
+"""Line width where stderr is not a terminal (as the data parser's notices)."""
 
 
 @dataclass
 class Stage:
-    """A stage: ``kind`` names it in the build's breakdown (``BuildProgress.breakdown``), ``outcome`` is set by the
-    code that runs it and shown after its description when it ends (``BuildProgress.stage``), ``seconds`` is its wall
-    time, set when it ends."""
+    """A stage: ``kind`` names it in ``BuildProgress.breakdown``; ``outcome``, set by the code that runs it, is shown
+    when it ends; ``seconds``: its wall time."""
 
     description: str
     kind: str
@@ -55,9 +42,8 @@ class Stage:
 
 
 def database_count(database: Path, table: str, where: str = "") -> int | None:
-    """Rows of ``table`` in the COLMAP database ``database`` (those that satisfy the SQL condition ``where``, when
-    given), read-only, or None while it cannot be read (not yet created, or locked a moment by a checkpoint). Only
-    while no pycolmap call has the database open (module docstring; during one: ``DatabaseCounter``)."""
+    """Rows of ``table`` in the COLMAP database (those satisfying the SQL ``where``), or None while it cannot be read.
+    Only while no pycolmap call has the database open (during one: ``DatabaseCounter``)."""
     try:
         connection = sqlite3.connect(f"file:{database}?mode=ro", uri=True, timeout=0.05)
     except sqlite3.Error:
@@ -89,10 +75,8 @@ while True:
 
 
 class DatabaseCounter:
-    """The rows of ``table`` in the COLMAP database ``database`` while COLMAP writes it, read by a child process
-    (module docstring: never by this one) every ``POLL_SECONDS``; a context manager that starts the reader on entry
-    (when ``enabled``: a live display) and stops it on exit. Calling it gives the latest count, or None while none
-    was read."""
+    """The rows of ``table`` in the COLMAP database while COLMAP writes it, read by a child process every
+    ``POLL_SECONDS`` (when ``enabled``) between entry and exit; calling it gives the latest count, or None."""
 
     def __init__(self, database: Path, table: str, enabled: bool = True) -> None:
         self.database, self.table, self.enabled = database, table, enabled
@@ -127,9 +111,8 @@ class DatabaseCounter:
 
 
 class BuildProgress:
-    """The stages of one build on the terminal (module docstring); a context manager, entered for the whole build,
-    that ends with the line ``<title>: <breakdown>`` below the stages when the build did not raise. ``console``: where
-    to show them (tests); default, a duplicate of the process's stderr descriptor."""
+    """The stages of one build on the terminal; a context manager around the whole build that ends with the line
+    ``<title>: <breakdown>`` unless the build raised. ``console`` default: a duplicate of the stderr descriptor."""
 
     def __init__(self, title: str = "Built", console: Console | None = None) -> None:
         self.title = title
@@ -144,16 +127,10 @@ class BuildProgress:
         self.console = console
         self.live = console.is_terminal and not console.is_dumb_terminal
         self._progress = Progress(
-            SpinnerColumn(finished_text="[green]✓"),
-            TextColumn("{task.description}"),
-            BarColumn(bar_width=24),
-            TextColumn("{task.fields[count]}"),
-            TimeElapsedColumn(),
-            console=console,
-            disable=not self.live,
-            redirect_stdout=False,
-            redirect_stderr=False,
-        )
+            SpinnerColumn(finished_text="[green]✓"), TextColumn("{task.description}"), BarColumn(bar_width=24),
+            TextColumn("{task.fields[count]}"), TimeElapsedColumn(), console=console, disable=not self.live,
+            redirect_stdout=False, redirect_stderr=False,
+        )  # fmt: skip
         self.stages: list[Stage] = []
         self._start = time.perf_counter()
 
@@ -187,10 +164,9 @@ class BuildProgress:
         unit: str = "",
         count: Callable[[], int | None] | None = None,
     ) -> Iterator[Stage]:
-        """Show the stage ``description`` (of ``kind``) while the block runs. With ``total`` (items, named ``unit``)
-        and ``count`` (the items done so far, or None while unknown; read every ``POLL_SECONDS`` on a thread), a bar
-        of the items done; without, a bar that pulses. When the block ends the stage shows all items done, its wall
-        time and the ``outcome`` the block set on the yielded ``Stage``."""
+        """Show the stage ``description`` (of ``kind``) while the block runs: with ``total`` items (``unit``) and
+        ``count`` (items done, or None), a bar of the items done, else a pulsing bar. At the end: its wall time and the
+        ``outcome`` the block set on the yielded ``Stage``."""
         stage = Stage(description, kind)
         label = f" {unit}" if unit else ""
         shown = f"0/{total}{label}" if total is not None else ""
@@ -226,9 +202,8 @@ class BuildProgress:
                 self._progress.update(task, completed=done, count=f"{done}/{total}{label}")
 
     def breakdown(self) -> str:
-        """The wall time of each kind of stage (summed over its stages, their number in brackets when more than one)
-        and the total since the build started, on one line: ``SIFT 12 s, matching 40 s, triangulation 3.1 s (4),
-        ...``."""
+        """One line: each kind's wall time (its stage count in brackets when more than one) and the total, e.g.
+        ``SIFT 12 s, triangulation 3.1 s (4), total 15 s``."""
         counts: dict[str, int] = {}
         for stage in self.stages:
             counts[stage.kind] = counts.get(stage.kind, 0) + 1

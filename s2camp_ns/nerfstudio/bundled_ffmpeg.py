@@ -1,13 +1,9 @@
 """imageio-ffmpeg's ffmpeg for nerfstudio's renderer on machines without a system ffmpeg.
 
-nerfstudio's ``ns-render`` stops with "Could not find ffmpeg" when no executable named ``ffmpeg`` is on PATH
-(checked after it loads the run, even with ``--output-format images``), and mediapy, which writes its videos, runs
-that same ``ffmpeg``. The registry package imageio-ffmpeg (a dependency) ships a static ffmpeg binary, H.264
-included, under a name of its own. ``use_bundled_ffmpeg``, which ``S2CampPipeline`` calls when it is set up (the
-first thing ``ns-render`` does with a run), hands that binary to mediapy (``mediapy.set_ffmpeg``) and puts it on this
-process's PATH as ``ffmpeg``, in a temporary folder of its own removed when the process ends; only where no ffmpeg is
-found on PATH, so a system ffmpeg is always the one used, and nothing is installed under the name of a system tool.
-``IMAGEIO_FFMPEG_EXE`` (imageio-ffmpeg's own setting) picks another binary.
+``ns-render`` stops with "Could not find ffmpeg" without an ``ffmpeg`` on PATH, and mediapy runs that ``ffmpeg``.
+``use_bundled_ffmpeg`` (called by ``S2CampPipeline`` when set up) hands imageio-ffmpeg's static binary to mediapy and
+puts it on this process's PATH as ``ffmpeg`` (a temporary folder removed at exit), only where PATH has no ffmpeg.
+``IMAGEIO_FFMPEG_EXE`` picks another binary.
 """
 
 from __future__ import annotations
@@ -34,8 +30,8 @@ def bundled_ffmpeg_exe() -> Path | None:
 
 
 def use_bundled_ffmpeg() -> Path | None:
-    """Where no ``ffmpeg`` is on PATH: imageio-ffmpeg's binary as ``ffmpeg`` on this process's PATH and mediapy's
-    ffmpeg (module docstring); returns the name put on PATH, None where an ffmpeg was found (or no binary is)."""
+    """Where no ``ffmpeg`` is on PATH: imageio-ffmpeg's binary as ``ffmpeg`` on PATH and mediapy's; returns the path
+    put on PATH, None where an ffmpeg was found (or no binary is)."""
     if shutil.which("ffmpeg") is not None:
         return None
     exe = bundled_ffmpeg_exe()

@@ -11,7 +11,7 @@ from s2camp_ns.core.shared_intrinsics import mean_per_camera
 
 
 def replace_cameras(cameras: Cameras, **fields) -> Cameras:
-    """A copy of ``cameras`` with the given fields replaced (nerfstudio's Cameras has no such method)."""
+    """A copy of ``cameras`` with the given fields replaced."""
     values = dict(
         camera_to_worlds=cameras.camera_to_worlds,
         fx=cameras.fx,
@@ -30,15 +30,13 @@ def replace_cameras(cameras: Cameras, **fields) -> Cameras:
 
 
 def has_distortion(cameras: Cameras) -> bool:
-    """Whether any of ``cameras`` has a non-zero distortion coefficient (what a full-image data manager undistorts)."""
+    """Whether any of ``cameras`` has a non-zero distortion coefficient."""
     return cameras.distortion_params is not None and bool((cameras.distortion_params != 0).any())
 
 
 def physical_camera_means(cameras: Cameras, camera_ids: Int[Tensor, " n"]) -> Cameras:
-    """A copy of ``cameras`` in which every image of a physical camera (``camera_ids``, one per image) holds the mean
-    over those images of fx, fy, cx, cy and the distortion: the intrinsics a refiner that shares them starts from
-    (``core.refiner``). Images that agree already (SfM's cameras) are unchanged up to rounding; a per-image
-    perturbation of the focal length (CamP's) averages out. Poses, sizes and types are kept."""
+    """A copy of ``cameras`` in which each image holds the mean fx, fy, cx, cy and distortion over its physical
+    camera's images (``camera_ids`` [n]): where shared intrinsics start from."""
     n = cameras.shape[0]
     ids = torch.as_tensor(camera_ids, dtype=torch.long).reshape(-1).cpu()
     if ids.shape[0] != n:

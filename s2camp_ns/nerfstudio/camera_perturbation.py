@@ -19,13 +19,8 @@ Perturb = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, PerturbationConfig
 def perturb_nerfstudio_cameras(
     cameras: Cameras, config: PerturbationConfig, perturb: Perturb = perturb_cameras
 ) -> Cameras:
-    """Apply the CamP perturbation (or ``perturb``, which draws from the same protocol's config) to nerfstudio
-    (OpenGL) cameras and zero their distortion.
-
-    Perspective and fisheye cameras: the protocol draws poses and focal lengths only, which both projections share
-    (a fisheye's focal scales its image-space angle as a pinhole's scales its tangent); zeroed distortion leaves a
-    fisheye equidistant.
-    """
+    """nerfstudio (OpenGL) cameras perturbed by CamP's protocol (or ``perturb``), their distortion zeroed;
+    perspective and fisheye cameras only (poses and focal lengths mean the same in both), else ValueError."""
     unsupported = sorted({int(t) for t in cameras.camera_type.reshape(-1).tolist()} - set(SUPPORTED_CAMERA_TYPES))
     if unsupported:
         names = ", ".join(CameraType(t).name for t in unsupported)

@@ -1,14 +1,9 @@
 """COLMAP model files read strictly: a corrupt or truncated file is named, with the layout that was expected.
 
-nerfstudio's readers (``nerfstudio.data.utils.colmap_parsing_utils``) trust their input: random bytes in
-``cameras.bin`` fail with ``KeyError: <model id>`` and a truncated ``images.bin`` with ``struct.error: unpack
-requires a buffer of 64 bytes``, neither of which names the file. The readers here run nerfstudio's parsing inside a
-guard that turns any parse failure into a ``ColmapModelError`` (a ``ValueError``) naming the file and its expected
-layout, and check binary files against their size: the record count in the header must fit in the file, and the
-records read must account for every byte (bytes left over mean the header or a record is wrong).
-
-Which file is read follows nerfstudio's ``ColmapDataParser``: ``cameras.txt`` and ``images.txt`` when
-``cameras.txt`` exists, else the ``.bin`` files; ``points3D.bin`` before ``points3D.txt``.
+nerfstudio's readers (``colmap_parsing_utils``) trust their input (random bytes fail with a bare ``KeyError``). Here
+any parse failure becomes a ``ColmapModelError`` naming the file and its layout, and a binary file's header count
+must fit in the file and its records must account for every byte. Which file is read follows nerfstudio's
+``ColmapDataParser`` (``model_file``).
 """
 
 from __future__ import annotations
@@ -53,16 +48,7 @@ MIN_RECORD_BYTES: dict[str, int] = {
 """Smallest possible size of one binary record, to check a header's count against the file size before reading."""
 _RECORD = {"cameras": "camera", "images": "image", "points3D": "point"}
 
-_PARSE_ERRORS = (
-    struct.error,
-    KeyError,
-    IndexError,
-    ValueError,
-    TypeError,
-    AssertionError,
-    MemoryError,
-    OverflowError,
-)
+_PARSE_ERRORS = (struct.error, KeyError, IndexError, ValueError, TypeError, AssertionError, MemoryError, OverflowError)
 """What nerfstudio's readers raise on malformed input (UnicodeDecodeError is a ValueError)."""
 
 
@@ -71,7 +57,8 @@ class ColmapModelError(ValueError):
 
 
 def model_file(recon_dir: Path, kind: Kind) -> Path:
-    """The file of ``kind`` that nerfstudio's ColmapDataParser reads from ``recon_dir`` (it may not exist)."""
+    """The file of ``kind`` nerfstudio's ColmapDataParser reads from ``recon_dir`` (may not exist): ``cameras.txt``
+    and ``images.txt`` when ``cameras.txt`` exists, else ``.bin``; ``points3D.bin`` before ``.txt``."""
     if kind == "points3D":
         binary = recon_dir / "points3D.bin"
         return binary if binary.exists() else recon_dir / "points3D.txt"
@@ -157,11 +144,8 @@ def _check_records(kind: Kind, path: Path, records: dict) -> None:
 
 
 def read_model_file(path: Path, kind: Kind) -> dict:
-    """Records of one COLMAP model file (``cameras``, ``images`` or ``points3D``, ``.bin`` or ``.txt``).
-
-    Raises FileNotFoundError when the file is missing and ColmapModelError (a ValueError naming the file and the
-    expected layout) when it cannot be parsed.
-    """
+    """Records of one COLMAP model file (``cameras``, ``images`` or ``points3D``, ``.bin`` or ``.txt``), by id.
+    FileNotFoundError when missing, ``ColmapModelError`` when it cannot be parsed."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"COLMAP model file {path} does not exist; {_expected(kind, path)}")

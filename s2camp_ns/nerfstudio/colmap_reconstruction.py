@@ -1,11 +1,7 @@
-"""nerfstudio cameras to and from a COLMAP reconstruction (pycolmap): the model ``s2camp-export-cameras`` writes
-(``export_cameras``: nerfstudio's normalization undone, the camera axes flipped from OpenGL to OpenCV, one COLMAP
-camera per physical camera or per image) and the one the image tracks are made with.
-
-The distortion is written in COLMAP's meaning (``core.colmap_models``): with ``camera_model auto`` fisheye cameras
-become OPENCV_FISHEYE (k1..k4), perspective ones RADIAL when fx = fy and there is no tangential term, OPENCV (k1, k2,
-p1, p2) otherwise, FULL_OPENCV (k3 as well, k4 = k5 = k6 = 0) when some camera has k3. nerfstudio's perspective k4
-(an r^8 term) has no COLMAP counterpart and is refused. Skew is not representable in COLMAP and is dropped.
+"""nerfstudio cameras to a COLMAP reconstruction (pycolmap): the model ``s2camp-export-cameras`` writes
+(``export_cameras``: nerfstudio's normalization undone, OpenGL axes flipped to OpenCV) and the one the image tracks
+are made with. Distortion is written in COLMAP's meaning (``core.colmap_models``); nerfstudio's perspective k4 (r^8)
+has no COLMAP counterpart and is refused; skew is dropped.
 """
 
 from __future__ import annotations
@@ -59,15 +55,12 @@ def cameras_to_reconstruction(
     projection: str = "perspective",
     camera_ids: Sequence[int] | None = None,
 ) -> pycolmap.Reconstruction:
-    """COLMAP reconstruction from OpenCV camera-to-world poses and intrinsics: one COLMAP camera per physical
-    camera (images with the same ``camera_ids`` entry share one; their intrinsics must agree), or one per image
-    when ``camera_ids`` is None.
+    """COLMAP reconstruction from OpenCV camera-to-world poses [N, 3, 4] and intrinsics (px; scalars or length N):
+    one COLMAP camera per distinct ``camera_ids`` entry (their images' intrinsics must agree), or per image when None.
 
-    Intrinsics are scalars or length-N sequences in pixels; distortion coefficients mean what they mean in
-    ``core.camera`` for ``projection`` ("perspective" or "fisheye"). ``camera_model`` auto picks the simplest model
-    that holds every camera (``core.colmap_models.colmap_model_for``): OPENCV_FISHEYE for fisheye cameras, else
-    RADIAL (f, cx, cy, k1, k2) when fx = fy and p1 = p2 = 0 for every camera, OPENCV (+ fy, p1, p2), or FULL_OPENCV
-    (+ k3) when some camera has k3.
+    Distortion means what it means in ``core.camera`` for ``projection`` ("perspective" or "fisheye"). ``camera_model``
+    auto picks the simplest model that holds every camera: OPENCV_FISHEYE for fisheye, else RADIAL, OPENCV or
+    FULL_OPENCV. Raises ValueError for invalid input.
     """
     c2w = _checked_poses(c2w_opencv, image_names)
     n = c2w.shape[0]
@@ -85,8 +78,7 @@ def cameras_to_reconstruction(
 
 
 def _checked_poses(c2w_opencv: Float[Tensor, "n 3 4"] | np.ndarray, image_names: list[str]) -> np.ndarray:
-    """``c2w_opencv`` as float64 numpy [N, 3, 4]; raises ``ValueError`` unless its shape is [N, 3, 4] and
-    ``image_names`` holds N unique names."""
+    """``c2w_opencv`` as float64 numpy [N, 3, 4]; ValueError unless ``image_names`` holds N unique names."""
     c2w = np.asarray(
         c2w_opencv.detach().cpu().double() if isinstance(c2w_opencv, Tensor) else c2w_opencv, dtype=np.float64
     )
@@ -104,8 +96,8 @@ def _checked_poses(c2w_opencv: Float[Tensor, "n 3 4"] | np.ndarray, image_names:
 
 
 def _checked_intrinsics(given: dict, n: int) -> list[dict[str, float]]:
-    """Per camera, each of ``given``'s values (scalars or length-``n`` sequences) as a float, in ``given``'s order;
-    raises ``ValueError`` for non-finite values or fx, fy, width, height not positive."""
+    """Per image, ``given``'s values (scalars or length ``n``) as floats; ValueError unless finite and fx, fy, width,
+    height positive."""
     values = {name: _as_numpy(name, v, n) for name, v in given.items()}
     for name in ("fx", "fy", "width", "height"):
         if (values[name] <= 0).any():
@@ -118,7 +110,6 @@ def _resolved_model(camera_model: str, per_camera: list[dict[str, float]], proje
     if camera_model not in CAMERA_MODELS:
         raise ValueError(f"camera_model must be one of {', '.join(map(repr, CAMERA_MODELS))}, got {camera_model!r}")
     if camera_model == "auto":
-        # The simplest model that holds every camera (the models nest: RADIAL < OPENCV < FULL_OPENCV).
         order = ("RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
         camera_model = max((colmap_model_for(v, projection) for v in per_camera), key=order.index)
     return camera_model
@@ -133,8 +124,8 @@ def _add_cameras_and_images(
     camera_model: str,
     projection: str,
 ) -> None:
-    """One COLMAP camera per distinct ``groups`` entry (ids 1.. in first-seen order; the images sharing one must
-    agree on every intrinsic, else ``ValueError``) and image i + 1 per camera i, posed by ``c2w[i]``."""
+    """One COLMAP camera per distinct ``groups`` entry (ids 1.. in first-seen order; its images' intrinsics must
+    agree, else ValueError) and image i + 1 posed by ``c2w[i]``."""
     n = len(per_camera)
     colmap_id: dict[int, int] = {}
     for i in range(n):
@@ -173,7 +164,7 @@ def _cam_from_world(c2w: np.ndarray, i: int, name: str) -> pycolmap.Rigid3d:
             f"camera {i} ({name}) has a rotation with det {np.linalg.det(rotation):.6g}, "
             "expected a proper rotation (det 1)"
         )
-    # Re-orthonormalize: float32 poses from nerfstudio are a few 1e-7 off, and COLMAP stores quaternions.
+    # Re-orthonormalize: nerfstudio's float32 poses are slightly off, and COLMAP stores quaternions.
     u, _, vt = np.linalg.svd(rotation)
     rotation = u @ vt
     world_from_cam_t = c2w[:, 3]
@@ -206,11 +197,8 @@ def export_cameras(
     camera_model: CameraModel = "auto",
     camera_ids: Sequence[int] | None = None,
 ) -> pycolmap.Reconstruction:
-    """Undo nerfstudio's normalization of (refined) training cameras and build the COLMAP reconstruction (one COLMAP
-    camera per ``camera_ids`` entry, or per image).
-
-    With ``full_image_size`` [N, 2] (width, height of the input model's cameras) the intrinsics are rescaled from
-    the training resolution to it, so the model matches the full-size images of the input model.
+    """The COLMAP reconstruction of (refined) training cameras with nerfstudio's normalization undone (one COLMAP
+    camera per ``camera_ids`` entry, or per image); intrinsics rescaled to ``full_image_size`` [N, 2] (w, h) if given.
     """
     cameras = cameras.to("cpu")
     n = cameras.shape[0]
@@ -221,25 +209,14 @@ def export_cameras(
         full = np.asarray(full_image_size, dtype=np.float64).reshape(n, 2)
         sx, sy = full[:, 0] / width, full[:, 1] / height
         width, height = full[:, 0], full[:, 1]
-    # nerfstudio's [k1, k2, k3, k4, p1, p2] are core.camera's coefficients for both projections (camera_optimizer's
-    # intrinsics_from_cameras); a perspective k4 (r^8) is refused by the COLMAP mapping.
+    # nerfstudio's [k1, k2, k3, k4, p1, p2] are core.camera's coefficients for both projections.
     distortion = {name: _column(cameras.distortion_params, n, i) for i, name in enumerate(DISTORTION)}
     return cameras_to_reconstruction(
-        c2w,
-        fx=_column(cameras.fx, n) * sx,
-        fy=_column(cameras.fy, n) * sy,
-        cx=_column(cameras.cx, n) * sx,
-        cy=_column(cameras.cy, n) * sy,
-        width=width,
-        height=height,
-        image_names=image_names,
-        camera_model=camera_model,
-        points_xyz=points_xyz,
-        points_rgb=points_rgb,
-        projection=projection_of(cameras),
-        camera_ids=camera_ids,
+        c2w, fx=_column(cameras.fx, n) * sx, fy=_column(cameras.fy, n) * sy, cx=_column(cameras.cx, n) * sx,
+        cy=_column(cameras.cy, n) * sy, width=width, height=height, image_names=image_names, camera_model=camera_model,
+        points_xyz=points_xyz, points_rgb=points_rgb, projection=projection_of(cameras), camera_ids=camera_ids,
         **distortion,
-    )
+    )  # fmt: skip
 
 
 def read_points(model_path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,6 @@
 """A COLMAP scene (mip-NeRF 360 layout) read through nerfstudio's ``ColmapDataParser``, validated: model files read
-strictly, every camera model checked and its distortion mapped explicitly (``core.colmap_models``), the images the
-model lists found on disk in the folder read, their sizes checked and the intrinsics fitted to them
-(``scene_formats.fit_intrinsics_to_images``)."""
+strictly, camera models checked and their distortion mapped explicitly (``core.colmap_models``), the listed images
+found on disk and the intrinsics fitted to their sizes (``scene_formats.fit_intrinsics_to_images``)."""
 
 from __future__ import annotations
 
@@ -36,11 +35,8 @@ NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 def validate_colmap_cameras(recon_dir: Path) -> dict[int, str]:
-    """Check every COLMAP camera uses a supported model; return camera id -> model name.
-
-    Reads the file nerfstudio's parser reads (``cameras.txt`` first, as it does); a corrupt or truncated file raises
-    ``ColmapModelError`` naming it (see ``colmap_model``).
-    """
+    """Camera id -> model name of the model's cameras; ValueError unless every camera uses one supported model
+    (``ColmapModelError`` for a corrupt file)."""
     path = model_file(recon_dir, "cameras")
     cameras = read_model_file(path, "cameras")
     if not cameras:
@@ -63,11 +59,8 @@ def validate_colmap_cameras(recon_dir: Path) -> dict[int, str]:
 
 
 def nerfstudio_frame_intrinsics(camera) -> dict:
-    """Per-frame intrinsics in the keys of nerfstudio's COLMAP reader, mapped explicitly (``core.colmap_models``).
-
-    k4 is left out on purpose: nerfstudio's reader refuses any nonzero k4 (even OPENCV_FISHEYE's, which its fisheye
-    renderer does use); ``distortion_of`` supplies all six coefficients afterwards.
-    """
+    """Per-frame intrinsics in the keys of nerfstudio's COLMAP reader, without k4 (which that reader refuses even
+    for OPENCV_FISHEYE; ``distortion_of`` supplies all six coefficients afterwards)."""
     values = colmap_to_values(camera.model, camera.params)
     fisheye = CAMERA_MODEL_PROJECTION[camera.model] == "fisheye"
     frame = {"w": camera.width, "h": camera.height, "camera_model": "OPENCV_FISHEYE" if fisheye else "OPENCV"}
@@ -77,16 +70,14 @@ def nerfstudio_frame_intrinsics(camera) -> dict:
 
 
 def distortion_of(camera) -> list[float]:
-    """nerfstudio's distortion_params [k1, k2, k3, k4, p1, p2] of a COLMAP camera (the same coefficients in COLMAP's
-    meaning: OpenCV's radial-tangential k1, k2, k3, p1, p2, or OPENCV_FISHEYE's k1..k4)."""
+    """nerfstudio's distortion_params [k1, k2, k3, k4, p1, p2] of a COLMAP camera."""
     values = colmap_to_values(camera.model, camera.params)
     return [values[name] for name in NERFSTUDIO_DISTORTION]
 
 
 @contextmanager
 def _explicit_camera_mapping():
-    """Let nerfstudio's COLMAP reader use ``nerfstudio_frame_intrinsics`` for the per-camera step (its own raises
-    NotImplementedError for FULL_OPENCV); restored on exit."""
+    """nerfstudio's COLMAP reader with ``nerfstudio_frame_intrinsics`` (its own refuses FULL_OPENCV) in the block."""
     original = colmap_dataparser.parse_colmap_camera_params
     colmap_dataparser.parse_colmap_camera_params = nerfstudio_frame_intrinsics
     try:
@@ -96,8 +87,7 @@ def _explicit_camera_mapping():
 
 
 class ValidatingColmapDataParser(ColmapDataParser):
-    """nerfstudio's COLMAP parser plus file checks; remembers the full-size image sizes for the intrinsics fix and
-    each image's distortion (``distortion_of``)."""
+    """nerfstudio's COLMAP parser plus file checks; remembers each image's full size and distortion."""
 
     def __init__(self, config: ColmapDataParserConfig, image_folder: Path):
         super().__init__(config)
@@ -120,8 +110,8 @@ class ValidatingColmapDataParser(ColmapDataParser):
         return out
 
     def _read_model_strictly(self, recon_dir: Path) -> Path:
-        """Check the model's cameras and images (read strictly first, so that a corrupt file is named before
-        nerfstudio's reader trips over it) and remember each image's distortion and size source; the images file."""
+        """Read the cameras and images strictly (a corrupt file named before nerfstudio's reader trips over it),
+        remember each image's distortion and size source; returns the images file."""
         camera_models = validate_colmap_cameras(recon_dir)
         images_file = model_file(recon_dir, "images")
         if not images_file.exists():
@@ -178,19 +168,15 @@ def has_points(model: Path) -> bool:
 def parse_colmap(
     config: S2CampDataParserConfig, data: Path, model: Path, split: str
 ) -> tuple[DataparserOutputs, ParsedSplit]:
-    """The split of the COLMAP scene ``data`` (model folder ``model``): nerfstudio's outputs with the cameras fitted
-    to the images read and their distortion mapped explicitly, and what is known of its images."""
+    """The split of the COLMAP scene ``data`` (model folder ``model``): nerfstudio's outputs, cameras fitted to the
+    images read, and the ``ParsedSplit``."""
     k = resolve_downscale(data, config.images_path, config.downscale_factor)
     full_folder = data / config.images_path
     image_folder = full_folder if k == 1 else full_folder.with_name(f"{full_folder.name}_{k}")
     colmap_config = ColmapDataParserConfig(
-        data=data,
-        colmap_path=model.relative_to(data),
-        images_path=config.images_path,
-        downscale_factor=k,
-        load_3D_points=config.load_3D_points and has_points(model),
-        **nerfstudio_parser_options(config),
-    )
+        data=data, colmap_path=model.relative_to(data), images_path=config.images_path, downscale_factor=k,
+        load_3D_points=config.load_3D_points and has_points(model), **nerfstudio_parser_options(config),
+    )  # fmt: skip
     parser = ValidatingColmapDataParser(colmap_config, image_folder)
     outputs = parser.get_dataparser_outputs(split=split)
     if not outputs.image_filenames:

@@ -1,17 +1,10 @@
 """The SfM tracks of a COLMAP model, for ``core.tracks``: each training image's observations of the model's 3D points.
 
-Points stay in COLMAP's world frame; the dataparser maps the training cameras back to that frame
-(``colmap_world.c2w_to_colmap_world``) before measuring, so nerfstudio's normalization never touches the points.
-
-Pixels. COLMAP's keypoints are in the pixels of the model's cameras (their declared width x height, top-left pixel
-centre at (0.5, 0.5)). The training cameras describe the images the parser reads, which may be a downscaled folder
-whose sizes were rounded (mip-NeRF 360's ``images_4``: 3114 x 2075 -> 779 x 519, per-axis ratios 779 / 3114 and
-519 / 2075, not 1 / 4). The data parser fits the cameras' intrinsics to those images by the per-axis ratio
-(``scene_formats.fit_intrinsics_to_images``), so the keypoints must be scaled by the same ratio, not by the downscale
-factor: with 1 / k a rounded folder's tracks would disagree with exact cameras by up to half a pixel at the image
-border and the anchor fit would refit the intrinsics to absorb it. In this pixel convention (pixel edges at
-integers) a resize by (sx, sy) maps u -> sx u and v -> sy v exactly, as it maps fx, cx -> sx fx, sx cx.
-Observations without a 3D point (point3D_id -1) are not part of a track.
+Points stay in COLMAP's world; the data parser maps the training cameras back to it
+(``colmap_world.c2w_to_colmap_world``). Keypoints are in the pixels of the model's cameras (top-left pixel centre at
+(0.5, 0.5)) and are scaled to the training images by each image's per-axis size ratio, as the data parser scales the
+intrinsics (``scene_formats.fit_intrinsics_to_images``), not by 1 / k: a rounded ``images_k`` folder would otherwise
+disagree with the cameras by up to half a pixel. Observations without a 3D point (id -1) are dropped.
 """
 
 from __future__ import annotations
@@ -30,9 +23,8 @@ from s2camp_ns.nerfstudio.colmap_model import model_file, read_model_file
 def pixel_scale_of(
     width: Tensor, height: Tensor, model_size: Float[Tensor, "n 2"] | list[tuple[int, int]]
 ) -> Float[Tensor, "n 2"]:
-    """Per-image (sx, sy) from the model's camera size (``model_size``: width, height of the camera that holds the
-    keypoints) to the training image size (``width``, ``height``: the cameras' own): the factor that takes COLMAP's
-    keypoints into the training cameras' pixels (module docstring)."""
+    """Per-image (sx, sy) [n, 2] from the model's camera size (``model_size``: width, height) to the training size
+    (``width``, ``height``): the factor from COLMAP's keypoints to the training pixels."""
     size = torch.as_tensor(model_size, dtype=torch.float64).reshape(-1, 2)
     trained = torch.stack([width.reshape(-1).double().cpu(), height.reshape(-1).double().cpu()], dim=-1)
     if trained.shape != size.shape:
@@ -44,22 +36,15 @@ def pixel_scale_of(
 
 
 MAX_SFM_TRACK_RMS_PX = 10.0
-"""Largest median, over a model's images, of each image's reprojection RMS against its own tracks (pixels of the
-model's cameras) that a model's given cameras may have. COLMAP's mapper removes every observation beyond 4 px after
-each bundle adjustment (its ``filter_max_reproj_error``), so its own models sit well below 4 px in every image (0.3 to
-1.5 px is usual); other SfM tools report a pixel or two. Ten pixels, 2.5 times COLMAP's hard limit, is more than any
-SfM output leaves, and far less than a model whose keypoints and cameras are at different scales: keypoints at a
-quarter of the declared size miss by hundreds of pixels (half the image size times 3/4 at the border)."""
+"""Largest median over a model's images of each image's reprojection RMS against its own tracks (px of the model's
+cameras): above COLMAP's 4 px filter, far below keypoints and cameras at different scales."""
 
 
 def check_sfm_track_rms(
     rms_px: Float[Tensor, " n"], width: Tensor, model_width: Tensor, images_file: Path, fallback: str
 ) -> None:
-    """Refuse a model whose given cameras miss their own tracks by far more than SfM leaves (``MAX_SFM_TRACK_RMS_PX``).
-
-    ``rms_px`` are the given cameras' reprojection RMS at the training size (NaN: no tracks), ``width`` the training
-    images' and ``model_width`` the model cameras' widths; the check is in the model's pixels. ``fallback`` says how to
-    train without the model's tracks. ValueError naming ``images_file``, the median and worst error."""
+    """ValueError (naming ``images_file`` and ``fallback``, how to train without the tracks) when the median of
+    ``rms_px`` (at the training ``width``, NaN: no tracks) exceeds ``MAX_SFM_TRACK_RMS_PX`` at ``model_width``."""
     rms = torch.as_tensor(rms_px, dtype=torch.float64).reshape(-1)
     to_model = torch.as_tensor(model_width, dtype=torch.float64).reshape(-1) / width.reshape(-1).double().cpu()
     at_model = (rms.cpu() * to_model)[torch.isfinite(rms.cpu())]
@@ -83,11 +68,9 @@ def read_colmap_tracks(
     image_size: Float[Tensor, "n 2"] | None = None,
     points_xyz: dict[int, np.ndarray] | None = None,
 ) -> Tracks:
-    """The tracks of COLMAP model folder ``model`` seen by the images ``names`` (image ``i`` of the result is
-    ``names[i]``; a name the model lacks is a ValueError naming it and the images file). With ``image_size`` (the
-    width, height of each image as the cameras describe it) the keypoints are scaled from the size of the model's
-    camera of that image to it, per axis (module docstring); None keeps the model's pixels. ``points_xyz``: the
-    points' positions by id in place of the model's (``robust_adjustment``)."""
+    """The tracks of the COLMAP model folder ``model`` seen by the images ``names`` (image i is ``names[i]``; a missing
+    name is a ValueError). ``image_size`` [n, 2]: scale keypoints to these sizes (None: the model's pixels).
+    ``points_xyz``: point positions by id in place of the model's (``robust_adjustment``)."""
     images_file = model_file(model, "images")
     images = {image.name: image for image in read_model_file(images_file, "images").values()}
     points3d = read_model_file(model_file(model, "points3D"), "points3D")
@@ -111,8 +94,8 @@ def tracks_of_images(
     images_file: Path,
     points_xyz: dict[int, np.ndarray] | None = None,
 ) -> Tracks:
-    """``read_colmap_tracks`` on a model already read: ``images`` by name, ``points3d`` by id (``images_file`` names
-    the source in errors), ``points_xyz`` the points' positions by id in place of ``points3d``'s (None: theirs)."""
+    """``read_colmap_tracks`` on a model already read: ``images`` by name, ``points3d`` by id, ``pixel_scale`` [n, 2]
+    or scalar; ``images_file`` names the source in errors."""
     scale = torch.as_tensor(pixel_scale, dtype=torch.float64)
     scale = scale.expand(len(names), 2) if scale.ndim == 0 else scale.reshape(-1, 2)
     if scale.shape[0] != len(names):

@@ -1,10 +1,5 @@
-"""nerfstudio's normalization of a scene's cameras undone: from the normalized frame nerfstudio trains in back to the
-world the cameras were given in (COLMAP's, or a transforms.json's).
-
-nerfstudio maps an original-world pose to ``T @ c2w`` (T = ``dataparser_transform`` as 4x4, which includes the COLMAP
-world axis swap), multiplies the centre by ``dataparser_scale`` and keeps OpenGL camera axes; the original world keeps
-COLMAP's OpenCV axes. Tracks, exports and reference models live in the original world.
-"""
+"""nerfstudio's normalization of a scene's cameras undone, back to the world they were given in (COLMAP's, or a
+transforms.json's), where tracks, exports and reference models live."""
 
 from __future__ import annotations
 
@@ -16,11 +11,8 @@ from s2camp_ns.core.camera import opengl_to_opencv
 def c2w_to_colmap_world(
     c2w_normalized: torch.Tensor, dataparser_transform: torch.Tensor, dataparser_scale: float
 ) -> torch.Tensor:
-    """Undo nerfstudio's normalization: normalized OpenGL c2w [N, 3, 4] -> original-world OpenCV c2w (float64).
-
-    nerfstudio maps an original-world pose to ``T @ c2w`` (T = dataparser_transform as 4x4, which includes the
-    COLMAP world axis swap) and then multiplies the centre by the scale; this inverts both and flips the camera axes.
-    """
+    """Normalized OpenGL c2w [N, 3, 4] -> original-world OpenCV c2w [N, 3, 4] (float64), inverting nerfstudio's
+    ``T @ c2w`` (T = ``dataparser_transform`` as 4x4) and the centre's scale by ``dataparser_scale``."""
     c2w = c2w_normalized.detach().double().cpu().clone()
     transform = torch.eye(4, dtype=torch.float64)
     transform[:3, :4] = dataparser_transform.detach().double().cpu()

@@ -1,14 +1,11 @@
 """Data manager whose training rays carry their pixel coordinates, so the camera optimizer can cast them.
 
-nerfstudio's ``RayGenerator`` turns sampled ``ray_indices`` [camera, y, x] into rays with fixed intrinsics; the
-stock camera optimizer can then only move origins and directions rigidly. ``PixelRayGenerator`` also stores the
-continuous pixel centre (u, v) = (x + 0.5, y + 0.5) (OpenCV/COLMAP convention) in
-``ray_bundle.metadata[PIXEL_KEY]``. Where the model's camera optimizer casts the rays itself (S2CamP's, refining:
-``S2CampCameraOptimizer.apply_to_raybundle``, told so by the pipeline), the generator casts nothing: a ray is cast
-once per step, through the refined cameras, not first through the data parser's and then again.
+``PixelRayGenerator`` stores each ray's pixel centre (u, v) = (x + 0.5, y + 0.5) (OpenCV/COLMAP convention) in
+``ray_bundle.metadata[PIXEL_KEY]``. Where the model's camera optimizer casts the rays itself (S2CamP's, refining;
+told so by the pipeline) the generator casts nothing, so a ray is cast once per step, through the refined cameras.
 
-With several processes each rank draws its own rays: nerfstudio seeds every process with ``machine.seed`` plus its
-rank. ``global_batch_sampling`` instead makes a step's rays independent of the number of ranks (docs/SCALING.md).
+With several processes each rank draws its own rays (seed ``machine.seed`` + rank); ``global_batch_sampling`` makes a
+step's rays independent of the number of ranks.
 """
 
 from __future__ import annotations
@@ -29,18 +26,16 @@ from s2camp_ns.nerfstudio.rays import PIXEL_KEY
 
 
 class PixelRayGenerator(RayGenerator):
-    """nerfstudio's ray generator plus each ray's pixel coordinates in the ray bundle's metadata.
+    """nerfstudio's ray generator plus each ray's pixel coordinates [R, 2] in the ray bundle's metadata.
 
-    ``cast_by_model`` True: the bundle carries the camera indices and pixels only, its origins, directions and pixel
-    areas NaN until the model's camera optimizer casts them (any use before that shows as NaN, never as plausible
-    rays of the unrefined cameras).
+    ``cast_by_model``: the bundle carries camera indices and pixels only, its origins, directions and pixel areas NaN
+    until the model's camera optimizer casts them.
     """
 
     cast_by_model: bool = False
 
     def forward(self, ray_indices: Int[Tensor, "num_rays 3"]) -> RayBundle:
-        # The indices come from the pixel sampler, on the cached images' device (nerfstudio keeps images on the CPU);
-        # the pixels go with the rays, on the model's device.
+        # The indices are on the cached images' device; the pixels go with the rays, on the model's device.
         device = self.image_coords.device
         rows, cols = ray_indices[:, 1], ray_indices[:, 2]
         pixels = torch.stack([cols, rows], dim=-1).to(device=device, dtype=torch.float32) + 0.5
@@ -61,12 +56,9 @@ class S2CampDataManagerConfig(VanillaDataManagerConfig):
 
     _target: type = field(default_factory=lambda: S2CampDataManager)
     global_batch_sampling: bool = False
-    """Every rank draws the whole step's batch (train-num-rays-per-batch x ranks) from a generator seeded with
-    ``global_batch_seed`` and the step, and keeps its own slice: the ranks take different parts of one draw, together
-    the rays of a one-process run with the total batch, whatever the number of ranks (with nerfacto's
-    ``stratified-samples False`` the runs then agree up to rounding, tests/test_distributed.py). Costs ranks x batch
-    random draws per rank and step, and needs every training image cached (train-num-images-to-sample-from -1).
-    Off: each rank draws its own batch from its own seed (machine.seed + rank), nerfstudio's behaviour."""
+    """Every rank draws the step's whole batch (rays per batch x ranks) from a seed of ``global_batch_seed`` and the
+    step and keeps its slice, so the rays do not depend on the number of ranks; needs
+    train-num-images-to-sample-from -1. Off: each rank draws its own batch (nerfstudio's behaviour)."""
     global_batch_seed: int = 0
     """Seed of the global batch sampling (combined with the step)."""
 

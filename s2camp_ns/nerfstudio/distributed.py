@@ -1,18 +1,11 @@
 """Multi-process training: the one collective S2CamP adds, and a CPU (gloo) launcher for tests.
 
-On CUDA, ``ns-train s2camp --machine.num-devices N`` uses nerfstudio's own launcher unchanged (one process per GPU,
-NCCL). nerfstudio 1.1.5 cannot run several processes on the CPU: its ``_distributed_worker`` asserts CUDA, and
-``VanillaPipeline`` passes ``device_ids=[local_rank]`` to DDP and to ``dist.barrier``, which a CPU module and the
-gloo backend reject. The smallest path around it, used by the tests:
+On CUDA, ``ns-train s2camp --machine.num-devices N`` uses nerfstudio's launcher unchanged. nerfstudio 1.1.5 cannot
+run several processes on the CPU (its worker asserts CUDA; ``device_ids`` are passed to DDP and ``dist.barrier``):
+``S2CampPipeline`` wraps the model in DDP itself, and ``launch_cpu`` spawns the processes like nerfstudio's
+``launch`` with a gloo process group, each running nerfstudio's ``train_loop``::
 
-- ``S2CampPipeline`` wraps the model in DDP itself (``device_ids`` only on CUDA, see pipeline.py);
-- this module's ``launch_cpu`` replaces the launcher: it spawns the processes like nerfstudio's ``launch``, starts a
-  gloo process group instead of asserting CUDA, and runs nerfstudio's own ``train_loop`` (seed + global rank, the
-  real ``Trainer``). From the command line::
-
-      python -m s2camp_ns.nerfstudio.distributed s2camp --data scene --machine.num-devices 2
-
-  takes every ``ns-train`` option (the device type is forced to the CPU).
+    python -m s2camp_ns.nerfstudio.distributed s2camp --data scene --machine.num-devices 2
 """
 
 from __future__ import annotations
@@ -38,11 +31,8 @@ def world_size() -> int:
 
 
 def any_rank(flag: bool, device: torch.device | str) -> bool:
-    """True on every rank if ``flag`` is True on any rank: one all-reduce (MAX) of an 8-byte integer.
-
-    Without a process group (single process) it returns ``flag`` and communicates nothing. ``device`` must be the
-    rank's own device under NCCL (CUDA tensors only); gloo takes CPU tensors.
-    """
+    """True on every rank if ``flag`` is on any rank: one all-reduce (MAX); ``flag`` itself without a process
+    group. ``device``: the rank's own device under NCCL, the CPU under gloo."""
     if world_size() == 1:
         return flag
     value = torch.tensor([int(flag)], dtype=torch.int64, device=device)
@@ -88,10 +78,7 @@ def launch_cpu(
     config: TrainerConfig | None = None,
     timeout: timedelta = DEFAULT_TIMEOUT,
 ) -> None:
-    """Run ``main_func(local_rank, world_size, config, global_rank)`` in one gloo process per "device" on the CPU.
-
-    Same arguments and behaviour as nerfstudio's ``scripts.train.launch``; one process runs in this process.
-    """
+    """nerfstudio's ``scripts.train.launch`` on the CPU: one gloo process per "device" (one runs in this process)."""
     if config is None:
         raise ValueError("config must be a TrainerConfig, got None")
     if config.machine.device_type != "cpu":

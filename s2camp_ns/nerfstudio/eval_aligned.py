@@ -1,17 +1,11 @@
 """``s2camp-eval``: PSNR / SSIM (/ LPIPS) of held-out views after test-time camera alignment (CamP's protocol).
 
-``ns-eval`` renders the evaluation cameras as given. After joint camera refinement the radiance field lives in a
-frame that differs from the given cameras' by a similarity and by what the field absorbed, so ``ns-eval`` measures
-the frame difference as much as the reconstruction. This command aligns every held-out camera first (similarity
-from the training cameras, then camera-only steps against the frozen field; see ``test_time_alignment``) and
-reports the metrics before and after. It loads any run of ``s2camp``, ``s2camp-camp``, ``s2camp-so3xr3``,
-``s2camp-splat`` or ``s2camp-splat-so3xr3`` (splat models: whole-image alignment through the view matrix,
-``splat_alignment``).
+After joint refinement the field's frame differs from the given cameras' (a similarity, plus what the field
+absorbed), which ``ns-eval`` would measure too. This aligns every held-out camera first (``test_time_alignment``) and
+reports the metrics before and after, for runs of s2camp, s2camp-camp, s2camp-so3xr3, s2camp-splat and
+s2camp-splat-so3xr3. Progress goes to stderr, the table of results to stdout.
 
     s2camp-eval --load-config outputs/room/s2camp/<timestamp>/config.yml --output-path aligned.json
-
-What it is doing goes to stderr as it goes: loading the run, then (on a terminal) a bar over the alignment's work,
-each view's renders and the camera-only steps, with the time left; the table of results goes to stdout.
 """
 
 from __future__ import annotations
@@ -56,7 +50,7 @@ def _mean(values: list[float]) -> float:
 
 
 def _load(load_config: Path):
-    """``eval_setup`` of the run (nerfstudio's own output hidden), said on ``LOG``: (pipeline, checkpoint, step)."""
+    """(pipeline, checkpoint, step) of the run by ``eval_setup`` (its output hidden)."""
     LOG.print(f"[dim]s2camp-eval: loading {load_config} (scene, tracks, checkpoint)", highlight=False)
     began = time.perf_counter()
     captured = io.StringIO()

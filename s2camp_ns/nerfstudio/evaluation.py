@@ -1,17 +1,9 @@
-"""A trained pipeline's evaluation, identical for every method: camera errors, drift and held-out PSNR / SSIM.
+"""A trained pipeline's evaluation, the same for every method: camera errors, drift and held-out PSNR / SSIM.
 
-``evaluate_pipeline`` measures the training cameras the run started from and those it ended with against the true
-cameras (the model's ``reference_cameras``, else the training cameras as given), after a similarity alignment
-(``core.alignment.camera_errors``): rotation (degrees), position (normalized scene units) and focal (px) errors,
-means over the training cameras, and the reprojection drift of the scene's sparse points (``core.drift``, the data
-parser's ``points3D_xyz``). Then the held-out views after test-time alignment
-(``test_time_alignment.evaluate_held_out_views``, CamP's protocol). The benchmarks (``s2camp-bench robustness``,
-``splat``) evaluate every run with it, and ``make gpu-check`` in the training process.
-
-The pipeline needs ``datamanager.train_dataparser_outputs.metadata["points3D_xyz"]`` and a model with S2CampModel's
-camera interface: ``_train_cameras``, ``reference_cameras()``, ``uses_s2camp_optimizer`` and, for nerfstudio's own
-pose optimizer, ``refined_train_cameras()`` (stock nerfacto gets it from
-``s2camp_ns.benchmarks.gpu_check.stock_nerfacto``).
+Start and final training cameras against the true ones (``reference_cameras``, else as given) after a similarity
+alignment, the reprojection drift of the sparse points (``points3D_xyz``), then the held-out views after test-time
+alignment. The model needs S2CampModel's camera interface: ``_train_cameras``, ``reference_cameras()``,
+``uses_s2camp_optimizer`` and (nerfstudio's pose optimizer) ``refined_train_cameras()``.
 """
 
 from __future__ import annotations
@@ -35,9 +27,8 @@ from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_h
 def camera_metrics(
     model, points: Float[Tensor, "m 3"], c2w_gl: Float[Tensor, "n 3 4"], intrinsics: Intrinsics
 ) -> dict[str, float]:
-    """Errors of cameras (OpenGL c2w, ``Intrinsics``) against the model's true training cameras, after a similarity
-    alignment, and their drift: ``rot_err`` (degrees), ``pos_err``, ``focal_err`` (px), ``drift_px`` (RMS) and
-    ``drift_behind`` (points behind a camera, left out of the drift)."""
+    """Mean errors of cameras (OpenGL c2w, ``Intrinsics``) against the true training cameras after a similarity
+    alignment: ``rot_err`` (degrees), ``pos_err``, ``focal_err`` (px), ``drift_px`` (RMS), ``drift_behind``."""
     reference = model.reference_cameras()
     if reference is None:
         reference = model._train_cameras
@@ -57,8 +48,7 @@ def camera_metrics(
 
 
 def refined_cameras(model) -> tuple[Float[Tensor, "n 3 4"], Intrinsics]:
-    """OpenGL c2w and ``Intrinsics`` of the training cameras as the model sees them at the end (float64, CPU):
-    S2CamP's refined cameras, or nerfstudio's pose refinement with the intrinsics as given."""
+    """OpenGL c2w [n, 3, 4] and ``Intrinsics`` of the training cameras as the model sees them (float64, CPU)."""
     with torch.no_grad():
         if model.uses_s2camp_optimizer:
             optimizer = model.camera_optimizer
@@ -69,15 +59,14 @@ def refined_cameras(model) -> tuple[Float[Tensor, "n 3 4"], Intrinsics]:
 
 
 def evaluate_pipeline(pipeline, alignment: AlignmentConfig) -> dict:
-    """The evaluation of a trained pipeline in memory (module docstring): ``camera_metrics`` of the final cameras
-    under their names and of the start cameras as ``start_<name>``; ``psnr``, ``ssim`` and ``psnr_unaligned``, means
-    over the held-out views (``eval_views`` of them); ``eval_seconds``, the evaluation's wall time."""
+    """``camera_metrics`` of the final cameras (and of the start ones as ``start_<name>``), means over the
+    ``eval_views`` held-out views of ``psnr``, ``ssim`` and ``psnr_unaligned``, and ``eval_seconds``."""
     began = time.perf_counter()
     model = pipeline.model
     points = pipeline.datamanager.train_dataparser_outputs.metadata["points3D_xyz"].to(torch.float64)
     start_cameras = model._train_cameras
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the drift's warning about points behind a camera: counted in the row
+        warnings.simplefilter("ignore")  # points behind a camera: counted in drift_behind
         start = camera_metrics(
             model, points, start_cameras.camera_to_worlds.to(torch.float64), intrinsics_from_cameras(start_cameras)
         )

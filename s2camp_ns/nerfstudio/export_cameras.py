@@ -2,19 +2,11 @@
 
     s2camp-export-cameras --load-config outputs/scene/s2camp/DATE/config.yml --output-dir refined/sparse/0
 
-The refined cameras (pose, intrinsics and distortion) come from the camera optimizer of the trained pipeline
-(``refine_cameras(train_cameras)`` of S2CamP's optimizer; nerfstudio's pose-only
-``apply_to_camera`` otherwise). nerfstudio's normalization (dataparser transform and scale) is undone, the camera
-axes are flipped from OpenGL to OpenCV, and a COLMAP model is written with pycolmap
-(``colmap_reconstruction.export_cameras``): one COLMAP camera per physical
-camera when the intrinsics were refined per camera (the default), one per image otherwise. The distortion is
-written in COLMAP's meaning (``core.colmap_models``): with
-``camera_model auto`` fisheye cameras become OPENCV_FISHEYE (k1..k4), perspective ones RADIAL when fx = fy and
-there is no tangential term, OPENCV (k1, k2, p1, p2) otherwise, FULL_OPENCV (k3 as well, k4 = k5 = k6 = 0) when
-some camera has k3. nerfstudio's perspective k4 (an r^8 term) has no COLMAP counterpart and is refused.
-The sparse points of the input model are carried over unchanged: undoing the normalization puts the cameras back
-in the input model's world frame. Their tracks are dropped, since the exported images carry no 2D keypoints.
-Skew is not representable in COLMAP and is dropped.
+The refined cameras (S2CamP's pose, intrinsics and distortion; nerfstudio's optimizer: pose only) are taken out of
+nerfstudio's normalization, flipped from OpenGL to OpenCV and written with pycolmap
+(``colmap_reconstruction.export_cameras``): one COLMAP camera per physical camera, in COLMAP's distortion models
+(``camera_model``; nerfstudio's perspective k4 has no counterpart and is refused, skew is dropped). The input model's
+sparse points are carried over without their tracks.
 """
 
 from __future__ import annotations
@@ -37,7 +29,7 @@ LOG = Console(stderr=True)
 
 
 def refined_training_cameras(pipeline) -> Cameras:
-    """Refined cameras of every training image, in nerfstudio's normalized OpenGL frame."""
+    """Refined cameras of every training image (nerfstudio's normalized OpenGL frame)."""
     model = pipeline.model
     optimizer = getattr(model, "camera_optimizer", None)
     cameras = pipeline.datamanager.train_dataset.cameras
@@ -45,7 +37,7 @@ def refined_training_cameras(pipeline) -> Cameras:
         return cameras
     if isinstance(optimizer, S2CampCameraOptimizer):  # pose, fx, fy, cx, cy, distortion of every image
         return refined_cameras(optimizer.refiner, cameras)
-    # nerfstudio's optimizer only refines poses: apply it camera by camera (it reads cam_idx from the metadata).
+    # nerfstudio's optimizer refines poses only, one camera at a time (it reads cam_idx from the metadata).
     poses = []
     for i in range(cameras.shape[0]):
         camera = cameras[i : i + 1]
@@ -104,9 +96,7 @@ def main(config: ExportCamerasConfig) -> Path:
         xyz, rgb = read_points(Path(model_path))
     optimizer = getattr(pipeline.model, "camera_optimizer", None)
     shared = isinstance(optimizer, S2CampCameraOptimizer) and optimizer.refiner.factorisation == "block"
-    # One COLMAP camera per physical camera: the shared refinement's groups, else images whose exported intrinsics
-    # agree exactly (refinement off, pose only, or nerfstudio's pose optimizer keep the given shared intrinsics;
-    # per-image refinement gives each image its own).
+    # One COLMAP camera per physical camera: the shared refinement's groups, else images with identical intrinsics.
     camera_ids = optimizer.refiner.camera_of_image.tolist() if shared else group_identical_intrinsics(cameras).tolist()
     reconstruction = export_cameras(
         cameras,

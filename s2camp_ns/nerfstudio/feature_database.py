@@ -12,8 +12,7 @@ import pycolmap
 
 
 def names_by_camera(given: pycolmap.Reconstruction) -> dict[int, list[str]]:
-    """``given``'s image names per camera id, cameras by id and each camera's names sorted: the order in which one
-    extraction thread numbers the images."""
+    """``given``'s image names per camera id, both sorted: the order one extraction thread numbers them in."""
     by_camera: dict[int, list[str]] = {}
     for image in sorted(given.images.values(), key=lambda image: image.name):
         by_camera.setdefault(image.camera_id, []).append(image.name)
@@ -31,12 +30,9 @@ def open_database(database: Path) -> Iterator[pycolmap.Database]:
 
 
 def number_images(given: pycolmap.Reconstruction, database: Path) -> None:
-    """Write ``given``'s cameras (one rig each) and images (one frame each) into the empty ``database`` before SIFT,
-    in the order one extraction thread would number them (``names_by_camera``). SIFT on several threads finds the
-    same keypoints per image, but numbers new images in the order the threads finish them, and the later stages
-    follow the numbers; numbered first, the extractor keeps them. Each camera is marked as having a prior focal
-    length, as the extractor marks a camera it makes from given parameters (the verification then estimates
-    essential matrices)."""
+    """Write ``given``'s cameras (one rig each, a prior focal length) and images (one frame each) into the empty
+    ``database`` in ``names_by_camera`` order before SIFT, which on several threads would number images in the order
+    they finish."""
     with open_database(database) as db:
         for camera_id, names in names_by_camera(given).items():
             camera = copy.copy(given.cameras[camera_id])
@@ -54,9 +50,8 @@ def number_images(given: pycolmap.Reconstruction, database: Path) -> None:
 
 
 def given_with_database_ids(given: pycolmap.Reconstruction, database: Path) -> pycolmap.Reconstruction:
-    """``given``'s cameras and poses under the camera, rig, frame and image ids they have in ``database``
-    (``number_images``; COLMAP's triangulator matches the two by id), the images SIFT could not read (no keypoints)
-    left out."""
+    """``given``'s cameras and poses under their ids in ``database`` (COLMAP's triangulator matches by id), without
+    the images SIFT could not read."""
     with open_database(database) as db:
         stored = {image.name: image for image in db.read_all_images() if db.exists_keypoints(image.image_id)}
     given_by_name = {image.name: image for image in given.images.values()}

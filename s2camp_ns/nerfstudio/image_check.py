@@ -1,10 +1,5 @@
-"""Every image of a scene decoded in full once, where the data parser reads it, so that a damaged one is named there.
-
-An image cut short (a copy interrupted, a download stopped) keeps a valid header: PIL's ``Image.open`` reads its size
-and the scene's size checks pass, and nerfstudio's loader fails later with ``OSError: image file is truncated``,
-without the file. ``decoded_sizes`` decodes every pixel of each image on threads (PIL decodes outside the GIL), shows
-progress for large scenes, and raises ``ImageFileError`` naming the first image, in the scene's order, that cannot be
-decoded, the scene file that lists it and PIL's reason.
+"""Every image of a scene decoded in full once, where the data parser reads it, so that a damaged one is named there:
+a truncated image keeps a valid header, and nerfstudio's loader would fail later without naming the file.
 """
 
 from __future__ import annotations
@@ -19,7 +14,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 DECODE_THREADS = min(8, os.cpu_count() or 1)
-"""Threads that decode images at once (each holds one decoded image: 8 photos of 24 MP take about 600 MB)."""
+"""Threads that decode images at once (each holds one decoded image)."""
 PROGRESS_MIN_IMAGES = 200
 """Scenes of at least this many images show a progress bar while their images are decoded."""
 LOG = Console(stderr=True, width=120)
@@ -41,9 +36,8 @@ def _decode(path: Path) -> tuple[int, int] | BaseException:
 
 
 def decoded_sizes(paths: Sequence[Path], listed_by: Path | str, what: str = "images") -> list[tuple[int, int]]:
-    """(width, height) of each image of ``paths``, each decoded in full (module docstring). Raises
-    ``ImageFileError`` naming the first image that cannot be decoded, ``listed_by`` (the scene file that lists it)
-    and why. ``what`` names the images in the progress bar."""
+    """(width, height) of each image of ``paths``, decoded in full on threads. ``ImageFileError`` names the first
+    image that cannot be, ``listed_by`` (the scene file) and why; ``what`` names the images in the progress bar."""
     sizes: list[tuple[int, int]] = []
     progress = Progress(
         TextColumn(f"[dim]Decoding the {what} of {listed_by}"), BarColumn(), MofNCompleteColumn(),

@@ -1,47 +1,18 @@
-"""Tracks made from a scene's own images, for scenes that carry none (phone exports, hand-made or converted
-transforms.json files), so that the track prior anchors their cameras as it anchors SfM's (``core.track_fit``).
+"""Tracks made from a scene's own images, for scenes without an SfM model, so that the track prior anchors their
+images as it anchors SfM's (``core.track_fit``). Recipe (pycolmap; SIFT and matching on CUDA where pycolmap has it):
 
-Without tracks the photometric loss alone determines a camera's focal length only coarsely in the regime real runs
-train in, from every start (measured in docs/DESIGN-NOTES.md sec. 6, "What the images alone determine"), and a
-camera's focal length and forward motion trade against each other. Keypoint tracks determine both: on the regime scene
-the adjustment below ends as close to the true cameras from the phone-pose start as from the true cameras themselves,
-closer than pycolmap's own SfM of the same images (measured in docs/DESIGN-NOTES.md sec. 8, "Result"). Cost:
-docs/IMAGE-TRACKS.md.
+1. SIFT features (longest side at most ``MAX_IMAGE_SIZE``), one COLMAP camera per physical camera at the given
+   intrinsics.
+2. Matches verified by RANSAC between every pair of images up to ``EXHAUSTIVE_LIMIT`` images, else the
+   ``neighbour_pairs``.
+3. Points triangulated with the given cameras, then ``REFINEMENT_ROUNDS`` rounds of bundle adjustment (points, poses,
+   focal lengths, distortion; principal point fixed) and re-triangulation, and a last adjustment (``Thresholds``).
+4. A similarity (Umeyama on the camera centres) maps the result onto the given poses, whose world the images do not
+   fix.
 
-The recipe (pycolmap; SIFT and matching on a CUDA device where pycolmap has CUDA, ``feature_device``, else on the
-CPU; COLMAP's log in ``colmap.log`` of the cache folder; each stage shown with its counts and time as it runs,
-``build_progress``):
-
-1. SIFT features of the full-size images (longest side at most ``MAX_IMAGE_SIZE``), one COLMAP camera per physical
-   camera holding the given intrinsics. The caller groups the images as the refiner does: the data parser passes
-   the physical cameras of the unperturbed scene, each at the mean of its images' given intrinsics
-   (``track_evidence.image_track_evidence``), so a per-image perturbation of the focal length does not give each
-   image a focal length of its own to trade against its depth.
-2. Matches, geometrically verified (RANSAC bound ``KEYPOINT_ERROR_PX``, grown for images SIFT sees downsampled:
-   ``Thresholds``), between every pair of images up to ``EXHAUSTIVE_LIMIT`` images, else between each image and its
-   ``NEIGHBOURS`` nearest given cameras that look within 90 degrees of it (``neighbour_pairs``).
-3. Points triangulated with the given cameras, keeping observations up to ``GIVEN_ANGLE_ERROR_DEG`` times the focal
-   length off (COLMAP's fixed 4 px drops every observation of cameras a degree off at f 600 px and more), then
-   ``REFINEMENT_ROUNDS`` rounds of a bundle adjustment of points, poses, focal lengths and distortion (the principal
-   point stays) and a new triangulation with the adjusted cameras (bound ``keypoint_px``), and a last adjustment.
-4. A similarity (Umeyama on the camera centres, ``core.alignment``) maps the adjusted reconstruction onto the given
-   cameras: images do not fix the world's position, orientation and scale, so the tracks keep the given ones.
-
-The result is a COLMAP model (cameras, images, points3D) in the world of the given cameras. The track prior reads its
-points and observations like those of an SfM model and measures each camera against them (``fit_anchor``): the
-adjusted cameras become the anchor, each image's reprojection RMS its radius.
-
-Cache. The model is built once per set of images and given cameras, in ``<cache>/<key>``: the key hashes the recipe
-(``RECIPE_VERSION``, pycolmap's version), each image's name, size and modification time and the given cameras
-(intrinsics and poses, every bit). Later runs read it. On one machine two builds of one key are bit-identical
-(``feature_database.number_images``, ``MATCHING_THREADS``). A build decodes every image first
-(``image_check.decoded_sizes``: a damaged image is named, not skipped by COLMAP) and writes into a temporary sibling
-folder renamed at the end, so no process reads half a model and no entry is overwritten; the feature database is
-deleted once the model is written. ``RESULT_FILE`` holds the SHA-256 of each model file; an entry whose result does
-not parse, or whose files are missing or differ from their digests (or, in an entry written before the digests, do not
-read as a COLMAP model), is damaged: it is never used, a notice names it and why, and the tracks are built again in
-its place (``track_cache.notice_damaged``). Where the cache lives and the lock that lets one process build an entry
-while others wait: ``track_cache``.
+The result is a COLMAP model in the world of the given poses, cached in ``<cache>/<cache_key>``: built in a
+temporary sibling folder renamed when finished, each model file's SHA-256 in ``RESULT_FILE``; a damaged entry is
+never used, but named and built again (``track_cache``). Two builds of one key on one machine are bit-identical.
 """
 
 from __future__ import annotations
@@ -66,12 +37,7 @@ from s2camp_ns.core.alignment import MIN_CAMERAS_FOR_ALIGNMENT, rotation_angle, 
 from s2camp_ns.core.track_fit import MIN_OBSERVATIONS
 from s2camp_ns.nerfstudio.build_progress import BuildProgress, DatabaseCounter, database_count, duration_text
 from s2camp_ns.nerfstudio.colmap_model import ColmapModelError, read_model_file
-from s2camp_ns.nerfstudio.feature_database import (
-    given_with_database_ids,
-    names_by_camera,
-    number_images,
-    open_database,
-)
+from s2camp_ns.nerfstudio.feature_database import given_with_database_ids, names_by_camera, number_images, open_database
 from s2camp_ns.nerfstudio.image_check import decoded_sizes
 from s2camp_ns.nerfstudio.robust_adjustment import cauchy_adjustment_options
 from s2camp_ns.nerfstudio.track_cache import (
@@ -86,92 +52,64 @@ from s2camp_ns.nerfstudio.track_cache import (
 )
 
 RECIPE_VERSION = 4
-"""Part of the cache key: raise it when the recipe changes, so older caches are not read. 3: the thresholds scaled
-to the image size and the given cameras' error (``Thresholds``), neighbours that face alike (``neighbour_pairs``).
-4: deterministic (images numbered before extraction, ``feature_database.number_images``; matching on
-``MATCHING_THREADS``)."""
+"""Part of the cache key: raise it when the recipe changes, so that older entries are not read."""
 MAX_IMAGE_SIZE = 1600
-"""Longest image side SIFT sees (px; larger images are downsampled for extraction, keypoints are in full-size
-pixels): phone photos of 4000 px hold 6x its pixels, keypoints the track prior does not need."""
+"""Longest image side SIFT sees (px); larger images are downsampled for extraction, keypoints stay in full-size px."""
 EXHAUSTIVE_LIMIT = 100
-"""Up to this many images every pair is matched (4950 pairs); beyond it, each image with its ``NEIGHBOURS``."""
+"""Up to this many images every pair is matched; beyond it, each image with its ``NEIGHBOURS``."""
 NEIGHBOURS = 30
-"""Images matched with each image beyond ``EXHAUSTIVE_LIMIT``: the nearest given cameras among those whose optical
-axes are within 90 degrees of its own, a camera facing theta away counted (2 - cos theta) times as far
-(``neighbour_pairs``). At most ``NEIGHBOURS`` x images pairs: 9000 for 300 images, against 44850 exhaustive."""
+"""Images matched with each image beyond ``EXHAUSTIVE_LIMIT`` (``neighbour_pairs``)."""
 PAIR_ROWS = 1024
-"""Images whose neighbours ``neighbour_pairs`` ranks at once: the distances it holds are this many rows of all the
-images (8 MB per 1000 images), not the full square (800 MB at 10000 images)."""
+"""Images whose neighbours ``neighbour_pairs`` ranks at once: memory of this many rows of all images, not a square."""
 KEYPOINT_ERROR_PX = 4.0
-"""Reprojection error (px) a matched keypoint may have at the size SIFT sees its image: the geometric verification's
-RANSAC bound and the adjusted cameras' triangulation bound (COLMAP's default for both). SIFT is sub-pixel at any
-size, so the bound does not shrink for small images; images downsampled for SIFT (``MAX_IMAGE_SIZE``) have keypoints
-that much less precise, so it grows by that factor (``Thresholds``: 4.8 px at 1920 px, 10 px at 4000 px)."""
+"""Reprojection bound (px at the size SIFT sees; COLMAP's default) of the verification and of the triangulations with
+adjusted poses; grown by the extraction's downsampling factor (``Thresholds``)."""
 GIVEN_ANGLE_ERROR_DEG = 2.0
-"""Angle (degrees) by which the given cameras' rays may be off, which the first triangulation (with the given
-cameras) admits as a reprojection error of this angle times the focal length (``Thresholds``). Phone poses are about
-a degree off (1.1 degrees is 25 px at f 1300 px, six times COLMAP's 4 px); twice that, for a focal length a few
-percent off on top (2% turns a ray 40 degrees off the axis by 0.6 degrees). Also the angle COLMAP's triangulator
-admits between a track's rays (its default)."""
+"""Angle (degrees) by which the given poses' rays may be off: the first triangulation admits this angle times the
+focal length as reprojection error (``Thresholds``), and this angle between a track's rays."""
 REFINEMENT_ROUNDS = 3
-"""Rounds of bundle adjustment and re-triangulation: re-triangulating with the adjusted cameras drops the
-observations the first triangulation kept from wrong cameras. On the regime scene the rotation error stopped improving
-after the second round and stayed there for three more (measured in docs/DESIGN-NOTES.md sec. 8, "Rounds")."""
+"""Rounds of bundle adjustment and re-triangulation with the adjusted poses."""
 COLMAP_SEED = 0
 """COLMAP's random seed (RANSAC of the geometric verification)."""
 MATCHING_THREADS = 1
-"""Threads of the matching and its geometric verification. On several threads the verification's RANSAC draws
-depend on which thread takes which pair, and two builds of the same images and cameras differed in the anchor's
-rotation error (measured in docs/IMAGE-TRACKS.md, "Cost", and docs/DESIGN-NOTES.md sec. 8, "Deterministic
-builds"). The other stages keep COLMAP's threads: SIFT once the images are numbered before it
-(``feature_database.number_images``), triangulation and Ceres' adjustment as they are (two builds on 2 threads were
-bit-identical)."""
+"""Threads of the matching and its verification: on several, RANSAC's draws depend on which thread takes which pair,
+and builds differ. The other stages keep COLMAP's threads (deterministic once ``number_images`` has run)."""
 RESULT_FILE = "result.json"
-"""Written last into a cache folder: the summary, or why no tracks could be made, the build's wall seconds per kind of
-stage (``ImageTracks.stage_seconds``) and the SHA-256 of each of the ``MODEL_FILES`` (``files``)."""
+"""Written last into a cache entry: the summary or the reason there are no tracks, ``stage_seconds`` and the SHA-256 of
+each of the ``MODEL_FILES`` (``files``)."""
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
 """The model of a cache entry that holds tracks."""
 STAGES_FILE = "stages.json"
 """The build's wall seconds per kind of stage, written by ``_build`` and moved into ``RESULT_FILE``."""
 MIN_TRACKED_FRACTION = 0.5
-"""Fraction of the images that must see at least ``MIN_OBSERVATIONS`` tracked points (the least the anchor fit uses,
-``core.track_fit``) for the tracks to be used. Below it the bundle adjustment rests on a handful of points and moves
-cameras anywhere: on 16 images of 160x120 it turned a camera by tens of degrees and moved the focal length far off
-(the refusal: docs/IMAGE-TRACKS.md, "Refused, with the reason")."""
+"""Fraction of the images that must see at least ``MIN_OBSERVATIONS`` tracked points for the tracks to be used."""
 MAX_ROTATION_CHANGE_DEG = 10.0
-"""Largest median rotation (degrees) between the adjusted and the given cameras. Phone poses are off by about a degree
-and SfM's by a tenth; beyond ten the images and the given cameras describe different scenes (or wrong matches)."""
+"""Largest median rotation (degrees) of the adjusted poses from the given ones."""
 MAX_CENTRE_CHANGE = 0.25
-"""Largest median distance between the adjusted and the given camera centres after the similarity, as a fraction of
-the given centres' spread (RMS distance to their centroid), far above what phone-like given cameras move by (the
-"centre median" of docs/benchmarks/image-tracks.md)."""
+"""Largest median distance of the adjusted camera centres from the given ones after the similarity, as a fraction of
+the given centres' spread (RMS distance to their centroid)."""
 
 
 @dataclass(frozen=True)
 class ImageTracks:
-    """The model folder of ``image_tracks`` (None when no tracks could be made, with ``reason``) and a one-line summary
-    of what it holds."""
+    """The model folder of ``image_tracks`` (None when no tracks could be made, with ``reason``) and a summary."""
 
     model: Path | None
     summary: str = ""
     reason: str | None = None
     stage_seconds: dict[str, float] = field(default_factory=dict)
-    """Wall seconds of the build that made the cache entry, per kind of stage (``SIFT``, ``matching``,
-    ``triangulation``, ``adjustment``; ``build_progress``): the cost of making it, on the machine that built it."""
+    """Wall seconds of the build that made the entry, per kind of stage (``SIFT``, ``matching``, ...)."""
 
 
 def cache_key(given: pycolmap.Reconstruction, image_root: Path) -> str:
-    """The cache folder name of ``given``'s images in ``image_root`` (module docstring, Cache)."""
+    """The cache entry's name: a hash of ``RECIPE_VERSION``, pycolmap's version, each image's name, size, mtime and
+    pose, and the given cameras (every bit)."""
     images = sorted(given.images.values(), key=lambda image: image.name)
-    record = {
-        "recipe": RECIPE_VERSION,
-        "pycolmap": pycolmap.__version__,
-        "images": [],
-        "cameras": [
-            [camera_id, camera.model.name, camera.width, camera.height, [float(v) for v in camera.params]]
-            for camera_id, camera in sorted(given.cameras.items())
-        ],
-    }
+    cameras = [
+        [camera_id, camera.model.name, camera.width, camera.height, [float(v) for v in camera.params]]
+        for camera_id, camera in sorted(given.cameras.items())
+    ]
+    record = {"recipe": RECIPE_VERSION, "pycolmap": pycolmap.__version__, "images": [], "cameras": cameras}
     for image in images:
         stat = (image_root / image.name).stat()
         pose = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
@@ -182,12 +120,10 @@ def cache_key(given: pycolmap.Reconstruction, image_root: Path) -> str:
 def image_tracks(
     given: pycolmap.Reconstruction, image_root: Path, cache: Path, user_fallback: bool = False
 ) -> ImageTracks:
-    """Tracks of the images of ``given`` (names relative to ``image_root``, the given cameras and poses; no points),
-    from the cache folder ``cache`` or built there (module docstring, Cache). ``user_fallback`` (the data parser's
-    default cache, in the scene folder): the entry is also read from the user's cache folder, and built there when
-    ``cache`` cannot be written (``track_cache``); without it, an unwritable ``cache`` that lacks the entry raises
-    OSError naming ``image_tracks_cache``. Processes that ask for one entry at once build it once: one builds, the
-    others wait and read it."""
+    """Tracks of ``given``'s images (names relative to ``image_root``; given cameras and poses, no points), read from
+    the folder ``cache`` or built there, once among processes (``track_cache.entry_lock``). ``user_fallback``: also
+    read from, and built in where ``cache`` cannot be written, the user's cache folder; without it an unwritable
+    ``cache`` raises OSError. FileNotFoundError for a missing image."""
     missing = sorted(image.name for image in given.images.values() if not (image_root / image.name).is_file())
     if missing:
         raise FileNotFoundError(
@@ -217,8 +153,8 @@ def image_tracks(
 
 
 def _store(given: pycolmap.Reconstruction, image_root: Path, final: Path) -> ImageTracks:
-    """Build the cache entry ``final`` in a temporary sibling folder renamed to ``final`` when finished (module
-    docstring, Cache) and return its ``ImageTracks``; the caller holds ``final``'s ``entry_lock``."""
+    """Build the cache entry ``final`` in a temporary sibling renamed to it when finished; the caller holds its
+    ``entry_lock``."""
     work = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".building", dir=final.parent))
     try:
         started = time.perf_counter()
@@ -249,9 +185,8 @@ def _store(given: pycolmap.Reconstruction, image_root: Path, final: Path) -> Ima
 
 
 def _cached(folder: Path) -> ImageTracks:
-    """The ``ImageTracks`` of a finished cache folder: its model, or why there is none (a failed build is cached too,
-    so that every run does not repeat it). Raises ``DamagedEntryError`` saying why when the entry is damaged (module
-    docstring, Cache)."""
+    """The ``ImageTracks`` of a finished entry: its model, or why there is none (failed builds are cached too).
+    Raises ``DamagedEntryError`` when the entry is damaged."""
     result = _result(folder)
     stage_seconds = result.get("stage_seconds", {})
     if result["reason"] is not None:
@@ -261,7 +196,7 @@ def _cached(folder: Path) -> ImageTracks:
     for name, kind in zip(MODEL_FILES, ("cameras", "images", "points3D"), strict=True):
         if not (folder / name).is_file():
             raise DamagedEntryError(f"{name} is missing")
-        if digests is None:  # an entry from before the digests: its files must at least read as a model
+        if digests is None:  # an entry without digests: its files must at least read as a model
             try:
                 read_model_file(folder / name, kind)
             except ColmapModelError as error:
@@ -288,7 +223,7 @@ def _result(folder: Path) -> dict:
 
 def _build(given: pycolmap.Reconstruction, image_root: Path, work: Path) -> tuple[pycolmap.Reconstruction, str | None]:
     """The adjusted, aligned reconstruction (module docstring, steps 1-4) and why it cannot anchor the cameras (None
-    when it can), each stage shown with its counts and time as it runs (``build_progress``), then the stages' times."""
+    when it can); writes the stages' times to ``STAGES_FILE``."""
     pycolmap.set_random_seed(COLMAP_SEED)
     device, notice = feature_device()
     with BuildProgress("Image tracks built") as progress:
@@ -307,8 +242,7 @@ def _build(given: pycolmap.Reconstruction, image_root: Path, work: Path) -> tupl
 def _build_stages(
     given: pycolmap.Reconstruction, image_root: Path, work: Path, device: pycolmap.Device, progress: BuildProgress
 ) -> tuple[pycolmap.Reconstruction, str | None]:
-    """``_build``'s steps: features, matches, the given cameras under the database's ids, triangulation and
-    adjustment, the similarity to the given cameras and the plausibility checks."""
+    """``_build``'s steps, then the plausibility checks (``_implausible``)."""
     database = work / "database.db"
     thresholds = Thresholds.of(given)
     _extract(given, image_root, database, device, progress)
@@ -318,10 +252,8 @@ def _build_stages(
         {image.name for image in given.images.values()} - {image.name for image in reconstruction.images.values()}
     )
     if unread:  # COLMAP skips an image it cannot decode; every training image must be in the model
-        return (
-            reconstruction,
-            f"COLMAP could not read {len(unread)} of {given.num_images()} images (first: '{unread[0]}')",
-        )
+        reason = f"COLMAP could not read {len(unread)} of {given.num_images()} images (first: '{unread[0]}')"
+        return reconstruction, reason
     reconstruction = _triangulate_and_adjust(reconstruction, database, image_root, thresholds, progress)
     if reconstruction.num_points3D() == 0:
         return reconstruction, "no point could be triangulated from the images' matched features"
@@ -331,18 +263,15 @@ def _build_stages(
 
 @dataclass(frozen=True)
 class Thresholds:
-    """A build's reprojection bounds (px of the full-size images): ``keypoint_px`` for the geometric verification of
-    the matches and the triangulations with the adjusted cameras (``KEYPOINT_ERROR_PX``, grown by the extraction's
-    downsampling), ``given_px`` for the first triangulation, with the given cameras (``GIVEN_ANGLE_ERROR_DEG`` times
-    the focal length, at least ``keypoint_px``)."""
+    """A build's reprojection bounds (px of the full-size images): ``keypoint_px`` for the verification and the
+    triangulations with adjusted cameras, ``given_px`` (at least ``keypoint_px``) for the first, with given cameras."""
 
     keypoint_px: float
     given_px: float
 
     @classmethod
     def of(cls, given: pycolmap.Reconstruction) -> Thresholds:
-        """The bounds of ``given``'s images: from its cameras' largest image side and focal length (COLMAP takes one
-        bound per call, so the camera that needs the loosest sets it)."""
+        """The bounds of ``given``'s largest image side and focal length (COLMAP takes one bound for all cameras)."""
         size = max(max(camera.width, camera.height) for camera in given.cameras.values())
         focal = max(camera.mean_focal_length() for camera in given.cameras.values())
         keypoint = KEYPOINT_ERROR_PX * max(1.0, size / MAX_IMAGE_SIZE)
@@ -353,15 +282,13 @@ CUDA_NOTICE = (
     "A CUDA device is present but the installed pycolmap has no CUDA: SIFT features and matching run on the CPU "
     "(pip install 's2camp-ns[gpu]': pycolmap-cuda12, docs/IMAGE-TRACKS.md)"
 )
-"""``feature_device``'s notice: the CPU build of pycolmap is the default dependency (it installs everywhere)."""
+"""``feature_device``'s notice: the CPU build of pycolmap is the default dependency."""
 
 
 def feature_device() -> tuple[pycolmap.Device, str | None]:
-    """The device of SIFT extraction and matching, and a notice for the user (None when there is nothing to say):
-    CUDA where the installed pycolmap has it and torch sees a CUDA device, else the CPU, with ``CUDA_NOTICE`` when a
-    device is there but pycolmap lacks CUDA. The cache key does not name the device: GPU SIFT (SiftGPU) finds
-    slightly different keypoints than the CPU's, so an entry holds the tracks of the machine that built it, and any
-    machine reads it."""
+    """The device of SIFT and matching: CUDA where pycolmap has it and torch sees a device, else the CPU; and
+    ``CUDA_NOTICE`` (else None) when a device is there but pycolmap lacks CUDA. The cache key does not name the
+    device: any machine reads an entry built on another."""
     cuda = torch.cuda.is_available()
     if cuda and pycolmap.has_cuda:
         return pycolmap.Device.cuda, None
@@ -376,8 +303,7 @@ def device_name(device: pycolmap.Device) -> str:
 def _extract(
     given: pycolmap.Reconstruction, image_root: Path, database: Path, device: pycolmap.Device, progress: BuildProgress
 ) -> None:
-    """Step 1: SIFT features of ``given``'s images into ``database``, one COLMAP camera per given camera, each
-    image's count shown as COLMAP stores it."""
+    """Step 1: SIFT features of ``given``'s images into ``database``, one COLMAP camera per given camera."""
     extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_IMAGE_SIZE)
     number_images(given, database)
     count = DatabaseCounter(database, "keypoints", enabled=progress.live)
@@ -403,8 +329,7 @@ def _match(
     thresholds: Thresholds,
     progress: BuildProgress,
 ) -> None:
-    """Step 2: matches between every pair of images (up to ``EXHAUSTIVE_LIMIT`` images) or the ``neighbour_pairs``,
-    geometrically verified with ``thresholds.keypoint_px``; each pair's count shown as COLMAP stores it."""
+    """Step 2: matches of every pair (up to ``EXHAUSTIVE_LIMIT`` images) or the ``neighbour_pairs``, verified."""
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.max_error = thresholds.keypoint_px
     matching = pycolmap.FeatureMatchingOptions(num_threads=MATCHING_THREADS)
@@ -442,9 +367,7 @@ def _triangulate_and_adjust(
     thresholds: Thresholds,
     progress: BuildProgress,
 ) -> pycolmap.Reconstruction:
-    """Step 3: points triangulated with the given cameras (``thresholds.given_px``), then ``REFINEMENT_ROUNDS``
-    rounds of bundle adjustment and triangulation with the adjusted cameras (``thresholds.keypoint_px``), and a last
-    bundle adjustment; stops early when no point is left."""
+    """Step 3 (module docstring); stops early when no point is left."""
     adjustment = cauchy_adjustment_options(refine_principal_point=False)
     rounds = REFINEMENT_ROUNDS + 1
     reconstruction = _triangulate(reconstruction, database, image_root, thresholds.given_px, f"1/{rounds}", progress)
@@ -464,9 +387,7 @@ def _triangulate_and_adjust(
 
 
 def _median_point_error(reconstruction: pycolmap.Reconstruction) -> float:
-    """The median over the points of each point's mean reprojection error (px): what an adjustment left. Not the mean
-    over the observations, which a single point the adjustment sent towards infinity (a ray pair of almost no
-    parallax; the next triangulation drops it) makes astronomically large."""
+    """Median over the points of each point's mean reprojection error (px); robust to a point sent to infinity."""
     reconstruction.update_point_3d_errors()
     return float(np.median([point.error for point in reconstruction.points3D.values()]))
 
@@ -479,9 +400,8 @@ def _triangulate(
     position: str,
     progress: BuildProgress,
 ) -> pycolmap.Reconstruction:
-    """The points of ``reconstruction``'s cameras (the previous ones are dropped), keeping the observations within
-    ``max_error_px`` (COLMAP's merge, completion and filter bounds); the first (``position`` 1/...) admits rays
-    ``GIVEN_ANGLE_ERROR_DEG`` off."""
+    """New points for ``reconstruction``'s cameras, observations within ``max_error_px``; the first (``position``
+    1/...) admits rays ``GIVEN_ANGLE_ERROR_DEG`` off."""
     options = pycolmap.IncrementalPipelineOptions()
     options.triangulation.merge_max_reproj_error = max_error_px
     options.triangulation.complete_max_reproj_error = max_error_px
@@ -526,13 +446,9 @@ def _implausible(given: pycolmap.Reconstruction, reconstruction: pycolmap.Recons
 
 
 def neighbour_pairs(given: pycolmap.Reconstruction) -> list[tuple[str, str]]:
-    """Image pairs to match beyond ``EXHAUSTIVE_LIMIT`` images (each pair once, its names sorted; the list sorted):
-    each image with its ``NEIGHBOURS`` nearest cameras among those whose optical axes are within 90 degrees of its
-    own, a camera whose axis is theta away from its own counted (2 - cos theta) times as far. The factor prefers a
-    camera that faces alike and sees more of the same scene: it leaves the order of a ring around an object or of a
-    walk, where nearer cameras also face more alike, and ranks the cameras of a turn on the spot, whose centres are
-    all near, by how alike they face (a camera 90 degrees away counts twice as far). At most ``NEIGHBOURS`` pairs
-    per image, in time and memory linear in the images for each ``PAIR_ROWS`` of them."""
+    """Image pairs to match beyond ``EXHAUSTIVE_LIMIT`` images (sorted names, sorted list): each image with its
+    ``NEIGHBOURS`` nearest images among those whose optical axes are within 90 degrees of its own, one whose axis is
+    theta away counted (2 - cos theta) times as far, so that a turn on the spot ranks by how alike images face."""
     names, centres, rotations = _poses(given)
     axes = rotations[:, 2, :]
     count = min(NEIGHBOURS, len(names) - 1)
@@ -552,8 +468,8 @@ def neighbour_pairs(given: pycolmap.Reconstruction) -> list[tuple[str, str]]:
 
 
 def _poses(reconstruction: pycolmap.Reconstruction, names: list[str] | None = None):
-    """Image names (sorted unless given), camera centres [N, 3] and world-to-camera rotations [N, 3, 3] (float64; row
-    2 of a rotation is the camera's optical axis in the world)."""
+    """Image names (sorted unless given), centres [N, 3] and world-to-camera rotations [N, 3, 3] (float64; row 2 is
+    the optical axis in the world)."""
     by_name = {image.name: image for image in reconstruction.images.values()}
     names = sorted(by_name) if names is None else names
     matrices = torch.tensor(
@@ -565,25 +481,18 @@ def _poses(reconstruction: pycolmap.Reconstruction, names: list[str] | None = No
 
 
 def _align_to_given(reconstruction: pycolmap.Reconstruction, given: pycolmap.Reconstruction) -> None:
-    """Move ``reconstruction`` (points and cameras) by the similarity that best maps its camera centres onto the
-    given ones (module docstring, step 4)."""
+    """Move ``reconstruction`` by the similarity that best maps its camera centres onto ``given``'s (step 4)."""
     names, centres, _ = _poses(reconstruction)
     _, given_centres, _ = _poses(given, names)
     similarity = umeyama(centres, given_centres)
-    reconstruction.transform(
-        pycolmap.Sim3d(
-            similarity.scale,
-            pycolmap.Rotation3d(similarity.rotation.numpy()),
-            similarity.translation.numpy(),
-        )
-    )
+    rotation = pycolmap.Rotation3d(similarity.rotation.numpy())
+    reconstruction.transform(pycolmap.Sim3d(similarity.scale, rotation, similarity.translation.numpy()))
 
 
 def _camera_changes(
     given: pycolmap.Reconstruction, reconstruction: pycolmap.Reconstruction
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per image: the rotation (degrees) between the adjusted and the given camera, and the distance between their
-    centres as a fraction of the given centres' spread."""
+    """Per image [N]: rotation (degrees) from the given pose and centre distance over the given centres' spread."""
     names, centres, rotations = _poses(reconstruction)
     _, given_centres, given_rotations = _poses(given, names)
     spread = float((given_centres - given_centres.mean(dim=0)).square().sum(dim=1).mean().sqrt())
@@ -595,8 +504,8 @@ def _camera_changes(
 def _summary(
     given: pycolmap.Reconstruction, reconstruction: pycolmap.Reconstruction, seconds: float | None = None
 ) -> str:
-    """Points, observations, reprojection error, how far the adjusted cameras lie from the given ones and, with
-    ``seconds``, the build's wall time and device (a cache entry keeps the cost of making it)."""
+    """One line: points, observations, reprojection error, the images' changes from the given poses and focal
+    lengths and, with ``seconds``, the build's wall time and device."""
     turned, moved = _camera_changes(given, reconstruction)
     observations = sum(point.track.length() for point in reconstruction.points3D.values())
     given_camera = {image.name: given.cameras[image.camera_id] for image in given.images.values()}

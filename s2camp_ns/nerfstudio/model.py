@@ -1,8 +1,7 @@
 """Nerfacto with the S2CamP camera optimizer, offline-safe LPIPS and camera-error logging.
 
-Everything but the camera handling is nerfstudio's nerfacto (proposal sampling, field, losses, renderers); the
-camera refinement shared with ``s2camp-splat`` (refresh of P, camera errors, viewer panel, several processes) is
-``s2camp_ns.nerfstudio.refinement.S2CampRefinementMixin``.
+Everything but the cameras is nerfstudio's nerfacto; the refinement shared with ``s2camp-splat`` is
+``refinement.S2CampRefinementMixin``.
 """
 
 from __future__ import annotations
@@ -26,22 +25,17 @@ class S2CampModelConfig(NerfactoModelConfig):
 
     _target: type = field(default_factory=lambda: S2CampModel)
     camera_optimizer: CameraOptimizerConfig = field(default_factory=S2CampCameraOptimizerConfig)
-    """The S2CamP camera optimizer: which parameters, the preconditioner's proxy points, damping and refresh.
-    nerfstudio's own CameraOptimizerConfig (pose only, SO3xR3/SE3) also works: the ``s2camp-so3xr3`` baseline."""
+    """S2CamP's camera optimizer, or nerfstudio's CameraOptimizerConfig (pose only: the ``s2camp-so3xr3`` baseline)."""
     camera_error_every: int = 100
-    """Compute camera errors against the dataparser's reference cameras every this many steps (0 = never);
-    skipped when the dataparser provides no reference cameras."""
+    """Steps between camera errors against the dataparser's reference cameras (0 = never)."""
     viewer_update_period: float = 1.0
-    """Seconds between updates of the viewer's S2CamP panel and training-camera frusta (0 = every step; negative =
-    no panel). Costs nothing when training without the viewer."""
+    """Seconds between updates of the viewer's S2CamP panel and frusta (0 = every step; negative = no panel)."""
     stratified_samples: bool = True
-    """Jitter the samples along each training ray (nerfacto's stratified sampling). False places them at the bin
-    centres: no random numbers in the forward pass, so runs with the same rays agree up to rounding (with
-    the data manager's global-batch-sampling, N processes against one, tests/test_distributed.py)."""
+    """Jitter the samples along each training ray (nerfacto's); False: bin centres, no random numbers in the
+    forward pass."""
     refresh_request_every: int = 10
-    """With several processes, the steps at which a refresh of P requested from the viewer is agreed on (an 8-byte
-    all-reduce at every multiple of this) and applied by all ranks together. One process applies a request at the
-    next step and communicates nothing."""
+    """With several processes, steps between agreements (an all-reduce) on a refresh of P requested from the
+    viewer; one process applies a request at the next step."""
 
 
 class S2CampModel(S2CampRefinementMixin, NerfactoModel):
@@ -54,7 +48,7 @@ class S2CampModel(S2CampRefinementMixin, NerfactoModel):
         try:
             super().populate_modules()
         except (OSError, RuntimeError) as error:
-            # Nerfacto builds LPIPS last, right after PSNR; anything failing earlier is a real error.
+            # Nerfacto builds LPIPS last, right after PSNR: anything failing earlier is a real error.
             if not hasattr(self, "psnr") or hasattr(self, "lpips"):
                 raise
             warn_lpips_unavailable(error)
@@ -65,15 +59,9 @@ class S2CampModel(S2CampRefinementMixin, NerfactoModel):
             self.proposal_sampler.pdf_sampler.train_stratified = False
         self.setup_camera_refinement()
 
-    # ------------------------------------------------------------------------------------------------ rendering
     @torch.no_grad()
     def get_outputs_for_camera(self, camera: Cameras, obb_box: OrientedBox | None = None) -> dict[str, torch.Tensor]:
-        """Render a camera; a training camera marked with TRAIN_CAMERA_KEY is rendered fully refined.
-
-        Marked training cameras use the refined pose, focal, principal point, skew and distortion (rays are built
-        by the camera optimizer because nerfstudio's Cameras cannot hold skew). Other cameras (held-out eval
-        cameras, viewer and render-path cameras) have no refined parameters and render as given.
-        """
+        """Render a camera, fully refined if marked with TRAIN_CAMERA_KEY (rays from the refiner), else as given."""
         if self.uses_s2camp_optimizer and camera.metadata is not None and TRAIN_CAMERA_KEY in camera.metadata:
             index = int(camera.metadata[TRAIN_CAMERA_KEY])
             ray_bundle = train_camera_raybundle(self.camera_optimizer.refiner, index)

@@ -1,8 +1,5 @@
-"""Test-time alignment's renderer for ray models (nerfacto-derived: ``get_outputs`` renders a RayBundle).
-
-Each Adam step renders ``AlignmentConfig.rays`` random pixels of every view of the batch (one seeded pixel stream
-per view) in one forward pass; the full image is rendered in chunks of ``AlignmentConfig.chunk`` rays. Rays are
-differentiable in the twist and the log focal scale (``camera_rays``), distortion is the camera's.
+"""Test-time alignment's renderer for ray (nerfacto) models: each step renders ``rays`` seeded random pixels of
+every view in one forward pass; full images in chunks of ``chunk`` rays.
 """
 
 from __future__ import annotations
@@ -25,10 +22,8 @@ def camera_rays(
     log_focal: Float[Tensor, ""],
     device: torch.device | str,
 ) -> RayBundle:
-    """Rays through ``pixels`` of the camera c2w exp(twist) with focal lengths scaled by exp(log_focal), in float32.
-
-    Differentiable in ``twist`` and ``log_focal``; distortion is the camera's (iterative undistortion, core.distortion).
-    """
+    """float32 rays through ``pixels`` of the camera c2w exp(twist), focal lengths scaled by exp(log_focal), with the
+    camera's distortion; differentiable in ``twist`` and ``log_focal``."""
     scaled = scale_focal(intrinsics.to(dtype=torch.float64), torch.exp(log_focal))
     directions_cam = pixel_to_ray_direction(pixels.double()[None], scaled)[0]
     c2w = twisted_c2w(c2w_gl, twist)
@@ -52,7 +47,7 @@ def pixel_grid(width: int, height: int) -> Float[Tensor, "hw 2"]:
 
 
 def concatenate_rays(bundles: list[RayBundle]) -> RayBundle:
-    """One RayBundle of the rays of several cameras (origins, directions, pixel areas, metadata)."""
+    """The rays of several bundles in one RayBundle."""
     if len(bundles) == 1:
         return bundles[0]
     return RayBundle(
@@ -80,8 +75,7 @@ class RayRenderer:
         log_focals: list[Tensor],
         generators: list[torch.Generator],
     ) -> list[tuple[Tensor, Tensor]]:
-        """(predicted, target) colours [rays, 3] of each view at ``rays`` pixels drawn from its own generator, all
-        views' rays in one forward pass; differentiable in the twists and log focal scales."""
+        """(predicted, target) colours [rays, 3] of each view; differentiable in the variables."""
         grids = [pixel_grid(target.shape[1], target.shape[0]) for target in targets]
         chosen = [
             torch.randint(0, grid.shape[0], (self.rays,), generator=generator)

@@ -1,15 +1,13 @@
 """What the S2CamP models share, whatever renders them (nerfacto: ``model.py``, splatfacto: ``splat_model.py``).
 
-``S2CampRefinementMixin`` goes before the nerfstudio model class in the bases; it gives the model the S2CamP camera
-optimizer's set-up from the dataparser's metadata (physical cameras, camera model), the training cameras, P's
-refresh (scheduled, or requested from the viewer and agreed on by every rank), camera errors against the
-dataparser's reference cameras, the viewer panel's interface (``CameraRefinementSource``) and offline-safe LPIPS.
-The model's config must have ``camera_error_every``, ``viewer_update_period`` and ``refresh_request_every``.
+``S2CampRefinementMixin`` (before the nerfstudio model class in the bases) adds: the camera optimizer's set-up from
+the dataparser's metadata, the training cameras, P's refreshes, camera errors against the reference cameras, the
+viewer panel's ``CameraRefinementSource`` and offline-safe LPIPS. The model's config must have ``camera_error_every``,
+``viewer_update_period`` and ``refresh_request_every``.
 
-With several processes (DDP, docs/SCALING.md) every rank refreshes P at the same steps: scheduled refreshes fall on
-the same step numbers everywhere, and a refresh requested from the viewer (which runs on rank 0 only) is agreed on
-by an 8-byte all-reduce every ``refresh_request_every`` steps, so all ranks re-express their latent at one step.
-Camera errors are computed on rank 0 only (nerfstudio's writer drops the other ranks' scalars anyway).
+With several processes every rank refreshes P at the same steps: scheduled refreshes by step number, a refresh
+requested from the viewer (rank 0 only) by an all-reduce every ``refresh_request_every`` steps. Camera errors are
+computed on rank 0 only.
 """
 
 from __future__ import annotations
@@ -49,14 +47,13 @@ def warn_lpips_unavailable(error: BaseException) -> None:
 
 
 class S2CampRefinementMixin:
-    """Camera refinement of an S2CamP model (see the module docstring); ``setup_camera_refinement`` is called at the
-    end of the model's ``populate_modules``."""
+    """Camera refinement of an S2CamP model; call ``setup_camera_refinement`` at the end of ``populate_modules``."""
 
     camera_optimizer: CameraOptimizer
 
     def setup_camera_refinement(self) -> None:
-        """State, the optimizer's physical cameras and camera model from the dataparser's metadata (before DDP wraps
-        the model and before the optimizers are built: they size the latent), and the viewer panel."""
+        """State, the optimizer's physical cameras and camera model (from the dataparser's metadata, before the
+        optimizers are built), and the viewer panel."""
         check_positive_int("refresh_request_every", self.config.refresh_request_every)
         self._camera_errors: dict[str, float] = {}
         self._refresh_requested = False
@@ -65,14 +62,11 @@ class S2CampRefinementMixin:
         camera_ids = metadata.get("camera_ids")
         if self.uses_s2camp_optimizer and camera_ids is not None and len(camera_ids) == self.num_train_data:
             self.camera_optimizer.refiner.set_camera_groups(camera_ids)
-        # Likewise the camera model, whose distortion coefficients set the layout's K.
         if self.uses_s2camp_optimizer and metadata.get("camera_model") is not None:
             self.camera_optimizer.refiner.set_camera_model(metadata["camera_model"])
-        # --- S2CamP viewer panel (viewer_panel.py); inert unless nerfstudio's viewer installs it. The attribute name
-        # is the panel's folder label in the viewer.
+        # The viewer panel, inert unless the viewer installs it; the attribute name is its folder label.
         if self.config.viewer_update_period >= 0 and self.uses_s2camp_optimizer:
             self.S2CamP = S2CampViewerPanel(self, update_period=self.config.viewer_update_period)
-        # --- end viewer panel
 
     @property
     def lpips_available(self) -> bool:
@@ -80,7 +74,7 @@ class S2CampRefinementMixin:
 
     @property
     def uses_s2camp_optimizer(self) -> bool:
-        """True for S2CamP's camera optimizer, False for nerfstudio's stock one (the s2camp-so3xr3 baseline)."""
+        """True for S2CamP's camera optimizer, False for nerfstudio's stock one."""
         return isinstance(self.camera_optimizer, S2CampCameraOptimizer)
 
     def set_train_cameras(
@@ -91,10 +85,9 @@ class S2CampRefinementMixin:
         track_evidence: TrackEvidence | None = None,
         track_observations: Tensor | None = None,
     ) -> None:
-        """Keep the dataparser's training cameras (called by the pipeline before any checkpoint is loaded); the
-        scene's sparse ``points`` (normalized world) choose the S2CamP optimizer's proxy range, the SfM tracks
-        (``track_evidence``; else the cameras' reprojection errors against them, ``track_rms_px``, px, and each
-        image's number of tracks, ``track_observations``) its track prior."""
+        """Keep the training cameras (the pipeline calls this before loading a checkpoint) and hand them to S2CamP's
+        optimizer with the sparse ``points`` (proxy range) and the SfM tracks (track prior: ``track_evidence``, else
+        the reprojection RMS ``track_rms_px`` [n] px and the tracks per image ``track_observations`` [n])."""
         self._train_cameras = cameras.to("cpu")
         if self.uses_s2camp_optimizer:
             self.camera_optimizer.set_train_cameras(cameras, points=points)
@@ -102,12 +95,8 @@ class S2CampRefinementMixin:
 
     @torch.no_grad()
     def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:
-        """OpenGL c2w and fx of the training cameras as the model currently sees them (float64, CPU).
-
-        S2CamP's optimizer refines pose and intrinsics (c2w' = c2w exp(xi)). nerfstudio's stock optimizer moves the
-        rays in the world frame, origins + t and R_adj @ directions, i.e. c2w' = [R_adj R | t + t_adj] (its
-        ``apply_to_camera``); it leaves the intrinsics alone.
-        """
+        """OpenGL c2w [n, 3, 4] and fx [n] of the training cameras as the model sees them (float64, CPU); the stock
+        optimizer moves rays in the world frame, c2w' = [R_adj R | t + t_adj], and keeps the intrinsics."""
         if self.uses_s2camp_optimizer:
             refiner = self.camera_optimizer.refiner
             return refiner.refined_c2w(opengl=True).cpu(), refiner.refined_intrinsics().fx.cpu()
@@ -121,7 +110,6 @@ class S2CampRefinementMixin:
             c2w = torch.cat([adjustment[:, :, :3] @ c2w[:, :, :3], c2w[:, :, 3:] + adjustment[:, :, 3:]], dim=-1)
         return c2w, cameras.fx.reshape(-1).to(torch.float64)
 
-    # ------------------------------------------------------------------------------------------------- training
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> list[TrainingCallback]:
@@ -131,28 +119,24 @@ class S2CampRefinementMixin:
     def camera_refinement_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> list[TrainingCallback]:
-        """P's recomputation for a loaded checkpoint, the scheduled and requested refreshes, camera errors and the
-        viewer panel's callbacks (after the base model's own)."""
+        """Callbacks of the camera optimizer (stale P, refreshes, after-step), camera errors and the viewer panel."""
         callbacks: list[TrainingCallback] = []
         optimizers = training_callback_attributes.optimizers
         camera_optimizer = self.camera_optimizer
 
         def refresh_preconditioner(step: int) -> None:
-            # Scheduled refreshes and those requested (the viewer's button) happen here, in the training thread.
-            # Both are decided identically on every rank: the schedule by the step number, a request by agreement.
+            # Scheduled and requested refreshes, in the training thread, decided identically on every rank.
             if self.agreed_refresh_request(step) or camera_optimizer.refresh_due(step):
                 torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
                 camera_optimizer.refiner.refresh(step, torch_optimizer)
 
         def recompute_stale_preconditioner(step: int) -> None:
-            # A checkpoint loaded onto other base cameras carries a P computed for those; nerfstudio loads Adam's
-            # moments after the pipeline, so P is recomputed here, before the first step (a no-op otherwise).
+            # A checkpoint's P for other base cameras, recomputed once Adam's moments are loaded (else a no-op).
             torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
             camera_optimizer.refiner.recompute_stale_preconditioner(step, torch_optimizer)
 
         def after_camera_step(step: int) -> None:
-            # After the optimizers' step: the track prior's proximal step with the camera group's step size, then
-            # the shared rotation removed (each a no-op unless configured).
+            # The track prior's proximal step at the camera group's lr, then the common rotation removed.
             torch_optimizer = None if optimizers is None else optimizers.optimizers.get("camera_opt")
             lr = 0.0 if torch_optimizer is None else float(torch_optimizer.param_groups[0]["lr"])
             camera_optimizer.after_step(lr)
@@ -161,37 +145,27 @@ class S2CampRefinementMixin:
         steps_per_log = trainer.config.logging.steps_per_log if trainer is not None else 1
 
         def before_camera_step(step: int) -> None:
-            # The camera metrics only where nerfstudio logs them; a stale P recomputed before the first step.
             camera_optimizer.metrics_due = step % steps_per_log == 0
             recompute_stale_preconditioner(step)
 
+        before, after = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, TrainingCallbackLocation.AFTER_TRAIN_ITERATION
         if isinstance(camera_optimizer, S2CampCameraOptimizer) and camera_optimizer.enabled:
-            before = [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION]
-            callbacks.append(TrainingCallback(where_to_run=before, func=before_camera_step))
-            callbacks.append(
-                TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=after_camera_step)
-            )
-            callbacks.append(
-                TrainingCallback(
-                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=refresh_preconditioner
-                )
-            )
+            callbacks += [
+                TrainingCallback(where_to_run=[before], func=before_camera_step),
+                TrainingCallback(where_to_run=[after], func=after_camera_step),
+                TrainingCallback(where_to_run=[after], func=refresh_preconditioner),
+            ]
         if self.config.camera_error_every > 0 and self.reference_cameras() is not None and comms.is_main_process():
+            every = self.config.camera_error_every  # nerfstudio calls func(step=step)
             callbacks.append(
-                TrainingCallback(
-                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
-                    update_every_num_iters=self.config.camera_error_every,
-                    func=lambda step: self.update_camera_errors(),
-                )
+                TrainingCallback([after], func=lambda step: self.update_camera_errors(), update_every_num_iters=every)
             )
-        # --- S2CamP viewer panel: its callback exists only when the viewer installed the panel
         panel = getattr(self, "S2CamP", None)
         if panel is not None:
             callbacks.extend(panel.training_callbacks(training_callback_attributes))
-        # --- end viewer panel
         return callbacks
 
-    # ------------------------------------------------------------------ viewer panel (CameraRefinementSource)
+    # CameraRefinementSource (viewer_panel.py)
     def refinement_status(self) -> RefinementStatus | None:
         optimizer = self.camera_optimizer
         if not self.uses_s2camp_optimizer or not optimizer.refiner.has_cameras:
@@ -241,20 +215,15 @@ class S2CampRefinementMixin:
         self._refresh_requested = True
 
     def agreed_refresh_request(self, step: int) -> bool:
-        """Whether every rank applies a requested refresh of P after training step ``step`` (same answer on all).
-
-        One process: a pending request, at once. Several: at multiples of ``refresh_request_every`` only, all ranks
-        take part in one all-reduce (MAX) of their pending flags, so a request made on rank 0 alone is applied by
-        every rank at the same step and no rank's P and latent get out of step with the others'.
-        """
+        """Whether every rank applies a requested refresh of P after ``step`` (the same answer on all): one process
+        at once; several at multiples of ``refresh_request_every``, by an all-reduce (MAX) of the pending flags."""
         if world_size() > 1 and step % self.config.refresh_request_every != 0:
             return False
         requested, self._refresh_requested = self._refresh_requested, False
         return any_rank(requested, self.device)
 
-    # ---------------------------------------------------------------------------------------------- camera errors
     def reference_cameras(self) -> Cameras | None:
-        """Unperturbed training cameras from the dataparser (metadata["reference_cameras"]), if any."""
+        """The dataparser's unperturbed training cameras (``metadata["reference_cameras"]``), if any."""
         metadata = self.kwargs.get("metadata") or {}
         reference = metadata.get("reference_cameras")
         if reference is None or reference.shape[0] != self.num_train_data:
@@ -263,7 +232,7 @@ class S2CampRefinementMixin:
 
     @torch.no_grad()
     def update_camera_errors(self) -> dict[str, float]:
-        """Rotation (rad), position (scene units) and focal (px) errors after similarity alignment."""
+        """``camera_errors/*``: rotation (rad), position (scene units), focal (px) after a similarity alignment."""
         reference = self.reference_cameras()
         if reference is None:
             return {}
@@ -296,7 +265,7 @@ class S2CampRefinementMixin:
     ) -> tuple[dict[str, float], dict[str, torch.Tensor]]:
         if self.lpips_available:
             return super().get_image_metrics_and_images(outputs, batch)
-        # nerfacto and splatfacto always call self.lpips: give them a stand-in and drop the key (reported unavailable).
+        # nerfacto and splatfacto always call self.lpips: a stand-in, its key dropped.
         self.lpips = lambda *args: torch.tensor(float("nan"))
         try:
             metrics_dict, images_dict = super().get_image_metrics_and_images(outputs, batch)

@@ -1,19 +1,10 @@
-"""``ns-render interpolate`` on runs whose pose source holds a single camera (a scene of at most eight images).
+"""``ns-render interpolate`` on runs whose pose source holds a single camera (the eval split of a scene of at most
+eight images).
 
-nerfstudio's ``ns-render interpolate`` renders a path through the cameras of ``--pose-source`` (the eval split by
-default): ``camera_utils.get_interpolated_poses_many`` gives ``--interpolation-steps`` poses for each pair of
-consecutive cameras and stacks them. With one camera there is no pair and nothing to stack: the command stops with
-numpy's "need at least one array to stack" and writes no video. The data parser's default split (the mip-NeRF 360
-protocol, every ``eval_interval``-th = 8th image held out) leaves exactly one eval camera in every scene of 2 to 8
-images, so the default command fails on every such run.
-
-``interpolated_poses_many`` is nerfstudio's function defined for one camera too: the path stays at that camera for
-``--interpolation-steps`` frames (nerfstudio's video length, ``interpolation_steps * len(cameras) / frame_rate``, is
-then exactly the length of the frames), and says how to get a moving path instead. Two cameras or more go to
-nerfstudio's own function unchanged; no camera, or fewer than one step, is refused naming the ``ns-render`` option.
-``install`` puts it in place of nerfstudio's in the two modules that hold it; ``S2CampPipeline`` calls it, so it is in
-place for every ``eval_setup`` of an s2camp run (ns-render, ns-eval) and changes nothing but the cases that raised.
-(nerfstudio itself would need the same three cases at the top of its ``get_interpolated_poses_many``.)
+nerfstudio's ``get_interpolated_poses_many`` stacks ``--interpolation-steps`` poses per pair of consecutive cameras,
+so with one camera it fails with numpy's "need at least one array to stack". ``interpolated_poses_many`` holds that
+camera for ``--interpolation-steps`` frames instead, and refuses no camera or fewer than one step naming the
+``ns-render`` option; two cameras or more go to nerfstudio's function. ``S2CampPipeline`` calls ``install``.
 """
 
 from __future__ import annotations
@@ -26,9 +17,9 @@ from nerfstudio.cameras import camera_paths, camera_utils
 from torch import Tensor
 
 _INSTALLED = "_s2camp_single_camera_path"
-"""Attribute that marks the function ``install`` puts in place (a second install is a no-op)."""
+"""Marks the function ``install`` puts in place (a second install is a no-op)."""
 _ORIGINAL = "_s2camp_nerfstudio_get_interpolated_poses_many"
-"""Where ``install`` keeps nerfstudio's function: on nerfstudio's own module, so a reload of this one cannot lose it."""
+"""Where ``install`` keeps nerfstudio's function, on nerfstudio's module (a reload of this one cannot lose it)."""
 
 
 def interpolated_poses_many(
@@ -37,13 +28,8 @@ def interpolated_poses_many(
     steps_per_transition: int = 10,
     order_poses: bool = False,
 ) -> tuple[Float[Tensor, "num_frames 3 4"], Float[Tensor, "num_frames 3 3"]]:
-    """nerfstudio's ``get_interpolated_poses_many`` (same arguments and float32 CPU results), also for one pose.
-
-    Two poses or more: nerfstudio's own path, ``steps_per_transition`` frames per consecutive pair. One pose: that
-    pose and its K repeated ``steps_per_transition`` times, with a note on the console. ValueError for no pose or for
-    ``steps_per_transition`` < 1 (where nerfstudio's function fails with numpy's "need at least one array to
-    stack"), naming the ``ns-render interpolate`` option that sets it.
-    """
+    """nerfstudio's ``get_interpolated_poses_many`` (same arguments, float32 CPU results), also for one pose: that
+    pose and its K repeated ``steps_per_transition`` times, with a note. ValueError for no pose or < 1 step."""
     try:
         steps = None if isinstance(steps_per_transition, bool) else operator.index(steps_per_transition)
     except TypeError:
@@ -83,10 +69,7 @@ def _note_single_camera(steps: int) -> None:
 
 
 def install() -> bool:
-    """Put ``interpolated_poses_many`` in place of nerfstudio's ``get_interpolated_poses_many`` in
-    ``nerfstudio.cameras.camera_utils`` and ``nerfstudio.cameras.camera_paths`` (whose
-    ``get_interpolated_camera_path``, the one ns-render interpolate calls, looks the name up at each call). True when
-    it did, False when it was in place already. Whatever nerfstudio's function computed, it still computes."""
+    """Put ``interpolated_poses_many`` in nerfstudio's place (``camera_utils``, ``camera_paths``); False if done."""
     if getattr(camera_paths.get_interpolated_poses_many, _INSTALLED, False):
         return False
     if not hasattr(camera_utils, _ORIGINAL):

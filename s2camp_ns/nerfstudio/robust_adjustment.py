@@ -1,36 +1,12 @@
 """An SfM model's 3D points re-adjusted with a robust loss: the fixed points the track prior's anchor is fitted to.
 
-Why. The anchor (``core.track_fit``) is a camera-only fit against fixed points, so the cameras can be no better than
-the points. COLMAP's mapper ends with a global bundle adjustment in plain least squares (Ceres' trivial loss): every
-observation within the mapper's reprojection threshold (4 px by default) counts with its square, and a few mismatched
-or poorly localised keypoints hold the points, and through them the cameras, away from where the other observations
-put them (``benchmarks/sfm.py``, ``local_refinement_check``). The image tracks (``image_tracks``) are adjusted with a
-Cauchy loss of scale ``core.track_fit.LOSS_SCALE_PX``; the scene's own model gets the same adjustment here, once per
-model, before its points become the anchor's.
+The anchor (``core.track_fit``) fits cameras to fixed points, and COLMAP's last bundle adjustment is plain least
+squares, which a few bad keypoints pull. Here a bundle adjustment of the whole model with Ceres' Cauchy loss
+(``LOSS_SCALE_PX``), poses and points free, intrinsics held; only the points are kept, mapped back into the model's
+world by the similarity from the adjusted camera centres to the model's (``core.alignment.umeyama``).
 
-What. ``pycolmap.bundle_adjustment`` of the whole model (every registered image: the held-out ones are evidence
-about the points too) with Ceres' Cauchy loss of scale ``LOSS_SCALE_PX``; poses and points free, the intrinsics held
-at the model's. Only the points are kept. Holding the intrinsics leaves them to the anchor's own test
-(``fit_anchor`` keeps the given intrinsics unless the tracks call for others): points adjusted with a refitted focal
-length would carry it into that test as if it were evidence, and a camera-only fit cannot weigh the points' share of
-it. A bundle adjustment with free points has a similarity gauge that the solver may move along, so the adjusted
-points are mapped back into the model's world by the similarity that best maps the adjusted camera centres onto the
-model's (``core.alignment.umeyama``): the points stay in the frame of the given cameras, which the data parser
-normalized, and the anchor moves each camera only by what the robust loss changes. The cameras are then fitted to
-these points by ``core.track_fit`` in the refiner's own parametrization, with its test on the intrinsics; a camera-only
-fit with the same loss at the adjusted points lands where the joint adjustment put that camera.
-
-Cache. The adjustment takes minutes on a model of hundreds of images and a million observations on a CPU of a few
-cores, and every process that loads the scene asks for it (training, each rank of a multi-device run, evaluation,
-rendering, export). Its points are kept in the user's cache folder (``track_cache.user_cache_folder`` of
-``CACHE_KIND``), one ``<key>.npz`` per model, the key a hash of the model's files and of this recipe (``RECIPE``), so
-an edited model gets a new entry and the scene folder is never written; processes that ask at once build it once
-(``track_cache.entry_lock``). Where the cache folder cannot be written the points are adjusted in memory, with a note.
-An entry that does not read back (a damaged file: zip's CRC, the arrays' names, shapes and finiteness) is never used:
-a notice names it (``track_cache.notice_damaged``) and the points are adjusted again and the entry rewritten.
-
-Measured against the tracks' points as SfM left them: docs/DESIGN-NOTES.md sec. 8 and the regime and splat
-benchmarks' ``sfm`` rows.
+The points are cached in ``<key>.npz`` in the user's cache folder (``CACHE_KIND``; the key hashes the model files and
+``RECIPE``), built once among processes (``track_cache``); in memory where the folder cannot be written.
 """
 
 from __future__ import annotations
@@ -71,13 +47,12 @@ CACHE_KIND = "readjusted_points"
 WHAT = "Re-adjusted SfM points"
 """What the cache holds, in its notices (``track_cache``)."""
 LOG = Console(stderr=True, width=120)
-"""Start-up notes (the adjustment takes seconds to minutes on large models): on stderr, as the data parser's."""
+"""Start-up notes, on stderr."""
 
 
 def cauchy_adjustment_options(**fields) -> pycolmap.BundleAdjustmentOptions:
-    """pycolmap's bundle adjustment options ``fields`` with Ceres' Cauchy loss of scale ``LOSS_SCALE_PX``: the loss of
-    every bundle adjustment of tracks here (this module's, the image tracks'), the anchor fit's own, so that the
-    anchor weighs the observations as the adjustments that placed their points did."""
+    """pycolmap's bundle adjustment options ``fields`` with Ceres' Cauchy loss of scale ``LOSS_SCALE_PX``, the anchor
+    fit's own loss: every adjustment of tracks (here and ``image_tracks``) uses it."""
     options = pycolmap.BundleAdjustmentOptions(**fields)
     options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     options.ceres.loss_function_scale = LOSS_SCALE_PX
@@ -85,11 +60,9 @@ def cauchy_adjustment_options(**fields) -> pycolmap.BundleAdjustmentOptions:
 
 
 def robustly_adjusted_points(model: Path) -> dict[int, np.ndarray]:
-    """The 3D points of the COLMAP model folder ``model`` (cameras, images, points3D; .bin or .txt) after a robust
-    bundle adjustment (module docstring), by point id, in the model's world; from the cache when an earlier process
-    adjusted the same model (module docstring, Cache), and kept in memory per folder and file times, so the data
-    parser's splits share one adjustment. A model with fewer than ``MIN_CAMERAS_FOR_ALIGNMENT`` registered images has
-    no similarity to map back with and keeps its points (a note says so)."""
+    """The 3D points [3] by id of the COLMAP model folder ``model`` after the robust adjustment, in the model's world;
+    cached on disk and in memory (per folder and file times). A model of fewer than ``MIN_CAMERAS_FOR_ALIGNMENT``
+    registered images keeps its points."""
     files = [model_file(model, kind) for kind in ("cameras", "images", "points3D")]
     return _cached(tuple((str(path.resolve()), path.stat().st_mtime_ns) for path in files))
 
@@ -129,7 +102,7 @@ def cache_key(files: list[Path]) -> str:
 
 
 def _read(entry: Path) -> dict[int, np.ndarray]:
-    """The points of a cache entry; ``DamagedEntryError`` saying why when it does not read back as written."""
+    """The points of a cache entry; ``DamagedEntryError`` when it does not read back as written."""
     try:
         with np.load(entry) as stored:
             ids, xyz = stored["ids"], stored["xyz"]  # [m], [m, 3]
@@ -145,7 +118,7 @@ def _read(entry: Path) -> dict[int, np.ndarray]:
 
 
 def _write(entry: Path, points: dict[int, np.ndarray]) -> None:
-    """Write the points to ``entry`` through a temporary file renamed into place: a reader never sees half a file."""
+    """Write the points to ``entry`` through a temporary file renamed into place."""
     ids = np.fromiter(points, dtype=np.int64, count=len(points))
     xyz = np.stack([points[int(i)] for i in ids]) if len(ids) else np.zeros((0, 3))
     handle, temporary = tempfile.mkstemp(prefix=f".{entry.stem}.", suffix=".npz", dir=entry.parent)

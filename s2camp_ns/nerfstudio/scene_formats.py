@@ -1,8 +1,6 @@
-"""Which scene ``--data`` holds and what its split's images are: the format and the file to read, the downscaled
-image folder, the record a format's parser returns beside nerfstudio's outputs (``ParsedSplit``), the image sizes
-checked against the sizes the scene declares with the intrinsics fitted to them, and the camera check.
-
-The format parsers themselves: ``colmap_scene`` (a COLMAP model) and ``transforms_scene`` (a transforms.json).
+"""What the format parsers (``colmap_scene``, ``transforms_scene``) share: the format and file ``--data`` holds, the
+downscaled image folder, ``ParsedSplit``, the image size check with the intrinsics fitted to the images, and the camera
+check.
 """
 
 from __future__ import annotations
@@ -25,33 +23,27 @@ if TYPE_CHECKING:
 
 COLMAP_PATH_CANDIDATES = (Path("sparse/0"), Path("colmap/sparse/0"), Path("sparse"))
 """Where a COLMAP model is looked for when ``colmap_path`` is not given (mip-NeRF 360 first, then nerfstudio's)."""
-
 AUTO_DOWNSCALE_FACTOR = 4
 """``downscale_factor=None`` uses ``images_4`` when it exists (the mip-NeRF 360 convention), else ``images``."""
-
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 
 
 @dataclass(frozen=True)
 class ParsedSplit:
-    """What a format's parser knows of the split's images beside nerfstudio's ``DataparserOutputs`` (image i is
-    ``outputs.image_filenames[i]``); its entries go into ``outputs.metadata`` under their field names
-    (``metadata``), where the camera optimizer, the export and the benchmarks read them."""
+    """What a format's parser knows of the split's images (image i is ``outputs.image_filenames[i]``); its fields go
+    into ``outputs.metadata`` under their names (``metadata``)."""
 
     image_names: list[str]
-    """Image i's name: in the COLMAP model (its path under the full-size image folder), or the transforms.json
-    image's file name."""
+    """Image i's name: in the COLMAP model (its path under the full-size image folder), or its file name."""
     full_image_size: Int[Tensor, "n 2"]
-    """(width, height) of image i at full size (int64): its COLMAP camera's, or the transforms.json ``w`` x ``h``;
-    the export's "original" resolution."""
+    """(width, height) of image i at full size (int64): its COLMAP camera's, or the transforms.json ``w`` x ``h``."""
     downscale_factor: int
     """The factor of the image folder read (``resolve_downscale``)."""
     colmap_model_path: Path | None = None
     """The COLMAP model read (resolved; COLMAP scenes only, None for a transforms.json)."""
 
     def metadata(self) -> dict:
-        """The metadata entries: ``image_names``, ``downscale_factor``, ``colmap_model_path`` (COLMAP scenes only)
-        and ``full_image_size``."""
+        """The metadata entries (``colmap_model_path`` only where set)."""
         entries: dict = dict(image_names=self.image_names, downscale_factor=self.downscale_factor)
         if self.colmap_model_path is not None:
             entries["colmap_model_path"] = self.colmap_model_path
@@ -72,7 +64,7 @@ def _find_colmap_model(data: Path, colmap_path: Path | None) -> tuple[Path | Non
 
 
 def detect_format(config: S2CampDataParserConfig) -> tuple[Literal["colmap", "nerfstudio"], Path]:
-    """Return the scene format and the path to read (COLMAP model folder or transforms json)."""
+    """The scene format and the path to read (COLMAP model folder or transforms json); FileNotFoundError if none."""
     data = Path(config.data)
     if not data.exists():
         raise FileNotFoundError(f"--data {data} does not exist")
@@ -125,30 +117,20 @@ def list_images(folder: Path) -> list[Path]:
 def nerfstudio_parser_options(config: S2CampDataParserConfig) -> dict:
     """The options S2CamP's config passes on to nerfstudio's COLMAP and transforms.json parsers."""
     return dict(
-        scale_factor=config.scale_factor,
-        scene_scale=config.scene_scale,
-        orientation_method=config.orientation_method,
-        center_method=config.center_method,
-        auto_scale_poses=config.auto_scale_poses,
-        eval_mode=config.eval_mode,
-        train_split_fraction=config.train_split_fraction,
-        eval_interval=config.eval_interval,
-    )
+        scale_factor=config.scale_factor, scene_scale=config.scene_scale, orientation_method=config.orientation_method,
+        center_method=config.center_method, auto_scale_poses=config.auto_scale_poses, eval_mode=config.eval_mode,
+        train_split_fraction=config.train_split_fraction, eval_interval=config.eval_interval,
+    )  # fmt: skip
 
 
 def fit_intrinsics_to_images(
     cameras: Cameras, image_filenames: list[Path], declared: list[tuple[int, int, str]], k: int, listed_by: Path
 ) -> Cameras:
-    """Decode each image, check its size against the size its scene file declares and fit the cameras to the images.
+    """The cameras fitted to their decoded images (``image_check.decoded_sizes``, naming ``listed_by`` on failure).
 
-    ``declared[i]`` = (width, height, where it is declared) of image i at full size (the COLMAP camera's or the
-    transforms.json ``w``/``h``). The image, read from the folder the parser uses (``images_{k}`` at downscale factor
-    k), must be that size divided by k within a pixel (rounding of the downscaled folder); otherwise a ValueError
-    names the image, the declaring file and both sizes: with a wrong size every ray would go through the wrong pixel.
-    Each camera then gets its image's size, and its intrinsics (already divided by k) the true per-axis resize
-    ratio, so that a rounded folder (mip-NeRF 360's 3114 -> 779) does not shift the principal point. Every image is
-    decoded in full first (``image_check.decoded_sizes``): one that cannot be is named with ``listed_by``, the scene
-    file that lists it.
+    ``declared[i]``: (width, height, where declared) of image i at full size. The image read (``images_{k}``) must be
+    that size / k within a pixel, else ValueError; each camera gets its image's size and its intrinsics (already / k)
+    the true per-axis ratio, so that a rounded folder (3114 -> 779 px) does not shift the principal point.
     """
     fx, fy, cx, cy = (getattr(cameras, name).clone() for name in ("fx", "fy", "cx", "cy"))
     width, height = cameras.width.clone(), cameras.height.clone()
@@ -166,7 +148,6 @@ def fit_intrinsics_to_images(
                 f"image {path} is {w}x{h} but {declared_by} is {full_w}x{full_h}{expected}: every ray would go "
                 f"through the wrong pixel; {advice}"
             )
-        # nerfstudio already divided the intrinsics by k; correct for the rounding of the stored image size.
         sx, sy = w / (full_w / k), h / (full_h / k)
         fx[i], cx[i], fy[i], cy[i] = fx[i] * sx, cx[i] * sx, fy[i] * sy, cy[i] * sy
         width[i], height[i] = w, h
@@ -174,9 +155,7 @@ def fit_intrinsics_to_images(
 
 
 def check_supported_cameras(cameras: Cameras, source: Path) -> Intrinsics:
-    """Cameras the S2CamP camera optimizer can refine (its ``intrinsics_from_cameras`` mapping and validation:
-    perspective or fisheye, distortion one-to-one over the image), as ``Intrinsics``; names the source file
-    otherwise."""
+    """``cameras`` as ``Intrinsics`` if the camera optimizer can refine them, else ValueError naming ``source``."""
     try:
         return intrinsics_from_cameras(cameras)
     except ValueError as error:

@@ -1,22 +1,13 @@
-"""Learning-rate schedules: nerfstudio's exponential decay with plain-float rates, and the camera schedule that
-follows the run's length.
+"""Learning-rate schedules: nerfstudio's exponential decay with plain-float rates, and a camera schedule that follows
+the run's length.
 
-nerfstudio 1.1.5 computes the learning-rate multiplier with numpy, so the optimizer and scheduler state hold
-numpy.float64 values; torch.load's default weights_only=True (torch >= 2.6) then refuses the checkpoint, which
-breaks resuming (--load-dir) and ns-eval / ns-viewer / ns-render. ``FloatExponentialDecayScheduler`` is nerfstudio's
-schedule with the multipliers cast to float.
+nerfstudio 1.1.5 computes its multipliers with numpy, so optimizer and scheduler states hold numpy.float64 values,
+which ``torch.load(weights_only=True)`` (torch >= 2.6) refuses; ``FloatExponentialDecayScheduler`` casts them to float.
 
-``RunLengthScheduleConfig`` states the decay as a fraction of the run instead of a step count, and the warm-up as a
-fraction with a floor in steps: CamP's camera schedule (warm-up over the first 2.5k of 30k steps, decay to a tenth by
-25k) applies as is to nerfacto's 30k steps, and a longer or shorter run gets its decay stretched or compressed
-(over 9/11 of the steps after the warm-up, as CamP's 22.5k of 27.5k, so it stays continuous in the run length). The
-warm-up is never shorter than ``min_warmup_steps`` (CamP's 2.5k): the field converges in its own number of steps,
-not in a fraction of the run, and a camera that moves before the field fits follows the field's errors: on tiny
-scenes a warm-up compressed to a fraction of a short run let accurate cameras drift and made most perturbed starts
-worse, where the floor kept accurate cameras nearly in place (measured in docs/DESIGN-NOTES.md sec. 4, "The warm-up
-floor"; docs/RESULTS.md, "Do no harm on tiny scenes"). A run shorter than the floor therefore refines its cameras
-very little; for short runs on tiny scenes that is the safe answer. ``S2CampTrainer`` fills in the run length
-(``run_steps``) before the optimizers are built.
+``RunLengthScheduleConfig`` states CamP's camera schedule (warm-up over 2.5k of 30k steps, decay to a tenth by 25k) as
+fractions of the run, so any run length gets it stretched or compressed, except that the warm-up never drops below
+``min_warmup_steps``: the field converges in its own number of steps, and a camera that moves before the field fits
+follows the field's errors. ``S2CampTrainer`` fills in the run length.
 """
 
 from __future__ import annotations
@@ -48,7 +39,7 @@ class FloatExponentialDecayScheduler(ExponentialDecayScheduler):
         scheduler = super().get_scheduler(optimizer, lr_init)
         assert isinstance(scheduler, lr_scheduler.LambdaLR)
         scheduler.lr_lambdas = [lambda step, f=f: float(f(step)) for f in scheduler.lr_lambdas]
-        # LambdaLR already evaluated the numpy multiplier once while it was built.
+        # LambdaLR evaluated the numpy multiplier once already.
         for group in optimizer.param_groups:
             group["lr"] = float(group["lr"])
         scheduler._last_lr = [float(lr) for lr in scheduler.get_last_lr()]
@@ -57,36 +48,32 @@ class FloatExponentialDecayScheduler(ExponentialDecayScheduler):
 
 @dataclass
 class RunLengthScheduleConfig(SchedulerConfig):
-    """Cosine warm-up from ``lr_pre_warmup`` to the optimizer's lr over the first ``warmup_fraction`` of the run (at
-    least ``min_warmup_steps``), then exponential decay to ``lr_final`` at ``decay_end_fraction`` of it, constant
-    after (module docstring). Where the floor lengthens the warm-up, the decay keeps its share of the steps after
-    the warm-up ((decay_end_fraction - warmup_fraction) / (1 - warmup_fraction), CamP's 22.5k of 27.5k), so the end
-    of the decay moves continuously with the run length; it ends at least one step after the warm-up.
-
-    ``warmup_steps`` / ``max_steps`` (nerfstudio's names and meaning) replace the fractions by absolute step counts.
+    """Cosine warm-up from ``lr_pre_warmup`` to the optimizer's lr over ``warmup_fraction`` of the run (at least
+    ``min_warmup_steps``), then exponential decay to ``lr_final``, constant after. The decay takes its share
+    (decay_end_fraction - warmup_fraction) / (1 - warmup_fraction) of the steps after the warm-up, at least one.
+    ``warmup_steps`` / ``max_steps`` (nerfstudio's meaning) replace the fractions by step counts.
     """
 
     _target: type = field(default_factory=lambda: RunLengthSchedule)
     lr_pre_warmup: float = 1e-8
-    """Learning rate at step 0 (the warm-up starts here)."""
+    """Learning rate at step 0."""
     lr_final: float = 1e-5
     """Learning rate at the end of the decay."""
     warmup_fraction: float = 2500 / 30000
-    """Fraction of the run spent warming up (CamP: 2.5k of nerfacto's 30k steps), at least ``min_warmup_steps``."""
+    """Fraction of the run spent warming up (at least ``min_warmup_steps``)."""
     min_warmup_steps: int = 2500
-    """Fewest warm-up steps (CamP's 2.5k): the camera waits for the field, whatever the run length."""
+    """Fewest warm-up steps, whatever the run length."""
     decay_end_fraction: float = 25000 / 30000
-    """Fraction of the run at which the decay reaches ``lr_final`` (CamP: 25k of 30k steps) when the warm-up is
-    ``warmup_fraction`` of it; more than ``warmup_fraction``."""
+    """Fraction of the run at which the decay reaches ``lr_final`` (unfloored warm-up); > ``warmup_fraction``."""
     warmup_steps: int | None = None
     """Warm-up steps; None: ``warmup_fraction`` of the run, at least ``min_warmup_steps``."""
     max_steps: int | None = None
-    """Step at which the decay ends; None: from ``decay_end_fraction`` (class docstring)."""
+    """Step at which the decay ends; None: from ``decay_end_fraction``."""
     run_steps: int | None = None
-    """Steps of the run; None (the default): ``--max-num-iterations``, filled in by ``S2CampTrainer``."""
+    """Steps of the run; None: ``--max-num-iterations``, filled in by ``S2CampTrainer``."""
 
     def step_counts(self) -> tuple[int, int]:
-        """(warm-up steps, step at which the decay ends); ValueError naming the parameter if one is out of range."""
+        """(warm-up steps, step at which the decay ends); ValueError naming a parameter out of range."""
         check_range("warmup_fraction", self.warmup_fraction, low=0.0, high=1.0, high_inclusive=False)
         check_range("decay_end_fraction", self.decay_end_fraction, low=0.0, high=1.0, low_inclusive=False)
         check_range("lr_pre_warmup", self.lr_pre_warmup, low=0.0, low_inclusive=False)

@@ -1,17 +1,11 @@
-"""Test-time alignment's renderer for S2CamP's splat model (``S2CampSplatModel``: ``s2camp-splat`` and the
-``s2camp-splat-so3xr3`` baseline), and the held-out views as splatfacto sees them.
+"""Test-time alignment's renderer for S2CamP's splat models (``s2camp-splat``, ``s2camp-splat-so3xr3``), and their
+held-out views as splatfacto sees them.
 
-A splat model renders whole images from a view matrix, and its rasterizers (gsplat; the reference rasterizer
-follows its contract) differentiate the view matrix, not the intrinsics ``Ks``. The focal scale therefore enters
-as training's intrinsics do (docs/SPLAT.md): the view's own K goes to the rasterizer and the view matrix
-is [[A R, A t], [0, 1]] with A = K^-1 K', K' = K with fx, fy scaled by exp(log_focal), [R | t] the world-to-camera
-of c2w exp(twist). The render goes through ``S2CampSplatModel.render_view``, never through the model's camera
-optimizer: held-out cameras are not training cameras.
-
-Loss sample: every Adam step renders each held-out view whole and takes the MSE over all its pixels. A splat
-render costs the same whatever subset of its pixels enters the loss, so a random subset (the ray path's
-``rays``) would only add noise; ``AlignmentConfig.rays`` and ``chunk`` do not apply here. Views are rendered one at
-a time (one camera per rasterization, as splatfacto renders), their losses summed as in the ray path.
+The rasterizers differentiate the view matrix, not ``Ks``, so the focal scale enters as in training: the view's own K
+goes to the rasterizer with the view matrix [[A R, A t], [0, 1]], A = K^-1 K', K' = K with fx, fy scaled by
+exp(log_focal), [R | t] the world-to-camera of c2w exp(twist). Rendering goes through
+``S2CampSplatModel.render_view``, never the camera optimizer. Each step renders every view whole, one at a time, and
+takes the MSE over all its pixels (a splat render costs the same for any subset): ``rays`` and ``chunk`` do not apply.
 """
 
 from __future__ import annotations
@@ -27,8 +21,7 @@ from s2camp_ns.splat.intrinsics_view import corrected_viewmat, intrinsics_correc
 
 
 def base_matrix(intrinsics: Intrinsics) -> Float[Tensor, "1 3 3"]:
-    """The pinhole K [1, 3, 3] (float64) of a one-camera ``Intrinsics``; ValueError if it has lens distortion
-    (splatfacto renders pinhole cameras on undistorted images)."""
+    """Pinhole K [1, 3, 3] (float64) of a one-camera ``Intrinsics``; ValueError if it has lens distortion."""
     distortion = torch.stack([getattr(intrinsics, name) for name in ("k1", "k2", "k3", "k4", "p1", "p2")])
     if intrinsics.is_fisheye or bool((distortion != 0).any()):
         raise ValueError(
@@ -45,8 +38,8 @@ def aligned_view_matrix(
     twist: Float[Tensor, 6],
     log_focal: Float[Tensor, ""],
 ) -> Float[Tensor, "1 4 4"]:
-    """World-to-camera matrix [[A R, A t], [0, 1]] (float64) that, rendered with ``base_k``, renders the camera
-    c2w exp(twist) with fx, fy scaled by exp(log_focal) (docs/SPLAT.md); differentiable in both."""
+    """View matrix [[A R, A t], [0, 1]] (float64) that, rendered with ``base_k``, renders the camera c2w exp(twist)
+    with fx, fy scaled by exp(log_focal); differentiable in both."""
     scale = torch.exp(log_focal.double())
     k = base_k.double()
     refined_k = intrinsics_matrix(k[:, 0, 0] * scale, k[:, 1, 1] * scale, k[:, 0, 2], k[:, 1, 2], k[:, 0, 1])
@@ -55,8 +48,7 @@ def aligned_view_matrix(
 
 
 class SplatRenderer:
-    """Renders held-out views of an ``S2CampSplatModel`` through (twist, log focal): whole images (module
-    docstring)."""
+    """Renders held-out views of an ``S2CampSplatModel`` through (twist, log focal), whole images."""
 
     def __init__(self, model) -> None:
         self.model = model
@@ -74,8 +66,7 @@ class SplatRenderer:
         log_focals: list[Tensor],
         generators: list[torch.Generator],
     ) -> list[tuple[Tensor, Tensor]]:
-        """(predicted, target) colours [h w, 3] of every pixel of each view (``generators`` unused: no sampling);
-        differentiable in the twists and log focal scales."""
+        """(predicted, target) colours [h w, 3] of each view (no sampling); differentiable in the variables."""
         del generators
         pairs = []
         for view, target, twist, log_focal in zip(views, targets, twists, log_focals, strict=True):
@@ -90,17 +81,10 @@ class SplatRenderer:
 
 
 def splat_held_out_views(datamanager) -> list[tuple[Tensor, Float[Tensor, "3 4"], Intrinsics]]:
-    """(image, OpenGL c2w, pinhole intrinsics) of every evaluation image as splatfacto renders it, in the frame of
-    the reference cameras (before ``test_time_alignment``'s similarity map).
-
-    Images: the data manager's cached evaluation images (``cached_eval``; its first use undistorts them and rewrites
-    the evaluation cameras' K to the undistorted pinhole one, as ``ns-eval`` of splatfacto sees them). Poses: the
-    evaluation split's reference cameras where the dataparser provides them (true cameras that
-    differ from the input's), else the evaluation cameras. Intrinsics: an image the data manager undistorted is
-    described by its undistorted K (a reference camera's K describes the distorted original), any other by the
-    reference camera's K; a reference camera with distortion whose image was not undistorted cannot be rendered by
-    a pinhole splat model and is refused.
-    """
+    """(image, OpenGL c2w, pinhole intrinsics) of every evaluation image as splatfacto renders it (``cached_eval``),
+    in the reference cameras' frame: poses of the reference cameras (else the given ones); K the undistorted one
+    for an undistorted image, else the reference camera's. ValueError for a reference camera with distortion whose
+    image was not undistorted."""
     images = [entry["image"] for entry in datamanager.cached_eval]
     dataset = datamanager.eval_dataset
     given = dataset.cameras

@@ -1,17 +1,11 @@
 """splatfacto with the S2CamP camera optimizer (``ns-train s2camp-splat``): pose, focal, principal point and skew.
 
-nerfstudio 1.1.5's splatfacto (its Gaussians, densification strategy, losses and schedules) whose training views
-are rendered through the refined cameras. gsplat has no gradient for the intrinsics, so the refined intrinsics K'
-enter as the view matrix [[A R, A t], [0, 1]] with A = K^-1 K' and the camera's own K (docs/SPLAT.md: exact for the
-pinhole projection, the EWA covariance, the blur, the antialiasing compensation and the field-of-view clamp). The
-densification strategy reads the projected means' gradients, which are those of the refined camera.
-
-- Distortion stays fixed: splatfacto trains on images its data manager has undistorted, so the cameras are pinhole
-  (their distortion parameters are dropped before the optimizer sees them) and ``parameters all`` is refused.
-- Rasterizer: gsplat's ``rasterization`` on CUDA, the pure-torch ``s2camp_ns.splat.reference_rasterizer`` elsewhere
-  (``rasterizer`` picks one explicitly).
-- The camera refinement shared with ``s2camp`` (P, refresh, schedule, shared intrinsics, camera errors, viewer
-  panel) is ``S2CampRefinementMixin``; nerfstudio's stock optimizer (``s2camp-splat-so3xr3``) also works.
+nerfstudio 1.1.5's splatfacto, its training views rendered through the refined cameras. gsplat has no gradient for
+the intrinsics, so the refined K' enters as the view matrix [[A R, A t], [0, 1]], A = K^-1 K', rendered with the
+camera's own K (exact: ``s2camp_ns.splat.intrinsics_view``). Distortion stays fixed: splatfacto trains on
+undistorted images, so the cameras are pinhole and ``parameters all`` is refused. Rasterizer: gsplat on CUDA, the
+pure-torch ``reference_rasterizer`` elsewhere. The refinement shared with ``s2camp`` is ``S2CampRefinementMixin``;
+nerfstudio's stock optimizer (``s2camp-splat-so3xr3``) also works.
 """
 
 from __future__ import annotations
@@ -50,22 +44,20 @@ class S2CampSplatModelConfig(SplatfactoModelConfig):
     camera_optimizer: CameraOptimizerConfig = field(
         default_factory=lambda: S2CampCameraOptimizerConfig(parameters="pose+intrinsics")
     )
-    """The S2CamP camera optimizer (``parameters`` pose, pose+focal or pose+intrinsics; distortion stays fixed).
-    nerfstudio's own CameraOptimizerConfig (pose only) also works: the ``s2camp-splat-so3xr3`` baseline."""
+    """S2CamP's optimizer (``parameters`` pose, pose+focal or pose+intrinsics), or nerfstudio's (pose only)."""
     camera_error_every: int = 100
-    """Compute camera errors against the dataparser's reference cameras every this many steps (0 = never)."""
+    """Steps between camera errors against the dataparser's reference cameras (0 = never)."""
     viewer_update_period: float = 1.0
     """Seconds between updates of the viewer's S2CamP panel (0 = every step; negative = no panel)."""
     refresh_request_every: int = 10
-    """With several processes, the steps at which a refresh of P requested from the viewer is agreed on."""
+    """With several processes, steps between agreements on a refresh of P requested from the viewer."""
     rasterizer: Literal["auto", "gsplat", "reference"] = "auto"
-    """"auto": gsplat's CUDA rasterization on CUDA, the pure-torch reference rasterization on the CPU."""
+    """"auto": gsplat on CUDA, the pure-torch reference rasterization elsewhere."""
 
 
 @contextlib.contextmanager
 def _lpips_or_none() -> Iterator[None]:
-    """splatfacto builds LPIPS in the middle of ``populate_modules``; offline (no cached AlexNet weights) build None
-    instead of failing, with one warning (the metrics then omit lpips)."""
+    """Within the block, LPIPS that cannot load its weights is built as None (one warning) instead of raising."""
     import torchmetrics.image.lpip as lpip_module
 
     original = lpip_module.LearnedPerceptualImagePatchSimilarity
@@ -85,15 +77,14 @@ def _lpips_or_none() -> Iterator[None]:
 
 
 def pinhole_cameras(cameras: Cameras) -> Cameras:
-    """The cameras with their distortion dropped: what splatfacto renders (its data manager undistorts the images
-    and writes the new pinhole K into the cameras, but keeps their distortion parameters)."""
+    """The cameras without distortion parameters (splatfacto's data manager keeps them after undistorting)."""
     if cameras.distortion_params is None:
         return cameras
     return replace_cameras(cameras, distortion_params=None)
 
 
 def world_to_camera(c2w: Float[Tensor, "n 3 4"]) -> Float[Tensor, "n 4 4"]:
-    """The 4 x 4 world-to-camera matrix of an OpenCV camera-to-world matrix (the rasterizer's view matrix)."""
+    """World-to-camera [n, 4, 4] (the rasterizer's view matrix) of OpenCV camera-to-world matrices."""
     rotation = c2w[:, :, :3].transpose(-1, -2)
     translation = -(rotation @ c2w[:, :, 3:])
     bottom = torch.zeros_like(c2w[:, :1, :])
@@ -104,9 +95,8 @@ def world_to_camera(c2w: Float[Tensor, "n 3 4"]) -> Float[Tensor, "n 4 4"]:
 def refined_view_matrix(
     refiner: CameraRefiner, image: Int[Tensor, " 1"], base_k: Float[Tensor, "1 3 3"]
 ) -> Float[Tensor, "1 4 4"]:
-    """World-to-camera matrix of training image ``image`` that, rendered with its given pinhole ``base_k``, renders as
-    its refined camera: [[A R', A t'], [0, 1]] from the refined pose and A = K^-1 K' (docs/SPLAT.md eq. S4), float64.
-    The splatting step's camera work: one graph, no host read (the index is a tensor on the refiner's device)."""
+    """View matrix [[A R', A t'], [0, 1]] (float64) that renders training image ``image``
+    with its given ``base_k`` as its refined camera; no host read (``image`` is on the refiner's device)."""
     deltas = refiner.deltas()[image]  # [1, 16]
     c2w = refiner.refined_c2w(deltas, images=image)
     refined = refiner.refined_intrinsics(deltas, images=image)
@@ -131,8 +121,7 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
             )
         seed_colours = None
         if self.seed_points is not None and not self.config.random_init and not torch.cuda.is_available():
-            # splatfacto moves the seed colours to CUDA while building its SH coefficients: hand it the points
-            # alone and set the colours below, as it would.
+            # splatfacto moves the seed colours to CUDA: hand it the points alone, set the colours below as it would.
             points, seed_colours = self.seed_points
             self.seed_points = (points, seed_colours[:0])
         with _lpips_or_none():
@@ -155,10 +144,8 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         track_evidence: TrackEvidence | None = None,
     ) -> None:
         pinhole = pinhole_cameras(cameras)
-        # Distorted cameras here come with tracks in the distorted images (the pipeline passes the undistorted
-        # pinhole cameras with their keypoints moved, ``undistorted_tracks``); the model refines the undistorted
-        # pinhole camera, which they do not fit: there the prior keeps its given-camera anchor and the reprojection
-        # error as its scale, with each image's number of tracks for the shared intrinsics' standard error.
+        # Tracks in distorted images do not fit the undistorted pinhole camera refined here (the pipeline moves them,
+        # ``undistorted_tracks``): the prior then keeps its given-camera anchor, with each image's number of tracks.
         evidence, observations = track_evidence, None
         if has_distortion(cameras) and track_evidence is not None:
             image = track_evidence.tracks.image
@@ -168,15 +155,13 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         )
 
     def set_undistortion_scale(self, fx_scale: Tensor, fy_scale: Tensor) -> None:
-        """Per training image, the data manager's undistorted focal lengths over the dataparser's (1 where an image
-        was left alone): the reference cameras are given with the distorted K, the model refines the undistorted one,
-        so ``reference_cameras`` scales the reference focal lengths into the refined cameras' units."""
+        """Per training image, undistorted over given focal lengths [n]: how ``reference_cameras`` scales the
+        reference focal lengths into the refined (undistorted) cameras' units."""
         self._undistortion_scale = (fx_scale.reshape(-1).to(torch.float64), fy_scale.reshape(-1).to(torch.float64))
 
     def reference_cameras(self) -> Cameras | None:
-        """The dataparser's reference training cameras as this model sees them: pinhole, with the focal lengths of
-        the undistorted images (``set_undistortion_scale``), so camera errors, the viewer's reference frusta and
-        s2camp-eval's focal ratio compare like with like."""
+        """The dataparser's reference training cameras as this model sees them: pinhole, with the undistorted
+        images' focal lengths (``set_undistortion_scale``)."""
         reference = super().reference_cameras()
         scale = getattr(self, "_undistortion_scale", None)
         if reference is None or scale is None:
@@ -187,8 +172,7 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
 
     @torch.no_grad()
     def refined_train_cameras(self) -> tuple[Float[Tensor, "n 3 4"], Float[Tensor, " n"]]:
-        """OpenGL c2w and fx of the training cameras as rendered. nerfstudio's stock optimizer right-multiplies its
-        correction onto the camera in splatfacto (``apply_to_camera``: c2w' = c2w [D; 0 0 0 1])."""
+        """OpenGL c2w and fx of the training cameras as rendered (the stock optimizer: c2w' = c2w [D; 0 0 0 1])."""
         if self.uses_s2camp_optimizer or self.camera_optimizer.config.mode == "off":
             return super().refined_train_cameras()
         if self._train_cameras is None:
@@ -201,15 +185,9 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         translation = c2w[:, :, 3:] + c2w[:, :, :3] @ correction[:, :, 3:]
         return torch.cat([rotation, translation], dim=-1), cameras.fx.reshape(-1).to(torch.float64)
 
-    # ------------------------------------------------------------------------------------------------ rendering
     def view_matrix(self, camera: Cameras) -> Float[Tensor, "1 4 4"]:
-        """The rasterizer's world-to-camera matrix for ``camera`` (to be rendered with the camera's own K).
-
-        Training cameras (``cam_idx`` while training, or marked with TRAIN_CAMERA_KEY) are refined: with S2CamP's
-        optimizer [[A R', A t'], [0, 1]] from the refined pose and A = K^-1 K' (docs/SPLAT.md eq. S4), in float64
-        until the rasterizer's dtype; with nerfstudio's stock optimizer its pose correction. Other cameras render as
-        given.
-        """
+        """The view matrix [1, 4, 4] for ``camera``, to be rendered with its own K: refined (``refined_view_matrix``,
+        or the stock optimizer's pose) for a training camera (``cam_idx`` while training, or TRAIN_CAMERA_KEY)."""
         metadata = camera.metadata or {}
         index = metadata.get(TRAIN_CAMERA_KEY, metadata.get("cam_idx") if self.training else None)
         if index is None:
@@ -231,9 +209,7 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         return reference_rasterization(means=means, **kwargs)
 
     def get_outputs(self, camera: Cameras) -> dict[str, Tensor | list]:
-        """splatfacto's outputs (rgb, depth, accumulation, background) of one camera, rendered through
-        ``view_matrix`` at splatfacto's current resolution; the densification strategy gets the rasterizer's info as
-        in splatfacto."""
+        """splatfacto's outputs (rgb, depth, accumulation, background) of one camera through ``view_matrix``."""
         if not isinstance(camera, Cameras):
             raise TypeError(f"get_outputs takes a Cameras object, got {type(camera).__name__}")
         if self.training and camera.shape[0] != 1:
@@ -254,9 +230,8 @@ class S2CampSplatModel(S2CampRefinementMixin, SplatfactoModel):
         height: int,
         cam_idx: int | None = None,
     ) -> dict[str, Tensor | list]:
-        """The outputs of ``get_outputs`` for an explicit world-to-camera matrix and pinhole K: no camera optimizer
-        is involved (test-time alignment renders held-out cameras through its own view matrix). ``viewmat`` and
-        ``ks`` are cast to the Gaussians' dtype; ``cam_idx`` selects the bilateral grid while training."""
+        """``get_outputs`` for an explicit view matrix and pinhole K, no camera optimizer involved; ``cam_idx``
+        selects the bilateral grid while training."""
         params = {name: self.gauss_params[name] for name in self.gauss_params}
         if self.crop_box is not None and not self.training:
             crop = self.crop_box.within(params["means"]).squeeze()

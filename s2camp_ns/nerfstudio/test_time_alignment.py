@@ -1,25 +1,18 @@
 """Test-time camera alignment of held-out views, then PSNR / SSIM (/ LPIPS) through the aligned cameras.
 
-Joint camera refinement leaves the radiance field in its own frame: a similarity away from the reference frame
-(gauge freedom) plus whatever the NeRF absorbed from the camera errors. Held-out cameras are given in the reference
-frame, so evaluating them as given would charge every method with that frame difference. CamP's protocol (and ours,
-for every variant alike) is to align each test camera with a short camera-only optimisation, the field frozen:
+Joint refinement leaves the field in its own frame (a similarity, plus what it absorbed of the camera errors), while
+held-out cameras are given in the reference frame. CamP's protocol, the same for every model, aligns each test
+camera against the frozen field:
 
-1. map the test camera into the field's frame with the similarity that takes the reference training-camera centres
-   onto the refined ones (Umeyama), and scale its focal length by the median refined / reference focal ratio of
-   the training cameras (the shared dolly-zoom component);
-2. ``steps`` Adam steps on a local se(3) twist (c2w' = c2w exp(xi), as the S2CamP camera model) and a log focal
-   scale, minimising the photometric MSE of the test image (seeded);
-3. render the full image through the aligned camera and compute the metrics (and the PSNR before step 2).
+1. map it into the field's frame by the similarity (Umeyama) taking the reference training-camera centres onto the
+   refined ones, and scale its focal length by the median refined / reference focal ratio of the training cameras;
+2. ``steps`` seeded Adam steps on a local se(3) twist (c2w' = c2w exp(xi)) and a log focal scale, minimising the
+   photometric MSE of the test image;
+3. render the full image through the aligned camera and compute the metrics (PSNR also before step 2).
 
-The protocol (this module: frame mapping, Adam loop and schedule, metrics) is the same for every model; only how a
-view is rendered through (twist, log focal) differs:
-
-- ray models (nerfacto-derived, S2CamP's and the stock optimizer's): ``ray_alignment``, ``rays`` random pixels per
-  step, rays differentiable in both variables;
-- S2CamP's splat model (``s2camp-splat``, ``s2camp-splat-so3xr3``): ``splat_alignment``, the whole image per step,
-  the focal scale through the view matrix as in training; the held-out images and cameras are
-  splatfacto's undistorted ones. Other splatfacto models are refused by name (use ns-eval).
+Only rendering through (twist, log focal) differs per model: ``ray_alignment`` for ray (nerfacto) models, ``rays``
+random pixels per step; ``splat_alignment`` for S2CamP's splat models, the whole (undistorted) image per step. Other
+splatfacto models are refused (use ns-eval).
 """
 
 from __future__ import annotations
@@ -45,22 +38,21 @@ class AlignmentConfig:
     """Camera-only optimisation of a held-out view against a frozen radiance field."""
 
     steps: int = 100
-    """Adam steps per test camera (CamP: 100); 0 evaluates the similarity-mapped camera as is."""
+    """Adam steps per test camera; 0 evaluates the similarity-mapped camera as is."""
     rays: int = 256
-    """Random pixels of the test image per step, ray models; splat models take every pixel (``splat_alignment``)."""
+    """Random pixels of the test image per step (ray models; splat models take every pixel)."""
     lr: float = 1e-3
     """Initial Adam learning rate of the twist (rad, scene units) and of the log focal scale."""
     lr_final: float = 1e-4
     """Learning rate at the last step (exponential decay)."""
     refine_focal: bool = True
-    """Also optimise a focal-length scale (the training cameras' focal lengths may have drifted together)."""
+    """Also optimise a focal-length scale."""
     seed: int = 0
     """Seed of the pixel sampling."""
     chunk: int = 4096
     """Rays per forward pass when rendering the full image (ray models)."""
     views_per_batch: int = 8
-    """Held-out views optimised together (bounds the batch's memory); ray models render their rays in one forward
-    pass per step, splat models one view after the other."""
+    """Held-out views optimised together (bounds the batch's memory)."""
 
     def validate(self) -> None:
         check_range("steps", self.steps, low=0)
@@ -85,18 +77,18 @@ class AlignedView:
     """PSNR through the similarity-mapped camera, before the camera-only steps."""
     final_loss: float
     twist: tuple[float, ...] = (0.0,) * 6
-    """The twist (rho, omega) found: the aligned camera is c2w exp(twist) (OpenCV frame) of the mapped one."""
+    """(rho, omega): the aligned camera is c2w exp(twist) (OpenCV frame) of the mapped one."""
     focal_scale: float = 1.0
-    """exp(log focal) found: the aligned focal lengths over the mapped camera's."""
+    """exp(log focal): the aligned focal lengths over the mapped camera's."""
 
 
 def frame_similarity(reference_c2w: Float[Tensor, "n 3 4"], refined_c2w: Float[Tensor, "n 3 4"]) -> Similarity:
-    """Similarity taking reference training-camera centres onto the refined ones (reference frame -> NeRF frame)."""
+    """Similarity taking the reference training-camera centres onto the refined ones (reference -> field frame)."""
     return umeyama(reference_c2w[:, :, 3].double(), refined_c2w[:, :, 3].double())
 
 
 def map_camera(similarity: Similarity, c2w: Float[Tensor, "3 4"]) -> Float[Tensor, "3 4"]:
-    """Apply x -> s R x + t to a camera: rotation R @ R_c2w, centre s R c + t (the scale does not touch rotation)."""
+    """x -> s R x + t applied to a camera: rotation R R_c2w, centre s R c + t."""
     c2w = c2w.double()
     rotation = similarity.rotation.to(c2w) @ c2w[:, :3]
     centre = similarity.scale * similarity.rotation.to(c2w) @ c2w[:, 3] + similarity.translation.to(c2w)
@@ -104,7 +96,7 @@ def map_camera(similarity: Similarity, c2w: Float[Tensor, "3 4"]) -> Float[Tenso
 
 
 def _image_metrics(model, predicted: Tensor, target: Tensor) -> tuple[float, float, float]:
-    """PSNR, SSIM and LPIPS (NaN where the LPIPS weights are unavailable) of [H, W, 3] images in [0, 1]."""
+    """PSNR, SSIM and LPIPS (NaN without LPIPS weights) of [H, W, 3] images in [0, 1]."""
     from torchmetrics.functional.image import structural_similarity_index_measure
 
     predicted = predicted.clamp(0.0, 1.0)
@@ -123,19 +115,17 @@ def _image_metrics(model, predicted: Tensor, target: Tensor) -> tuple[float, flo
 
 
 Progress = Callable[[int, int], None]
-"""``progress(done, total)``, told after each unit of an alignment's work: each view's render before and after the
-camera-only steps, and each step of a batch of views (``s2camp-eval``'s progress bar)."""
+"""``progress(done, total)`` after each unit of work: each view's two renders, each step of a batch."""
 
 
 def alignment_work(num_views: int, config: AlignmentConfig) -> int:
-    """The units of work (``Progress``) of aligning ``num_views`` views."""
+    """Units of work (``Progress``) of aligning ``num_views`` views."""
     batches = -(-num_views // config.views_per_batch)
     return 2 * num_views + batches * config.steps
 
 
 class ViewRenderer(Protocol):
-    """How a model renders a held-out view through (twist, log focal): the part of the protocol that differs
-    between ray models (``ray_alignment.RayRenderer``) and splat models (``splat_alignment.SplatRenderer``)."""
+    """How a model renders a held-out view through (twist, log focal): ``RayRenderer`` or ``SplatRenderer``."""
 
     def step_colours(
         self,
@@ -154,8 +144,8 @@ class ViewRenderer(Protocol):
 
 
 def renderer_for(model, config: AlignmentConfig) -> ViewRenderer:
-    """The splat renderer for S2CamP's splat model, the ray renderer for any other (nerfacto-derived) model;
-    ValueError for a splatfacto model that is not S2CamP's (no ``render_view``: use ns-eval)."""
+    """``SplatRenderer`` for S2CamP's splat model, ``RayRenderer`` for other (nerfacto) models; ValueError for
+    another splatfacto model."""
     from nerfstudio.models.splatfacto import SplatfactoModel
 
     from s2camp_ns.nerfstudio.splat_model import S2CampSplatModel
@@ -176,14 +166,8 @@ def renderer_for(model, config: AlignmentConfig) -> ViewRenderer:
 def align_and_evaluate_views(
     model, views: list[HeldOutView], config: AlignmentConfig, progress: Progress | None = None
 ) -> list[AlignedView]:
-    """Align held-out cameras to the frozen ``model`` and evaluate them (module docstring); ``progress`` is told
-    each unit of work done (``alignment_work`` in all).
-
-    Up to ``config.views_per_batch`` views are optimised in one loop: each step renders every view's sample (ray
-    models: ``rays`` pixels in one batch) and minimises the sum of the per-view MSEs. Each view has its own twist,
-    focal scale and pixel stream, and Adam is elementwise, so every view follows exactly the steps it would follow
-    alone; batching only saves the fixed cost of a forward / backward pass per step.
-    """
+    """Align held-out views to the frozen ``model`` and evaluate them, ``config.views_per_batch`` at a time (each
+    follows exactly the steps it would alone: own variables and pixel stream, elementwise Adam)."""
     config.validate()
     renderer = renderer_for(model, config)
     total, done = alignment_work(len(views), config), 0
@@ -203,7 +187,7 @@ def align_and_evaluate_views(
 
 
 def _target_image(image: Tensor) -> Float[Tensor, "h w 3"]:
-    """The RGB channels in [0, 1] (float32, CPU) of a held-out image (float, or uint8 as splatfacto caches them)."""
+    """RGB in [0, 1] (float32, CPU) of a held-out image (float, or uint8 as splatfacto caches them)."""
     rgb = image[..., :3].cpu()
     return rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb.float()
 
@@ -211,7 +195,7 @@ def _target_image(image: Tensor) -> Float[Tensor, "h w 3"]:
 def _align_batch(
     model, renderer: ViewRenderer, views: list[HeldOutView], config: AlignmentConfig, advance: Callable[[], None]
 ) -> list[AlignedView]:
-    """:func:`align_and_evaluate_views` for one batch of (validated) views; ``advance()`` after each unit of work."""
+    """``align_and_evaluate_views`` for one batch; ``advance()`` after each unit of work."""
     targets = [_target_image(view.image) for view in views]
     twists = [torch.zeros(6, dtype=torch.float64, requires_grad=True) for _ in views]
     log_focals = [torch.zeros((), dtype=torch.float64, requires_grad=config.refine_focal) for _ in views]
@@ -270,14 +254,13 @@ def align_and_evaluate(
     config: AlignmentConfig,
     index: int = 0,
 ) -> AlignedView:
-    """Align one held-out camera to the frozen ``model`` on ``image`` and evaluate it (module docstring)."""
+    """Align one held-out camera to the frozen ``model`` on ``image`` and evaluate it."""
     return align_and_evaluate_views(model, [HeldOutView(image, c2w_gl, intrinsics, index)], config)[0]
 
 
 def _ray_held_out_views(dataset) -> list[tuple[Tensor, Float[Tensor, "3 4"], Intrinsics]]:
-    """(image, OpenGL c2w, intrinsics) of every evaluation image for a ray model, in the reference cameras' frame:
-    the evaluation split's reference cameras where the dataparser provides them (true cameras that
-    differ from the input's), else the evaluation cameras as given; images and distortion as in the dataset."""
+    """(image, OpenGL c2w, intrinsics) of every evaluation image: the evaluation split's reference cameras where
+    the dataparser provides them, else the cameras as given."""
     from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
 
     cameras = (getattr(dataset, "metadata", None) or {}).get("reference_cameras")
@@ -292,14 +275,8 @@ def _ray_held_out_views(dataset) -> list[tuple[Tensor, Float[Tensor, "3 4"], Int
 def evaluate_held_out_views(
     pipeline, config: AlignmentConfig = AlignmentConfig(), progress: Progress | None = None
 ) -> list[AlignedView]:
-    """Align and evaluate every evaluation image of a nerfstudio pipeline with an S2CamP model (a nerfacto model, or
-    S2CamP's splat model: module docstring); ``progress`` as ``align_and_evaluate_views``'s.
-
-    The reference training cameras (``metadata["reference_cameras"]``, present when the dataparser perturbed the
-    training cameras) define the frame of the evaluation cameras; without them the training cameras as given do.
-    The evaluation cameras are the evaluation split's reference cameras where the dataparser provides them (true
-    cameras that differ from the input's), else the evaluation cameras (splat models: ``splat_held_out_views``).
-    """
+    """Align and evaluate every evaluation image of a pipeline with an S2CamP model, in the frame of the reference
+    training cameras (else the given ones)."""
     model = pipeline.model
     renderer = renderer_for(model, config)  # refuses a model it cannot render before any work
     splat = not isinstance(renderer, RayRenderer)
@@ -308,7 +285,7 @@ def evaluate_held_out_views(
     base = reference if reference is not None else model._train_cameras
     reference_c2w = base.camera_to_worlds.to(torch.float64).cpu()
     reference_fx = base.fx.reshape(-1).to(torch.float64).cpu()
-    # A splat model's reference cameras carry the undistorted images' focal lengths (``set_undistortion_scale``).
+    # A splat model's reference focal lengths are the undistorted images' (``set_undistortion_scale``).
     similarity = frame_similarity(reference_c2w, refined_c2w)
     focal_ratio = float(torch.median(refined_fx / reference_fx))
     if splat:

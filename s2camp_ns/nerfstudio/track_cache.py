@@ -1,24 +1,11 @@
 """Where the image tracks' cache lives, and one build per cache entry among processes (``image_tracks``).
 
-Folder. The data parser's default cache is ``s2camp_image_tracks`` in the scene folder. A scene folder that cannot be
-written (a read-only mount, a shared drive) still has its cache read when it ships one; a build then goes to the
-user's cache folder, ``$XDG_CACHE_HOME/s2camp-ns/image_tracks`` (``~/.cache/s2camp-ns/image_tracks`` when
-``XDG_CACHE_HOME`` is unset or relative). The entry's name hashes the images and cameras (``cache_key``), so the
-scenes that share the user's folder do not collide. A folder counts as writable when a file can be created in it
-(``write_error``): permission bits do not tell, root ignores them and a read-only mount keeps them.
-
-Lock. A build holds an exclusive ``flock`` on ``.<key>.lock`` beside its entry ``<key>`` (``entry_lock``): the data
-parser of every rank of a multi-device run, and two runs of one scene, ask for the same entry at once; one builds, the
-others wait (with one notice) and then read its entry. The kernel releases the lock of a process that dies, so a
-waiter is never stuck behind a dead builder: it finds no finished entry and builds itself. The holder removes the lock
-file before it lets go, so a finished cache holds its entries only; a waiter whose lock file was removed locks the new
-one. Without ``fcntl`` (Windows) there is no lock: processes that build at once each build, and the entry of the
-first to finish is kept.
-
-Damage. A cache entry that cannot be read as it was written (a disk error, a copy cut short, an edit) is never used:
-its reader raises ``DamagedEntryError``, the caller shows one notice naming the entry and why (``notice_damaged``)
-and builds it again in its place, under the lock (``discard``). Files are compared with the digest their entry
-records (``file_digest``).
+The default cache is ``s2camp_image_tracks`` in the scene folder; where that cannot be written (``write_error``) a
+shipped cache is still read and builds go to ``user_cache_folder``. A build holds an exclusive ``flock`` on
+``.<key>.lock`` beside its entry (``entry_lock``): one process builds, the others wait and read the entry (a dead
+holder's lock is released, and a waiter then builds). No lock without ``fcntl`` (Windows): each builds, the first
+entry to finish is kept. A damaged entry raises ``DamagedEntryError`` in its reader and is built again in its place
+(``notice_damaged``, ``discard``).
 """
 
 from __future__ import annotations
@@ -47,8 +34,7 @@ HOLDER_NAME_WAIT_S = 5.0
 USER_CACHE_NAME = "s2camp-ns"
 """This package's folder in the user's cache folder (``XDG_CACHE_HOME``, else ``~/.cache``)."""
 LOG = Console(stderr=True, width=120)
-"""Notes of the cache: where a build goes when the scene folder cannot be written, and that a process waits for
-another's build (on stderr, as the data parser's)."""
+"""The cache's notices (on stderr, as the data parser's)."""
 
 
 class DamagedEntryError(ValueError):
@@ -72,9 +58,8 @@ def hash_file(digest: Any, path: Path) -> None:
 
 
 def discard(entry: Path) -> None:
-    """Remove the damaged cache entry ``entry`` (a folder or a file); only the holder of its ``entry_lock`` may call
-    it. It is first renamed out of sight (a name ``remove_stale_builds`` also clears), so that a process reading the
-    cache without the lock finds either the whole entry or none."""
+    """Remove the damaged entry ``entry`` (folder or file), renamed out of sight first so that a reader without the
+    lock finds the whole entry or none; only the holder of its ``entry_lock`` may call it."""
     hidden = entry.parent / f".{entry.name}.{os.getpid()}.damaged.building"
     os.rename(entry, hidden)
     if hidden.is_dir():
@@ -92,17 +77,15 @@ def file_digest(path: Path) -> str:
 
 def user_cache_folder(kind: str = "image_tracks") -> Path:
     """``$XDG_CACHE_HOME/s2camp-ns/<kind>``, or ``~/.cache/s2camp-ns/<kind>`` when ``XDG_CACHE_HOME`` is unset, empty
-    or relative (the XDG base directory specification ignores relative paths); ``kind``: ``image_tracks``, or
-    ``readjusted_points`` (``robust_adjustment``)."""
+    or relative; ``kind``: ``image_tracks`` or ``readjusted_points`` (``robust_adjustment``)."""
     base = os.environ.get("XDG_CACHE_HOME", "")
     root = Path(base) if base and os.path.isabs(base) else Path.home() / ".cache"
     return root / USER_CACHE_NAME / kind
 
 
 def write_error(folder: Path) -> OSError | None:
-    """None when a file can be created in ``folder`` (created, with its parents, when missing; the probe file is
-    removed), else the error that prevented it. Creating a file is the test: ``os.access`` says yes to root, and on
-    some mounts, where writing then fails."""
+    """None when a file can be created in ``folder`` (made with its parents if missing), else the error. Creating a
+    file is the test: ``os.access`` says yes to root and on some read-only mounts."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
         handle, probe = tempfile.mkstemp(prefix=".write-probe.", dir=folder)
@@ -114,9 +97,8 @@ def write_error(folder: Path) -> OSError | None:
 
 
 def build_folder(cache: Path, user_fallback: bool) -> Path:
-    """The folder in which to build a cache entry: ``cache`` when it can be written, else, with ``user_fallback``, the
-    user's cache folder (``user_cache_folder``, with a notice naming both). Raises OSError, naming the
-    ``image_tracks_cache`` option, the folder and the error, when neither can be written."""
+    """The folder to build a cache entry in: ``cache`` when writable, else with ``user_fallback`` the user's cache
+    folder (with a notice). OSError naming the ``image_tracks_cache`` option when neither can be written."""
     error = write_error(cache)
     if error is None:
         return cache
@@ -144,10 +126,9 @@ def build_folder(cache: Path, user_fallback: bool) -> Path:
 
 @contextlib.contextmanager
 def entry_lock(entry: Path, what: str = "Image tracks") -> Iterator[None]:
-    """Hold the exclusive inter-process lock of the cache entry ``entry`` (the file ``.<name>.lock`` beside it, in a
-    folder that can be written) for the body, waiting, with one notice that names ``what`` is built, while another
-    process holds it (module docstring, Lock). The body must check whether ``entry`` was finished while this process
-    waited. No lock without ``fcntl``."""
+    """Hold the exclusive lock of the cache entry ``entry`` (``.<name>.lock`` beside it) for the body, waiting with
+    one notice naming ``what`` while another process holds it. The body must check whether ``entry`` was finished
+    meanwhile. No lock without ``fcntl``."""
     if fcntl is None:
         yield
         return
@@ -181,8 +162,8 @@ def entry_lock(entry: Path, what: str = "Image tracks") -> Iterator[None]:
 
 
 def remove_stale_builds(entry: Path) -> None:
-    """Remove the temporary build folders (``.<name>.*.building`` beside ``entry``) of builders that died; only the
-    holder of ``entry_lock`` may call it, as only the holder builds. Nothing without ``fcntl`` (no lock)."""
+    """Remove the build folders (``.<name>.*.building``) of dead builders; only the holder of ``entry_lock`` may
+    call it. Nothing without ``fcntl``."""
     if fcntl is None:
         return
     for stale in entry.parent.glob(f".{entry.name}.*.building"):
@@ -190,8 +171,8 @@ def remove_stale_builds(entry: Path) -> None:
 
 
 def _open_lock_file(path: Path) -> int:
-    """A descriptor of the lock file ``path``, created when missing; read-only when another user's lock file cannot be
-    opened for writing (``flock`` locks either)."""
+    """A descriptor of the lock file ``path``, created if missing; read-only for another user's (``flock`` locks
+    either)."""
     try:
         return os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
     except PermissionError:
@@ -209,9 +190,8 @@ def _is_file_at(handle: int, path: Path) -> bool:
 
 
 def _notice_wait(handle: int, entry: Path, what: str) -> None:
-    """One notice that this process waits for the build of ``entry`` by the process named in the lock file. The
-    holder writes its name just after it takes the lock, so a waiter that finds the file still empty reads it again
-    for up to ``HOLDER_NAME_WAIT_S`` (a loaded machine can hold the holder between the two) before naming it "?"."""
+    """The notice that this process waits for the build of ``entry`` by the process named in the lock file (read
+    again for up to ``HOLDER_NAME_WAIT_S`` while empty, then "?")."""
     holder: list[str] = []
     deadline = time.monotonic() + HOLDER_NAME_WAIT_S
     while True:

@@ -1,12 +1,10 @@
-"""The track prior's evidence for the split's cameras, as the cameras are given (after any perturbation): the
-reprojection RMS of each camera against its tracks (``metadata["track_rms_px"]``, ``core.tracks``) and the tracks
-with the cameras in the tracks' world (``metadata["track_evidence"]``, ``core.track_fit.TrackEvidence``).
+"""The track prior's evidence for a split's images, as the cameras are given (after any perturbation): each image's
+reprojection RMS against its tracks (``metadata["track_rms_px"]``, ``core.tracks``) and the tracks with the cameras in
+the tracks' world (``metadata["track_evidence"]``, ``core.track_fit.TrackEvidence``).
 
-Three sources, in the data parser's order (``track_evidence``): the scene's own tracks (a COLMAP scene's model with
-points, ``colmap_track_evidence``, or the COLMAP model ns-process-data leaves beside a transforms.json,
-``transforms_track_evidence``), checked against a broken model (``colmap_tracks.check_sfm_track_rms``); else, for
-the training split, tracks made from the scene's images with the given cameras (``image_track_evidence``). Perturbed
-cameras never get the scene's own tracks (made with the unperturbed cameras), and a note says what they get.
+Sources, in order (``track_evidence``): the scene's own tracks (a COLMAP scene's points, or the model ns-process-data
+leaves beside a transforms.json), checked by ``colmap_tracks.check_sfm_track_rms``; else, for the training split,
+tracks made from the images (``image_track_evidence``). Perturbed cameras never get the scene's own tracks.
 """
 
 from __future__ import annotations
@@ -42,15 +40,14 @@ if TYPE_CHECKING:
     from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 
 Evidence = tuple[Float[Tensor, " n"], TrackEvidence]
-"""``track_rms_px`` (float64 [N], NaN for a camera without tracks) and ``track_evidence``."""
+"""``track_rms_px`` (float64 [N], NaN for an image without tracks) and ``track_evidence``."""
 
 IMAGE_TRACKS_CACHE = Path("s2camp_image_tracks")
-"""The image tracks' cache folder in the scene folder (``image_tracks_cache`` None; the user's cache folder where the
-scene folder cannot be written, ``track_cache.user_cache_folder``)."""
+"""The image tracks' default cache folder, in the scene folder (``track_cache``)."""
 LOG = Console(stderr=True, width=120)
-"""Notes of the data parser (why a scene has no track prior): on stderr, as the camera optimizer's."""
+"""The data parser's notes (why a scene has no track prior), on stderr."""
 _SHOWN: set[tuple] = set()
-"""Keys of the notes already shown: the data parser runs once per split, and once is enough."""
+"""Keys of the notes already shown (the data parser runs once per split)."""
 SFM_TRACKS_FALLBACK = "pass s2camp-data --image-tracks always (tracks made from the images) or --tracks False"
 """What to do instead, named when the scene's own model is refused (``check_sfm_track_rms``)."""
 
@@ -73,12 +70,10 @@ def track_evidence(
     *,
     camera_ids: Int[Tensor, " n"],
 ) -> Evidence | None:
-    """The evidence of the split's ``cameras`` (the given ones, perturbed or not; ``outputs`` holds the unperturbed
-    ones and nerfstudio's normalization), or None (no track prior). ``camera_ids``: the physical camera of each image,
-    as the refiner groups them (the data parser's ``camera_ids``)."""
-    # The scene's own tracks were made with the unperturbed cameras: a prior on them would lead the perturbed
-    # cameras back to the reference the evaluation compares with. Perturbed cameras get tracks made from the
-    # images with the perturbed cameras instead (image_tracks auto or always), or no prior (never).
+    """The evidence of the split's ``cameras`` (perturbed or not; ``outputs`` holds the unperturbed ones), or None (no
+    track prior). ``camera_ids`` [N]: each image's physical camera, as the refiner groups them."""
+    # The scene's own tracks were made with the unperturbed cameras: a prior on them would lead perturbed cameras
+    # back to the reference the evaluation compares with.
     if perturbed and config.tracks:
         note_perturbed_tracks(config, source)
     evidence = None
@@ -111,8 +106,7 @@ def scene_track_evidence(
     outputs: DataparserOutputs,
     parsed: ParsedSplit,
 ) -> Evidence | None:
-    """The evidence of the scene's own tracks, or None where it has none; a model whose given cameras miss their
-    own tracks by far is refused (``check_sfm_track_rms``)."""
+    """The evidence of the scene's own tracks, or None; ValueError from ``check_sfm_track_rms``."""
     if data_format == "colmap":
         if not (config.load_3D_points and has_points(source)):
             return None
@@ -131,12 +125,9 @@ def scene_track_evidence(
 def colmap_track_evidence(
     cameras: Cameras, model: Path, names: list[str], outputs: DataparserOutputs, readjust: bool = True
 ) -> Evidence:
-    """Reprojection RMS (px, float64 [N]) of the COLMAP model's tracks under ``cameras`` (normalized, as the data parser
-    returns them; image i is the model's image ``names[i]``), measured in COLMAP's world frame (``core.tracks``), and
-    the tracks with the cameras in that world (the track prior's anchor, ``core.track_fit``), their points re-adjusted
-    with a robust loss (``robust_adjustment``) unless ``readjust`` is False (a model adjusted with that loss already,
-    the image tracks'). The RMS is against the points as the model gives them, which the cameras were adjusted with:
-    it checks the model (``check_sfm_track_rms``)."""
+    """Reprojection RMS (px, float64 [N]) of the COLMAP model's tracks under ``cameras`` (normalized; image i is the
+    model's ``names[i]``), in COLMAP's world, against the model's own points; and the tracks with the cameras in that
+    world, points re-adjusted (``robust_adjustment``) unless ``readjust`` is False (a model adjusted so already)."""
     # Keypoints from the model's camera size to the training images' (a rounded images_k folder included).
     size = torch.stack([cameras.width.reshape(-1), cameras.height.reshape(-1)], dim=-1)
     tracks = read_colmap_tracks(model, names, image_size=size)
@@ -151,24 +142,19 @@ def colmap_track_evidence(
 def transforms_track_evidence(
     config: S2CampDataParserConfig, source: Path, cameras: Cameras, outputs: DataparserOutputs, downscale_factor: int
 ) -> Evidence | None:
-    """``track_rms_px`` and ``track_evidence`` of a transforms.json scene from the COLMAP model ns-process-data
-    left beside it (``transforms_tracks``); None, with the reason shown once, when there are none."""
+    """The evidence of a transforms.json scene from the COLMAP model beside it (``transforms_tracks``); None, with the
+    reason shown once, when there is none."""
     model = colmap_model_of_transforms(source, config.colmap_path)
     k = downscale_factor
     sizes = transforms_declared_sizes(source, k)
     scale = float(outputs.dataparser_scale)
     result = transforms_track_rms(
-        source,
-        model,
-        outputs.image_filenames,
-        [sizes[os.path.normpath(p)] for p in outputs.image_filenames],
-        k,
+        source, model, outputs.image_filenames, [sizes[os.path.normpath(p)] for p in outputs.image_filenames], k,
         config.images_path,
         c2w_given=c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, scale),
         c2w_reference=c2w_to_colmap_world(outputs.cameras.camera_to_worlds, outputs.dataparser_transform, scale),
-        intrinsics=intrinsics_from_cameras(cameras),
-        world_scale=scale,
-    )
+        intrinsics=intrinsics_from_cameras(cameras), world_scale=scale,
+    )  # fmt: skip
     if result.rms is None or result.evidence is None:
         # A transforms.json that disagrees with its COLMAP model is a warning; a scene without one is normal.
         style = "bold yellow" if result.cause == "disagree" else "dim"
@@ -186,10 +172,9 @@ def image_track_evidence(
     parsed: ParsedSplit,
     camera_ids: Int[Tensor, " n"],
 ) -> Evidence | None:
-    """``track_rms_px`` and ``track_evidence`` from tracks made from the scene's full-size images with the given
-    ``cameras`` (``image_tracks``), one COLMAP camera per physical camera of ``camera_ids`` at its images' mean
-    intrinsics, the refiner's shared base (``core.refiner``); None, with the reason shown once, when none could be
-    made."""
+    """The evidence of tracks made from the scene's full-size images with the given ``cameras`` (``image_tracks``),
+    one COLMAP camera per ``camera_ids`` entry at its images' mean intrinsics; None, with the reason shown once, when
+    none could be made."""
     if data_format == "colmap":
         scene = Path(config.data)
         root, names = scene / config.images_path, parsed.image_names
@@ -203,7 +188,7 @@ def image_track_evidence(
         physical_camera_means(cameras, camera_ids), outputs.dataparser_transform, scale, names,
         full_image_size=parsed.full_image_size, camera_ids=camera_ids.tolist(),
     )  # fmt: skip
-    cache = config.image_tracks_cache or scene / IMAGE_TRACKS_CACHE  # minutes for many large images, once
+    cache = config.image_tracks_cache or scene / IMAGE_TRACKS_CACHE
     result = image_tracks(given, root, cache, user_fallback=config.image_tracks_cache is None)
     if result.model is None:
         _show_once((source.resolve(), "image-tracks"), f"[bold yellow]No track prior: {escape(result.reason)}")
@@ -212,7 +197,7 @@ def image_track_evidence(
         (result.model, "summary"),
         f"[dim]Track prior from tracks made from the images of {root} ({result.model}): {escape(result.summary)}",
     )
-    # Built with the robust loss of ``robust_adjustment`` (``image_tracks``' last step): no second adjustment.
+    # Already adjusted with the robust loss (robust_adjustment.cauchy_adjustment_options): no second adjustment.
     return colmap_track_evidence(cameras, result.model, names, outputs, readjust=False)
 
 

@@ -1,8 +1,4 @@
-"""Command lines for ``ns-train`` shared by the demo, the end-to-end tests and the benchmarks.
-
-Every CPU-sized run of this project (``make demo``, tests/test_e2e.py, ``s2camp-bench recovery`` / ``train-time``)
-builds its ``ns-train`` call from these pieces, so the runs differ only where they say so.
-"""
+"""``ns-train`` command lines shared by every CPU-sized run (the demo, the end-to-end tests, the benchmarks)."""
 
 from __future__ import annotations
 
@@ -21,17 +17,14 @@ SMALL_MODEL = [
     "--pipeline.model.num-nerf-samples-per-ray", "32",
     "--pipeline.model.num-proposal-samples-per-ray", "64", "32",
 ]  # fmt: skip
-"""A smaller nerfacto than the default (16 levels of 2^19 hash entries): same code paths, a fraction of a second per
-CPU step."""
-
+"""A smaller nerfacto than the default (16 levels of 2^19 hash entries): the same code paths, cheap CPU steps."""
 
 PHOTOMETRIC_ONLY = [
     "--pipeline.model.camera-optimizer.fix-common-rotation", "False",
     "--pipeline.model.camera-optimizer.track-prior", "False",
 ]  # fmt: skip
-"""``ns-train s2camp`` options that leave the cameras to the photometric loss and the preconditioner alone: no track
-prior and no removal of the common rotation (both on in s2camp's defaults, neither in CamP's or nerfstudio's code).
-The recovery tiers compare preconditioners on equal terms with them (``s2camp-bench recovery``)."""
+"""``ns-train s2camp`` options that leave the cameras to the photometric loss alone: no track prior and no removal
+of the common rotation (both on by default; CamP's code has neither)."""
 
 
 def ns_train_executable() -> str:
@@ -43,9 +36,8 @@ def ns_train_executable() -> str:
 def ns_train_base_arguments(
     method: str, scene: Path, output_dir: Path, experiment: str, timestamp: str, iterations: int, steps_per_save: int
 ) -> list[str]:
-    """``ns-train <method>`` with what every CPU-sized run here shares, whatever the model: the data and output
-    folders, the run length, no evaluation during training, logs every 10 steps. Splatting runs
-    (``s2camp-bench splat``) take only these; nerfacto runs add ``ns_train_arguments``'s ray batch and model size."""
+    """``ns-train <method>`` with what every CPU-sized run shares: data and output folders, run length, no
+    evaluation during training, a log every 10 steps."""
     return [
         ns_train_executable(), method,
         "--data", str(scene),
@@ -72,9 +64,7 @@ def ns_train_arguments(
     rays_per_batch: int,
     small_model: bool = True,
 ) -> list[str]:
-    """``ns-train <method>`` of a nerfacto method with what every CPU-sized run here shares (demo, e2e tests,
-    benchmarks): ``ns_train_base_arguments``, the batch size and ``SMALL_MODEL`` (``small_model`` False: the method's
-    own field, as on a GPU)."""
+    """``ns_train_base_arguments`` of a nerfacto method, its ray batch and (``small_model``) ``SMALL_MODEL``."""
     return [
         *ns_train_base_arguments(method, scene, output_dir, experiment, timestamp, iterations, steps_per_save),
         "--pipeline.datamanager.train-num-rays-per-batch", str(rays_per_batch),
@@ -95,8 +85,8 @@ def camera_schedule_arguments(lr: float, lr_final: float, max_steps: int | None 
 
 
 def perturbation_arguments(config) -> list[str]:
-    """The dataparser subcommand with CamP's perturbation on, its seed and sigmas taken from ``config`` (a
-    ``DemoConfig`` or any config with the same ``perturbation_seed`` and ``sigma_*`` fields)."""
+    """The dataparser subcommand with CamP's perturbation on, seed and sigmas from ``config`` (``perturbation_seed``
+    and ``sigma_*`` fields, as ``DemoConfig``)."""
     return [
         DATAPARSER_SUBCOMMAND,
         "--perturbation.enabled", "True",
@@ -110,6 +100,6 @@ def perturbation_arguments(config) -> list[str]:
 
 def training_environment() -> dict[str, str]:
     environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    # Idle OpenMP threads must not spin: on a busy 2-core machine spinning makes each step several times slower.
+    # Idle OpenMP threads must not spin (on a busy machine that slows each step down several times).
     environment.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     return environment

@@ -1,34 +1,11 @@
-"""nerfstudio's Trainer with atomic checkpoints (a run killed while saving keeps its last good checkpoint) that also
-hold the random number generators' state (a resumed run continues as the uninterrupted one would).
+"""nerfstudio's Trainer with atomic checkpoints that hold the random state.
 
-nerfstudio's ``Trainer.save_checkpoint`` writes straight to ``nerfstudio_models/step-N.ckpt`` and then deletes the
-older checkpoints. A kill during the write leaves a truncated newest file, and ``--load-dir`` (which takes the
-highest step) and ``eval_setup`` then fail on it while the good checkpoint may already be gone. Here the checkpoint
-is written to a temporary file, flushed to disk (fsync), renamed onto ``step-N.ckpt`` (``os.replace``, atomic within
-one file system) and the folder entry flushed; only then are older checkpoints deleted.
-
-The temporary file lives in the hidden sibling folder ``nerfstudio_models.partial/`` on the same file system, not in
-``nerfstudio_models/`` itself: nerfstudio parses every file name in that folder as ``step-N.ckpt``
-(``Trainer._load_checkpoint``, ``eval_utils.eval_load_checkpoint``), so a temporary file left there by a kill would
-break both resuming and evaluation.
-
-nerfstudio's checkpoints do not hold the state of the random number generators, and its ``train.py`` seeds them
-afresh on every start: a resumed run then samples the rays and the proposal samples of its first steps again,
-and drifts from the uninterrupted run. The checkpoint also holds the state of torch's (CPU and CUDA), numpy's and
-Python's generators, restored after loading. nerfstudio's proposal sampler (``ProposalNetworkSampler``) keeps the
-step counters of its update schedule in plain attributes, outside every state dict: a resumed run would restart them
-at 0, update the proposal networks at every step of its first ten (the sampler's warm-up) and split from the
-uninterrupted run at its first step. The checkpoint holds them too (``sampler_state``), restored after loading. With
-both, a resumed CPU run on one thread is bit-identical to the uninterrupted one: every tensor of the pipeline and of
-the optimizers (tests/test_e2e.py checks it past the sampler's warm-up and across a P refresh). Loading takes the
-highest ``step-N.ckpt`` and ignores other files in the folder.
-
-config.yml. nerfstudio's ``eval_setup`` (ns-eval, ns-render, s2camp-eval, s2camp-export-cameras) loads a run's own
-checkpoints: it replaces ``load_dir`` by the run's checkpoint folder but keeps ``load_step``, which for a run resumed
-with ``--load-dir D --load-step N`` names a step of D, not of the run. A resumed run therefore records the
-checkpoint it loaded as ``load_checkpoint`` in its config.yml, with ``load_dir`` and ``load_step`` cleared
-(``record_loaded_checkpoint``): the file says exactly where the run came from, ``ns-train --load-config`` resumes
-from the same checkpoint, and every tool that evaluates the run loads its latest checkpoint.
+Atomic: a checkpoint is written into ``nerfstudio_models.partial/`` (nerfstudio parses every file of
+``nerfstudio_models/`` as a checkpoint), fsynced, renamed onto ``step-N.ckpt`` and the folder fsynced; only then are
+older checkpoints deleted. It also holds torch's, numpy's and Python's generator states and the step counters of
+nerfstudio's ``ProposalNetworkSampler``, so a resumed one-process CPU run is bit-identical to the uninterrupted one.
+A run resumed with ``--load-dir`` records the checkpoint it loaded as ``load_checkpoint`` in its config.yml
+(``eval_setup`` keeps ``load_step`` but not ``load_dir``).
 """
 
 from __future__ import annotations
@@ -48,7 +25,7 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from s2camp_ns.camera_optimizer import split_per_image_adam_state
+from s2camp_ns.nerfstudio.checkpoint_compat import split_per_image_adam_state
 from s2camp_ns.nerfstudio.pipeline import CheckpointCamerasError
 from s2camp_ns.nerfstudio.schedulers import RunLengthScheduleConfig
 
@@ -57,12 +34,12 @@ PARTIAL_SUFFIX = ".partial"
 
 
 def partial_dir(checkpoint_dir: Path) -> Path:
-    """Folder of the temporary checkpoint files: a sibling of ``checkpoint_dir``, so on the same file system."""
+    """Folder of the temporary checkpoint files: a sibling of ``checkpoint_dir`` (same file system)."""
     return checkpoint_dir.with_name(checkpoint_dir.name + PARTIAL_SUFFIX)
 
 
 def _fsync_dir(folder: Path) -> None:
-    """Flush a folder entry (the rename) to disk; not possible on every platform, and not needed for atomicity."""
+    """Flush a folder entry (the rename) to disk, where the platform allows it."""
     try:
         fd = os.open(folder, os.O_RDONLY)
     except OSError:
@@ -93,11 +70,8 @@ def atomic_torch_save(state: Any, path: Path) -> None:
 
 
 def random_state() -> dict[str, Any]:
-    """State of every random number generator a training step draws from (torch CPU and CUDA, numpy, Python).
-
-    Only tensors and plain Python values, so that ``torch.load(weights_only=True)`` (nerfstudio's eval_setup under
-    torch >= 2.6) still loads the checkpoint. numpy's is its global legacy generator: the one nerfstudio seeds.
-    """
+    """State of every generator a training step draws from (torch CPU and CUDA, numpy's global one, Python), as
+    tensors and plain values only (``torch.load(weights_only=True)`` must load it)."""
     kind, keys, position, has_gauss, cached_gaussian = np.random.get_state()  # noqa: NPY002
     version, python_state, gauss_next = random.getstate()
     return {
@@ -134,8 +108,7 @@ def set_random_state(state: dict[str, Any]) -> None:
 
 
 SAMPLER_COUNTERS = ("_step", "_steps_since_update")
-"""The attributes of nerfstudio's ``ProposalNetworkSampler`` that decide whether a step updates the proposal networks
-(``generate_ray_samples``: always while ``_step < 10``, then when ``_steps_since_update`` exceeds the schedule)."""
+"""The ``ProposalNetworkSampler`` attributes that decide whether a step updates the proposal networks."""
 
 
 def sampler_state(model: torch.nn.Module) -> dict[str, dict[str, int]]:
@@ -180,8 +153,7 @@ class S2CampTrainerConfig(TrainerConfig):
 
 
 def with_run_length(optimizers: dict[str, dict[str, Any]], run_steps: int) -> dict[str, dict[str, Any]]:
-    """A copy of nerfstudio's optimizer settings in which every ``RunLengthScheduleConfig`` without a run length gets
-    ``run_steps``; the others are returned as they are."""
+    """A copy of ``optimizers`` with ``run_steps`` in every ``RunLengthScheduleConfig`` that has none."""
     resolved = {}
     for name, settings in optimizers.items():
         scheduler = settings.get("scheduler")
@@ -192,8 +164,7 @@ def with_run_length(optimizers: dict[str, dict[str, Any]], run_steps: int) -> di
 
 
 class S2CampTrainer(Trainer):
-    """nerfstudio's Trainer; checkpoints are written atomically and hold the random state, and run-length schedules
-    learn the run's length (module docstring)."""
+    """nerfstudio's Trainer: atomic checkpoints with the random state; run-length schedules learn the run's length."""
 
     config: S2CampTrainerConfig
 
@@ -206,7 +177,7 @@ class S2CampTrainer(Trainer):
     def save_checkpoint(self, step: int) -> None:
         """Save the pipeline, optimizers, schedulers and grad scaler as ``step-{step:09d}.ckpt``, atomically."""
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        # Temporary files of a run killed while saving: never renamed, so never a checkpoint.
+        # Temporary files of a run killed while saving (never renamed).
         for stale in partial_dir(self.checkpoint_dir).glob(f"*{PARTIAL_SUFFIX}"):
             stale.unlink(missing_ok=True)
         path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
@@ -227,8 +198,8 @@ class S2CampTrainer(Trainer):
                     old.unlink()
 
     def _load_checkpoint(self) -> None:
-        """Load pipeline, optimizers, schedulers (unless ``--load-scheduler False``), grad scaler, random state and
-        proposal sampler counters; a run resumed with ``--load-dir`` records the checkpoint in its config.yml."""
+        """Load everything ``save_checkpoint`` saved (schedulers unless ``--load-scheduler False``); with
+        ``--load-dir``, record the checkpoint in config.yml."""
         config = self.config
         if config.load_dir is not None:
             path = (
@@ -256,9 +227,7 @@ class S2CampTrainer(Trainer):
         if "schedulers" in state and config.load_scheduler:
             self.optimizers.load_schedulers(state["schedulers"])
         self.grad_scaler.load_state_dict(state["scalers"])
-        # One process: continue the saved random streams (bit-identical resume). Several processes: the checkpoint
-        # holds rank 0's streams only; restoring them on every rank would make all ranks draw the same rays, so each
-        # keeps nerfstudio's own per-rank seeding (seed + rank) and the resumed run redraws its rays.
+        # Several processes keep nerfstudio's per-rank seeding: the checkpoint holds rank 0's streams only.
         if "random_state" in state and self.world_size == 1:
             set_random_state(state["random_state"])
         pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
@@ -269,8 +238,7 @@ class S2CampTrainer(Trainer):
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
 
     def record_loaded_checkpoint(self, path: Path) -> None:
-        """Rewrite the run's config.yml with ``load_checkpoint`` = ``path`` (the checkpoint loaded) and no
-        ``load_dir`` / ``load_step`` (module docstring, config.yml); the main process only."""
+        """Rewrite config.yml with ``load_checkpoint = path`` and no ``load_dir`` / ``load_step`` (main process)."""
         config = self.config
         config.load_checkpoint, config.load_dir, config.load_step = path.resolve(), None, None
         if comms.is_main_process():
@@ -278,12 +246,6 @@ class S2CampTrainer(Trainer):
 
 
 __all__ = [
-    "S2CampTrainer",
-    "S2CampTrainerConfig",
-    "atomic_torch_save",
-    "latest_checkpoint",
-    "partial_dir",
-    "sampler_state",
-    "set_sampler_state",
-    "with_run_length",
-]
+    "S2CampTrainer", "S2CampTrainerConfig", "atomic_torch_save", "latest_checkpoint", "partial_dir", "sampler_state",
+    "set_sampler_state", "with_run_length",
+]  # fmt: skip

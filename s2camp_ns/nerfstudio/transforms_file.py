@@ -1,19 +1,11 @@
-"""A nerfstudio ``transforms.json`` read and checked before anything uses it: every reader of the file in this
-package goes through ``read_transforms``.
+"""A nerfstudio ``transforms.json`` read and checked before anything uses it (every reader here uses
+``read_transforms``); nerfstudio's parser trusts the file.
 
-nerfstudio's parser trusts the file: a file cut short fails with a bare ``JSONDecodeError``, a NaN in a pose spreads
-through the orientation and scale normalization to every camera (and fails far away, or not at all), a missing key
-is an ``AssertionError`` without the frame, and two frames that list one image train on it under two poses. Here a
-``TransformsFileError`` (a ValueError) names the file, the frame (its index in ``frames`` and its ``file_path``),
-what is wrong and what is allowed, for:
-
-- text that is not JSON (with its line and column), or JSON that is not an object with a non-empty ``frames`` list;
-- a frame without a ``file_path`` string or a ``transform_matrix`` of 3 or 4 rows of 4 numbers;
-- intrinsics (``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``) given neither at the top level nor in the frame;
-- a number that is NaN or infinite anywhere in the file (JSON's ``NaN`` and ``Infinity``, or a literal too large
-  for a float);
-- two frames with the same image, by path, or by file name: the image's name (what the export and the image tracks
-  call it) is its file name, and nerfstudio reads a downscaled image as ``images_<k>/<file name>``.
+A ``TransformsFileError`` (a ValueError) names the file, the frame (index and ``file_path``), the problem and what is
+allowed, for: text that is not JSON, or not an object with a non-empty ``frames`` list; a frame without a
+``file_path`` or a ``transform_matrix`` of 3 or 4 rows of 4 numbers; intrinsics (``INTRINSICS_KEYS``) missing from
+both the top level and the frame; a NaN or infinite number anywhere; two frames with the same image, by path or by
+file name (an image's name is its file name, and nerfstudio reads ``images_<k>/<file name>``).
 """
 
 from __future__ import annotations

@@ -1,7 +1,5 @@
 """A nerfstudio scene (``transforms.json``) read through nerfstudio's parser, validated: the file checked first
-(``transforms_file.read_transforms``: syntax, keys, finite numbers, each image in one frame), missing images named,
-the image sizes checked against the json's ``w`` x ``h`` and the intrinsics fitted to them
-(``scene_formats.fit_intrinsics_to_images``, which also decodes every image)."""
+(``transforms_file``), missing images named, intrinsics fitted to the images (``scene_formats``)."""
 
 from __future__ import annotations
 
@@ -28,9 +26,8 @@ if TYPE_CHECKING:
 
 
 def transforms_declared_sizes(source: Path, k: int) -> dict[str, tuple[int, int]]:
-    """Full-size (w, h) of every frame of a transforms.json, keyed by the image path nerfstudio's parser reads at
-    downscale factor k (``images_{k}/<name>`` beside the json for k > 1); the top-level ``w``/``h`` win over a
-    frame's, as in nerfstudio's parser."""
+    """Full-size (w, h) of every frame, by the image path nerfstudio reads at downscale factor k; the top-level
+    ``w``/``h`` win over a frame's, as in nerfstudio's parser."""
     meta = read_transforms(source)
     data_dir = source.parent
     sizes = {}
@@ -43,8 +40,8 @@ def transforms_declared_sizes(source: Path, k: int) -> dict[str, tuple[int, int]
 
 
 def parse_transforms(config: S2CampDataParserConfig, source: Path, split: str) -> tuple[DataparserOutputs, ParsedSplit]:
-    """The split of the transforms.json ``source``: nerfstudio's outputs with the cameras fitted to the images read,
-    and what is known of its images."""
+    """The split of the transforms.json ``source``: nerfstudio's outputs, cameras fitted to the images read, and the
+    ``ParsedSplit``."""
     read_transforms(source)  # the file's own errors named before nerfstudio's parser reads it
     k = resolve_downscale(source.parent, config.images_path, config.downscale_factor)
     ns_config = NerfstudioDataParserConfig(
@@ -62,7 +59,6 @@ def parse_transforms(config: S2CampDataParserConfig, source: Path, split: str) -
     cameras = fit_intrinsics_to_images(outputs.cameras, outputs.image_filenames, declared, k, source)
     if outputs.mask_filenames:
         decoded_sizes(outputs.mask_filenames, source, "masks")
-    # The frames' declared full size (the transforms.json's w x h): the export's "original" resolution.
     full_size = torch.tensor([declared_size[:2] for declared_size in declared], dtype=torch.int64)
     names = [Path(p).name for p in outputs.image_filenames]
     parsed = ParsedSplit(image_names=names, full_image_size=full_size, downscale_factor=k)

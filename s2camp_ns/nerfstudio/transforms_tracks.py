@@ -1,41 +1,13 @@
-"""The SfM tracks of an ``ns-process-data`` scene: a transforms.json beside the COLMAP model it was written from.
+"""The SfM tracks of an ``ns-process-data`` scene: a transforms.json beside the COLMAP model it was written from
+(``COLMAP_MODEL_OF_TRANSFORMS``, or the data parser's ``colmap_path`` relative to the json's folder).
 
-``ns-process-data`` runs COLMAP on ``<dir>/images`` and converts ``<dir>/colmap/sparse/0`` into
-``<dir>/transforms.json`` (nerfstudio's ``colmap_to_json``). The model stays there, with its tracks; this module
-finds it, matches its images to the scene's frames by name and checks that the transforms.json cameras are the
-model's before the data parser measures each camera's track reprojection error (``core.tracks``) for the camera
-optimizer's track prior.
+Frames: inverting nerfstudio's normalization (``colmap_world.c2w_to_colmap_world``) gives COLMAP's world when the json
+has an ``applied_transform``; without one the world is COLMAP's own or ``LEGACY_APPLIED_ROTATION`` times it, the first
+that passes the check, else unknown (no tracks). Images match by name, else by the frame's ``colmap_im_id``; a frame
+COLMAP did not register gets NaN.
 
-Where the model is: ``<folder of the transforms.json>/colmap/sparse/0`` (``COLMAP_MODEL_OF_TRANSFORMS``), where
-``ns-process-data`` writes it and where nerfstudio's own transforms.json parser looks for it (its ``colmap_path``);
-the data parser's ``colmap_path`` option, relative to that folder, overrides it. It must hold cameras, images and
-points3D (binary or text).
-
-Frames. ``colmap_to_json`` writes each camera as ``A @ c2w`` with ``c2w`` COLMAP's camera-to-world, its camera axes
-flipped to OpenGL (y and z columns negated), and ``A = applied_transform`` (rows x, z, -y of COLMAP's world: z up),
-stored in the json. nerfstudio's transforms.json parser composes ``A`` into its normalization: its
-``dataparser_transform`` is ``transform_matrix @ A``, so inverting the normalization (``dataparser_transform`` and
-``dataparser_scale``, ``colmap_world.c2w_to_colmap_world``) gives COLMAP's world directly (the S2CamP data parser
-hands nerfstudio the json file itself, so nerfstudio's guess for a json without ``applied_transform``, which it makes
-only when ``colmap/sparse/0`` lies under the path it was given, never applies). Without ``applied_transform`` the
-same inversion gives the json's own world. Two worlds are known for such files: COLMAP's own
-(``--keep-original-world-coordinate``) and ``LEGACY_APPLIED_ROTATION`` times it (ns-process-data before it recorded
-``applied_transform``); the first that passes the centre check below is used, and if neither does (a hand-made json)
-the frame is unknown and there are no tracks.
-
-Images are matched by name: a frame's image relative to the image folder (``images/frame_00001.png`` ->
-``frame_00001.png``, COLMAP's image name; with a downscale factor nerfstudio reads ``images_k/<file name>``, which is
-mapped back to its frame), else by the frame's ``colmap_im_id`` (``colmap_to_json`` writes it; ns-process-data
-renames the frames when it reuses a model made on the original file names). A frame that COLMAP did not register
-gets NaN (no prior for that camera). The centre check below guards both against a json of another model.
-
-The check (``CENTRE_TOLERANCE``): every matched camera's centre as given, before any perturbation, mapped to
-COLMAP's world, must lie within 1% of the spread of COLMAP's camera centres (their RMS distance to their centroid,
-over every registered image) of the centre COLMAP has for that image, and the COLMAP camera's size must be the
-frame's declared ``w`` x ``h``. The json round trip (float64 text, float32 in nerfstudio) keeps centres within about
-1e-6 of the spread; a transforms.json that was edited (a camera moved) or belongs to another reconstruction misses
-by far more. Then the scene gets no tracks, with a reason naming both files: a prior measured against the wrong
-cameras would pin them to the wrong place.
+The check: each matched camera's centre as given (before any perturbation) within ``CENTRE_TOLERANCE`` of COLMAP's,
+and each COLMAP camera's size the frame's ``w`` x ``h``; otherwise no tracks, with a reason naming both files.
 """
 
 from __future__ import annotations
@@ -59,21 +31,16 @@ from s2camp_ns.nerfstudio.transforms_file import read_transforms
 
 COLMAP_MODEL_OF_TRANSFORMS = Path("colmap/sparse/0")
 """Where ``ns-process-data`` writes the COLMAP model, relative to the transforms.json's folder."""
-
 LEGACY_APPLIED_ROTATION = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
-"""The world rotation of transforms.json files written by ns-process-data before it recorded ``applied_transform``
-(nerfstudio's transforms.json parser assumes it for such files when ``colmap/sparse/0`` exists)."""
-
+"""The world rotation (of COLMAP's) that nerfstudio assumes for a json without ``applied_transform``."""
 CENTRE_TOLERANCE = 0.01
-"""Largest distance between a camera's centre as given and COLMAP's, as a fraction of the RMS distance of COLMAP's
-camera centres to their centroid."""
+"""Largest distance between a camera's centre as given and COLMAP's, as a fraction of COLMAP's centres' spread."""
 
 
 @dataclass(frozen=True)
 class TransformsTracks:
-    """Result of ``transforms_track_rms``: the per-camera RMS (px, float64 [N], NaN for unregistered images) and the
-    tracks with the given cameras in the model's world (``evidence``: the track prior's anchor, ``core.track_fit``),
-    or None and why there are no tracks (``cause``: one word per kind of reason, ``reason``: the message)."""
+    """Result of ``transforms_track_rms``: the per-image RMS (px, float64 [N], NaN for unregistered images) and the
+    tracks with the given cameras in the model's world (``evidence``), or None, a one-word ``cause`` and ``reason``."""
 
     rms: Float[Tensor, " n"] | None
     cause: str | None = None
@@ -91,8 +58,7 @@ def _has_model(folder: Path) -> bool:
 
 
 def _frames_by_read_path(source: Path, downscale_factor: int) -> dict[str, tuple[str, dict]]:
-    """Every frame of the transforms.json ``source`` by the image path nerfstudio reads for it at ``downscale_factor``
-    (``images_k/<file name>`` beside the json for k > 1), with its full-size image path."""
+    """Every frame of ``source`` and its full-size image path, by the path nerfstudio reads at ``downscale_factor``."""
     frames = read_transforms(source)["frames"]
     data_dir = source.parent
     by_read_path = {}
@@ -117,9 +83,8 @@ def full_size_images(source: Path, image_filenames: list[Path], downscale_factor
 def frame_names(
     source: Path, image_filenames: list[Path], downscale_factor: int, images_path: Path
 ) -> list[tuple[str, int | None] | None]:
-    """For each image nerfstudio read from ``source``: its COLMAP image name (the frame's image relative to the data
-    folder's ``images_path``, else its file name) and the frame's ``colmap_im_id`` (None if absent); None for an
-    image no frame lists."""
+    """Per image read from ``source``: its COLMAP name (relative to ``images_path``, else the file name) and the
+    frame's ``colmap_im_id`` (or None); None for an image no frame lists."""
     image_folder = os.path.normpath(source.parent / images_path)
     name_of = {}
     for read, (full, frame) in _frames_by_read_path(source, downscale_factor).items():
@@ -131,8 +96,7 @@ def frame_names(
 
 
 def _registered_name(frame: tuple[str, int | None] | None, images_by_id: dict, names: set[str]) -> str | None:
-    """The COLMAP image of a frame: by name, else by the ``colmap_im_id`` that ns-process-data writes (its frames
-    are renamed when it reuses a model, ``--skip-colmap``); None when the model has neither."""
+    """The COLMAP image name of a frame: by name, else by ``colmap_im_id``; None when the model has neither."""
     if frame is None:
         return None
     name, image_id = frame
@@ -142,8 +106,7 @@ def _registered_name(frame: tuple[str, int | None] | None, images_by_id: dict, n
 
 
 def _world_from_json(c2w: Float[Tensor, "n 3 4"], rotation: Float[Tensor, "3 3"]) -> Float[Tensor, "n 3 4"]:
-    """Camera-to-world [n, 3, 4] (float64) in COLMAP's world of cameras given in a world that is ``rotation`` times
-    COLMAP's (json world = rotation @ COLMAP world)."""
+    """Camera-to-world [n, 3, 4] (float64) in COLMAP's world; json world = ``rotation`` @ COLMAP world."""
     return rotation.T @ c2w.to(torch.float64)
 
 
@@ -197,14 +160,12 @@ def transforms_track_rms(
     intrinsics: Intrinsics,
     world_scale: float = 1.0,
 ) -> TransformsTracks:
-    """Each camera's track reprojection RMS for the transforms.json ``source`` against the COLMAP model ``model``.
+    """Each image's track reprojection RMS for the transforms.json ``source`` against the COLMAP model ``model``.
 
-    ``c2w_given`` are the cameras to measure (after any perturbation) and ``c2w_reference`` the same cameras as the
-    json gives them, both OpenCV camera-to-world in the world nerfstudio's normalization came from
-    (``colmap_world.c2w_to_colmap_world``); ``declared_sizes`` are the frames' full-size ``w``, ``h``; ``world_scale``
-    the training frame's units per unit of that world (``dataparser_scale``). No tracks
-    (``rms`` None, with the reason) when the model or its points are missing, the json has no ``applied_transform``
-    and its cameras are not COLMAP's, or the cameras disagree with the model (module docstring).
+    ``c2w_given``: the cameras to measure (after any perturbation); ``c2w_reference``: as the json gives them; both
+    OpenCV camera-to-world [n, 3, 4] in the un-normalized world (``colmap_world.c2w_to_colmap_world``).
+    ``declared_sizes``: full-size ``w``, ``h``; ``world_scale``: ``dataparser_scale``. ``rms`` None, with the reason,
+    when the model is missing or the cameras fail the check (module docstring).
     """
     if not _has_model(model):
         return TransformsTracks(None, "no-model", f"no COLMAP model with points (cameras, images, points3D) in {model}")
@@ -228,7 +189,7 @@ def transforms_track_rms(
     sizes = [declared_sizes[i] for i in matched]
     colmap_sizes = [(cameras[images[name].camera_id].width, cameras[images[name].camera_id].height)
                     for name in matched_names]  # fmt: skip
-    # The candidate worlds of the json, as rotations of COLMAP's (module docstring, "Frames").
+    # The candidate worlds of the json, as rotations of COLMAP's (module docstring, Frames).
     if "applied_transform" in meta:
         worlds = {"applied_transform": torch.eye(3, dtype=torch.float64)}  # already undone by nerfstudio
     else:
@@ -254,14 +215,13 @@ def transforms_track_rms(
             "transforms.json was edited or belongs to another reconstruction",
         )
     points3d = read_model_file(model_file(model, "points3D"), "points3D")
-    # Keypoints into the training images' pixels by each image's per-axis ratio (colmap_tracks module docstring).
+    # Keypoints into the training images' pixels by each image's per-axis ratio (colmap_tracks).
     scale = pixel_scale_of(intrinsics.width[index], intrinsics.height[index], colmap_sizes)
     tracks = tracks_of_images(images, points3d, matched_names, scale, images_file)
     rms = torch.full((len(names),), float("nan"), dtype=torch.float64)
     given = _world_from_json(c2w_given, rotation)
     rms[index] = track_reprojection_rms(tracks, given[index], intrinsics[index])
-    # The same tracks indexed by training image (not by registered image) for the anchor fit, their points
-    # re-adjusted with a robust loss (robust_adjustment); the RMS above is against the model's own, as a check.
+    # Tracks by training image for the anchor fit, points re-adjusted (robust_adjustment); the RMS above is a check.
     adjusted = tracks_of_images(images, points3d, matched_names, scale, images_file, robustly_adjusted_points(model))
     all_images = Tracks(adjusted.points, index[adjusted.image], adjusted.point, adjusted.pixels)
     return TransformsTracks(rms, evidence=TrackEvidence(all_images, given, world_scale))

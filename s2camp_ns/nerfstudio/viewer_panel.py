@@ -1,31 +1,16 @@
-"""The "S2CamP" panel of nerfstudio's viewer and the training-camera frusta: watch camera refinement live.
+"""The viewer's "S2CamP" panel and training-camera frusta: camera refinement, watched live.
 
-The model declares the panel (``S2CampModel.S2CamP``) with nerfstudio's viewer elements and talks to it only through
-the small ``CameraRefinementSource`` protocol below (read-only views of the refinement, and one request).
-nerfstudio's viewer finds the elements on the pipeline's modules and installs them in its Control tab (folder Custom
-Elements > model > S2CamP), and hands its ``Viewer`` to the panel's ``ViewerControl``. Only then does the model add
-the panel's training callback, so training without the viewer (``--vis tensorboard``) never touches this module
-after start-up.
+The model declares the panel (``S2CampModel.S2CamP``) and serves it through ``CameraRefinementSource``. nerfstudio's
+viewer installs it (Custom Elements > model > S2CamP) and hands its ``Viewer`` to the panel's ``ViewerControl``; only
+then is the training callback added, so training without the viewer never touches this module.
 
-The panel shows, updated at most every ``update_period`` seconds of training:
-- camera errors against the reference cameras, when the dataparser provides them (after a similarity alignment;
-  rotation, position, focal; mean and max over the training cameras);
-- the condition number of the Gram matrix Sigma of the last refresh of P, before and after whitening
-  (P^-T Sigma P^-1), mean and worst over the cameras (Sigma is not saved in checkpoints: after a resume it is that of
-  the initial cameras until the next refresh);
-- the steps since the last refresh of P, and a button that asks the model to refresh P (the model applies it in the
-  training thread at its next step, or with several processes at the next step all ranks agree on; the button's own
-  callback only passes the request on).
+Shown, at most every ``update_period`` seconds: camera errors (mean / max), the condition number of each camera's Gram
+matrix Sigma (from P's last refresh; the initial cameras' after a resume) before and after whitening, the steps since
+that refresh and a button that requests one. Frusta: the refined training cameras (amber) and, when the reference
+cameras differ from the initial ones, those two sets (red, green); a click moves the view to that camera.
 
-Frusta (viser units are nerfstudio's times ``VISER_NERFSTUDIO_SCALE_RATIO``): the refined training cameras (amber),
-and, when the reference cameras differ from the initial ones (CamP perturbation), the initial (red) and the
-reference (green) cameras; each set has a checkbox. Clicking a frustum moves the view to that camera, its vertical
-field of view set from the camera's focal length (refined for the refined set and for nerfstudio's own image
-frusta, which follow the refined poses). The viewer camera has a centred principal point and no skew or
-distortion, so only pose and focal length carry over.
-
-Nothing here may stop training: a failure is reported once and the panel then stays still. The panel never uses
-viser's ``atomic()`` (viser 0.2.7 does not release that lock when its block raises, which freezes the viewer).
+Nothing here may stop training: a failure is reported once and the panel then stays still. viser's ``atomic()`` is
+never used (its lock is not released when its block raises, which freezes the viewer).
 """
 
 from __future__ import annotations
@@ -55,20 +40,18 @@ FRUSTUM_COLORS: dict[FrustumSet, tuple[int, int, int]] = {
     "initial": (230, 64, 64),
     "reference": (64, 200, 110),
 }
-"""Colours of the three frustum sets (amber, red, green); the checkbox labels name them."""
 FRUSTUM_ROOT = "/s2camp_cameras"
-"""Scene-tree folder of the panel's frusta (nerfstudio draws its own image frusta under /cameras)."""
+"""Scene-tree folder of the panel's frusta (nerfstudio's own are under /cameras)."""
 MAX_DRAWN_FOV = math.radians(170.0)
-"""Widest field of view drawn and given to the viewer's camera: a pinhole frustum and the browser's perspective camera
-end before 180 degrees, where a fisheye's field of view can go on."""
+"""Widest field of view drawn (a perspective frustum ends before 180 degrees; a fisheye's may not)."""
 _POSE_TOLERANCE = 1e-6
-"""Frusta whose pose and field of view moved less than this (viser units, radians) are not re-sent."""
+"""Frusta that moved less than this (viser units, radians) are not re-sent."""
 
 
 @dataclass(frozen=True)
 class CameraFrusta:
-    """Cameras to draw: OpenCV camera-to-world [n, 3, 4] (nerfstudio's scene units), vertical field of view (radians,
-    ``s2camp_ns.core.unprojection.vertical_field_of_view``: distortion and fisheyes included), width and height [n]."""
+    """Cameras to draw: OpenCV c2w [n, 3, 4] (scene units), vertical field of view [n] (radians,
+    ``core.unprojection.vertical_field_of_view``), width and height [n]."""
 
     c2w_cv: Tensor
     vertical_fov: Tensor
@@ -94,14 +77,14 @@ class RefinementStatus:
 
 
 class CameraRefinementSource(Protocol):
-    """What the panel needs from the model (``S2CampModel`` implements it); nothing else of the model is touched."""
+    """All the panel reads from the model (``S2CampRefinementMixin`` implements it)."""
 
     def refinement_status(self) -> RefinementStatus | None:
-        """The refinement's state; None until the pipeline has handed over the training cameras."""
+        """None until the pipeline has handed over the training cameras."""
         ...
 
     def camera_errors(self) -> dict[str, float]:
-        """``camera_errors/*`` against the reference cameras (empty without reference cameras)."""
+        """``camera_errors/*`` against the reference cameras (empty without them)."""
         ...
 
     def camera_frusta(self, which: FrustumSet) -> CameraFrusta | None:
@@ -109,17 +92,13 @@ class CameraRefinementSource(Protocol):
         ...
 
     def request_refresh(self) -> None:
-        """Refresh P at the next training step, on every rank (thread-safe: called from the viewer's websocket
-        thread, which exists on rank 0 only)."""
+        """Refresh P at the next agreed step, on every rank (thread-safe; called from rank 0's websocket thread)."""
         ...
 
 
 class DisplayText(ViewerText):
-    """A read-only text field written by the training thread.
-
-    Installed without an update callback: nerfstudio wraps every element callback in a re-render of the view, so a
-    field that the server writes once a second would otherwise keep interrupting the render.
-    """
+    """A read-only text field written by the training thread; installed without a callback (nerfstudio re-renders
+    the view on every element callback)."""
 
     def __init__(self, name: str, hint: str, value: str = "n/a") -> None:
         super().__init__(name, value, disabled=True, hint=hint)
@@ -135,11 +114,8 @@ def _mean_max(errors: dict[str, float], key: str, scale: float = 1.0) -> str:
 
 
 class S2CampViewerPanel(nn.Module):
-    """Viewer elements of the S2CamP panel, its frusta and its training callback.
-
-    nerfstudio lists a folder's elements in attribute-name order, hence the letter prefixes. The module holds no
-    parameters or buffers (nothing enters checkpoints) and refers to its model weakly (no module cycle).
-    """
+    """The panel's elements (listed in attribute-name order, hence the letter prefixes), frusta and callback; no
+    parameters or buffers, and only a weak reference to the model."""
 
     def __init__(self, source: CameraRefinementSource, update_period: float = 1.0) -> None:
         super().__init__()
@@ -176,18 +152,13 @@ class S2CampViewerPanel(nn.Module):
         self._viewer: Any = None
         self._lock = threading.Lock()  # guards the frustum handles (training thread vs. websocket callbacks)
         self._handles: dict[FrustumSet, dict[int, Any]] = {"refined": {}, "initial": {}, "reference": {}}
-        self._poses: dict[FrustumSet, dict[int, tuple[np.ndarray, np.ndarray, float]]] = {
-            "refined": {},
-            "initial": {},
-            "reference": {},
-        }
+        self._poses: dict[FrustumSet, dict[int, tuple[np.ndarray, np.ndarray, float]]] = {n: {} for n in self._handles}
         self._nerfstudio_frusta_hooked = False
         self._shown_refresh_step: int | None = None
         self._last_update = -math.inf
         self._failed = False
         self.num_updates = 0
 
-    # --------------------------------------------------------------------------------------------------- state
     def _source(self) -> CameraRefinementSource:
         # A method, not a property: nerfstudio's viewer walks public attributes (properties included) for elements.
         source = self._source_ref()
@@ -197,16 +168,15 @@ class S2CampViewerPanel(nn.Module):
 
     @property
     def attached(self) -> bool:
-        """True once nerfstudio's viewer has installed the panel (never when training without the viewer)."""
+        """True once nerfstudio's viewer has installed the panel (and no error has disabled it)."""
         return self._viewer is not None and not self._failed
 
     def request_refresh(self) -> None:
         """Ask the model for a refresh of P at its next training step (called from the viewer's websocket thread)."""
         self._source().request_refresh()
 
-    # --------------------------------------------------------------------------------------------- attachment
     def attach(self, viewer: Any) -> None:
-        """Called by the ViewerControl when nerfstudio's viewer is built: draw the static frusta, fill the panel."""
+        """Called by the ViewerControl once the viewer is built: draw the static frusta, fill the panel."""
         self._viewer = viewer
         self._guard(self._attach)
 
@@ -238,7 +208,6 @@ class S2CampViewerPanel(nn.Module):
                 "training continues."
             )
 
-    # ------------------------------------------------------------------------------------------------ callbacks
     def training_callbacks(self, attributes: TrainingCallbackAttributes) -> list[TrainingCallback]:
         """The panel's per-step callback, or nothing when the viewer is off."""
         if not self.attached:
@@ -254,7 +223,6 @@ class S2CampViewerPanel(nn.Module):
 
         return [TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=after_step)]
 
-    # --------------------------------------------------------------------------------------------- panel values
     @torch.no_grad()
     def panel_values(self, step: int) -> dict[str, str]:
         """The panel's text values at training step ``step`` (also used by tests)."""
@@ -280,9 +248,7 @@ class S2CampViewerPanel(nn.Module):
             values["g_condition_sigma"] = self._condition_text(gram)
             values["h_condition_whitened"] = self._condition_text(0.5 * (whitened + whitened.transpose(-1, -2)))
         else:
-            values["f_conditioning"] = (
-                "camera refinement off" if not status.refinement_enabled else "preconditioning off"
-            )
+            values["f_conditioning"] = "preconditioning off" if status.refinement_enabled else "camera refinement off"
             values["g_condition_sigma"] = values["h_condition_whitened"] = "n/a"
         last, every = status.last_refresh_step, status.refresh_every
         since = f"{max(step - last, 0)} steps ago" if last >= 0 else "never"
@@ -313,15 +279,12 @@ class S2CampViewerPanel(nn.Module):
         self.num_updates += 1
 
     def _show_step_in_viewer_header(self, step: int) -> None:
-        """Set the "Step: N" line above nerfstudio's controls to the step the panel shows. nerfstudio writes it only
-        when it renders a training-step image, which at the "Fast" train speed on a CPU is every thousand or more
-        steps, so it would read "Step: 0" next to a panel at step 300. Only while training (ns-viewer has no
-        trainer and shows the checkpoint's step)."""
+        """Set nerfstudio's "Step: N" line to the panel's step while training (nerfstudio updates it only when it
+        renders a training image, rarely on a CPU); ns-viewer keeps the checkpoint's step."""
         update_step = getattr(self._viewer, "update_step", None)
         if update_step is not None and getattr(self._viewer, "trainer", None) is not None:
             update_step(step)
 
-    # --------------------------------------------------------------------------------------------------- frusta
     def _server(self) -> ViserServer:
         return self._viewer.viser_server
 
@@ -341,7 +304,7 @@ class S2CampViewerPanel(nn.Module):
     def _frustum_params(
         self, frusta: CameraFrusta, indices: list[int]
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Positions (viser units), wxyz, vertical fields of view and aspect ratios of the cameras ``indices``."""
+        """Positions (viser units), wxyz, vertical fields of view (clamped) and aspect ratios of ``indices``."""
         import viser.transforms as vtf
 
         c2w = frusta.c2w_cv.detach().double().cpu().numpy()[indices]
@@ -421,9 +384,7 @@ class S2CampViewerPanel(nn.Module):
             return
         position, wxyz, fov = pose
         camera = event.client.camera
-        camera.fov = fov
-        camera.position = position
-        camera.wxyz = wxyz
+        camera.fov, camera.position, camera.wxyz = fov, position, wxyz
         if hasattr(self._viewer, "current_camera_idx"):
             self._viewer.current_camera_idx = index
 
@@ -452,11 +413,6 @@ class _PanelControl(ViewerControl):
 
 
 __all__ = [
-    "FRUSTUM_COLORS",
-    "FRUSTUM_ROOT",
-    "CameraFrusta",
-    "CameraRefinementSource",
-    "DisplayText",
-    "RefinementStatus",
+    "FRUSTUM_COLORS", "FRUSTUM_ROOT", "CameraFrusta", "CameraRefinementSource", "DisplayText", "RefinementStatus",
     "S2CampViewerPanel",
-]
+]  # fmt: skip

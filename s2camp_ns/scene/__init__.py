@@ -1,4 +1,1 @@
-"""Synthetic scenes in the mip-NeRF 360 layout with known cameras (ground truth for camera refinement).
-
-Entry point: ``s2camp_ns.scene.make_scene`` (``make_scene(MakeSceneConfig(...))`` or ``s2camp-make-scene``).
-"""
+"""Synthetic scenes in the mip-NeRF 360 layout with known cameras (``make_scene``, ``s2camp-make-scene``)."""

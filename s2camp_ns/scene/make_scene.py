@@ -8,13 +8,9 @@ Output (``output_dir``)::
     poses_bounds.npy   LLFF poses [N, 17]: 3x5 [R | t | hwf] with columns (down, right, backwards), near, far
     scene_info.json    ground-truth cameras and the generator config
 
-Rays are generated through the COLMAP camera model itself (``pycolmap.Camera.cam_from_img`` on the pixel
-sample positions), so the images are exactly consistent with the written intrinsics, distortion included. The camera
-is RADIAL (PINHOLE without distortion) by default, or any model of ``core.colmap_models`` (``camera_model``);
-fisheye scenes stay below 85 degrees off the axis, where pycolmap's unprojection is reliable.
-
-Every 3D point is a visible surface point; its track holds every image that sees it (in the
-image, in front of the camera, not occluded), with observations from ``img_from_cam``.
+Rays go through the COLMAP camera model itself (``pycolmap.Camera.cam_from_img``), so the images agree exactly with
+the written intrinsics, distortion included. Every 3D point is a visible surface point whose track holds every image
+that sees it unoccluded, observed through ``img_from_cam``.
 """
 
 from __future__ import annotations
@@ -46,7 +42,7 @@ from s2camp_ns.core.validation import check_choice, check_range
 from s2camp_ns.scene import procedural
 
 FOV_PRESETS = {"narrow": 52.0, "wide": 80.0}
-"""Horizontal field of view in degrees. "narrow" matches mip-NeRF 360 room (fx 3172.5 px at width 3114)."""
+"""Horizontal field of view in degrees ("narrow": mip-NeRF 360's room)."""
 
 _OUTPUTS = ("images", "images_2", "sparse", "poses_bounds.npy", "scene_info.json")
 
@@ -55,6 +51,8 @@ CameraModelName = Literal[
 ]
 FISHEYE_MAX_ANGLE = 85.0
 """Largest angle (degrees) off the axis of a generated fisheye image: pycolmap's unprojection stops at 90."""
+_COEFFICIENTS = ("k1", "k2", "k3", "k4", "p1", "p2")
+"""The distortion coefficients of ``MakeSceneConfig``."""
 
 
 @dataclass
@@ -62,7 +60,7 @@ class MakeSceneConfig:
     """Synthetic mip-NeRF 360-style scene: a ring of cameras around textured objects on a ground plane."""
 
     output_dir: Path = Path("scenes/synthetic")
-    """Where to write the scene. An existing directory is only reused if it holds a previous generated scene."""
+    """Where to write the scene (an existing directory only if empty or holding a generated scene)."""
     num_cameras: int = 24
     """Number of images (cameras on a ring looking at the centre)."""
     width: int = 160
@@ -76,7 +74,7 @@ class MakeSceneConfig:
     principal_point: tuple[float, float] | None = None
     """(cx, cy) in full-resolution pixels; default: the image centre."""
     k1: float = -0.02
-    """Radial distortion k1 (COLMAP RADIAL, normalized image coordinates). k1 = k2 = 0 writes a PINHOLE camera."""
+    """Radial distortion k1 (normalized image coordinates); k1 = k2 = 0 writes a PINHOLE camera."""
     k2: float = 0.005
     """Radial distortion k2."""
     camera_model: CameraModelName = "auto"
@@ -103,7 +101,7 @@ class MakeSceneConfig:
     seed: int = 0
     """Seed for camera jitter, texture noise and point sampling."""
     image_format: Literal["png", "jpg"] = "png"
-    """Image file format; PNG is lossless, JPG mimics the real dataset's files."""
+    """Image file format (JPG as the real dataset's files)."""
 
 
 def validate(config: MakeSceneConfig) -> tuple[float, float, float]:
@@ -132,25 +130,13 @@ def validate(config: MakeSceneConfig) -> tuple[float, float, float]:
     cx, cy = (config.width / 2.0, config.height / 2.0) if config.principal_point is None else config.principal_point
     check_range("principal_point[0] (cx)", cx, low=0.0, high=config.width, low_inclusive=False, high_inclusive=False)
     check_range("principal_point[1] (cy)", cy, low=0.0, high=config.height, low_inclusive=False, high_inclusive=False)
-    for name in ("k1", "k2", "k3", "k4", "p1", "p2"):
+    for name in _COEFFICIENTS:
         check_range(name, getattr(config, name), low=-1.0, high=1.0)
-    # The same monotonicity rule as the camera model: the distortion must not fold back inside the image.
-    intrinsics = Intrinsics.create(
-        fx=focal,
-        fy=focal,
-        cx=cx,
-        cy=cy,
-        width=config.width,
-        height=config.height,
-        k1=config.k1,
-        k2=config.k2,
-        k3=config.k3,
-        k4=config.k4,
-        p1=config.p1,
-        p2=config.p2,
-        model="fisheye" if fisheye else "perspective",
-        validate=False,
-    )
+    # The camera model's rule: the distortion must not fold back inside the image.
+    pinhole = dict(fx=focal, fy=focal, cx=cx, cy=cy, width=config.width, height=config.height)
+    coefficients = {name: getattr(config, name) for name in _COEFFICIENTS}
+    model = "fisheye" if fisheye else "perspective"
+    intrinsics = Intrinsics.create(**pinhole, **coefficients, model=model, validate=False)
     check_distortion_monotonic(intrinsics)
     if fisheye:
         corners = np.array([[0.0, 0.0], [config.width, 0.0], [0.0, config.height], [config.width, config.height]])
@@ -174,9 +160,7 @@ def make_camera(config: MakeSceneConfig) -> pycolmap.Camera:
     model = config.camera_model
     if model == "auto":
         model = "PINHOLE" if config.k1 == 0.0 and config.k2 == 0.0 else "RADIAL"
-    values = dict(
-        fx=focal, fy=focal, cx=cx, cy=cy, **{n: getattr(config, n) for n in ("k1", "k2", "k3", "k4", "p1", "p2")}
-    )
+    values = dict(fx=focal, fy=focal, cx=cx, cy=cy, **{n: getattr(config, n) for n in _COEFFICIENTS})
     params = values_to_colmap(model, values, CAMERA_MODEL_PROJECTION[model])
     return pycolmap.Camera(model=model, width=config.width, height=config.height, params=params, camera_id=1)
 
@@ -238,10 +222,8 @@ def _save(image: np.ndarray, path: Path, image_format: str) -> None:
 def sample_points(
     config: MakeSceneConfig, camera: pycolmap.Camera, poses: list[np.ndarray], rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, list[list[tuple[int, np.ndarray]]]]:
-    """Visible surface points, their colours and tracks.
-
-    Returns xyz [P, 3], rgb uint8 [P, 3] and, per point, a list of (image index, observed pixel [2]).
-    """
+    """Visible surface points seen by >= 2 images: xyz [P, 3], rgb uint8 [P, 3] and per point its track, a list of
+    (image index, observed pixel [2])."""
     candidates, surfaces = [], []
     for pose in poses:
         pixels = rng.uniform([0.0, 0.0], [config.width, config.height], (config.points_per_image, 2))
@@ -250,21 +232,15 @@ def sample_points(
         candidates.append(hits.points(origins, directions))
         surfaces.append(hits)
     xyz = np.concatenate(candidates)
-
     observations: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(xyz))]
     for index, pose in enumerate(poses):
         rotation, translation = pose[:, :3], pose[:, 3]
         centre = -rotation.T @ translation
         in_camera = xyz @ rotation.T + translation
         pixels = camera.img_from_cam(in_camera)  # NaN behind the camera
-        inside = (
-            (in_camera[:, 2] > 1e-6)
-            & np.isfinite(pixels).all(axis=1)
-            & (pixels[:, 0] >= 0.0)
-            & (pixels[:, 0] < config.width)
-            & (pixels[:, 1] >= 0.0)
-            & (pixels[:, 1] < config.height)
-        )
+        inside = (in_camera[:, 2] > 1e-6) & np.isfinite(pixels).all(axis=1)
+        inside &= (pixels[:, 0] >= 0.0) & (pixels[:, 0] < config.width)
+        inside &= (pixels[:, 1] >= 0.0) & (pixels[:, 1] < config.height)
         candidates_idx = np.flatnonzero(inside)
         offsets = xyz[candidates_idx] - centre
         distance = np.linalg.norm(offsets, axis=1)
@@ -272,7 +248,6 @@ def sample_points(
         visible = first >= distance * (1.0 - 1e-6) - 1e-6
         for point in candidates_idx[visible]:
             observations[point].append((index, pixels[point]))
-
     keep = np.array([i for i, obs in enumerate(observations) if len(obs) >= 2], dtype=np.int64)
     hits = procedural.Hits(
         *(np.concatenate([getattr(h, f) for h in surfaces])[keep] for f in ("t", "material", "normal"))
@@ -315,8 +290,7 @@ def _prepare_output(output_dir: Path) -> None:
 
 
 def config_record(config: MakeSceneConfig) -> dict:
-    """``config`` as ``scene_info.json`` records it (paths as strings, tuples as JSON lists): what a reader compares
-    to tell whether a folder holds the scene of a given config."""
+    """``config`` as ``scene_info.json`` records it (paths as strings, tuples as JSON lists)."""
     record = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()}
     return json.loads(json.dumps(record))
 
@@ -349,8 +323,8 @@ def _write_sparse(
     tracks: list[list[tuple[int, np.ndarray]]],
     output_dir: Path,
 ) -> None:
-    """The COLMAP model (cameras, images with their keypoints, points3D with their tracks) in ``sparse/0``, binary,
-    image ids 1..n in ``names`` order; only the three files of the mip-NeRF 360 layout are kept."""
+    """The binary COLMAP model (cameras, images with keypoints, points3D with tracks) in ``sparse/0``, image ids 1..n
+    in ``names`` order."""
     reconstruction = pycolmap.Reconstruction()
     reconstruction.add_camera_with_trivial_rig(camera)
     keypoints: list[list[np.ndarray]] = [[] for _ in poses]
@@ -385,8 +359,7 @@ def _write_poses_bounds(
     tracks: list[list[tuple[int, np.ndarray]]],
     output_dir: Path,
 ) -> None:
-    """``poses_bounds.npy`` (``llff_poses_bounds``) from the depths of the points each image sees; raises
-    ``RuntimeError`` if an image sees none."""
+    """``poses_bounds.npy`` from the depths of the points each image sees; RuntimeError if an image sees none."""
     depths = [[] for _ in poses]
     for point, track in zip(xyz, tracks, strict=True):
         for index, _ in track:
@@ -419,7 +392,7 @@ def _scene_info(
             "fy": camera.focal_length_y,
             "cx": camera.principal_point_x,
             "cy": camera.principal_point_y,
-            **{name: getattr(config, name) for name in ("k1", "k2", "k3", "k4", "p1", "p2")},
+            **{name: getattr(config, name) for name in _COEFFICIENTS},
         },
         "images_2": {"width": camera.width // 2, "height": camera.height // 2, "scale": 0.5},
         "pixel_convention": "COLMAP: the image covers [0, W] x [0, H]; pixel (i, j) is centred at (i + 0.5, j + 0.5)",
@@ -437,8 +410,7 @@ def _scene_info(
 
 
 def make_scene(config: MakeSceneConfig, progress: Callable[[int, int], None] | None = None) -> Path:
-    """Generate the scene described by ``config``; return its directory. ``progress(done, total)`` is told after
-    each image rendered (the longest part)."""
+    """Generate the scene of ``config`` and return its directory; ``progress(done, total)`` after each image."""
     camera = make_camera(config)
     output_dir = Path(config.output_dir)
     _prepare_output(output_dir)

@@ -1,11 +1,8 @@
 """A small procedural world rendered by analytic ray casting (numpy, vectorized over rays).
 
-World frame: z up, ground plane z = 0, a few textured primitives near the origin, and a textured background
-sphere far away so the scene looks unbounded (the mip-NeRF 360 setting). Shading is view independent
-(Lambert + ambient + hard shadows from one directional light, emissive background), so every surface point
-has one colour in all images: photometric consistency for camera refinement holds exactly, up to pixel
-integration. Textures are solid (functions of the 3D point), with detail down to a few centimetres so that
-small camera errors change the images.
+z up, ground plane z = 0, textured primitives near the origin and a far textured background sphere (unbounded, as
+mip-NeRF 360). View-independent shading (Lambert + ambient + hard shadows, emissive background): each surface point
+has one colour in all images. Solid textures with centimetre detail, so small camera errors change the images.
 """
 
 from __future__ import annotations
@@ -126,7 +123,6 @@ def intersect(origins: np.ndarray, directions: np.ndarray, foreground_only: bool
             t = np.where(disc > 0.0, -b - np.sqrt(np.maximum(disc, 0.0)), np.inf)
         t = np.where(t > 1e-7, t, np.inf)  # cameras are outside; a shadow ray leaving the surface misses
         take(t, mat, (origins + t[:, None] * directions - centre) / radius)
-
     # Axis-aligned box (slab method); the normal is the axis of the slab entered last.
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / np.where(np.abs(directions) < _EPS, _EPS, directions)
@@ -140,7 +136,6 @@ def intersect(origins: np.ndarray, directions: np.ndarray, foreground_only: bool
     box_normal = np.zeros((n, 3))
     box_normal[np.arange(n), axis] = -np.sign(directions[np.arange(n), axis])
     take(t_box, BOX, box_normal)
-
     if not foreground_only:
         with np.errstate(divide="ignore", invalid="ignore"):
             t_ground = np.where(directions[:, 2] < -_EPS, -origins[:, 2] / directions[:, 2], np.inf)
@@ -149,7 +144,6 @@ def intersect(origins: np.ndarray, directions: np.ndarray, foreground_only: bool
             np.einsum("ij,ij->i", ground_xy, ground_xy) < (0.999 * BACKGROUND_RADIUS) ** 2, t_ground, np.inf
         )
         take(t_ground, GROUND, np.broadcast_to(np.array([0.0, 0.0, 1.0]), (n, 3)))
-
         b = np.einsum("ij,ij->i", origins, directions)
         c = np.einsum("ij,ij->i", origins, origins) - BACKGROUND_RADIUS**2
         t_bg = -b + np.sqrt(np.maximum(b * b - c, 0.0))  # origins are inside: the far root
@@ -160,7 +154,6 @@ def intersect(origins: np.ndarray, directions: np.ndarray, foreground_only: bool
 def _albedo(points: np.ndarray, material: np.ndarray, seed: int) -> np.ndarray:
     """Solid-texture colour of surface points [N, 3] in [0, 1]."""
     out = np.zeros((points.shape[0], 3))
-
     m = material == GROUND
     if m.any():
         p = points[m]
@@ -173,20 +166,17 @@ def _albedo(points: np.ndarray, material: np.ndarray, seed: int) -> np.ndarray:
         grout = np.minimum(frac[:, 0], frac[:, 1]) < 0.012
         colour[grout] *= 0.35
         out[m] = colour
-
     m = material == SPHERE0  # marble
     if m.any():
         p = points[m]
         vein = 0.5 + 0.5 * np.sin(9.0 * p[:, 0] + 4.0 * p[:, 2] + 7.0 * fbm(p * 3.0, seed + 3))
         grain = fbm(p * 24.0, seed + 4, octaves=2)
         out[m] = _mix(_rgb(0.85, 0.82, 0.75), _rgb(0.45, 0.18, 0.15), vein**3) * (0.8 + 0.4 * grain)[:, None]
-
     m = material == SPHERE1  # solid checker
     if m.any():
         p = points[m]
         cells = np.floor(p / 0.09).astype(np.int64).sum(axis=1) % 2
         out[m] = _mix(_rgb(0.95, 0.75, 0.15), _rgb(0.10, 0.25, 0.65), cells.astype(np.float64))
-
     m = material == SPHERE2  # noisy stripes
     if m.any():
         p = points[m]
@@ -195,7 +185,6 @@ def _albedo(points: np.ndarray, material: np.ndarray, seed: int) -> np.ndarray:
             _mix(_rgb(0.15, 0.55, 0.35), _rgb(0.92, 0.92, 0.88), stripes)
             * (0.8 + 0.4 * fbm(p * 20.0, seed + 6, octaves=2))[:, None]
         )
-
     m = material == BOX  # tiles with a random colour each
     if m.any():
         p = points[m]
@@ -206,7 +195,6 @@ def _albedo(points: np.ndarray, material: np.ndarray, seed: int) -> np.ndarray:
         out[m] = (0.25 + 0.7 * np.stack([r, g, b], axis=1)) * (0.85 + 0.3 * fbm(p * 30.0, seed + 10, octaves=2))[
             :, None
         ]
-
     m = material == BACKGROUND  # sky, clouds and a mountain ridge, all from the direction
     if m.any():
         d = points[m] / BACKGROUND_RADIUS

@@ -1,11 +1,9 @@
-"""Refined pinhole intrinsics expressed as a view-matrix change (docs/SPLAT.md).
+"""Refined pinhole intrinsics expressed as a view-matrix change.
 
-For pinhole cameras K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]] and K' (the refined one), A = K^-1 K' is upper
-triangular with third row (0, 0, 1), so K' x = K (A x) and (A x)_z = x_z: rendering camera-frame points A x with K
-is rendering x with K'. A rasterizer that differentiates only with respect to the world-to-camera matrix (gsplat
-1.4: no gradient for ``Ks``) therefore refines the intrinsics when it is handed [[A R, A t], [0, 1]] and the base K.
-The EWA covariance, the depth, the camera centre and everything computed in pixel space (0.3 px blur,
-antialiasing compensation, radii, the field-of-view clamp of the Jacobian) agree exactly; docs/SPLAT.md derives it.
+For pinhole K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]] and the refined K', A = K^-1 K' is upper triangular with third
+row (0, 0, 1), so K' x = K (A x) and (A x)_z = x_z: rendering A x with K is rendering x with K'. A rasterizer with
+gradients for the view matrix only (gsplat) thus refines the intrinsics through [[A R, A t], [0, 1]] and the base K;
+depth, EWA covariance and everything in pixel space agree exactly.
 """
 
 from __future__ import annotations
@@ -38,10 +36,8 @@ def intrinsics_matrix(
 def intrinsics_correction(
     base_k: Float[Tensor, "n 3 3"], refined_k: Float[Tensor, "n 3 3"], check: bool = True
 ) -> Float[Tensor, "n 3 3"]:
-    """A = K^-1 K' (docs/SPLAT.md eq. S3), upper triangular with third row (0, 0, 1), in closed form (no general
-    inverse: K is triangular), differentiable in K'. ValueError if K or K' is not a pinhole matrix with positive
-    focal lengths; ``check=False`` skips that test (it reads the values back, a device synchronization per call on
-    CUDA) where the caller builds both matrices itself."""
+    """A = K^-1 K' [n, 3, 3] in closed form, differentiable in K'. ValueError if K or K' is not a pinhole matrix
+    with positive focal lengths; ``check=False`` skips that test (a device synchronization)."""
     if base_k.shape[-2:] != (3, 3) or refined_k.shape[-2:] != (3, 3):
         raise ValueError(f"base_k and refined_k must have shape [n, 3, 3], got {tuple(base_k.shape)}, "
                          f"{tuple(refined_k.shape)}")  # fmt: skip
@@ -55,7 +51,7 @@ def intrinsics_correction(
     fy, cy = base_k[..., 1, 1], base_k[..., 1, 2]
     fx2, s2, cx2 = refined_k[..., 0, 0], refined_k[..., 0, 1], refined_k[..., 0, 2]
     fy2, cy2 = refined_k[..., 1, 1], refined_k[..., 1, 2]
-    # Rows of A from K A = K': second row first (fy a22 = fy', fy a23 + cy = cy'), then the first.
+    # K A = K': second row first (fy a22 = fy', fy a23 + cy = cy'), then the first.
     a22 = fy2 / fy
     a23 = (cy2 - cy) / fy
     a11 = fx2 / fx
@@ -73,8 +69,7 @@ def intrinsics_correction(
 
 
 def corrected_viewmat(viewmat: Float[Tensor, "n 4 4"], correction: Float[Tensor, "n 3 3"]) -> Float[Tensor, "n 4 4"]:
-    """World-to-camera [[A R, A t], [0, 1]] (docs/SPLAT.md eq. S4): with the base K it renders as the refined K' = K A;
-    differentiable in both."""
+    """World-to-camera [[A R, A t], [0, 1]]: with the base K it renders as K' = K A; differentiable in both."""
     top = correction @ viewmat[..., :3, :]
     return torch.cat([top, viewmat[..., 3:, :]], dim=-2)
 

@@ -1,31 +1,23 @@
 """Pure-torch 3D Gaussian rasterization with the contract of gsplat 1.4's ``rasterization`` (the subset splatfacto
-uses), for the CPU: tests, laptops and the tiny benchmark scenes. Dense and slow, differentiable by autograd.
+uses), for the CPU: dense, slow, differentiable by autograd. It computes:
 
-What it computes (docs/SPLAT.md sec. 2 states the formulas; gsplat's CUDA kernels compute the same):
-
-1. Projection (pinhole): camera-frame means x = R m + t, covariances R Sigma R^T with Sigma = (Q S)(Q S)^T from the
-   normalized quaternion Q and scales S; depth z = x_z; means2d = K x / z (skew included).
-2. EWA: Sigma_2d = J Sigma_cam J^T with the perspective Jacobian J at the mean, its first two columns K_2x2 / z and
-   its third -(u_c - c) / z, where u_c is the projected mean clamped to [-0.15 W, 1.15 W] x [-0.15 H, 1.15 H]
-   (gsplat's field-of-view clamp, lim = (W - cx) / fx + 0.3 tan_fov; for a skew-free K it is that clamp, exactly).
-3. 0.3 px blur: Sigma_2d + eps2d I; with ``rasterize_mode="antialiased"`` the opacities are multiplied by
+1. Projection (pinhole): x = R m + t, covariances R Sigma R^T with Sigma = (Q S)(Q S)^T; depth z = x_z;
+   means2d = K x / z (skew included).
+2. EWA: Sigma_2d = J Sigma_cam J^T, J's columns K_2x2 / z and -(u_c - c) / z, u_c the projected mean clamped to
+   [-0.15 W, 1.15 W] x [-0.15 H, 1.15 H] (gsplat's field-of-view clamp).
+3. Blur: Sigma_2d + eps2d I; ``rasterize_mode="antialiased"`` scales the opacities by
    sqrt(det Sigma_2d / det(Sigma_2d + eps2d I)).
-4. Culling and radii: valid when det > 0 and near <= z <= far; radius = ceil(3 sqrt(lambda_max)) with
-   lambda_max = b + sqrt(max(0.01, b^2 - det)), b the mean of the diagonal; radius <= radius_clip, or a 3-radius box
-   outside the image, sets the radius to 0 (not rendered).
-5. Colours: raw [N, D] (or [C, N, D]) colours, or SH coefficients [N, (deg+1)^2, 3] evaluated at the direction
-   from the camera centre to the mean (real SH of 3DGS, ``spherical_harmonics``), then + 0.5 and clamped at 0.
-6. Compositing, per 16 x 16 tile as gsplat's kernel (a Gaussian only reaches the tiles its radius box touches),
-   front to back by depth at pixel centres (x + 0.5, y + 0.5): alpha = min(0.999, o exp(-q)) with
-   q = 0.5 d^T Sigma_2d^-1 d, skipped when q < 0 or alpha < 1/255; the pixel stops before the Gaussian that would
-   take the transmittance T to 1e-4 or below. Output colour sum_i c_i alpha_i T_i (+ T background), alpha 1 - T.
+4. Culling: valid when det > 0 and near <= z <= far; radius = ceil(3 sqrt(lambda_max)), lambda_max =
+   b + sqrt(max(0.01, b^2 - det)), b the mean of the diagonal; 0 (not rendered) when <= radius_clip or off-image.
+5. Colours: raw [N, D] / [C, N, D], or SH coefficients [N, (deg+1)^2, 3] evaluated toward the mean, + 0.5, >= 0.
+6. Compositing per 16 x 16 tile, front to back, at pixel centres: alpha = min(0.999, o exp(-q)),
+   q = 0.5 d^T Sigma_2d^-1 d, skipped when q < 0 or alpha < 1/255, stopping before T would reach 1e-4; colour
+   sum_i c_i alpha_i T_i (+ T background), alpha 1 - T.
 
-The ``info`` dict holds what splatfacto and gsplat's ``DefaultStrategy`` read (non-packed layout): ``means2d``
-[C, N, 2] (a non-leaf tensor of the graph, so ``retain_grad`` gives the projected means' gradient; with
-``absgrad=True`` the backward pass also sets ``means2d.absgrad``, the sum over pixels of the absolute per-pixel
-gradients, as gsplat does), ``radii`` [C, N] (int32), ``depths``, ``conics``, ``opacities``, ``width``, ``height``,
-``n_cameras``, ``tile_size``. Not supported (ValueError naming the argument): ``packed=True``, camera models other
-than pinhole, ``sparse_grad``, render modes other than RGB / D / ED / RGB+D / RGB+ED.
+``info`` holds what splatfacto and gsplat's ``DefaultStrategy`` read (non-packed): ``means2d`` [C, N, 2] (non-leaf,
+with ``means2d.absgrad`` after backward when ``absgrad``), ``radii`` [C, N] int32, ``depths``, ``conics``,
+``opacities``, ``width``, ``height``, ``n_cameras``, ``tile_size``. ValueError for ``packed=True``, ``sparse_grad``,
+camera models other than pinhole and render modes other than RGB / D / ED / RGB+D / RGB+ED.
 """
 
 from __future__ import annotations
@@ -43,40 +35,27 @@ ALPHA_MIN = 1.0 / 255.0
 TRANSMITTANCE_MIN = 1e-4
 """A pixel stops before the Gaussian that would take its transmittance to this or below."""
 CLAMP_MARGIN = 0.3
-"""gsplat's field-of-view clamp margin, in units of tan(fov / 2): the projected mean used in the Jacobian is
-limited to 0.15 image sizes outside the image."""
+"""gsplat's field-of-view clamp margin (tan(fov / 2) units): 0.15 image sizes outside the image."""
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (
-    -0.5900435899266435,
-    2.890611442640554,
-    -0.4570457994644658,
-    0.3731763325901154,
-    -0.4570457994644658,
-    1.445305721320277,
-    -0.5900435899266435,
-)
+    -0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+    1.445305721320277, -0.5900435899266435,
+)  # fmt: skip
 SH_C4 = (
-    2.5033429417967046,
-    -1.7701307697799304,
-    0.9461746957575601,
-    -0.6690465435572892,
-    0.10578554691520431,
-    -0.6690465435572892,
-    0.47308734787878004,
-    -1.7701307697799304,
-    0.6258357354491761,
-)
+    2.5033429417967046, -1.7701307697799304, 0.9461746957575601, -0.6690465435572892, 0.10578554691520431,
+    -0.6690465435572892, 0.47308734787878004, -1.7701307697799304, 0.6258357354491761,
+)  # fmt: skip
 
 
 def spherical_harmonics(
     degree: int, directions: Float[Tensor, "*batch 3"], coefficients: Float[Tensor, "*batch k 3"]
 ) -> Float[Tensor, "*batch 3"]:
-    """Real spherical harmonics of degree <= 4 in the 3DGS sign convention, at the normalized ``directions``, summed
-    with ``coefficients`` (only the first (degree + 1)^2 are used)."""
+    """Real spherical harmonics of degree <= 4 (3DGS signs) at the normalized ``directions``, weighted by the first
+    (degree + 1)^2 ``coefficients``."""
     if not 0 <= degree <= 4:
         raise ValueError(f"sh_degree must be in [0, 4], got {degree}")
     needed = (degree + 1) ** 2
@@ -155,21 +134,18 @@ def project_gaussians(
     far_plane: float = 1e10,
     radius_clip: float = 0.0,
 ) -> dict[str, Tensor]:
-    """Steps 1-4 of the module docstring, for C cameras: ``means2d`` [C, N, 2], ``depths`` [C, N], ``covars2d``
-    (blurred) [C, N, 2, 2], ``conics`` [C, N, 3] (the upper triangle of the inverse: a, b, c), ``compensations``
-    [C, N], ``radii`` [C, N] (int32, 0 where not rendered)."""
+    """Steps 1-4 for C cameras: ``means2d`` [C, N, 2], ``depths`` [C, N], ``covars2d`` (blurred) [C, N, 2, 2],
+    ``conics`` [C, N, 3] (upper triangle of the inverse), ``compensations`` [C, N], ``radii`` [C, N] (int32)."""
     rotation = viewmats[:, None, :3, :3]
     means_cam = (rotation @ means[None, :, :, None])[..., 0] + viewmats[:, None, :3, 3]
     covars_cam = rotation @ covariances[None] @ rotation.transpose(-1, -2)
     depths = means_cam[..., 2]
     k2 = Ks[:, None, :2, :2]
     principal = Ks[:, None, :2, 2]
-    # Pixels of the means; the clamp limits them to 0.15 image sizes outside the image before they enter J (gsplat's
-    # lim_x = (W - cx) / fx + 0.3 * 0.5 W / fx is exactly u = 1.15 W, lim_-x is u = -0.15 W).
+    # gsplat's lim_x = (W - cx) / fx + 0.3 * 0.5 W / fx is u = 1.15 W (lim_-x: u = -0.15 W) for a skew-free K.
     tangents = means_cam[..., :2] / depths[..., None]
     means2d = (k2 @ tangents[..., None])[..., 0] + principal
-    # The clamp gets its own copy of the projected means: ``means2d`` is returned for its gradient, which (as
-    # gsplat's) must hold the compositing's part only (the densification strategy accumulates it).
+    # The clamp's own copy: ``means2d``'s gradient must hold the compositing's part only (as gsplat's).
     size = torch.tensor([float(width), float(height)], dtype=means2d.dtype, device=means2d.device)
     margin = 0.5 * CLAMP_MARGIN * size
     unclamped = (k2 @ tangents[..., None])[..., 0] + principal
@@ -197,19 +173,13 @@ def project_gaussians(
             & (means2d[..., 1] - radii < height)
         )
         radii = torch.where(valid & inside, radii, torch.zeros_like(radii)).to(torch.int32)
-    return {
-        "means2d": means2d,
-        "depths": depths,
-        "covars2d": covars2d,
-        "conics": conics,
-        "compensations": compensations,
-        "radii": radii,
-    }
+    return dict(
+        means2d=means2d, depths=depths, covars2d=covars2d, conics=conics, compensations=compensations, radii=radii
+    )
 
 
 class _PixelOffsets(torch.autograd.Function):
-    """d = mean2d - pixel for every (pixel, Gaussian) pair; the backward pass also records the sum over pixels of
-    the absolute per-pixel gradients of the means (gsplat's ``absgrad``) on ``record``."""
+    """d = mean2d - pixel [p, n, 2]; backward adds the per-pixel absolute gradients, summed, to ``record``."""
 
     @staticmethod
     def forward(ctx, means2d: Tensor, pixels: Tensor, record: dict) -> Tensor:
@@ -230,8 +200,7 @@ def composite_tile(
     pixels: Float[Tensor, "p 2"],
     record: dict | None = None,
 ) -> tuple[Float[Tensor, "p d"], Float[Tensor, " p"]]:
-    """Front-to-back compositing of ``n`` Gaussians (already in depth order) at ``pixels`` (step 6). Returns the
-    accumulated features and the final transmittance T per pixel."""
+    """Step 6 for ``n`` Gaussians in depth order at ``pixels``: accumulated features [p, d], final T [p]."""
     if record is None:
         d = offsets_means2d[None, :, :] - pixels[:, None, :]
     else:
@@ -240,13 +209,11 @@ def composite_tile(
     sigma = 0.5 * (conics[:, 0] * dx * dx + conics[:, 2] * dy * dy) + conics[:, 1] * dx * dy
     alpha = torch.clamp_max(opacities * torch.exp(-sigma), ALPHA_MAX)
     alpha = torch.where((sigma >= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
-    # Transmittance after each Gaussian, prod (1 - alpha_j) over j <= i, as exp of a cumulative sum (alpha <= 0.999
-    # keeps the logarithm finite; cumsum's backward pass is simpler than cumprod's, which divides by the factors).
+    # T after each Gaussian, prod_{j <= i} (1 - alpha_j), as exp of a cumsum (finite: alpha <= 0.999).
     log_after = torch.cumsum(torch.log1p(-alpha), dim=1)
     after = torch.exp(log_after)
     before = torch.exp(log_after - torch.log1p(-alpha))
-    # Transmittance only decreases, so "stop before the first Gaussian that takes T to <= 1e-4" keeps exactly the
-    # Gaussians whose T after them is still above it (skipped ones keep T unchanged and contribute nothing).
+    # T only decreases: stopping before the first Gaussian that takes it to <= 1e-4 keeps those with T after > 1e-4.
     keep = (after > TRANSMITTANCE_MIN).to(alpha.dtype)
     weights = alpha * before * keep
     transmittance = torch.exp(torch.log1p(-alpha * keep).sum(dim=1))
@@ -256,7 +223,7 @@ def composite_tile(
 def _check_arguments(
     unsupported: dict, packed: bool, sparse_grad: bool, camera_model: str, render_mode: str, rasterize_mode: str
 ) -> None:
-    """Raise ``ValueError`` for arguments outside the subset of gsplat's ``rasterization`` this reference covers."""
+    """ValueError for arguments outside the subset of gsplat's ``rasterization`` covered here."""
     if unsupported:
         raise ValueError(f"reference rasterization does not support the argument(s) {sorted(unsupported)}")
     if packed:
@@ -279,8 +246,8 @@ def _features(
     sh_degree: int | None,
     render_mode: str,
 ) -> Float[Tensor, "c n d"]:
-    """Per camera and Gaussian the channels to composite: the colour (given, or evaluated from the SH coefficients
-    toward the camera; zero for culled Gaussians) for the RGB modes, then the depth for the depth modes."""
+    """Channels to composite [C, N, D]: the colour (RGB modes; SH evaluated toward the camera, 0 when culled), then
+    the depth (depth modes)."""
     c = viewmats.shape[0]
     features = []
     if render_mode in ("RGB", "RGB+D", "RGB+ED"):
@@ -307,8 +274,7 @@ def _sorted_tile_bounds(
     tiles_x: int,
     tiles_y: int,
 ) -> tuple[Int[Tensor, " m"], Float[Tensor, "m 2"], Float[Tensor, "m 2"]]:
-    """The visible Gaussians (radius > 0) front to back (stable depth order) and the tile range [min, max) in x, y
-    each covers, clamped to the image's tiles; no gradient."""
+    """Visible Gaussians (radius > 0) front to back (stable) and the tile range [min, max) in x, y each covers."""
     with torch.no_grad():
         order = torch.argsort(depths, stable=True)
         order = order[radius[order] > 0]
@@ -330,8 +296,8 @@ def _render_camera(
     tile_size: int,
     camera_record: dict | None,
 ) -> tuple[Float[Tensor, "h w d"], Float[Tensor, "h w"]]:
-    """Camera ``camera``'s composited channels and alpha, tile by tile (``composite_tile``); with ``camera_record``
-    each tile's Gaussian ids and record are appended to its "tiles" (for ``_attach_absgrad``)."""
+    """Composited channels [h, w, d] and alpha [h, w] of camera ``camera``, tile by tile; with ``camera_record``,
+    each tile's Gaussian ids and record are appended to its "tiles" (``_attach_absgrad``)."""
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     means2d = projected["means2d"][camera]
     radius = projected["radii"][camera].to(means2d.dtype)
@@ -378,11 +344,10 @@ def _over_background(
     backgrounds: Tensor | None,
     render_mode: str,
 ) -> Float[Tensor, "c h w d"]:
-    """The channels composited over ``backgrounds`` (the depth channel over 0, as gsplat pads them), the expected
-    depth (ED modes) divided by the alpha."""
+    """The channels over ``backgrounds`` (depth over 0), the expected depth (ED modes) divided by the alpha."""
     c = render_colors.shape[0]
     if backgrounds is not None:
-        if render_mode != "RGB":  # the depth channel composites over 0 (gsplat pads the backgrounds so)
+        if render_mode != "RGB":  # gsplat pads the backgrounds with 0 for the depth
             depth_background = backgrounds.new_zeros(c, 1)
             if render_mode in ("D", "ED"):
                 backgrounds = depth_background
@@ -420,10 +385,8 @@ def rasterization(
     camera_model: str = "pinhole",
     **unsupported,
 ) -> tuple[Float[Tensor, "c h w d"], Float[Tensor, "c h w 1"], dict]:
-    """gsplat 1.4 ``rasterization`` for the subset splatfacto uses (see the module docstring); same arguments and
-    outputs: render_colors [C, H, W, D] (D = colour channels, + 1 with depth), render_alphas [C, H, W, 1], info.
-    Stages: projection (``project_gaussians``), features (``_features``), per camera depth sorting and tiles
-    (``_sorted_tile_bounds``) and compositing (``_render_camera``), background (``_over_background``)."""
+    """gsplat 1.4's ``rasterization`` (module docstring): render_colors [C, H, W, D] (colour channels, + 1 with
+    depth), render_alphas [C, H, W, 1], info."""
     _check_arguments(unsupported, packed, sparse_grad, camera_model, render_mode, rasterize_mode)
     n = means.shape[0]
     c = viewmats.shape[0]
@@ -468,8 +431,7 @@ def rasterization(
 
 
 def _attach_absgrad(means2d: Tensor, record: dict, n: int) -> None:
-    """After backward, ``means2d.absgrad`` [C, N, 2] holds the per-pixel absolute gradients summed (gsplat's
-    absgrad), gathered from every tile by a hook on ``means2d``."""
+    """After backward, ``means2d.absgrad`` [C, N, 2]: the per-pixel absolute gradients summed, from every tile."""
 
     def gather(grad: Tensor) -> Tensor:
         absgrad = torch.zeros_like(grad)
@@ -485,13 +447,6 @@ def _attach_absgrad(means2d: Tensor, record: dict, n: int) -> None:
 
 
 __all__ = [
-    "ALPHA_MAX",
-    "ALPHA_MIN",
-    "TRANSMITTANCE_MIN",
-    "composite_tile",
-    "covariances_from",
-    "project_gaussians",
-    "quaternion_to_rotation",
-    "rasterization",
-    "spherical_harmonics",
-]
+    "ALPHA_MAX", "ALPHA_MIN", "TRANSMITTANCE_MIN", "composite_tile", "covariances_from", "project_gaussians",
+    "quaternion_to_rotation", "rasterization", "spherical_harmonics",
+]  # fmt: skip
