@@ -26,8 +26,10 @@ the camera optimizer, forward and backward (splatting: the view matrix of one tr
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import statistics
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -344,10 +346,11 @@ def run(config: StepCostConfig) -> list[dict]:
             scenes[name] = generated_scene(scene_config)
         return measure(config, scenes, work / "runs")
 
-    if config.scene_dir is not None:
-        return body(config.scene_dir)
-    with tempfile.TemporaryDirectory(prefix="s2camp-step-cost-") as folder:
-        return body(Path(folder))
+    with contextlib.redirect_stdout(sys.stderr):  # nerfstudio's console notes: stdout stays JSON only (--json)
+        if config.scene_dir is not None:
+            return body(config.scene_dir)
+        with tempfile.TemporaryDirectory(prefix="s2camp-step-cost-") as folder:
+            return body(Path(folder))
 
 
 COLUMNS = (

@@ -73,7 +73,7 @@ def train_and_dump(
         """The trained camera parameters: phi_hat (pose, or all K per image) and, with shared intrinsics, theirs."""
         return {
             name: value.detach().cpu().clone()
-            for name, value in camera_optimizer.named_parameters()
+            for name, value in camera_optimizer.refiner.named_parameters()
             if name in ("whitened_delta", "whitened_intrinsics")
         }
 

@@ -712,20 +712,20 @@ def test_the_regime_command_on_the_cpu_logs_errors_as_it_goes(tmp_path: Path) ->
     tracks = [r for r in read_records(folder.errors_log("tracks-alone"), ErrorRecord) if r.label == REFINED]
     s2camp = [r for r in read_records(folder.errors_log("s2camp"), ErrorRecord) if r.label == REFINED]
     start = next(r for r in read_records(folder.errors_log("s2camp"), ErrorRecord) if r.label == START)
-    assert [r.step for r in s2camp] == [0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30]  # 30 steps: ceil(0.01 x 768,000 / 256)
+    assert [r.step for r in s2camp] == list(range(0, 43, 3))  # 42 steps: ceil(0.01 x 14 x 320 x 240 / 256)
     assert tracks and tracks[0].focal_err != start.focal_err  # the anchor is not the start
     assert s2camp[-1].rot_err != s2camp[0].rot_err  # the cameras moved
     assert [r.name for r in read_records(folder.runs_path, StageResult)] == [
         "scene", "tracks-alone", "s2camp", "images-alone"
     ]  # fmt: skip
     text = folder.report_path.read_text()
-    assert "| images alone | 30 |" in text and "| tracks alone (the track prior's anchor, no training) |" in text
+    assert "| images alone | 42 |" in text and "| tracks alone (the track prior's anchor, no training) |" in text
     again = subprocess.run(
         [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
          "--report-from", str(output), "--output-dir", str(tmp_path / "rebuilt")],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
-    assert again.returncode == 0 and "| images alone | 30 |" in (tmp_path / "rebuilt" / "regime.md").read_text()
+    assert again.returncode == 0 and "| images alone | 42 |" in (tmp_path / "rebuilt" / "regime.md").read_text()
 
 
 @pytest.mark.slow

@@ -169,7 +169,7 @@ class GpuCheckConfig:
         run; the smoke sizes where the command line left the defaults)."""
         if not self.cpu_smoke:
             return self
-        scene = replace(self.scene, num_cameras=12, width=320, height=240, points_per_image=100)  # tracks need 320x240
+        scene = replace(self.scene, num_cameras=16, width=320, height=240, points_per_image=100)  # tracks need 320x240
         smoke = dict(
             pairs=PAIRS[:1], timing_steps=8, warmup_steps=2, refresh_repeats=1, log_every=3, rest_methods=("nerfacto",),
             rest_iterations=8, rays_per_batch=256, refresh_every=3, scene=scene,

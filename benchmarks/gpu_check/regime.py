@@ -116,7 +116,7 @@ class RegimeConfig:
         """This configuration, or with ``cpu_smoke`` the smoke sizes where the command line left the defaults."""
         if not self.cpu_smoke:
             return self
-        scene = replace(self.scene, num_cameras=12, width=320, height=240, points_per_image=100)
+        scene = replace(self.scene, num_cameras=16, width=320, height=240, points_per_image=100)
         smoke = dict(scene=scene, passes=0.02, rays_per_batch=256, errors_every=3, report_every_s=2.0)
         default = RegimeConfig()
         chosen = {key: value for key, value in smoke.items() if getattr(self, key) == getattr(default, key)}
