@@ -89,6 +89,18 @@ class StepCostConfig:
     write: bool = True
     json: bool = False
 
+    def command(self) -> str:
+        """The ``s2camp-bench`` command line that regenerates this report (the options changed from the defaults)."""
+        if self.quick:
+            return "s2camp-bench step-cost --quick"
+        default, parts = StepCostConfig(), ["s2camp-bench step-cost"]
+        for name in ("methods", "camera_models", "intrinsics", "viewer", "rays_per_batch", "timing_repeats"):
+            value = getattr(self, name)
+            if value != getattr(default, name):
+                shown = " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
+                parts.append(f"--{name.replace('_', '-')} {shown}")
+        return " ".join(parts)
+
     def effective(self) -> StepCostConfig:
         if not self.quick:
             return self
@@ -360,6 +372,7 @@ COLUMNS = (
 
 
 def report(rows: list[dict], config: StepCostConfig) -> Path:
+    command = config.command()
     config = config.effective()
     order = {name: i for i, name in enumerate(NERFACTO_METHODS + SPLAT_METHODS)}
     rows = sorted(rows, key=lambda r: (r["model"], r["camera_model"], order[r["method"]], r["intrinsics"], r["viewer"]))
@@ -381,5 +394,5 @@ def report(rows: list[dict], config: StepCostConfig) -> Path:
     ]
     return write_report(
         config.output_dir, "step-cost", "Step cost: aten ops and host syncs per training step",
-        "s2camp-bench step-cost", sections,
+        command, sections,
     )  # fmt: skip

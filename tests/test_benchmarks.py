@@ -249,3 +249,12 @@ def test_a_generated_scene_is_kept_when_it_is_the_one_asked_for(tmp_path: Path) 
     generated_scene(replace(config, seed=config.seed + 1))
     assert model.stat().st_mtime_ns != touched  # regenerated
     assert json.loads((scene / "scene_info.json").read_text())["config"]["seed"] == config.seed + 1
+
+
+def test_step_cost_report_names_the_options_it_ran_with() -> None:
+    from s2camp_ns.benchmarks.step_cost import StepCostConfig
+
+    config = StepCostConfig(methods=("off", "s2camp"), viewer=(True,), timing_repeats=10)
+    assert config.command() == "s2camp-bench step-cost --methods off s2camp --viewer True --timing-repeats 10"
+    assert StepCostConfig().command() == "s2camp-bench step-cost"
+    assert StepCostConfig(quick=True).command() == "s2camp-bench step-cost --quick"
