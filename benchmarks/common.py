@@ -60,6 +60,18 @@ def regenerate_command(command: str, output_dir: Path) -> str:
     return f"{command} --output-dir {Path(output_dir).as_posix()}"
 
 
+def changed_options(config: object, default: object, names: Sequence[str]) -> list[str]:
+    """``--name value`` for each of ``names`` whose value in ``config`` differs from ``default``'s (tuples as their
+    items separated by spaces): the options of a regenerating command line."""
+    options = []
+    for name in names:
+        value = getattr(config, name)
+        if value != getattr(default, name):
+            shown = " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
+            options.append(f"--{name.replace('_', '-')} {shown}")
+    return options
+
+
 def write_report(output_dir: Path, name: str, title: str, command: str, sections: Iterable[str]) -> Path:
     """Write ``<output_dir>/<name>.md`` (``s2camp_ns.report.write_report``) with the command that regenerates it
     where it is (``regenerate_command``)."""

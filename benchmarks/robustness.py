@@ -49,6 +49,7 @@ from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 from .common import (
     DEFAULT_OUTPUT_DIR,
+    changed_options,
     generated_scene,
     in_report_order,
     in_work_folder,
@@ -301,13 +302,8 @@ class RobustnessConfig:
         if self.preset:
             parts.append(f"--preset {self.preset}")
             default = RobustnessConfig(preset=self.preset).effective()
-        for name in ("scenes", "starts", "variants"):
-            if getattr(self, name) != getattr(default, name):
-                parts.append(f"--{name} " + " ".join(getattr(self, name)))
-        for name in ("seeds", "first_seed", "iterations", "rays_per_batch", "workers", "trace_every", "device"):
-            if getattr(self, name) != getattr(default, name):
-                parts.append(f"--{name.replace('_', '-')} {getattr(self, name)}")
-        return " ".join(parts)
+        names = ("scenes", "starts", "variants", "seeds", "first_seed", "iterations", "rays_per_batch", "workers")
+        return " ".join(parts + changed_options(self, default, (*names, "trace_every", "device")))
 
 
 @dataclass(frozen=True)

@@ -58,6 +58,7 @@ from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 from .common import (
     DEFAULT_OUTPUT_DIR,
+    changed_options,
     generated_scene,
     in_report_order,
     in_work_folder,
@@ -224,13 +225,8 @@ class SplatBenchConfig:
         if self.quick:
             return " ".join([*parts, "--quick"])
         default = SplatBenchConfig()
-        for name in ("scenes", "starts", "variants"):
-            if getattr(self, name) != getattr(default, name):
-                parts.append(f"--{name} " + " ".join(getattr(self, name)))
-        for name in ("seeds", "first_seed", "iterations", "compress_schedule", "densify", "workers"):
-            if getattr(self, name) != getattr(default, name):
-                parts.append(f"--{name.replace('_', '-')} {getattr(self, name)}")
-        return " ".join(parts)
+        names = ("scenes", "starts", "variants", "seeds", "first_seed", "iterations", "compress_schedule", "densify")
+        return " ".join(parts + changed_options(self, default, (*names, "workers")))
 
 
 def run_specs(config: SplatBenchConfig) -> list[RunSpec]:

@@ -42,7 +42,7 @@ import torch
 from s2camp_ns.report import markdown_table
 from s2camp_ns.scene.make_scene import MakeSceneConfig
 
-from .common import DEFAULT_OUTPUT_DIR, generated_scene, log, write_report
+from .common import DEFAULT_OUTPUT_DIR, changed_options, generated_scene, log, write_report
 from .op_count import OpCount, OpCounter
 
 NERFACTO_METHODS = ("off", "s2camp-so3xr3", "s2camp", "s2camp-camp")
@@ -93,13 +93,8 @@ class StepCostConfig:
         """The ``s2camp-bench`` command line that regenerates this report (the options changed from the defaults)."""
         if self.quick:
             return "s2camp-bench step-cost --quick"
-        default, parts = StepCostConfig(), ["s2camp-bench step-cost"]
-        for name in ("methods", "camera_models", "intrinsics", "viewer", "rays_per_batch", "timing_repeats"):
-            value = getattr(self, name)
-            if value != getattr(default, name):
-                shown = " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
-                parts.append(f"--{name.replace('_', '-')} {shown}")
-        return " ".join(parts)
+        names = ("methods", "camera_models", "intrinsics", "viewer", "rays_per_batch", "timing_repeats")
+        return " ".join(["s2camp-bench step-cost", *changed_options(self, StepCostConfig(), names)])
 
     def effective(self) -> StepCostConfig:
         if not self.quick:
