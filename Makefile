@@ -43,7 +43,7 @@ $(STAMP): pyproject.toml setup.py | $(BIN)/python
 
 demo: venv
 	@echo ">>> running the demo"
-	$(BIN)/python -m s2camp_ns.demo
+	$(BIN)/python -m s2camp_ns.benchmarks.demo
 
 lint: venv
 	@echo ">>> ruff check ."

@@ -1,5 +1,4 @@
-"""Shared plumbing for the benchmarks: reference frusta, report writing (tables: ``s2camp_ns.report``) and JSON
-output."""
+"""Shared plumbing for the benchmarks: reference frusta, report writing (tables: ``report``) and JSON output."""
 
 from __future__ import annotations
 
@@ -14,9 +13,10 @@ from pathlib import Path
 import torch
 
 from s2camp_ns import __version__ as s2camp_version
-from s2camp_ns import report
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, config_record, make_scene
 from s2camp_ns.core.camera import Intrinsics
-from s2camp_ns.scene.make_scene import MakeSceneConfig, config_record, make_scene
+
+from . import report
 
 DEFAULT_OUTPUT_DIR = Path("outputs/benchmarks")
 """Where reports and plots go unless ``--output-dir`` says otherwise: beside ns-train's ``outputs/``, so that trying a
@@ -73,8 +73,8 @@ def changed_options(config: object, default: object, names: Sequence[str]) -> li
 
 
 def write_report(output_dir: Path, name: str, title: str, command: str, sections: Iterable[str]) -> Path:
-    """Write ``<output_dir>/<name>.md`` (``s2camp_ns.report.write_report``) with the command that regenerates it
-    where it is (``regenerate_command``)."""
+    """Write ``<output_dir>/<name>.md`` (``report.write_report``) with the command that regenerates it where it is
+    (``regenerate_command``)."""
     return report.write_report(output_dir, name, title, regenerate_command(command, output_dir), sections)
 
 

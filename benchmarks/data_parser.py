@@ -20,10 +20,10 @@ from pathlib import Path
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 
+from s2camp_ns.benchmarks.train_commands import training_environment
 from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParser, S2CampDataParserConfig
 from s2camp_ns.nerfstudio.scene_formats import ParsedSplit
-from s2camp_ns.nerfstudio.train_commands import training_environment
 
 from .phone_drift import DriftConfig, perturb_with_drift
 from .reference_model import reference_from_model

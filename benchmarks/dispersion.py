@@ -23,9 +23,9 @@ from pathlib import Path
 
 import torch
 
+from s2camp_ns.benchmarks.report import markdown_table
 from s2camp_ns.core.frustum import sample_frustum
 from s2camp_ns.core.lattice import frolov_lattice, random_points
-from s2camp_ns.report import markdown_table
 
 from .common import DEFAULT_OUTPUT_DIR, log, write_report
 from .dispersion_bound import covering_bound, dispersion, reference_tangent_bounds, transform_volume

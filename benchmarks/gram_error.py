@@ -15,10 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from s2camp_ns.benchmarks.report import markdown_table
 from s2camp_ns.core.camera import ParameterLayout
 from s2camp_ns.core.jacobian import relative_gram_error
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING, SamplingConfig
-from s2camp_ns.report import markdown_table
 
 from .common import DEFAULT_OUTPUT_DIR, FRUSTA, log, write_report
 from .gram_reference import gram_estimation_error, reference_gram

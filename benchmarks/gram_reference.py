@@ -14,13 +14,12 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics, ParameterLayout
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout, tangent_bounds
 from s2camp_ns.core.camp_sampling import camp_frustum_points
 from s2camp_ns.core.frustum import sample_frustum
 from s2camp_ns.core.jacobian import projection_jacobian, relative_gram_error
 from s2camp_ns.core.lattice import unit_cube_points
 from s2camp_ns.core.preconditioner import SamplingConfig, gram_from_points, sample_proxy_points
-from s2camp_ns.core.unprojection import tangent_bounds
 from s2camp_ns.core.validation import check_range
 
 REFERENCE_POINTS = 2**20

@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from s2camp_ns.benchmarks.report import markdown_table
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
 from s2camp_ns.nerfstudio.image_tracks import (
     EXHAUSTIVE_LIMIT,
     NEIGHBOURS,
@@ -33,8 +35,6 @@ from s2camp_ns.nerfstudio.image_tracks import (
     image_tracks,
     neighbour_pairs,
 )
-from s2camp_ns.report import markdown_table
-from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 from .common import (
     DEFAULT_OUTPUT_DIR,

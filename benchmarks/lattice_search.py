@@ -18,13 +18,12 @@ from pathlib import Path
 
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics
+from s2camp_ns.benchmarks.report import markdown_table
+from s2camp_ns.core.camera import Intrinsics, tangent_bounds
 from s2camp_ns.core.frustum import sample_frustum
 from s2camp_ns.core.jacobian import relative_gram_error
 from s2camp_ns.core.lattice import FrolovParams, frolov_points, halton_sequence, table_params
 from s2camp_ns.core.preconditioner import SamplingConfig, gram_from_points
-from s2camp_ns.core.unprojection import tangent_bounds
-from s2camp_ns.report import markdown_table
 
 from .common import DEFAULT_OUTPUT_DIR, log, write_report
 from .dispersion_bound import covering_bound, dispersion, frustum_volume

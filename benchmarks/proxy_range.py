@@ -1,6 +1,6 @@
 """Proxy range chosen from the scene (``core.proxy_range``) against the fixed (0.4, 1.5), on generated scenes.
 
-For each generated scene (s2camp_ns/scene/make_scene.py, read through the plugin's data parser as training reads it,
+For each generated scene (benchmarks/scene/make_scene.py, read through the plugin's data parser as training reads it,
 so distances are in nerfstudio's normalized units) the chosen contracted range of its physical camera is reported,
 and both ranges are judged by how well the proxy Gram matrix (paper eq. 5) stands in for the Gram matrix of what the
 camera actually sees:
@@ -32,7 +32,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from s2camp_ns.core.camera import ParameterLayout, opengl_to_opencv
+from s2camp_ns.benchmarks.report import markdown_table
+from s2camp_ns.benchmarks.scene import procedural
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.core.camera import ParameterLayout, opengl_to_opencv, pixel_to_ray_direction
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian, relative_gram_error
 from s2camp_ns.core.preconditioner import (
     DampingConfig,
@@ -50,10 +53,6 @@ from s2camp_ns.core.proxy_range import (
     match_inverse_moments,
     proxy_ranges,
 )
-from s2camp_ns.core.unprojection import pixel_to_ray_direction
-from s2camp_ns.report import markdown_table
-from s2camp_ns.scene import procedural
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, write_report
 

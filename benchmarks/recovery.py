@@ -15,9 +15,9 @@ from pathlib import Path
 
 import torch
 
+from s2camp_ns.benchmarks.report import markdown_table
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING
-from s2camp_ns.report import markdown_table
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import DEFAULT_OUTPUT_DIR, in_work_folder, log, write_report
 from .recovery_geometric import SHARED_VARIANTS, VARIANTS, GeometricConfig, iterations_to, load_scene, run_variant
@@ -249,7 +249,7 @@ def _tier2_section(rows: list[dict], config: RecoveryConfig) -> list[str]:
     setup = (
         f"Tier 2: `ns-train` of every variant on generated scenes ({_scene_sizes(config)}, every 8th image held "
         f"out), CPU-sized nerfacto "
-        f"(`s2camp_ns.nerfstudio.train_commands.SMALL_MODEL`), {p.rays_per_batch} rays per step. A shared "
+        f"(`s2camp_ns.benchmarks.train_commands.SMALL_MODEL`), {p.rays_per_batch} rays per step. A shared "
         f"warm start of {p.warm_start} iterations on the accurate cameras (camera learning rate zero), then "
         f"{p.iterations} iterations per variant from the perturbed cameras (seed {p.perturbation_seed}; sigma "
         f"position {p.sigma_position:g}, look-at {p.sigma_look_at:g}, focal {p.sigma_focal_length:g}, dolly "

@@ -3,7 +3,7 @@
 Per generated scene (narrow and wide field of view):
 
 1. warm start: one ``ns-train s2camp`` run on the accurate cameras with the camera learning rate at zero (the demo's
-   protocol, see ``s2camp_ns.demo``: from scratch on a CPU budget the NeRF absorbs the camera errors first);
+   protocol, see ``s2camp_ns.benchmarks.demo``: from scratch on a CPU budget the NeRF absorbs the camera errors first);
 2. its checkpoint, stripped of the camera optimizer's parameters and Adam state, is the common start of every
    variant: ``ns-train <method> --load-dir`` with the training cameras perturbed (CamP protocol, fixed seed);
 3. each variant trains the same number of iterations with the same camera learning-rate schedule, saving a
@@ -37,15 +37,15 @@ from pathlib import Path
 
 import torch
 
-from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
-from s2camp_ns.nerfstudio.train_commands import (
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.benchmarks.train_commands import (
     FROZEN_LR,
     PHOTOMETRIC_ONLY,
     camera_schedule_arguments,
     ns_train_arguments,
     perturbation_arguments,
 )
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 
 from .common import log
 from .data_parser import ns_train_environment

@@ -29,7 +29,7 @@ import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
 
 from .common import log
 from .data_parser import SUBCOMMAND as BENCH_DATAPARSER

@@ -38,14 +38,14 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from s2camp_ns.core.validation import check_choice, check_positive_int
-from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
-from s2camp_ns.nerfstudio.train_commands import (
+from s2camp_ns.benchmarks.report import markdown_table
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
+from s2camp_ns.benchmarks.train_commands import (
     DATAPARSER_SUBCOMMAND,
     ns_train_arguments,
 )
-from s2camp_ns.report import markdown_table
-from s2camp_ns.scene.make_scene import MakeSceneConfig
+from s2camp_ns.core.validation import check_choice, check_positive_int
+from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
 
 from .common import (
     DEFAULT_OUTPUT_DIR,
@@ -135,8 +135,8 @@ SCENES: dict[str, RobustnessScene] = {
         "pixel 0.41 times: whether four times the pixels let the images gain on the keypoints",
     ),
 }
-"""The background sphere has radius 40 (``s2camp_ns.scene.procedural``); the foreground objects lie within 1.8 of
-the centre, so the ring radius sets the depth range each camera sees. The cameras sit on a full ring, so the number
+"""The background sphere has radius 40 (``scene.procedural``); the foreground objects lie within 1.8 of the
+centre, so the ring radius sets the depth range each camera sees. The cameras sit on a full ring, so the number
 of images times the field of view is how often the background is covered: the narrow scene gets the most images
 (with 8 images of 40 degrees a held-out view sees background no training view saw, and its PSNR stopped improving
 early in training while the training PSNR kept rising), the wide one the fewest. The scenes and their start errors:
@@ -757,7 +757,7 @@ def report(rows: list[dict], config: RobustnessConfig) -> Path:
     setup = (
         f"Every run: `ns-train <method>` from scratch with the method's default options (camera learning rate and "
         f"schedule included) and only what a CPU run needs: the small nerfacto field "
-        f"(`s2camp_ns.nerfstudio.train_commands.SMALL_MODEL`), `--machine.device-type cpu`, `--max-num-iterations "
+        f"(`s2camp_ns.benchmarks.train_commands.SMALL_MODEL`), `--machine.device-type cpu`, `--max-num-iterations "
         f"{iterations}`, {config.rays_per_batch} rays per step, no evaluation or camera-error logging during "
         f"training; `--machine.seed` {seeds}. 'off' is `ns-train s2camp --pipeline.model.camera-optimizer.mode off`. "
         f"'perturbed' is the data parser's CamP perturbation (CamP's sigmas, the scene's perturbation seed), "

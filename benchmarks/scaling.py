@@ -27,9 +27,9 @@ from pathlib import Path
 
 import torch
 
+from s2camp_ns.benchmarks.report import markdown_table
 from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.core.preconditioner import DEFAULT_CHUNK_SIZE, SamplingConfig, compute_preconditioner
-from s2camp_ns.report import markdown_table
 
 from .common import DEFAULT_OUTPUT_DIR, FRUSTA, log, write_report
 

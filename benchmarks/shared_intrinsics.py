@@ -21,9 +21,9 @@ from pathlib import Path
 
 import torch
 
+from s2camp_ns.benchmarks.report import markdown_table
 from s2camp_ns.core.preconditioner import DampingConfig, condition_number, symmetric_sqrt_and_inverse
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS, compute_shared_preconditioner, joint_gram, joint_inverse
-from s2camp_ns.report import markdown_table
 
 from .common import DEFAULT_OUTPUT_DIR, FRUSTA, write_report
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 from torch.func import jacfwd, vmap
 
+from s2camp_ns.benchmarks.report import markdown_table
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, in_image, project, project_with_delta
 from s2camp_ns.core.jacobian import gram_matrix
 from s2camp_ns.core.preconditioner import (
@@ -33,7 +34,6 @@ from s2camp_ns.core.preconditioner import (
     sample_proxy_points,
     symmetric_sqrt_and_inverse,
 )
-from s2camp_ns.report import markdown_table
 
 from .common import DEFAULT_OUTPUT_DIR, FRUSTA, log, write_report
 

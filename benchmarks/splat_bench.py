@@ -50,11 +50,11 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from s2camp_ns.benchmarks.report import markdown_table
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
+from s2camp_ns.benchmarks.train_commands import DATAPARSER_SUBCOMMAND, ns_train_base_arguments
 from s2camp_ns.core.validation import check_choice, check_positive_int
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
-from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_base_arguments
-from s2camp_ns.report import markdown_table
-from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 from .common import (
     DEFAULT_OUTPUT_DIR,

@@ -39,8 +39,8 @@ from types import SimpleNamespace
 
 import torch
 
-from s2camp_ns.report import markdown_table
-from s2camp_ns.scene.make_scene import MakeSceneConfig
+from s2camp_ns.benchmarks.report import markdown_table
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
 
 from .common import DEFAULT_OUTPUT_DIR, changed_options, generated_scene, log, write_report
 from .op_count import OpCount, OpCounter
@@ -158,18 +158,14 @@ def attach_viewer_stand_in(trainer) -> bool:
     """S2CamP's viewer panel attached as nerfstudio's viewer would attach it, with its per-step callback, but no
     panel update during the counted steps (a second's period is far longer than those steps; the update itself is
     the viewer's, once a second). False where the model has no panel."""
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
-
-    panel = getattr(trainer.pipeline.model, "S2CamP", None)
+    model = trainer.pipeline.model
+    panel = getattr(model, "S2CamP", None)
     if panel is None:
         return False
     panel._viewer = SimpleNamespace(trainer=trainer)
-    panel._last_update = float("inf")
-    panel._shown_refresh_step = trainer.pipeline.model.refinement_status().last_refresh_step
-    attributes = TrainingCallbackAttributes(
-        optimizers=trainer.optimizers, grad_scaler=trainer.grad_scaler, pipeline=trainer.pipeline, trainer=trainer
-    )
-    trainer.callbacks.extend(panel.training_callbacks(attributes))
+    panel.last_update = float("inf")
+    panel.shown_refresh_step = model.refinement_status().last_refresh_step
+    trainer.callbacks.extend(model.viewer_panel_callbacks())
     return True
 
 

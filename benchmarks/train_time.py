@@ -1,6 +1,6 @@
 """``s2camp-bench train-time``: seconds per ``ns-train`` iteration of s2camp against nerfacto's stock optimizer.
 
-Every method trains the same generated scene with the same batch, CPU-sized nerfacto (``s2camp_ns.demo``) and
+Every method trains the same generated scene with the same batch, CPU-sized nerfacto (``s2camp_ns.benchmarks.demo``) and
 perturbed cameras; the baseline is ``s2camp-so3xr3``, nerfstudio's SO3xR3 pose optimizer in the same pipeline, so
 the difference is the camera optimizer alone (ray regeneration with intrinsics and distortion, P^-1, refreshes).
 The methods run interleaved, ``rounds`` times each, so that drifts of a shared machine fall on all of them alike;
@@ -15,9 +15,9 @@ import statistics
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, ns_train_arguments
-from s2camp_ns.report import markdown_table
-from s2camp_ns.scene.make_scene import MakeSceneConfig
+from s2camp_ns.benchmarks.report import markdown_table
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
+from s2camp_ns.benchmarks.train_commands import DATAPARSER_SUBCOMMAND, ns_train_arguments
 
 from .common import DEFAULT_OUTPUT_DIR, generated_scene, in_work_folder, log, write_report
 from .recovery_photometric import _run_ns_train, seconds_per_iteration
@@ -127,7 +127,7 @@ def report(rows: list[dict], config: TrainTimeConfig) -> Path:
     setup = (
         f"`ns-train` on a generated {s.fov}-fov scene ({s.num_cameras} cameras, {s.width}x{s.height}), perturbed "
         f"cameras, CPU-sized nerfacto "
-        f"(`s2camp_ns.nerfstudio.train_commands.SMALL_MODEL`), {config.rays_per_batch} rays per step, "
+        f"(`s2camp_ns.benchmarks.train_commands.SMALL_MODEL`), {config.rays_per_batch} rays per step, "
         f"{config.iterations} iterations per run (the first steps untimed), {config.rounds} interleaved rounds; "
         f"P refreshed every {config.refresh_every} steps for s2camp, computed once for s2camp-camp. Baseline "
         f"`{config.methods[0]}`: nerfstudio's stock SO3xR3 pose optimizer in the same pipeline (data manager, "

@@ -18,6 +18,7 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
@@ -26,7 +27,7 @@ from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 from s2camp_ns.nerfstudio.model import S2CampModelConfig
 from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
-from s2camp_ns.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig, RunLengthScheduleConfig
+from s2camp_ns.nerfstudio.schedulers import RunLengthScheduleConfig
 from s2camp_ns.nerfstudio.splat_model import S2CampSplatModelConfig
 from s2camp_ns.nerfstudio.trainer import S2CampTrainerConfig
 
@@ -47,7 +48,7 @@ def camera_schedule_for(camera_optimizer: CameraOptimizerConfig) -> dict:
         # nerfacto's own camera schedule for its stock optimizer (raw se(3) units).
         camera_schedule = {
             "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
-            "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
         }
     return camera_schedule
 
@@ -77,11 +78,11 @@ def make_trainer_config(method_name: str, camera_optimizer: CameraOptimizerConfi
         optimizers={
             "proposal_networks": {
                 "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
-                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
             },
             "fields": {
                 "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
-                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
             },
             "camera_opt": camera_schedule,
         },
@@ -133,7 +134,7 @@ def make_splat_trainer_config(method_name: str, camera_optimizer: CameraOptimize
     else:
         camera_schedule = {
             "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
-            "scheduler": FloatExponentialDecaySchedulerConfig(
+            "scheduler": ExponentialDecaySchedulerConfig(
                 lr_final=5e-7, max_steps=30000, warmup_steps=1000, lr_pre_warmup=0
             ),
         }
@@ -157,7 +158,7 @@ def make_splat_trainer_config(method_name: str, camera_optimizer: CameraOptimize
         optimizers={
             "means": {
                 "optimizer": AdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
-                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=30000),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=30000),
             },
             "features_dc": adam(0.0025),
             "features_rest": adam(0.0025 / 20),
@@ -167,7 +168,7 @@ def make_splat_trainer_config(method_name: str, camera_optimizer: CameraOptimize
             "camera_opt": camera_schedule,
             "bilateral_grid": {
                 "optimizer": AdamOptimizerConfig(lr=2e-3, eps=1e-15),
-                "scheduler": FloatExponentialDecaySchedulerConfig(
+                "scheduler": ExponentialDecaySchedulerConfig(
                     lr_final=1e-4, max_steps=30000, warmup_steps=1000, lr_pre_warmup=0
                 ),
             },

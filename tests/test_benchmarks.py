@@ -235,7 +235,7 @@ def test_a_generated_scene_is_kept_when_it_is_the_one_asked_for(tmp_path: Path) 
     from dataclasses import replace
 
     from s2camp_ns.benchmarks.common import generated_scene
-    from s2camp_ns.scene.make_scene import MakeSceneConfig
+    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
 
     config = MakeSceneConfig(num_cameras=4, width=64, height=48, points_per_image=150, k1=0.0, k2=0.0,
                              output_dir=tmp_path / "scene")  # fmt: skip

@@ -20,12 +20,14 @@ from s2camp_ns.core.camera import (
     apply_pose_delta,
     in_image,
     opengl_to_opencv,
+    pixel_to_ray_direction,
     project,
     project_with_delta,
     se3_exp,
+    tangent_bounds,
+    unproject,
 )
 from s2camp_ns.core.distortion import check_distortion_monotonic, fisheye_fold_angle, fisheye_terms, image_grid
-from s2camp_ns.core.unprojection import pixel_to_ray_direction, tangent_bounds, unproject
 
 ROOM_QUARTER = dict(fx=793.13, fy=793.49, cx=389.25, cy=259.375, width=778.0, height=518.0)
 

@@ -9,7 +9,15 @@ import pycolmap
 import pytest
 import torch
 
-from s2camp_ns.core.camera import Intrinsics, ParameterLayout, project
+from s2camp_ns.core.camera import (
+    Intrinsics,
+    ParameterLayout,
+    pixel_to_ray_direction,
+    project,
+    tangent_bounds,
+    unproject,
+    vertical_field_of_view,
+)
 from s2camp_ns.core.colmap_models import (
     COLMAP_PARAMETERS,
     colmap_model_for,
@@ -17,7 +25,6 @@ from s2camp_ns.core.colmap_models import (
     intrinsics_from_colmap,
     values_to_colmap,
 )
-from s2camp_ns.core.unprojection import pixel_to_ray_direction, tangent_bounds, unproject, vertical_field_of_view
 
 WIDTH, HEIGHT = 640, 480
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from s2camp_ns.core.camera import Intrinsics, project
+from s2camp_ns.core.camera import Intrinsics, pixel_to_ray_direction, project
 from s2camp_ns.core.camp_sampling import (
     camp_frustum_points,
     inverse_power_ladder,
@@ -17,7 +17,6 @@ from s2camp_ns.core.camp_sampling import (
     power_ladder,
 )
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING, SamplingConfig, compute_preconditioner, sample_proxy_points
-from s2camp_ns.core.unprojection import pixel_to_ray_direction
 
 ROOM = Intrinsics.create(fx=793.13, fy=793.49, cx=389.25, cy=259.375, width=778, height=518)
 DISTORTED = Intrinsics.create(fx=410.0, fy=405.0, cx=330.0, cy=210.0, width=640, height=420, k1=-0.03, k2=0.004)

@@ -1,11 +1,11 @@
 """End-to-end: ``ns-train s2camp`` / ``s2camp-camp`` on a generated scene, logged metrics, checkpoint, COLMAP export.
 
-The module-scoped fixture runs the demo's "warm-start" recipe (``s2camp_ns.demo``) on the conftest's tiny scene (12
-cameras, 64x48): a short warm start of nerfacto on the accurate cameras, then ``ns-train s2camp`` resumed from it with
-the training cameras perturbed by CamP's protocol (position, look-at, per-camera focal, shared dolly zoom), jointly
-refining cameras and NeRF by the photometric loss alone (track prior and common-rotation removal off). Most tests
-read that one pair of runs. Neither run passes ``--machine.device-type``: on a machine without CUDA the method config
-must fall back to the CPU by itself.
+The module-scoped fixture runs the demo's "warm-start" recipe (``benchmarks/demo.py``) on the conftest's tiny
+scene (12 cameras, 64x48): a short warm start of nerfacto on the accurate cameras, then ``ns-train s2camp`` resumed
+from it with the training cameras perturbed by CamP's protocol (position, look-at, per-camera focal, shared dolly
+zoom), jointly refining cameras and NeRF by the photometric loss alone (track prior and common-rotation removal
+off). Most tests read that one pair of runs. Neither run passes ``--machine.device-type``: on a machine without
+CUDA the method config must fall back to the CPU by itself.
 
 What a run this short shows (measured when these tests were written): the focal error, dolly zoom included, falls by
 about 75% (4.46 px -> 1.11 px), while rotation and position errors of CamP's size (0.005 normalized units, a fraction

@@ -15,6 +15,7 @@ from colmap_arrays import reconstruction_to_arrays
 from latents import write_latent
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.camera import se3_exp
 from s2camp_ns.core.preconditioner import SamplingConfig
@@ -24,7 +25,6 @@ from s2camp_ns.nerfstudio.colmap_reconstruction import cameras_to_reconstruction
 from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
 from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
 from s2camp_ns.nerfstudio.export_cameras import ExportCamerasConfig, refined_training_cameras
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 
 @pytest.fixture(scope="module")

@@ -45,8 +45,8 @@ from s2camp_ns.benchmarks.gpu_check.tests_stage import cuda_tests_result, junit_
 from s2camp_ns.benchmarks.gpu_check.timing import pair_plan, timing_rows
 from s2camp_ns.benchmarks.gpu_check.train_arguments import rest_arguments, timing_arguments
 from s2camp_ns.benchmarks.gpu_check.wheels import slim_wheel
-from s2camp_ns.nerfstudio.train_commands import PHOTOMETRIC_ONLY
-from s2camp_ns.scene.make_scene import MakeSceneConfig
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
+from s2camp_ns.benchmarks.train_commands import PHOTOMETRIC_ONLY
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 NO_CUDA = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}

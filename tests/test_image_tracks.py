@@ -34,7 +34,7 @@ def textured_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """32 images of 320x240, 80 degrees (about 20 s). Smaller scenes track too little to test against: 16 images of
     160x120 give 14 points, and 24 of 240x180 about 500, whose bundle adjustment ends 0.3 degrees from the truth with
     centres further off than the noise."""
-    from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
 
     folder = tmp_path_factory.mktemp("image_tracks") / "scene"
     return make_scene(MakeSceneConfig(output_dir=folder, num_cameras=32, width=320, height=240, fov="wide", seed=0))
@@ -518,7 +518,7 @@ def test_the_database_counter_reads_in_another_process_while_this_one_writes(tmp
 
 
 def _scene(folder: Path, **config) -> Path:
-    from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
 
     return make_scene(MakeSceneConfig(output_dir=folder, seed=0, **config))
 

@@ -7,9 +7,15 @@ import pytest
 import torch
 from torch.func import jacrev
 
-from s2camp_ns.core.camera import NUM_CAMERA_PARAMS, Intrinsics, ParameterLayout, project_with_delta
+from s2camp_ns.core.camera import (
+    NUM_CAMERA_PARAMS,
+    Intrinsics,
+    ParameterLayout,
+    pixel_to_ray_direction,
+    project_with_delta,
+    unproject,
+)
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian, relative_gram_error
-from s2camp_ns.core.unprojection import pixel_to_ray_direction, unproject
 
 
 def _camera_and_points(seed: int, count: int = 64) -> tuple[Intrinsics, torch.Tensor]:

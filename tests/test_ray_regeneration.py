@@ -199,7 +199,7 @@ def test_cast_rays_are_every_camera_refined_then_indexed_per_ray(intrinsics: str
         latent.grad = None
 
     # Reference: every camera refined, then indexed per ray.
-    from s2camp_ns.core.unprojection import pixel_to_ray_direction
+    from s2camp_ns.core.camera import pixel_to_ray_direction
 
     deltas = optimizer.refiner.deltas()
     intrinsics = optimizer.refiner.refined_intrinsics(deltas)[camera_indices]

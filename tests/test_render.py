@@ -115,7 +115,7 @@ def test_ns_render_interpolate_writes_a_video_of_an_eight_camera_run(tmp_path: P
     default pose source (eval): a video of ``--interpolation-steps`` frames at the images' size."""
     import imageio_ffmpeg
 
-    from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
 
     scene = make_scene(MakeSceneConfig(output_dir=tmp_path / "scene", **SCENE))
     outputs = tmp_path / "outputs"

@@ -7,10 +7,11 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
 from s2camp_ns.method_config import s2camp_method, s2camp_so3xr3_method
-from s2camp_ns.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig, RunLengthScheduleConfig
-from s2camp_ns.nerfstudio.trainer import S2CampTrainer, with_run_length
+from s2camp_ns.nerfstudio.schedulers import RunLengthScheduleConfig
+from s2camp_ns.nerfstudio.trainer import S2CampTrainer, plain_numbers, with_run_length
 
 
 def learning_rates(scheduler_config, steps: int, lr: float = 1e-4) -> list[float]:
@@ -36,7 +37,6 @@ def test_a_600_step_run_gets_the_schedule_compressed_without_the_warmup_floor():
     assert rates[275] == pytest.approx(math.sqrt(1e-4 * 1e-5), rel=1e-9)  # half way through the decay, log-linear
     assert rates[500] == pytest.approx(1e-5, rel=1e-12)
     assert rates[600] == pytest.approx(1e-5, rel=1e-12)
-    assert all(isinstance(rate, float) for rate in rates)  # plain floats: checkpoints load with weights_only
 
 
 def test_the_warmup_never_gets_shorter_than_the_floor():
@@ -65,7 +65,7 @@ def test_under_the_floor_the_decay_keeps_its_share_of_the_steps_after_the_warmup
 def test_the_default_30k_run_keeps_camps_step_counts():
     compressed = learning_rates(RunLengthScheduleConfig(run_steps=30000), 30000)
     fixed = learning_rates(
-        FloatExponentialDecaySchedulerConfig(lr_pre_warmup=1e-8, warmup_steps=2500, lr_final=1e-5, max_steps=25000),
+        ExponentialDecaySchedulerConfig(lr_pre_warmup=1e-8, warmup_steps=2500, lr_final=1e-5, max_steps=25000),
         30000,
     )
     assert compressed == fixed
@@ -101,7 +101,7 @@ def test_with_run_length_fills_only_missing_run_lengths():
     optimizers = {
         "camera_opt": {"optimizer": None, "scheduler": RunLengthScheduleConfig()},
         "given": {"optimizer": None, "scheduler": given},
-        "fields": {"optimizer": None, "scheduler": FloatExponentialDecaySchedulerConfig(max_steps=9)},
+        "fields": {"optimizer": None, "scheduler": ExponentialDecaySchedulerConfig(max_steps=9)},
     }
     resolved = with_run_length(optimizers, 600)
     assert resolved["camera_opt"]["scheduler"].run_steps == 600
@@ -130,5 +130,23 @@ def test_the_trainer_gives_s2camp_a_schedule_over_max_num_iterations():
 
 def test_nerfstudios_stock_optimizer_keeps_its_own_schedule():
     scheduler = s2camp_so3xr3_method.config.optimizers["camera_opt"]["scheduler"]
-    assert isinstance(scheduler, FloatExponentialDecaySchedulerConfig)
+    assert isinstance(scheduler, ExponentialDecaySchedulerConfig)
     assert (scheduler.max_steps, scheduler.lr_final) == (5000, 1e-4)
+
+
+def test_checkpoints_hold_the_schedules_rates_as_python_floats(tmp_path):
+    parameter = torch.nn.Parameter(torch.zeros(1))
+    optimizer = torch.optim.Adam([parameter], lr=1e-3)
+    scheduler = RunLengthScheduleConfig(run_steps=50).setup().get_scheduler(optimizer, 1e-3)
+    for _ in range(3):
+        optimizer.step()
+        scheduler.step()
+    state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()}
+    torch.save(state, tmp_path / "numpy.pt")
+    with pytest.raises(Exception, match="numpy"):  # nerfstudio's rates are numpy scalars: torch refuses them
+        torch.load(tmp_path / "numpy.pt", weights_only=True)
+    torch.save(plain_numbers(state), tmp_path / "plain.pt")
+    loaded = torch.load(tmp_path / "plain.pt", weights_only=True)
+    assert type(loaded["optimizer"]["param_groups"][0]["lr"]) is float
+    assert loaded["optimizer"]["param_groups"][0]["lr"] == optimizer.param_groups[0]["lr"]
+    assert loaded["scheduler"]["_last_lr"] == scheduler.state_dict()["_last_lr"]

@@ -25,7 +25,7 @@ from s2camp_ns.benchmarks.splat_bench import (
     summarize,
     train_command,
 )
-from s2camp_ns.nerfstudio.train_commands import SMALL_MODEL, ns_train_arguments, ns_train_base_arguments
+from s2camp_ns.benchmarks.train_commands import SMALL_MODEL, ns_train_arguments, ns_train_base_arguments
 
 
 def _option(command: list[str], name: str) -> str:

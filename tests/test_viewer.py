@@ -38,8 +38,8 @@ from nerfstudio.viewer.utils import parse_object
 from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerElement
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+from s2camp_ns.core.camera import vertical_field_of_view
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.core.unprojection import vertical_field_of_view
 from s2camp_ns.nerfstudio.model import S2CampModel
 from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, MAX_DRAWN_FOV, DisplayText, S2CampViewerPanel
 
@@ -182,7 +182,7 @@ def test_no_panel_callback_and_no_update_without_the_viewer():
     model = build_model()
     attributes = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=None)
     assert not model.S2CamP.attached
-    assert model.S2CamP.training_callbacks(attributes) == []
+    assert model.viewer_panel_callbacks() == []
     with_panel = len(model.get_training_callbacks(attributes))
     model.S2CamP = None
     assert len(model.get_training_callbacks(attributes)) == with_panel
@@ -216,7 +216,7 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         assert not panel.j_refresh_now.gui_handle.disabled
 
         attributes = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=None)
-        callbacks = panel.training_callbacks(attributes)
+        callbacks = model.viewer_panel_callbacks()
         assert len(callbacks) == 1
         (callback,) = callbacks
         initial_positions = {i: p[0].copy() for i, p in panel._poses["initial"].items()}
@@ -247,10 +247,10 @@ def test_panel_values_frusta_refresh_and_click_with_a_viser_server():
         assert int(optimizer.refiner.last_refresh_step) == 9
         refresh.func(step=10)  # a request is applied once
         assert int(optimizer.refiner.last_refresh_step) == 9
-        panel._update_period = 1e9
+        panel.update_period = 1e9
         callback.func(step=9)
         assert panel.i_since_refresh.value.startswith("0 steps ago")
-        panel._update_period = 0.0
+        panel.update_period = 0.0
 
         panel.set_frusta_visible("initial", False)
         assert not any(handle.visible for handle in panel._handles["initial"].values())
@@ -311,8 +311,7 @@ def test_a_panel_failure_never_stops_training(capsys):
     with viewer_with(model):
         panel._guard(lambda: 1 / 0)
         assert not panel.attached
-        attributes = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=None)
-        assert panel.training_callbacks(attributes) == []
+        assert model.viewer_panel_callbacks() == []
     assert "S2CamP viewer panel disabled" in capsys.readouterr().out
 
 
@@ -712,7 +711,7 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
     number_pair = re.compile(r"[0-9.e+-]+ / [0-9.e+-]+")
     scene, setup_arguments, load_dir = tiny_scene, TEST_SETUP, None
     if UPDATING_SCREENSHOT:  # a scene, a field and a training run that show the scene in the viewer
-        from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+        from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
 
         scene = make_scene(MakeSceneConfig(output_dir=tmp_path / "data" / "screenshot-scene", **SCREENSHOT_SCENE))
         setup_arguments, load_dir = SCREENSHOT_SETUP, train_for_screenshot(scene, tmp_path)

@@ -5,10 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
+from s2camp_ns.benchmarks.scene.make_scene import validate as validate_scene
 from s2camp_ns.core.validation import check_choice, check_positive_int
 from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
-from s2camp_ns.scene.make_scene import MakeSceneConfig
-from s2camp_ns.scene.make_scene import validate as validate_scene
 
 STAGES = ("timing", "tests", "rest", "nccl")
 """After the machine and the scene, in this order: ``timing`` the pairs at their defaults; ``tests`` ``pytest -m

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from s2camp_ns.nerfstudio.train_commands import training_environment
+from s2camp_ns.benchmarks.train_commands import training_environment
 
 
 @dataclass(frozen=True)

@@ -28,9 +28,9 @@ from pathlib import Path
 import tyro
 from rich.console import Console
 
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
+from s2camp_ns.benchmarks.train_commands import PHOTOMETRIC_ONLY, SMALL_MODEL
 from s2camp_ns.core.validation import check_choice, check_positive_int
-from s2camp_ns.nerfstudio.train_commands import PHOTOMETRIC_ONLY, SMALL_MODEL
-from s2camp_ns.scene.make_scene import MakeSceneConfig
 
 from . import regime_report
 from .config import LEASE_SCENE, STOP_RESERVE_S

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from s2camp_ns.report import markdown_table, write_report
+from s2camp_ns.benchmarks.report import markdown_table, write_report
 
 from .camera_error_log import REFINED, START, ErrorRecord, read_camera_errors
 from .records import StageResult, read_records

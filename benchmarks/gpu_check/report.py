@@ -12,7 +12,7 @@ import math
 import time
 from pathlib import Path
 
-from s2camp_ns.report import markdown_table, write_report
+from s2camp_ns.benchmarks.report import markdown_table, write_report
 
 from .config import DOCS_REPORT, REST_BASELINE, CheckFolder, GpuCheckConfig
 from .records import StageResult, read_records

@@ -18,7 +18,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from s2camp_ns.nerfstudio.train_commands import ns_train_executable
+from s2camp_ns.benchmarks.train_commands import ns_train_executable
 
 from .config import STOP_RESERVE_S, GpuCheckConfig
 from .measured_train import TrainPlan, TrainSpec

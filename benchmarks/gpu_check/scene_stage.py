@@ -17,7 +17,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
 
 from .processes import Deadline, failure, run_logged
 from .records import StageResult

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from s2camp_ns.nerfstudio.train_commands import DATAPARSER_SUBCOMMAND, SMALL_MODEL
+from s2camp_ns.benchmarks.train_commands import DATAPARSER_SUBCOMMAND, SMALL_MODEL
 
 from .config import GpuCheckConfig
 

@@ -15,9 +15,12 @@ from s2camp_ns.core.camera import (
     PARAMETER_NAMES,
     Intrinsics,
     ParameterLayout,
+    pixel_to_ray_direction,
     project,
     project_with_delta,
     se3_exp,
+    tangent_bounds,
+    unproject,
 )
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, intrinsics_from_colmap
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian, relative_gram_error
@@ -31,7 +34,6 @@ from s2camp_ns.core.preconditioner import (
     symmetric_sqrt_and_inverse,
     whitening_error,
 )
-from s2camp_ns.core.unprojection import pixel_to_ray_direction, tangent_bounds, unproject
 
 __all__ = [
     "CAMERA_MODEL_DISTORTION", "SUPPORTED_COLMAP_MODELS", "NUM_CAMERA_PARAMS", "PARAMETER_GROUPS", "PARAMETER_NAMES",

@@ -14,8 +14,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics
-from s2camp_ns.core.unprojection import pixel_to_ray_direction
+from s2camp_ns.core.camera import Intrinsics, pixel_to_ray_direction
 from s2camp_ns.core.validation import check_positive_int, check_range
 
 __all__ = [

@@ -16,7 +16,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics, ParameterLayout
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout, pixel_to_ray_direction, tangent_bounds
 from s2camp_ns.core.camp_sampling import CAMP_LADDER_P, CAMP_T_FAR, CAMP_T_NEAR, camp_frustum_points, validate_ladder
 from s2camp_ns.core.config_defaults import DefaultsOnLoad
 from s2camp_ns.core.contraction import uncontract_radius
@@ -24,7 +24,6 @@ from s2camp_ns.core.frustum import RADIALS, Radial, radius_from_unit, radius_per
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
 from s2camp_ns.core.lattice import unit_cube_points
 from s2camp_ns.core.proxy_range import DEFAULT_T_FAR, DEFAULT_T_NEAR, ProxyRangeConfig, fixed_range, validate_overrides
-from s2camp_ns.core.unprojection import pixel_to_ray_direction, tangent_bounds
 from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
 
 SamplerName = Literal["frolov", "sobol", "halton", "random", "camp-random"]

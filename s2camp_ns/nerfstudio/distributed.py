@@ -1,4 +1,4 @@
-"""Multi-process training: the one collective S2CamP adds, and a CPU (gloo) launcher for tests.
+"""Multi-process training on the CPU: a gloo launcher for tests (the one collective S2CamP adds: ``refinement``).
 
 On CUDA, ``ns-train s2camp --machine.num-devices N`` uses nerfstudio's launcher unchanged. nerfstudio 1.1.5 cannot
 run several processes on the CPU (its worker asserts CUDA; ``device_ids`` are passed to DDP and ``dist.barrier``):
@@ -15,7 +15,6 @@ from collections.abc import Callable
 from datetime import timedelta
 from typing import Any
 
-import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 from nerfstudio.engine.trainer import TrainerConfig
@@ -23,21 +22,6 @@ from nerfstudio.utils import comms, profiler
 from nerfstudio.utils.rich_utils import CONSOLE
 
 DEFAULT_TIMEOUT = timedelta(minutes=30)
-
-
-def world_size() -> int:
-    """Number of training processes (1 without a process group)."""
-    return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
-
-
-def any_rank(flag: bool, device: torch.device | str) -> bool:
-    """True on every rank if ``flag`` is on any rank: one all-reduce (MAX); ``flag`` itself without a process
-    group. ``device``: the rank's own device under NCCL, the CPU under gloo."""
-    if world_size() == 1:
-        return flag
-    value = torch.tensor([int(flag)], dtype=torch.int64, device=device)
-    dist.all_reduce(value, op=dist.ReduceOp.MAX)
-    return bool(value.item())
 
 
 def _cpu_worker(

@@ -9,8 +9,7 @@ from jaxtyping import Float
 from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics
-from s2camp_ns.core.unprojection import pixel_to_ray_direction
+from s2camp_ns.core.camera import Intrinsics, pixel_to_ray_direction
 from s2camp_ns.nerfstudio.alignment_camera import HeldOutView, scale_focal, twisted_c2w
 
 

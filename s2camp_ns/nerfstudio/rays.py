@@ -18,9 +18,8 @@ from jaxtyping import Float, Int
 from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics
+from s2camp_ns.core.camera import Intrinsics, pixel_to_ray_direction
 from s2camp_ns.core.refiner import CameraRefiner
-from s2camp_ns.core.unprojection import pixel_to_ray_direction
 
 PIXEL_KEY = "s2camp_pixels"
 """RayBundle metadata key of the continuous pixel coordinates (u, v) = (x + 0.5, y + 0.5) of each training ray."""

@@ -12,9 +12,11 @@ computed on rank 0 only.
 
 from __future__ import annotations
 
+import time
 import warnings
 
 import torch
+import torch.distributed as dist
 from jaxtyping import Float
 from nerfstudio.cameras.camera_optimizers import CameraOptimizer
 from nerfstudio.cameras.cameras import Cameras
@@ -24,12 +26,10 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
-from s2camp_ns.core.camera import opengl_to_opencv
+from s2camp_ns.core.camera import opengl_to_opencv, vertical_field_of_view
 from s2camp_ns.core.track_fit import TrackEvidence
-from s2camp_ns.core.unprojection import vertical_field_of_view
 from s2camp_ns.core.validation import check_positive_int
 from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
-from s2camp_ns.nerfstudio.distributed import any_rank, world_size
 from s2camp_ns.nerfstudio.viewer_panel import CameraFrusta, FrustumSet, RefinementStatus, S2CampViewerPanel
 
 _LPIPS_WARNED = False
@@ -44,6 +44,21 @@ def warn_lpips_unavailable(error: BaseException) -> None:
             "metrics. Cache the AlexNet weights (torch hub) to enable it."
         )
         _LPIPS_WARNED = True
+
+
+def world_size() -> int:
+    """Number of training processes (1 without a process group)."""
+    return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
+
+
+def any_rank(flag: bool, device: torch.device | str) -> bool:
+    """True on every rank if ``flag`` is on any rank: one all-reduce (MAX); ``flag`` itself without a process
+    group. ``device``: the rank's own device under NCCL, the CPU under gloo."""
+    if world_size() == 1:
+        return flag
+    value = torch.tensor([int(flag)], dtype=torch.int64, device=device)
+    dist.all_reduce(value, op=dist.ReduceOp.MAX)
+    return bool(value.item())
 
 
 class S2CampRefinementMixin:
@@ -160,10 +175,26 @@ class S2CampRefinementMixin:
             callbacks.append(
                 TrainingCallback([after], func=lambda step: self.update_camera_errors(), update_every_num_iters=every)
             )
+        return callbacks + self.viewer_panel_callbacks()
+
+    def viewer_panel_callbacks(self) -> list[TrainingCallback]:
+        """The viewer panel's update after a step, once per update period or at once after a refresh of P (host
+        state only: no tensor read); nothing without the viewer."""
         panel = getattr(self, "S2CamP", None)
-        if panel is not None:
-            callbacks.extend(panel.training_callbacks(training_callback_attributes))
-        return callbacks
+        if panel is None or not panel.attached:
+            return []
+        refiner = self.camera_optimizer.refiner
+
+        def update_viewer_panel(step: int) -> None:
+            if not refiner.has_cameras:
+                return  # a pipeline that never handed the training cameras to the camera optimizer
+            refreshed = refiner.last_refresh != panel.shown_refresh_step
+            if refreshed or time.monotonic() - panel.last_update >= panel.update_period:
+                panel.update(step)
+
+        return [
+            TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=update_viewer_panel)
+        ]
 
     # CameraRefinementSource (viewer_panel.py)
     def refinement_status(self) -> RefinementStatus | None:

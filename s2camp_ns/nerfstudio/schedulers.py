@@ -1,13 +1,10 @@
-"""Learning-rate schedules: nerfstudio's exponential decay with plain-float rates, and a camera schedule that follows
-the run's length.
-
-nerfstudio 1.1.5 computes its multipliers with numpy, so optimizer and scheduler states hold numpy.float64 values,
-which ``torch.load(weights_only=True)`` (torch >= 2.6) refuses; ``FloatExponentialDecayScheduler`` casts them to float.
+"""The camera's learning-rate schedule, which follows the run's length.
 
 ``RunLengthScheduleConfig`` states CamP's camera schedule (warm-up over 2.5k of 30k steps, decay to a tenth by 25k) as
 fractions of the run, so any run length gets it stretched or compressed, except that the warm-up never drops below
 ``min_warmup_steps``: the field converges in its own number of steps, and a camera that moves before the field fits
-follows the field's errors. ``S2CampTrainer`` fills in the run length.
+follows the field's errors. ``S2CampTrainer`` fills in the run length. The schedule itself is nerfstudio's
+exponential decay with warm-up, whose numpy rates ``S2CampTrainer`` stores as Python floats in checkpoints.
 """
 
 from __future__ import annotations
@@ -23,27 +20,6 @@ from nerfstudio.engine.schedulers import (
 from torch.optim import Optimizer, lr_scheduler
 
 from s2camp_ns.core.validation import check_positive_int, check_range
-
-
-@dataclass
-class FloatExponentialDecaySchedulerConfig(ExponentialDecaySchedulerConfig):
-    """Exponential decay with warm-up (nerfstudio's), storing learning rates as Python floats."""
-
-    _target: type = field(default_factory=lambda: FloatExponentialDecayScheduler)
-
-
-class FloatExponentialDecayScheduler(ExponentialDecayScheduler):
-    """nerfstudio's ExponentialDecayScheduler whose multipliers are cast to float."""
-
-    def get_scheduler(self, optimizer: Optimizer, lr_init: float) -> lr_scheduler.LRScheduler:
-        scheduler = super().get_scheduler(optimizer, lr_init)
-        assert isinstance(scheduler, lr_scheduler.LambdaLR)
-        scheduler.lr_lambdas = [lambda step, f=f: float(f(step)) for f in scheduler.lr_lambdas]
-        # LambdaLR evaluated the numpy multiplier once already.
-        for group in optimizer.param_groups:
-            group["lr"] = float(group["lr"])
-        scheduler._last_lr = [float(lr) for lr in scheduler.get_last_lr()]
-        return scheduler
 
 
 @dataclass
@@ -104,16 +80,21 @@ class RunLengthScheduleConfig(SchedulerConfig):
 
 
 class RunLengthSchedule(Scheduler):
-    """The schedule of ``RunLengthScheduleConfig``: ``FloatExponentialDecayScheduler`` with step counts from the run."""
+    """The schedule of ``RunLengthScheduleConfig``: nerfstudio's exponential decay with step counts from the run."""
 
     config: RunLengthScheduleConfig
 
     def get_scheduler(self, optimizer: Optimizer, lr_init: float) -> lr_scheduler.LRScheduler:
         warmup_steps, max_steps = self.config.step_counts()
-        steps = FloatExponentialDecaySchedulerConfig(
+        steps = ExponentialDecaySchedulerConfig(
             lr_pre_warmup=self.config.lr_pre_warmup,
             lr_final=self.config.lr_final,
             warmup_steps=warmup_steps,
             max_steps=max_steps,
         )
-        return FloatExponentialDecayScheduler(steps).get_scheduler(optimizer, lr_init)
+        return ExponentialDecayScheduler(steps).get_scheduler(optimizer, lr_init)
+
+
+# The config.yml of a run made before nerfstudio's schedule was used unwrapped names these.
+FloatExponentialDecaySchedulerConfig = ExponentialDecaySchedulerConfig
+FloatExponentialDecayScheduler = ExponentialDecayScheduler

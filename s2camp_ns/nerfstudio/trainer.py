@@ -152,6 +152,18 @@ class S2CampTrainerConfig(TrainerConfig):
     _target: type = field(default_factory=lambda: S2CampTrainer)
 
 
+def plain_numbers(state: Any) -> Any:
+    """``state`` (dicts, lists, tuples) with numpy scalars as Python numbers: nerfstudio's schedules compute their
+    rates with numpy, and ``torch.load(weights_only=True)`` (torch's default) refuses numpy scalars."""
+    if isinstance(state, np.generic):
+        return state.item()
+    if isinstance(state, dict):
+        return {key: plain_numbers(value) for key, value in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(plain_numbers(value) for value in state)
+    return state
+
+
 def with_run_length(optimizers: dict[str, dict[str, Any]], run_steps: int) -> dict[str, dict[str, Any]]:
     """A copy of ``optimizers`` with ``run_steps`` in every ``RunLengthScheduleConfig`` that has none."""
     resolved = {}
@@ -185,8 +197,8 @@ class S2CampTrainer(Trainer):
         state = {
             "step": step,
             "pipeline": pipeline.state_dict(),
-            "optimizers": {name: optimizer.state_dict() for name, optimizer in self.optimizers.optimizers.items()},
-            "schedulers": {name: scheduler.state_dict() for name, scheduler in self.optimizers.schedulers.items()},
+            "optimizers": {name: plain_numbers(o.state_dict()) for name, o in self.optimizers.optimizers.items()},
+            "schedulers": {name: plain_numbers(s.state_dict()) for name, s in self.optimizers.schedulers.items()},
             "scalers": self.grad_scaler.state_dict(),
             "random_state": random_state(),
             "sampler_state": sampler_state(pipeline.model),
@@ -246,6 +258,6 @@ class S2CampTrainer(Trainer):
 
 
 __all__ = [
-    "S2CampTrainer", "S2CampTrainerConfig", "atomic_torch_save", "latest_checkpoint", "partial_dir", "sampler_state",
-    "set_sampler_state", "with_run_length",
+    "S2CampTrainer", "S2CampTrainerConfig", "atomic_torch_save", "latest_checkpoint", "partial_dir", "plain_numbers",
+    "sampler_state", "set_sampler_state", "with_run_length",
 ]  # fmt: skip

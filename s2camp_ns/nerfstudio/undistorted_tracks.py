@@ -3,7 +3,7 @@
 splatfacto undistorts each distorted training image to the pinhole K' of OpenCV's ``getOptimalNewCameraMatrix``
 (alpha 0, cropped) and writes K' into the training cameras. Each keypoint p of image i moves where its ray goes:
 
-    (a, b) = unproject(p; K_i, distortion_i)        (tangents x / z, y / z, ``core.unprojection``)
+    (a, b) = unproject(p; K_i, distortion_i)        (tangents x / z, y / z, ``core.camera``)
     p'     = (f'_x a + c'_x, f'_y b + c'_y)
 
 Both in nerfstudio's pixel convention, so the map is the undistortion's own. Observations that cannot be unprojected
@@ -18,10 +18,9 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.core.camera import Intrinsics
+from s2camp_ns.core.camera import Intrinsics, unproject
 from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import Tracks
-from s2camp_ns.core.unprojection import unproject
 
 
 def undistorted_pixels(

@@ -24,7 +24,6 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 import torch
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerCheckbox, ViewerControl, ViewerText
 from torch import Tensor, nn
@@ -51,7 +50,7 @@ _POSE_TOLERANCE = 1e-6
 @dataclass(frozen=True)
 class CameraFrusta:
     """Cameras to draw: OpenCV c2w [n, 3, 4] (scene units), vertical field of view [n] (radians,
-    ``core.unprojection.vertical_field_of_view``), width and height [n]."""
+    ``core.camera.vertical_field_of_view``), width and height [n]."""
 
     c2w_cv: Tensor
     vertical_fov: Tensor
@@ -120,7 +119,8 @@ class S2CampViewerPanel(nn.Module):
     def __init__(self, source: CameraRefinementSource, update_period: float = 1.0) -> None:
         super().__init__()
         self._source_ref = weakref.ref(source)
-        self._update_period = float(update_period)
+        self.update_period = float(update_period)
+        """Seconds between the panel's updates while training (after a refresh of P: at once)."""
         self.a_status = DisplayText("Status", "Training step of the last update, and the number of training cameras")
         self.b_errors = DisplayText("Cam. error", "The three rows below: mean / max over the training cameras", "")
         self.c_rotation_error = DisplayText(
@@ -154,8 +154,8 @@ class S2CampViewerPanel(nn.Module):
         self._handles: dict[FrustumSet, dict[int, Any]] = {"refined": {}, "initial": {}, "reference": {}}
         self._poses: dict[FrustumSet, dict[int, tuple[np.ndarray, np.ndarray, float]]] = {n: {} for n in self._handles}
         self._nerfstudio_frusta_hooked = False
-        self._shown_refresh_step: int | None = None
-        self._last_update = -math.inf
+        self.shown_refresh_step: int | None = None  # the refresh of P the panel shows
+        self.last_update = -math.inf  # time.monotonic() of the last update
         self._failed = False
         self.num_updates = 0
 
@@ -208,20 +208,9 @@ class S2CampViewerPanel(nn.Module):
                 "training continues."
             )
 
-    def training_callbacks(self, attributes: TrainingCallbackAttributes) -> list[TrainingCallback]:
-        """The panel's per-step callback, or nothing when the viewer is off."""
-        if not self.attached:
-            return []
-
-        def after_step(step: int) -> None:
-            status = self._source().refinement_status()
-            if status is None:
-                return  # a pipeline that never handed the training cameras to the camera optimizer
-            refreshed = status.last_refresh_step != self._shown_refresh_step
-            if refreshed or time.monotonic() - self._last_update >= self._update_period:
-                self._guard(self._update, step)
-
-        return [TrainingCallback(where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION], func=after_step)]
+    def update(self, step: int) -> None:
+        """Show the model's state at training step ``step`` (the model's training callback decides when)."""
+        self._guard(self._update, step)
 
     @torch.no_grad()
     def panel_values(self, step: int) -> dict[str, str]:
@@ -265,7 +254,7 @@ class S2CampViewerPanel(nn.Module):
     @torch.no_grad()
     def _update(self, step: int) -> None:
         status = self._source().refinement_status()
-        self._shown_refresh_step = None if status is None else status.last_refresh_step
+        self.shown_refresh_step = None if status is None else status.last_refresh_step
         values = self.panel_values(step)
         for name, value in values.items():
             element = getattr(self, name)
@@ -275,7 +264,7 @@ class S2CampViewerPanel(nn.Module):
         if not self._nerfstudio_frusta_hooked:
             self._hook_nerfstudio_frusta()
         self._show_step_in_viewer_header(step)
-        self._last_update = time.monotonic()
+        self.last_update = time.monotonic()
         self.num_updates += 1
 
     def _show_step_in_viewer_header(self, step: int) -> None:

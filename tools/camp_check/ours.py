@@ -27,12 +27,11 @@ import numpy as np
 import torch
 
 from s2camp_ns.benchmarks.common import FRUSTA
-from s2camp_ns.core.camera import Intrinsics, se3_exp
+from s2camp_ns.core.camera import Intrinsics, se3_exp, tangent_bounds
 from s2camp_ns.core.camp_sampling import camp_frustum_points
 from s2camp_ns.core.frustum import sample_frustum
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING, compute_preconditioner
-from s2camp_ns.core.unprojection import tangent_bounds
 
 BASIS_13 = ("rho_x", "rho_y", "rho_z", "omega_x", "omega_y", "omega_z", "fx", "fy", "cx", "cy", "skew", "k1", "k2")
 # Generic world pose (c2w = exp(xi)): rotation of about 0.6 rad, camera centre about 2.8 units from the origin.

@@ -34,7 +34,8 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from s2camp_ns.nerfstudio.train_commands import (
+from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_ns.benchmarks.train_commands import (
     FROZEN_LR,
     PHOTOMETRIC_ONLY,
     camera_schedule_arguments,
@@ -42,7 +43,6 @@ from s2camp_ns.nerfstudio.train_commands import (
     perturbation_arguments,
     training_environment,
 )
-from s2camp_ns.scene.make_scene import MakeSceneConfig, make_scene
 
 CONSOLE = Console()
 

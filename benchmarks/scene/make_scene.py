@@ -34,12 +34,11 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from s2camp_ns import __version__
-from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics
+from s2camp_ns.benchmarks.scene import procedural
+from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION, Intrinsics, pixel_to_ray_direction
 from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, values_to_colmap
 from s2camp_ns.core.distortion import check_distortion_monotonic
-from s2camp_ns.core.unprojection import pixel_to_ray_direction
 from s2camp_ns.core.validation import check_choice, check_range
-from s2camp_ns.scene import procedural
 
 FOV_PRESETS = {"narrow": 52.0, "wide": 80.0}
 """Horizontal field of view in degrees ("narrow": mip-NeRF 360's room)."""
@@ -376,7 +375,7 @@ def _scene_info(
 ) -> dict:
     """The ``scene_info.json`` record: generator, config, world frame, camera, images and their poses."""
     return {
-        "generator": "s2camp_ns.scene.make_scene",
+        "generator": "s2camp_ns.benchmarks.scene.make_scene",
         "version": __version__,
         "config": config_record(config),
         "world_up": [0.0, 0.0, 1.0],
