@@ -26,8 +26,7 @@ import pytest
 import torch
 from hang_guard import HANG_GUARD_S
 
-from s2camp_ns import demo
-from s2camp_ns.nerfstudio import train_commands
+from s2camp_ns.benchmarks import demo, train_commands
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(HANG_GUARD_S)]
 

@@ -18,9 +18,9 @@ import pytest
 import torch
 from hang_guard import HANG_GUARD_S
 
+from s2camp_ns.benchmarks import train_commands
 from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
 from s2camp_ns.core.camera import ParameterLayout
-from s2camp_ns.nerfstudio import train_commands
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(HANG_GUARD_S)]
 

@@ -19,7 +19,8 @@ from hang_guard import HANG_GUARD_S
 from nerfstudio.cameras import camera_paths, camera_utils
 from nerfstudio.cameras.cameras import Cameras
 
-from s2camp_ns.nerfstudio import render_path, train_commands
+from s2camp_ns.benchmarks import train_commands
+from s2camp_ns.nerfstudio import render_path
 
 SCENE = {"num_cameras": 8, "width": 64, "height": 48, "points_per_image": 150, "seed": 0}
 """The smallest scene of the default split with one eval camera and more than one training camera."""
