@@ -2,7 +2,8 @@
 
 The model declares the panel (``S2CampModel.S2CamP``) and serves it through ``CameraRefinementSource``. nerfstudio's
 viewer installs it (Custom Elements > model > S2CamP) and hands its ``Viewer`` to the panel's ``ViewerControl``; only
-then is the training callback added, so training without the viewer never touches this module.
+then does the model add its training callback (``refinement.viewer_panel_callbacks``), which calls ``update`` once per
+``update_period`` or after a refresh of P, so a training step runs this module only then.
 
 Shown, at most every ``update_period`` seconds: camera errors (mean / max), the condition number of each camera's Gram
 matrix Sigma (from P's last refresh; the initial cameras' after a resume) before and after whitening, the steps since
@@ -113,8 +114,8 @@ def _mean_max(errors: dict[str, float], key: str, scale: float = 1.0) -> str:
 
 
 class S2CampViewerPanel(nn.Module):
-    """The panel's elements (listed in attribute-name order, hence the letter prefixes), frusta and callback; no
-    parameters or buffers, and only a weak reference to the model."""
+    """The panel's elements (listed in attribute-name order, hence the letter prefixes), frusta and ``update``;
+    no parameters or buffers, and only a weak reference to the model."""
 
     def __init__(self, source: CameraRefinementSource, update_period: float = 1.0) -> None:
         super().__init__()
