@@ -1,6 +1,6 @@
 # s2camp-ns developer commands. `make demo` and `make test` are the two a newcomer needs.
 # Everything runs inside $(VENV); it is created and installed on first use and reused afterwards
-# (the editable install is redone only when pyproject.toml or setup.py is newer than the stamp file).
+# (the editable installs are redone only when a pyproject.toml is newer than the stamp file).
 
 VENV ?= .venv
 # Prefer python3.11: the pinned torch 2.14.1 / torchvision 0.29.1 wheels are cached locally for 3.11.
@@ -33,17 +33,17 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --upgrade pip setuptools wheel
 
-$(STAMP): pyproject.toml setup.py | $(BIN)/python
+$(STAMP): pyproject.toml benchmarks/pyproject.toml | $(BIN)/python
 	@echo ">>> installing the pinned torch pair first: $(TORCH_PINS)"
 	$(BIN)/python -m pip install $(TORCH_PINS)
-	@echo ">>> installing s2camp-ns (editable) with test extras"
-	$(BIN)/python -m pip install -e '.[test]'
+	@echo ">>> installing s2camp-ns (editable) with test extras, and the benchmarks (s2camp-bench, editable)"
+	$(BIN)/python -m pip install -e '.[test]' -e benchmarks
 	@touch $(STAMP)
 	@echo ">>> $(VENV) is ready"
 
 demo: venv
 	@echo ">>> running the demo"
-	$(BIN)/python -m s2camp_ns.benchmarks.demo
+	$(BIN)/python -m s2camp_bench.demo
 
 lint: venv
 	@echo ">>> ruff check ."
@@ -65,14 +65,14 @@ bench: venv
 # The GPU check (docs/GPU-CHECK.md): refuses to run without CUDA; report in outputs/gpu-check/gpu-check.md.
 # Options go through GPU_CHECK_ARGS, e.g. make gpu-check GPU_CHECK_ARGS="--deadline 600 --write-docs".
 gpu-check: venv
-	@echo ">>> python -m s2camp_ns.benchmarks.gpu_check $(GPU_CHECK_ARGS)"
-	$(BIN)/python -m s2camp_ns.benchmarks.gpu_check $(GPU_CHECK_ARGS)
+	@echo ">>> python -m s2camp_bench.gpu_check $(GPU_CHECK_ARGS)"
+	$(BIN)/python -m s2camp_bench.gpu_check $(GPU_CHECK_ARGS)
 
 # The wheels a lent GPU machine without a package registry needs (Python 3.12), into .whl/ (ignored by git); needs
 # the registry and a Python 3.12 (GPU_BUNDLE_ARGS="--python312 PATH", or PYENV_VERSION=3.12.1 with pyenv).
 gpu-bundle: venv
-	@echo ">>> python -m s2camp_ns.benchmarks.gpu_check.bundle $(GPU_BUNDLE_ARGS)"
-	$(BIN)/python -m s2camp_ns.benchmarks.gpu_check.bundle $(GPU_BUNDLE_ARGS)
+	@echo ">>> python -m s2camp_bench.gpu_check.bundle $(GPU_BUNDLE_ARGS)"
+	$(BIN)/python -m s2camp_bench.gpu_check.bundle $(GPU_BUNDLE_ARGS)
 
 # Mutation testing (docs/mutation-testing.md): mutmut (the "mutation" extra) mutates the modules listed under
 # [tool.mutmut] in pyproject.toml and runs their unit tests against each mutant, one worker at a time. The run

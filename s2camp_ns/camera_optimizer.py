@@ -1,8 +1,8 @@
 """S2CamP's camera optimizer for nerfstudio: nerfstudio's ``CameraOptimizer`` contract over the framework-free
 ``CameraRefiner`` (``s2camp_ns.core.refiner``), held as the submodule ``refiner``.
 
-It converts nerfstudio's cameras (``nerfstudio.camera_conversion``), fits the track prior's anchor
-(``core.track_fit``), casts the training rays through the refined cameras (``nerfstudio.rays``), and after each
+It converts nerfstudio's cameras (``data.camera_conversion``), fits the track prior's anchor
+(``core.track_fit``), casts the training rays through the refined cameras (``method.rays``), and after each
 optimizer step applies the track prior and removes the common rotation.
 """
 
@@ -29,8 +29,9 @@ from s2camp_ns.core.refiner import CameraRefiner
 from s2camp_ns.core.track_fit import TrackEvidence, fit_anchor
 from s2camp_ns.core.track_prior import checked_evidence, describe_anchor_fit, evidence_from_fit
 from s2camp_ns.core.validation import check_range
-from s2camp_ns.nerfstudio import camera_conversion, rays
-from s2camp_ns.nerfstudio.checkpoint_compat import refiner_keys
+from s2camp_ns.data import camera_conversion
+from s2camp_ns.method import rays
+from s2camp_ns.method.checkpoint_compat import refiner_keys
 
 LOG = Console(stderr=True, width=120)
 """Start-up notes (the proxy range, the anchor fit), on stderr: a caller's stdout (JSON) stays clean."""
@@ -194,7 +195,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
 
     def apply_to_camera(self, camera: Cameras) -> Tensor:
         """Refined OpenGL c2w [1, 3, 4] of a training camera (metadata "cam_idx", as nerfstudio sets it; used by its
-        exporter); other cameras unchanged. ``camera_conversion.refined_cameras`` also gives the intrinsics."""
+        exporter); other cameras unchanged. ``camera_conversion.refined_nerfstudio_cameras`` also gives the intrinsics."""
         if not self.enabled or camera.metadata is None or "cam_idx" not in camera.metadata:
             return camera.camera_to_worlds
         correction = self(torch.tensor([int(camera.metadata["cam_idx"])], dtype=torch.long))

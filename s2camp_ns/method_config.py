@@ -23,13 +23,13 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING, DampingConfig
-from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
-from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-from s2camp_ns.nerfstudio.model import S2CampModelConfig
-from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
-from s2camp_ns.nerfstudio.schedulers import RunLengthScheduleConfig
-from s2camp_ns.nerfstudio.splat_model import S2CampSplatModelConfig
-from s2camp_ns.nerfstudio.trainer import S2CampTrainerConfig
+from s2camp_ns.data.dataparser import S2CampDataParserConfig
+from s2camp_ns.method.datamanager import S2CampDataManagerConfig
+from s2camp_ns.method.model import S2CampModelConfig
+from s2camp_ns.method.pipeline import S2CampPipelineConfig
+from s2camp_ns.method.schedulers import RunLengthScheduleConfig
+from s2camp_ns.method.splat_model import S2CampSplatModelConfig
+from s2camp_ns.method.trainer import S2CampTrainerConfig
 
 DEFAULT_DEVICE_TYPE = "cuda" if torch.cuda.is_available() else "cpu"
 """nerfstudio's Trainer asserts CUDA for a "cuda" device: the CPU without CUDA."""

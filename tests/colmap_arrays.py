@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
-from s2camp_ns.core.colmap_models import colmap_to_values
-from s2camp_ns.nerfstudio.colmap_reconstruction import DISTORTION
+from s2camp_ns.core.colmap_camera_models import colmap_to_values
+from s2camp_ns.data.colmap_writer import DISTORTION
 
 
 def reconstruction_to_arrays(reconstruction: pycolmap.Reconstruction) -> dict[str, np.ndarray | list[str]]:

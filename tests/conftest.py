@@ -19,8 +19,8 @@ if TYPE_CHECKING:
     import pycolmap
     from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 
-    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
-    from s2camp_ns.nerfstudio.model import S2CampModelConfig
+    from s2camp_bench.scene.make_scene import MakeSceneConfig
+    from s2camp_ns.method.model import S2CampModelConfig
 
 CUDA_SKIP_REASON = (
     "needs a CUDA device and torch.cuda.is_available() is False here; these tests run on a GPU machine with "
@@ -59,7 +59,7 @@ TINY_SCENE = {"num_cameras": 12, "width": 64, "height": 48, "points_per_image": 
 
 @pytest.fixture(scope="session")
 def tiny_scene_config(tmp_path_factory: pytest.TempPathFactory) -> MakeSceneConfig:
-    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
+    from s2camp_bench.scene.make_scene import MakeSceneConfig
 
     return MakeSceneConfig(output_dir=tmp_path_factory.mktemp("tiny_scene") / "scene", **TINY_SCENE)
 
@@ -70,7 +70,7 @@ def tiny_scene(tiny_scene_config: MakeSceneConfig) -> Path:
 
     Shared by the whole session: treat it as read-only.
     """
-    from s2camp_ns.benchmarks.scene.make_scene import make_scene
+    from s2camp_bench.scene.make_scene import make_scene
 
     return make_scene(tiny_scene_config)
 
@@ -83,7 +83,7 @@ mip-NeRF 360's images_4."""
 @pytest.fixture(scope="session")
 def generated_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Directory of a generated ``PARSER_SCENE`` scene, shared by the session: read-only (``scene`` to modify)."""
-    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+    from s2camp_bench.scene.make_scene import MakeSceneConfig, make_scene
 
     return make_scene(MakeSceneConfig(output_dir=tmp_path_factory.mktemp("scene") / "tiny", **PARSER_SCENE))
 
@@ -135,7 +135,7 @@ def tiny_model_config(
     **fields,
 ) -> S2CampModelConfig:
     """A sized-down nerfacto (S2CampModelConfig) for CPU unit tests: torch hash grids, two 2-level proposal nets."""
-    from s2camp_ns.nerfstudio.model import S2CampModelConfig
+    from s2camp_ns.method.model import S2CampModelConfig
 
     proposal_net = {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 2, "max_res": 32, "use_linear": False}
     return S2CampModelConfig(

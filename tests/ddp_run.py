@@ -119,9 +119,8 @@ def train_and_dump(
 
 def main(argv: list[str]) -> None:
     import tyro
+    from cpu_launcher import launch_cpu
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
-
-    from s2camp_ns.nerfstudio.distributed import launch_cpu
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--dump-dir", type=Path, required=True)

@@ -1,10 +1,11 @@
 """Forward maps that training never needs, kept as the tests' independent references: the frustum's CDF, the
-inverse of ``s2camp_ns.core.frustum.sample_frustum`` (paper eqs. 6, 11), and the inverse of the contraction of
-points, ``s2camp_ns.core.contraction.contract`` (paper eq. 10)."""
+inverse of ``s2camp_ns.core.frustum.sample_frustum`` (paper eqs. 6, 11), and the contraction of points (paper eq. 10)
+with its inverse (the package contracts radii only, ``s2camp_ns.core.contraction``)."""
 
 from __future__ import annotations
 
 import torch
+from jaxtyping import Float
 from torch import Tensor
 
 from s2camp_ns.core.frustum import Radial, Transform, validate_frustum
@@ -75,3 +76,17 @@ def uncontract(points: Tensor) -> Tensor:
     check_range("contracted radius |points|", radius, low=0.0, high=2.0, high_inclusive=False)
     far = radius.clamp_min(1.0)
     return points * torch.where(radius <= 1.0, torch.ones_like(radius), 1.0 / ((2.0 - far) * far))
+
+
+def _norm(points: Tensor) -> Tensor:
+    return torch.linalg.vector_norm(points, dim=-1, keepdim=True)
+
+
+def contract(points: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
+    """Contract camera-centred Euclidean points into the radius-2 ball (paper eq. 10)."""
+    check_finite("points", points)
+    radius = _norm(points)
+    # s(r) / r, exactly 1 for r <= 1
+    far = radius.clamp_min(1.0)
+    factor = torch.where(radius <= 1.0, torch.ones_like(radius), (2.0 - 1.0 / far) / far)
+    return points * factor

@@ -13,7 +13,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from s2camp_ns.benchmarks.data_parser import ns_train_environment
+from s2camp_bench.data_parser import ns_train_environment
 
 _SCRIPT = """
 import pickle, sys

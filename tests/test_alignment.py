@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from s2camp_ns.core.alignment import Similarity, camera_errors, rotation_angle, rotation_vector, umeyama
+from s2camp_ns.core.alignment import Similarity, camera_errors, rotation_angle, umeyama
 from s2camp_ns.core.camera import se3_exp
 
 
@@ -68,22 +68,6 @@ def test_rotation_angle_small_and_near_pi():
         r = se3_exp(torch.tensor([[0, 0, 0, 0, angle, 0]], dtype=torch.float64))[:, :, :3]
         got = float(rotation_angle(torch.eye(3, dtype=torch.float64)[None], r)[0])
         assert abs(got - angle) < 1e-9 * max(1.0, angle) + 1e-15
-
-
-def test_rotation_vector_is_the_twist_that_made_the_rotation():
-    """se3_exp of a pure rotation twist omega gives R; rotation_vector(I, R) returns omega, tiny to large angles;
-    the identity gives zero, and r_a's own frame is used (r_a^T r_b)."""
-    identity = torch.eye(3, dtype=torch.float64)[None]
-    for omega in ([0.0, 0.0, 1e-9], [1e-4, -2e-4, 3e-4], [0.3, -0.5, 0.2], [0.0, 2.5, 0.0]):
-        twist = torch.tensor([[0.0, 0.0, 0.0, *omega]], dtype=torch.float64)
-        r = se3_exp(twist)[:, :, :3]
-        torch.testing.assert_close(rotation_vector(identity, r)[0], twist[0, 3:], atol=1e-12, rtol=1e-9)
-    assert torch.equal(rotation_vector(identity, identity), torch.zeros(1, 3, dtype=torch.float64))
-    base = se3_exp(torch.tensor([[0.0, 0.0, 0.0, 0.4, 0.1, -0.7]], dtype=torch.float64))[:, :, :3]
-    local = se3_exp(torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 0.05]], dtype=torch.float64))[:, :, :3]
-    torch.testing.assert_close(
-        rotation_vector(base, base @ local)[0], torch.tensor([0.0, 0.0, 0.05], dtype=torch.float64), atol=1e-12, rtol=0
-    )
 
 
 def test_few_cameras_fall_back_to_unaligned():

@@ -1,4 +1,4 @@
-"""The benchmarks' data parser ``s2camp-bench-data`` (``benchmarks/data_parser.py``): the true cameras of a
+"""The benchmarks' data parser ``s2camp-bench-data`` (``benchmarks/s2camp_bench/data_parser.py``): the true cameras of a
 ``--reference-model``, the phone start's VIO drift after CamP's steps, and its registration with nerfstudio.
 
 The scene is conftest's ``generated_scene``, the COLMAP cases test_dataparser.py's; the drift's own statistics:
@@ -17,8 +17,8 @@ from conftest import write_transforms
 from ns_train_parse import parse_ns_train
 from test_dataparser import COLMAP_CASES, WIDTH, _set_camera, input_model, parse
 
-from s2camp_ns.benchmarks.data_parser import SUBCOMMAND, BenchDataParserConfig
-from s2camp_ns.benchmarks.phone_drift import DriftConfig, perturb_with_drift
+from s2camp_bench.data_parser import SUBCOMMAND, BenchDataParserConfig
+from s2camp_bench.phone_drift import DriftConfig, perturb_with_drift
 from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.perturbation import PerturbationConfig
 
@@ -85,7 +85,7 @@ def test_ns_train_takes_it_in_the_benchmarks_runs_and_no_entry_point_installs_it
     s2camp-data, so a user's ns-train never imports the benchmarks."""
     pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
     section = pyproject.split('[project.entry-points."nerfstudio.dataparser_configs"]')[1].split("\n[")[0]
-    assert section.strip() == 's2camp-data = "s2camp_ns.nerfstudio.dataparser:s2camp_dataparser"'
+    assert section.strip() == 's2camp-data = "s2camp_ns.data.dataparser:s2camp_dataparser"'
     args = ["ns-train", "s2camp", "--data", "scene", SUBCOMMAND, "--perturbation.enabled", "True", "--drift.enabled",
             "True", "--reference-model", "truth"]  # fmt: skip
     (config,) = parse_ns_train([args])

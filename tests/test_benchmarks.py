@@ -96,7 +96,7 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
                 assert 0.0 < row["psnr"] < 100.0 and 0.0 < row["ssim"] <= 1.0, row
                 assert row["sec_per_iter"] > 0.0, row
         assert (tmp_path / "recovery-tier2.png").exists()
-        from s2camp_ns.benchmarks.recovery_sfm import intrinsics_option_available
+        from s2camp_bench.recovery_sfm import intrinsics_option_available
 
         tier3 = {row["variant"]: row for row in rows if row["tier"] == 3}
         assert intrinsics_option_available()
@@ -177,7 +177,7 @@ def test_every_benchmark_writes_outside_the_committed_docs_by_default() -> None:
     """Without ``--output-dir`` every subcommand (``all`` included) writes under outputs/benchmarks, never docs/."""
     import tyro
 
-    from s2camp_ns.benchmarks.cli import Command
+    from s2camp_bench.cli import Command
 
     names = [*REQUIRED_KEYS, "shared-intrinsics", "lattice-search", "all"]
     for name in names:
@@ -187,7 +187,7 @@ def test_every_benchmark_writes_outside_the_committed_docs_by_default() -> None:
 
 def test_regenerate_line_names_the_output_folder(tmp_path: Path) -> None:
     """A report's "Regenerate with" command writes the report where it is: the committed ones name docs/benchmarks."""
-    from s2camp_ns.benchmarks.common import regenerate_command, write_report
+    from s2camp_bench.common import regenerate_command, write_report
 
     assert regenerate_command("s2camp-bench speed", Path("outputs/benchmarks")) == "s2camp-bench speed"
     docs = "s2camp-bench speed --quick --output-dir docs/benchmarks"
@@ -234,8 +234,8 @@ def test_a_generated_scene_is_kept_when_it_is_the_one_asked_for(tmp_path: Path) 
     # it made that run fail. The same config keeps the folder untouched; another config regenerates it.
     from dataclasses import replace
 
-    from s2camp_ns.benchmarks.common import generated_scene
-    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
+    from s2camp_bench.common import generated_scene
+    from s2camp_bench.scene.make_scene import MakeSceneConfig
 
     config = MakeSceneConfig(num_cameras=4, width=64, height=48, points_per_image=150, k1=0.0, k2=0.0,
                              output_dir=tmp_path / "scene")  # fmt: skip
@@ -252,7 +252,7 @@ def test_a_generated_scene_is_kept_when_it_is_the_one_asked_for(tmp_path: Path) 
 
 
 def test_step_cost_report_names_the_options_it_ran_with() -> None:
-    from s2camp_ns.benchmarks.step_cost import StepCostConfig
+    from s2camp_bench.step_cost import StepCostConfig
 
     config = StepCostConfig(methods=("off", "s2camp"), viewer=(True,), timing_repeats=10)
     assert config.command() == "s2camp-bench step-cost --methods off s2camp --viewer True --timing-repeats 10"

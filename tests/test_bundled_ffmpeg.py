@@ -1,5 +1,5 @@
 """imageio-ffmpeg's binary handed to nerfstudio's renderer where the machine has no ffmpeg, without a console script
-named like the system tool (``s2camp_ns.nerfstudio.bundled_ffmpeg``); the end-to-end render is
+named like the system tool (``s2camp_ns.scripts.bundled_ffmpeg``); the end-to-end render is
 ``tests/test_e2e.py::test_ns_render_writes_a_video_without_a_system_ffmpeg``."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from s2camp_ns.nerfstudio import bundled_ffmpeg
+from s2camp_ns.scripts import bundled_ffmpeg
 
 PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 

@@ -18,7 +18,7 @@ from s2camp_ns.core.camera import (
     unproject,
     vertical_field_of_view,
 )
-from s2camp_ns.core.colmap_models import (
+from s2camp_ns.core.colmap_camera_models import (
     COLMAP_PARAMETERS,
     colmap_model_for,
     colmap_to_values,

@@ -22,9 +22,9 @@ from s2camp_ns.core.jacobian import projection_jacobian
 from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig, compute_preconditioner, sample_proxy_points
 from s2camp_ns.core.proxy_range import ProxyRangeConfig
 from s2camp_ns.core.shared_intrinsics import compute_shared_preconditioner
-from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras, nerfstudio_distortion
-from s2camp_ns.nerfstudio.camera_fields import replace_cameras
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY, cast_rays, train_camera_raybundle
+from s2camp_ns.data.camera_conversion import intrinsics_from_cameras, nerfstudio_distortion
+from s2camp_ns.data.camera_fields import replace_cameras
+from s2camp_ns.method.rays import PIXEL_KEY, cast_rays, train_camera_raybundle
 
 NUM_CAMERAS = 3
 WIDTH, HEIGHT = 64, 48
@@ -662,7 +662,7 @@ XI = torch.tensor([0.03, -0.02, 0.05, 0.02, -0.01, 0.03])
 
 
 def test_intrinsics_from_cameras_reads_the_nerfstudio_fields():
-    from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
+    from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
 
     intrinsics = intrinsics_from_cameras(make_cameras(k1=-0.05, k2=0.01))
     assert intrinsics.fx.tolist() == [60.0, 62.0, 58.0] and intrinsics.fy.tolist() == [61.0, 62.0, 59.0]
@@ -993,7 +993,7 @@ def test_invalid_refresh_schedule_names_the_range():
 
 
 def test_cameras_differing_only_in_distortion_size_or_type_are_different_physical_cameras():
-    from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics
+    from s2camp_ns.data.camera_conversion import group_identical_intrinsics
 
     cameras = make_cameras()  # three different focal lengths
     cameras = Cameras(
@@ -1013,7 +1013,7 @@ def test_cameras_differing_only_in_distortion_size_or_type_are_different_physica
 
 def test_nerfstudio_distortion_order_and_fisheye_tangential_terms():
     from s2camp_ns.core.camera import Intrinsics
-    from s2camp_ns.nerfstudio.camera_conversion import nerfstudio_distortion
+    from s2camp_ns.data.camera_conversion import nerfstudio_distortion
 
     common = dict(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100, k1=0.01, k2=0.002, k3=0.0003)
     perspective = Intrinsics.create(**common, p1=0.001, p2=-0.002)
@@ -1276,7 +1276,7 @@ def test_one_tangential_coefficient_makes_an_opencv_camera(p1: float, p2: float)
 
 
 def test_every_unsupported_camera_type_is_named():
-    from s2camp_ns.nerfstudio.camera_conversion import projection_of
+    from s2camp_ns.data.camera_conversion import projection_of
 
     cameras = _with(make_cameras(), [0.0] * 6, CameraType.EQUIRECTANGULAR)
     cameras.camera_type = cameras.camera_type.clone()

@@ -12,7 +12,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer, S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.camera_conversion import group_identical_intrinsics
+from s2camp_ns.data.camera_conversion import group_identical_intrinsics
 
 WIDTH, HEIGHT = 64, 48
 FX = [60.0, 63.0, 61.0, 66.0]  # images 0, 2 of camera A; images 1, 3 of camera B (perturbed per image)

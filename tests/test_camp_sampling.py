@@ -7,19 +7,28 @@ import math
 import numpy as np
 import pytest
 import torch
+from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics, pixel_to_ray_direction, project
 from s2camp_ns.core.camp_sampling import (
     camp_frustum_points,
     inverse_power_ladder,
     ladder_distance,
-    ladder_distance_density,
     power_ladder,
 )
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING, SamplingConfig, compute_preconditioner, sample_proxy_points
 
 ROOM = Intrinsics.create(fx=793.13, fy=793.49, cx=389.25, cy=259.375, width=778, height=518)
 DISTORTED = Intrinsics.create(fx=410.0, fy=405.0, cx=330.0, cy=210.0, width=640, height=420, k1=-0.03, k2=0.004)
+
+
+def ladder_distance_density(t: Tensor, t_near: float, t_far: float, ladder_p: float) -> Tensor:
+    """Density of ``ladder_distance`` of a uniform ``s``: ``L'(t) / (L(t_far) - L(t_near))`` (the reference the
+    sampled distances are checked against)."""
+    near, far = power_ladder(t_near, ladder_p), power_ladder(t_far, ladder_p)
+    inside = (t >= t_near) & (t <= t_far)
+    density = (1.0 + t / abs(ladder_p - 1.0)) ** (ladder_p - 1.0) / (far - near)
+    return torch.where(inside, density, torch.zeros_like(density))
 
 
 def test_power_ladder_published_values() -> None:

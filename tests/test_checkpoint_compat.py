@@ -18,8 +18,8 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.checkpoint_compat import split_per_image_adam_state
-from s2camp_ns.nerfstudio.pipeline import checkpoint_camera_count
+from s2camp_ns.method.checkpoint_compat import split_per_image_adam_state
+from s2camp_ns.method.pipeline import checkpoint_camera_count
 
 DATA = Path(__file__).parent / "data"
 

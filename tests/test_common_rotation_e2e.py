@@ -10,7 +10,7 @@ import torch
 from hang_guard import HANG_GUARD_S
 from test_e2e import _failure, _run
 
-from s2camp_ns.benchmarks.train_commands import camera_schedule_arguments, ns_train_arguments
+from s2camp_bench.train_commands import camera_schedule_arguments, ns_train_arguments
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(HANG_GUARD_S)]
 

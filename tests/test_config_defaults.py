@@ -62,7 +62,7 @@ def test_a_perturbation_config_of_the_previous_version_loads_and_a_drift_it_turn
 def test_a_data_parser_config_saved_with_a_reference_model_is_refused_by_name(tmp_path) -> None:
     """``reference_model`` (now the benchmarks' data parser's) in a run's config.yml: None loads and parses as
     saved, a model is refused rather than left out of the reference cameras."""
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     saved = yaml.dump(S2CampDataParserConfig(data=tmp_path / "missing"))
     for value, refused in (("null", False), ("/truth/sparse/0", True)):

@@ -21,7 +21,7 @@ from test_camera_optimizer import HEIGHT, NUM_CAMERAS, WIDTH, make_cameras
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY
+from s2camp_ns.method.rays import PIXEL_KEY
 
 pytestmark = pytest.mark.cuda
 
@@ -81,9 +81,9 @@ def test_camera_optimizer_on_cuda_matches_the_cpu() -> None:
 @pytest.mark.parametrize("method", ["s2camp", "s2camp-camp", "s2camp-so3xr3"])
 def test_training_steps_on_cuda_with_mixed_precision(method: str, tiny_scene: Path, tmp_path: Path) -> None:
     """nerfstudio's Trainer as ``ns-train`` runs it on a GPU (autocast, GradScaler), then the benchmarks' evaluation."""
+    from s2camp_bench.evaluation import evaluate_pipeline
     from s2camp_ns.method_config import s2camp_camp_method, s2camp_method, s2camp_so3xr3_method
-    from s2camp_ns.nerfstudio.evaluation import evaluate_pipeline
-    from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
+    from s2camp_ns.scripts.test_time_alignment import AlignmentConfig
 
     specification = {"s2camp": s2camp_method, "s2camp-camp": s2camp_camp_method, "s2camp-so3xr3": s2camp_so3xr3_method}
     config = copy.deepcopy(specification[method].config)

@@ -20,8 +20,8 @@ from PIL import Image
 
 from s2camp_ns.core.camera import opengl_to_opencv
 from s2camp_ns.core.perturbation import PerturbationConfig, perturb_cameras
-from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
-from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+from s2camp_ns.data.camera_perturbation import perturb_nerfstudio_cameras
+from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
 WIDTH, HEIGHT, NUM_CAMERAS = PARSER_SCENE["width"], PARSER_SCENE["height"], PARSER_SCENE["num_cameras"]
 

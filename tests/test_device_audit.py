@@ -30,10 +30,10 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 from torch._subclasses.fake_tensor import FakeTensorMode
 
+from s2camp_bench.drift import reprojection_drift
 from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
 from s2camp_ns.core.alignment import camera_errors
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, opengl_to_opencv
-from s2camp_ns.core.drift import reprojection_drift
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian
 from s2camp_ns.core.perturbation import perturb_cameras
 from s2camp_ns.core.preconditioner import (
@@ -45,8 +45,8 @@ from s2camp_ns.core.preconditioner import (
     sample_proxy_points,
 )
 from s2camp_ns.core.proxy_range import proxy_ranges
-from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras, refined_cameras
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY, cast_rays
+from s2camp_ns.data.camera_conversion import intrinsics_from_cameras, refined_nerfstudio_cameras
+from s2camp_ns.method.rays import PIXEL_KEY, cast_rays
 
 NUM_CAMERAS, WIDTH, HEIGHT = 3, 64, 48
 CAMERA_MODELS = {
@@ -226,7 +226,7 @@ def optimizer_run(device: str, camera_model: str, intrinsics: str, sampler: str)
         torch.tensor([[0.5, 0.5], [40.0, 20.0], [63.5, 47.5]], device=device),
     )
     origins, directions, norms = rays.origins, rays.directions, rays.directions_norm
-    refined = refined_cameras(optimizer.refiner, cameras)
+    refined = refined_nerfstudio_cameras(optimizer.refiner, cameras)
     camera = cameras[1:2]
     camera.metadata = {"cam_idx": 1}
     corrected = optimizer.apply_to_camera(camera)
@@ -432,7 +432,7 @@ def cuda_pipeline(tiny_scene: Path):
     and its trainer optimizers."""
     from nerfstudio.engine.optimizers import Optimizers
 
-    from s2camp_ns.nerfstudio.trainer import with_run_length
+    from s2camp_ns.method.trainer import with_run_length
 
     config = pipeline_config(tiny_scene)
     with lpips_offline(), fake_cuda():
@@ -495,9 +495,9 @@ def test_global_batch_sampling_on_cuda(cuda_pipeline, monkeypatch):
 def test_viewer_panel_rendering_and_test_time_alignment_on_cuda(cuda_pipeline):
     """The viewer panel's values and frusta, rendering a refined training camera, the test-time alignment of the
     held-out views, and the refined cameras exported as a COLMAP model, from a model on "cuda"."""
-    from s2camp_ns.nerfstudio.colmap_reconstruction import export_cameras
-    from s2camp_ns.nerfstudio.export_cameras import refined_training_cameras
-    from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_held_out_views
+    from s2camp_ns.data.colmap_writer import nerfstudio_to_reconstruction
+    from s2camp_ns.scripts.export_cameras import refined_training_cameras
+    from s2camp_ns.scripts.test_time_alignment import AlignmentConfig, evaluate_held_out_views
 
     pipeline, _ = cuda_pipeline
     model = pipeline.model
@@ -517,7 +517,7 @@ def test_viewer_panel_rendering_and_test_time_alignment_on_cuda(cuda_pipeline):
             model.train()
         aligned = evaluate_held_out_views(pipeline, AlignmentConfig(steps=2, rays=16, chunk=1024))
         refined = refined_training_cameras(pipeline)
-        reconstruction = export_cameras(
+        reconstruction = nerfstudio_to_reconstruction(
             refined, outputs.dataparser_transform, outputs.dataparser_scale, outputs.metadata["image_names"]
         )
     assert panel["b_errors"] == "mean / max" and panel["g_condition_sigma"] != "n/a"

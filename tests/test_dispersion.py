@@ -8,7 +8,7 @@ import pytest
 import torch
 from frustum_cdf import frustum_to_unit
 
-from s2camp_ns.benchmarks.dispersion_bound import (
+from s2camp_bench.dispersion_bound import (
     BCC_COVERING_DENSITY,
     covering_bound,
     dispersion,

@@ -22,7 +22,7 @@ import pytest
 import torch
 from hang_guard import HANG_GUARD_S
 
-from s2camp_ns.benchmarks.train_commands import training_environment
+from s2camp_bench.train_commands import training_environment
 from s2camp_ns.core.camera import Intrinsics
 from s2camp_ns.core.preconditioner import Preconditioner, SamplingConfig, compute_preconditioner
 
@@ -34,7 +34,7 @@ TINY_MODEL = [
     "--pipeline.model.num-nerf-samples-per-ray", "16",
     "--pipeline.model.num-proposal-samples-per-ray", "16", "16",
 ]  # fmt: skip
-"""Smaller still than the demo's SMALL_MODEL (benchmarks/train_commands.py): three processes share two
+"""Smaller still than the demo's SMALL_MODEL (benchmarks/s2camp_bench/train_commands.py): three processes share two
 cores here."""
 STEPS = 30
 RAYS_PER_RANK = 128

@@ -1,4 +1,4 @@
-"""Reprojection drift of refined cameras against the true ones (s2camp_ns.core.drift)."""
+"""Reprojection drift of refined cameras against the true ones (s2camp_bench.drift)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
+from s2camp_bench.drift import reprojection_drift
 from s2camp_ns.core.alignment import Similarity
 from s2camp_ns.core.camera import Intrinsics, se3_exp
-from s2camp_ns.core.drift import reprojection_drift
 
 
 def pinhole(fx: float, n: int = 1) -> Intrinsics:

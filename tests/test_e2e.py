@@ -1,11 +1,11 @@
 """End-to-end: ``ns-train s2camp`` / ``s2camp-camp`` on a generated scene, logged metrics, checkpoint, COLMAP export.
 
-The module-scoped fixture runs the demo's "warm-start" recipe (``benchmarks/demo.py``) on the conftest's tiny
-scene (12 cameras, 64x48): a short warm start of nerfacto on the accurate cameras, then ``ns-train s2camp`` resumed
-from it with the training cameras perturbed by CamP's protocol (position, look-at, per-camera focal, shared dolly
-zoom), jointly refining cameras and NeRF by the photometric loss alone (track prior and common-rotation removal
-off). Most tests read that one pair of runs. Neither run passes ``--machine.device-type``: on a machine without
-CUDA the method config must fall back to the CPU by itself.
+The module-scoped fixture runs the demo's "warm-start" recipe (``benchmarks/s2camp_bench/demo.py``) on the conftest's
+tiny scene (12 cameras, 64x48): a short warm start of nerfacto on the accurate cameras, then ``ns-train s2camp`` resumed
+from it with the training cameras perturbed by CamP's protocol (position, look-at, per-camera focal, shared dolly zoom),
+jointly refining cameras and NeRF by the photometric loss alone (track prior and common-rotation removal off). Most
+tests read that one pair of runs. Neither run passes ``--machine.device-type``: on a machine without CUDA the method
+config must fall back to the CPU by itself.
 
 What a run this short shows (measured when these tests were written): the focal error, dolly zoom included, falls by
 about 75% (4.46 px -> 1.11 px), while rotation and position errors of CamP's size (0.005 normalized units, a fraction
@@ -26,7 +26,7 @@ import pytest
 import torch
 from hang_guard import HANG_GUARD_S
 
-from s2camp_ns.benchmarks import demo, train_commands
+from s2camp_bench import demo, train_commands
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(HANG_GUARD_S)]
 
@@ -263,14 +263,14 @@ def _assert_exported_poses_follow_the_checkpoint_twist(run_dir: Path, reconstruc
     from colmap_arrays import reconstruction_to_arrays
     from scipy.linalg import expm
 
-    from s2camp_ns.nerfstudio.colmap_reconstruction import export_cameras
+    from s2camp_ns.data.colmap_writer import nerfstudio_to_reconstruction
 
     config = yaml.load((run_dir / "config.yml").read_text(), Loader=yaml.Loader)
     dataparser = config.pipeline.datamanager.dataparser
     dataparser.data = config.pipeline.datamanager.data
     start = dataparser.setup().get_dataparser_outputs("train")  # the perturbed cameras the run started from
     names = start.metadata["image_names"]
-    start_model = export_cameras(
+    start_model = nerfstudio_to_reconstruction(
         start.cameras, start.dataparser_transform, start.dataparser_scale, names, start.metadata["full_image_size"]
     )
     start_arrays, refined_arrays = reconstruction_to_arrays(start_model), reconstruction_to_arrays(reconstruction)
@@ -328,7 +328,7 @@ def test_ns_render_writes_a_video_without_a_system_ffmpeg(runs: Runs, tmp_path: 
     """``ns-render interpolate`` of the refined run writes an H.264 video on a machine without ffmpeg: nerfstudio
     checks for an ``ffmpeg`` on PATH and mediapy pipes the frames into it. PATH holds only an empty folder, as when
     ``.venv/bin/ns-render`` is called on a machine with no system ffmpeg: the pipeline, set up when the run loads,
-    hands imageio-ffmpeg's binary to both (``s2camp_ns.nerfstudio.bundled_ffmpeg``)."""
+    hands imageio-ffmpeg's binary to both (``s2camp_ns.scripts.bundled_ffmpeg``)."""
     import imageio_ffmpeg
 
     runs.check()

@@ -18,8 +18,8 @@ import pytest
 import torch
 from hang_guard import HANG_GUARD_S
 
-from s2camp_ns.benchmarks import train_commands
-from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_bench import train_commands
+from s2camp_bench.scene.make_scene import MakeSceneConfig, make_scene
 from s2camp_ns.core.camera import ParameterLayout
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(HANG_GUARD_S)]

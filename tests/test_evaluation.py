@@ -1,4 +1,4 @@
-"""``s2camp_ns.nerfstudio.evaluation``: a trained pipeline's camera errors, drift and held-out metrics, on a model that
+"""``s2camp_bench.evaluation``: a trained pipeline's camera errors, drift and held-out metrics, on a model that
 only has the camera interface the evaluation reads (no training; the held-out views stubbed)."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import pytest
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
-from s2camp_ns.nerfstudio import evaluation
-from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
-from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
+from s2camp_bench import evaluation
+from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
+from s2camp_ns.scripts.test_time_alignment import AlignmentConfig
 
 F64 = torch.float64
 

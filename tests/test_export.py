@@ -15,16 +15,16 @@ from colmap_arrays import reconstruction_to_arrays
 from latents import write_latent
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 
-from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+from s2camp_bench.scene.make_scene import MakeSceneConfig, make_scene
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.camera import se3_exp
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio import export_cameras as export
-from s2camp_ns.nerfstudio.camera_conversion import refined_cameras
-from s2camp_ns.nerfstudio.colmap_reconstruction import cameras_to_reconstruction, export_cameras
-from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
-from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-from s2camp_ns.nerfstudio.export_cameras import ExportCamerasConfig, refined_training_cameras
+from s2camp_ns.data.camera_conversion import refined_nerfstudio_cameras
+from s2camp_ns.data.colmap_writer import cameras_to_reconstruction, nerfstudio_to_reconstruction
+from s2camp_ns.data.dataparser import S2CampDataParserConfig
+from s2camp_ns.method.datamanager import PixelRayGenerator
+from s2camp_ns.scripts import export_cameras as export
+from s2camp_ns.scripts.export_cameras import ExportCamerasConfig, refined_training_cameras
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +121,7 @@ def input_arrays(scene: Path, names: list[str]) -> dict:
 def test_unrefined_cameras_reproduce_input_model(scene: Path, downscale: int):
     out = S2CampDataParserConfig(data=scene, downscale_factor=downscale).setup().get_dataparser_outputs("train")
     names = out.metadata["image_names"]
-    reconstruction = export_cameras(
+    reconstruction = nerfstudio_to_reconstruction(
         out.cameras, out.dataparser_transform, out.dataparser_scale, names, out.metadata["full_image_size"]
     )
     compare(reconstruction_to_arrays(reconstruction), input_arrays(scene, names), pose_atol=2e-5, rel=2e-6)
@@ -278,7 +278,7 @@ def test_each_camera_model_exports_in_colmap_meaning(scene: Path, tmp_path: Path
     data = scene_with_model(scene, tmp_path, model)
     out = S2CampDataParserConfig(data=data).setup().get_dataparser_outputs("train")
     names = out.metadata["image_names"]
-    reconstruction = export_cameras(out.cameras, out.dataparser_transform, out.dataparser_scale, names)
+    reconstruction = nerfstudio_to_reconstruction(out.cameras, out.dataparser_transform, out.dataparser_scale, names)
     (tmp_path / "unrefined").mkdir()
     reconstruction.write_binary(str(tmp_path / "unrefined"))
     loaded = pycolmap.Reconstruction(str(tmp_path / "unrefined"))
@@ -298,8 +298,8 @@ def test_each_camera_model_exports_in_colmap_meaning(scene: Path, tmp_path: Path
         phi[:, 6:9] = torch.tensor([1.5, -0.5, 0.7])
         phi[:, 10:] = torch.tensor([0.004, -0.001, 2e-4, 3e-5, 2e-4, -3e-4])
         write_latent(optimizer.refiner, (optimizer.refiner.precond @ phi[:, list(layout.indices), None])[..., 0])
-    refined = refined_cameras(optimizer.refiner, out.cameras)
-    reconstruction = export_cameras(refined, out.dataparser_transform, out.dataparser_scale, names)
+    refined = refined_nerfstudio_cameras(optimizer.refiner, out.cameras)
+    reconstruction = nerfstudio_to_reconstruction(refined, out.dataparser_transform, out.dataparser_scale, names)
     intrinsics = optimizer.refiner.refined_intrinsics().detach()
     points = torch.tensor([[[0.1, -0.2, 1.0], [0.3, 0.2, 2.0], [-0.25, 0.1, 1.5]]], dtype=torch.float64)
     for index, name in enumerate(names):

@@ -7,7 +7,7 @@ import pycolmap
 import pytest
 from colmap_arrays import reconstruction_to_arrays
 
-from s2camp_ns.nerfstudio.colmap_reconstruction import cameras_to_reconstruction
+from s2camp_ns.data.colmap_writer import cameras_to_reconstruction
 
 
 def _poses(n: int) -> np.ndarray:

@@ -22,13 +22,14 @@ from conftest import write_transforms
 from PIL import Image
 from rich.console import Console
 
-from s2camp_ns.nerfstudio import image_check, robust_adjustment
-from s2camp_ns.nerfstudio import image_tracks as image_tracks_module
-from s2camp_ns.nerfstudio.colmap_model import ColmapModelError
-from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-from s2camp_ns.nerfstudio.image_check import ImageFileError
-from s2camp_ns.nerfstudio.image_tracks import MODEL_FILES, RESULT_FILE, cache_key, image_tracks
-from s2camp_ns.nerfstudio.transforms_file import TransformsFileError
+from s2camp_ns.data import image_check
+from s2camp_ns.data.colmap_files import ColmapModelError
+from s2camp_ns.data.dataparser import S2CampDataParserConfig
+from s2camp_ns.data.image_check import ImageFileError
+from s2camp_ns.data.transforms_file import TransformsFileError
+from s2camp_ns.tracks import image_tracks as image_tracks_module
+from s2camp_ns.tracks import robust_adjustment
+from s2camp_ns.tracks.image_tracks import MODEL_FILES, RESULT_FILE, cache_key, image_tracks
 
 
 def parse(data: Path, **options):

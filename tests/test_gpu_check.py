@@ -1,4 +1,4 @@
-"""The GPU check and the regime command (benchmarks/gpu_check) on the CPU: options, the refusal without CUDA, the
+"""The GPU check and the regime command (benchmarks/s2camp_bench/gpu_check) on the CPU: options, the refusal without CUDA, the
 deadline, the records written as results are made and the reports rebuilt from them (also for a cut run), the
 ``cuda`` test selection and its collection from an installed package, the offline bundle."""
 
@@ -21,32 +21,32 @@ from conftest import CUDA_SKIP_REASON
 from hang_guard import HANG_GUARD_S
 from test_camera_optimizer import NUM_CAMERAS, make_cameras
 
-from s2camp_ns.benchmarks.gpu_check import regime_report, report
-from s2camp_ns.benchmarks.gpu_check.bundle import SLIM, normalized, to_carry
-from s2camp_ns.benchmarks.gpu_check.camera_error_log import REFINED, START, ErrorRecord
-from s2camp_ns.benchmarks.gpu_check.cli import CheckRun
-from s2camp_ns.benchmarks.gpu_check.config import (
+from s2camp_bench.gpu_check import regime_report, report
+from s2camp_bench.gpu_check.bundle import SLIM, normalized, to_carry
+from s2camp_bench.gpu_check.camera_error_log import REFINED, START, ErrorRecord
+from s2camp_bench.gpu_check.cli import CheckRun
+from s2camp_bench.gpu_check.config import (
     CUDA_TEST_FILES,
     LEASE_SCENE,
     STAGE_MINIMUM_S,
     CheckFolder,
     GpuCheckConfig,
 )
-from s2camp_ns.benchmarks.gpu_check.environment import Environment, GpuCheckError, describe, require_cuda
-from s2camp_ns.benchmarks.gpu_check.measured_train import TrainPlan, share_of_time
-from s2camp_ns.benchmarks.gpu_check.processes import Deadline
-from s2camp_ns.benchmarks.gpu_check.records import StageResult, append_record, read_lines, read_records
-from s2camp_ns.benchmarks.gpu_check.regime import RegimeConfig, RegimeFolder, variant_arguments
-from s2camp_ns.benchmarks.gpu_check.rest import MethodResult, check_nccl_checkpoint, method_result
-from s2camp_ns.benchmarks.gpu_check.scene_stage import generate_scene
-from s2camp_ns.benchmarks.gpu_check.step_log import RunEnd, StepLog, read_step_log
-from s2camp_ns.benchmarks.gpu_check.stock_nerfacto import StockNerfactoModel
-from s2camp_ns.benchmarks.gpu_check.tests_stage import cuda_tests_result, junit_counts, log_counts, pytest_command
-from s2camp_ns.benchmarks.gpu_check.timing import pair_plan, timing_rows
-from s2camp_ns.benchmarks.gpu_check.train_arguments import rest_arguments, timing_arguments
-from s2camp_ns.benchmarks.gpu_check.wheels import slim_wheel
-from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig
-from s2camp_ns.benchmarks.train_commands import PHOTOMETRIC_ONLY
+from s2camp_bench.gpu_check.environment import Environment, GpuCheckError, describe, require_cuda
+from s2camp_bench.gpu_check.measured_train import TrainPlan, share_of_time
+from s2camp_bench.gpu_check.processes import Deadline
+from s2camp_bench.gpu_check.records import StageResult, append_record, read_lines, read_records
+from s2camp_bench.gpu_check.regime import RegimeConfig, RegimeFolder, variant_arguments
+from s2camp_bench.gpu_check.rest import MethodResult, check_nccl_checkpoint, method_result
+from s2camp_bench.gpu_check.scene_stage import generate_scene
+from s2camp_bench.gpu_check.step_log import RunEnd, StepLog, read_step_log
+from s2camp_bench.gpu_check.stock_nerfacto import StockNerfactoModel
+from s2camp_bench.gpu_check.tests_stage import cuda_tests_result, junit_counts, log_counts, pytest_command
+from s2camp_bench.gpu_check.timing import pair_plan, timing_rows
+from s2camp_bench.gpu_check.train_arguments import rest_arguments, timing_arguments
+from s2camp_bench.gpu_check.wheels import slim_wheel
+from s2camp_bench.scene.make_scene import MakeSceneConfig
+from s2camp_bench.train_commands import PHOTOMETRIC_ONLY
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 NO_CUDA = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
@@ -180,7 +180,7 @@ def test_refuses_without_cuda_with_a_clear_message(monkeypatch: pytest.MonkeyPat
     require_cuda(replace(NO_GPU, cuda_available=True, device_names=("NVIDIA H200",)))  # no error
 
 
-@pytest.mark.parametrize("command", ["s2camp_ns.benchmarks.gpu_check", "s2camp_ns.benchmarks.gpu_check.regime"])
+@pytest.mark.parametrize("command", ["s2camp_bench.gpu_check", "s2camp_bench.gpu_check.regime"])
 def test_the_commands_exit_non_zero_without_cuda_and_write_nothing(tmp_path: Path, command: str) -> None:
     output = tmp_path / "out"
     result = subprocess.run(
@@ -260,16 +260,16 @@ COLLECT_AS_INSTALLED = """
 import sys, importlib.abc
 class NoBenchmarks(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
-        if name == "s2camp_ns.benchmarks" or name.startswith("s2camp_ns.benchmarks."):
+        if name == "s2camp_bench" or name.startswith("s2camp_bench."):
             raise ImportError(f"{name} is not installed here")
 sys.meta_path.insert(0, NoBenchmarks())
 import torch._subclasses.fake_tensor as fake_tensor
 if hasattr(fake_tensor, "FakeTensorDeviceMismatchError"):
     del fake_tensor.FakeTensorDeviceMismatchError  # as torch 2.11, the GPU machines' torch
 try:
-    import s2camp_ns.benchmarks
+    import s2camp_bench
 except ImportError:
-    print("s2camp_ns.benchmarks blocked")
+    print("s2camp_bench blocked")
 import pytest
 sys.exit(pytest.main(["--collect-only", "-q", "-m", "cuda", "-p", "no:cacheprovider", *sys.argv[1:]]))
 """
@@ -277,13 +277,13 @@ sys.exit(pytest.main(["--collect-only", "-q", "-m", "cuda", "-p", "no:cacheprovi
 
 def test_the_cuda_tests_collect_without_the_benchmarks_and_with_torch_2_11s_fake_tensor() -> None:
     """On the GPU machine the package comes from a wheel and torch 2.11 has no FakeTensorDeviceMismatchError: the
-    files of the ``cuda`` tests must collect without ``s2camp_ns.benchmarks`` and without that class."""
+    files of the ``cuda`` tests must collect without ``s2camp_bench`` and without that class."""
     result = subprocess.run(
         [sys.executable, "-c", COLLECT_AS_INSTALLED, *CUDA_TEST_FILES],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    assert result.stdout.startswith("s2camp_ns.benchmarks blocked\n")  # the hook works: the check can fail
+    assert result.stdout.startswith("s2camp_bench blocked\n")  # the hook works: the check can fail
     assert [line for line in result.stdout.splitlines() if "::" in line] == CUDA_TESTS
 
 
@@ -524,13 +524,13 @@ def _cut_check_folder(root: Path) -> CheckFolder:
 def test_a_report_is_rebuilt_from_the_folder_of_a_check_that_was_cut(tmp_path: Path) -> None:
     """A check whose machine was lost mid-stage: --report-from writes its report from what it left, on a machine
     without CUDA, with the time per step of every run that had started."""
-    from s2camp_ns.benchmarks.gpu_check.cli import run
+    from s2camp_bench.gpu_check.cli import run
 
     folder = _cut_check_folder(tmp_path / "check")
     config = GpuCheckConfig(report_from=folder.root, output_dir=tmp_path / "report")
     assert run(config) is True  # every stage that ended passed
     text = (tmp_path / "report" / "gpu-check.md").read_text()
-    assert f"Regenerate with `python -m s2camp_ns.benchmarks.gpu_check --report-from {folder.root.as_posix()}`." in text
+    assert f"Regenerate with `python -m s2camp_bench.gpu_check --report-from {folder.root.as_posix()}`." in text
     assert "_measured on the machine listed below; report rebuilt " in text
     assert "- torch 2.11.0+cu130 (CUDA 13.0)\n- CUDA devices: cuda:0 H100\n" in text
     assert "| timing nerfacto/s2camp | passed | 70 | s2camp / nerfacto = 1.050 |" in text
@@ -546,7 +546,7 @@ def test_the_committed_check_of_the_last_lease_is_rebuilt(tmp_path: Path) -> Non
     its report: the tests' JUnit file and the four evaluated runs."""
     import shutil
 
-    from s2camp_ns.benchmarks.gpu_check.cli import run
+    from s2camp_bench.gpu_check.cli import run
 
     folder = tmp_path / "gpu-check-h100"
     shutil.copytree(REPOSITORY / "docs" / "benchmarks" / "gpu-check-h100", folder)
@@ -651,7 +651,7 @@ def test_the_bundle_dry_run_lists_the_training_paths_packages() -> None:
     """``bundle --dry-run`` imports the training path in a fresh process and lists what the machine lacks, at this
     checkout's versions, fetching nothing."""
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.bundle", "--dry-run"],
+        [sys.executable, "-m", "s2camp_bench.gpu_check.bundle", "--dry-run"],
         capture_output=True, text=True, env={**NO_CUDA, "PIP_NO_INDEX": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
@@ -672,7 +672,7 @@ def test_a_cpu_check_cut_by_its_deadline_keeps_what_it_measured(tmp_path: Path) 
     output = tmp_path / "out"
     began = time.monotonic()
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check", "--cpu-smoke", "--timing-steps", "5000",
+        [sys.executable, "-m", "s2camp_bench.gpu_check", "--cpu-smoke", "--timing-steps", "5000",
          "--deadline", "100", "--output-dir", str(output)],
         capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
@@ -703,7 +703,7 @@ def test_the_regime_command_on_the_cpu_logs_errors_as_it_goes(tmp_path: Path) ->
     logged every few steps, images alone after it, the report with all three; then rebuilt by --report-from."""
     output = tmp_path / "regime"
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
+        [sys.executable, "-m", "s2camp_bench.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
          "--output-dir", str(output)],
         capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
@@ -721,7 +721,7 @@ def test_the_regime_command_on_the_cpu_logs_errors_as_it_goes(tmp_path: Path) ->
     text = folder.report_path.read_text()
     assert "| images alone | 42 |" in text and "| tracks alone (the track prior's anchor, no training) |" in text
     again = subprocess.run(
-        [sys.executable, "-m", "s2camp_ns.benchmarks.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
+        [sys.executable, "-m", "s2camp_bench.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
          "--report-from", str(output), "--output-dir", str(tmp_path / "rebuilt")],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
@@ -730,7 +730,7 @@ def test_the_regime_command_on_the_cpu_logs_errors_as_it_goes(tmp_path: Path) ->
 
 @pytest.mark.slow
 def test_the_lease_script_runs_the_commands_in_order_and_packs_their_results(tmp_path: Path) -> None:
-    """``benchmarks/gpu_check/lease.sh`` on the CPU (``SMOKE``: each command's ``--cpu-smoke``; ``NO_INSTALL``: this
+    """``benchmarks/s2camp_bench/gpu_check/lease.sh`` on the CPU (``SMOKE``: each command's ``--cpu-smoke``; ``NO_INSTALL``: this
     checkout's package): the check's timing, the regime's tracks alone, the tests step (nothing to run on the CPU),
     each under its deadline, and after each the reports and the archive of records in ``$OUT``."""
     work, out = tmp_path / "lease", tmp_path / "out"
@@ -740,7 +740,7 @@ def test_the_lease_script_runs_the_commands_in_order_and_packs_their_results(tmp
         "TESTS_S": "400", "REGIME_VARIANTS": "tracks-alone",
     }  # fmt: skip
     result = subprocess.run(
-        ["bash", "benchmarks/gpu_check/lease.sh"],
+        ["bash", "benchmarks/s2camp_bench/gpu_check/lease.sh"],
         capture_output=True, text=True, env=environment, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
@@ -763,7 +763,7 @@ def test_the_lease_script_runs_the_commands_in_order_and_packs_their_results(tmp
 
 def test_a_new_check_in_an_old_folder_reports_none_of_the_old_records(tmp_path: Path) -> None:
     """The records of an earlier check in the same folder are removed when a check starts (the scene is kept)."""
-    from s2camp_ns.benchmarks.gpu_check.cli import run
+    from s2camp_bench.gpu_check.cli import run
 
     folder = _cut_check_folder(tmp_path / "check")
     folder.scene_dir.mkdir()

@@ -1,4 +1,4 @@
-"""Tracks made from a scene's images (``s2camp_ns.nerfstudio.image_tracks``): they bring noisy cameras near the truth,
+"""Tracks made from a scene's images (``s2camp_ns.tracks.image_tracks``): they bring noisy cameras near the truth,
 are cached, refuse what cannot anchor cameras, and reach the data parser's track evidence."""
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ import pytest
 import torch
 
 from s2camp_ns.core.alignment import camera_errors
-from s2camp_ns.nerfstudio import image_tracks as module
-from s2camp_ns.nerfstudio.image_check import ImageFileError
-from s2camp_ns.nerfstudio.image_tracks import cache_key, image_tracks, neighbour_pairs
+from s2camp_ns.data.image_check import ImageFileError
+from s2camp_ns.tracks import image_tracks as module
+from s2camp_ns.tracks.image_tracks import cache_key, image_tracks, neighbour_pairs
 
 ROTATION_NOISE = 0.01
 """Per-axis rotation noise of the given cameras (rad): about one degree in all, a phone's visual-inertial poses."""
@@ -34,7 +34,7 @@ def textured_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """32 images of 320x240, 80 degrees (about 20 s). Smaller scenes track too little to test against: 16 images of
     160x120 give 14 points, and 24 of 240x180 about 500, whose bundle adjustment ends 0.3 degrees from the truth with
     centres further off than the noise."""
-    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+    from s2camp_bench.scene.make_scene import MakeSceneConfig, make_scene
 
     folder = tmp_path_factory.mktemp("image_tracks") / "scene"
     return make_scene(MakeSceneConfig(output_dir=folder, num_cameras=32, width=320, height=240, fov="wide", seed=0))
@@ -196,7 +196,7 @@ def test_neighbour_pairs_join_nearest_cameras_that_face_alike(monkeypatch: pytes
 
 
 def test_the_data_parser_uses_image_tracks_where_asked(textured_scene: Path, tmp_path: Path):
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     def evidence(**options):
         config = S2CampDataParserConfig(data=textured_scene, downscale_factor=2, image_tracks_cache=tmp_path, **options)
@@ -220,7 +220,7 @@ def test_a_transforms_json_without_tracks_gets_them_from_its_full_size_images(te
     full-size images its frames name; never leaves the scene without tracks."""
     import json
 
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     data = tmp_path / "scene"
     data.mkdir()
@@ -424,7 +424,7 @@ def test_a_build_shows_its_stages_with_counts_and_times(tiny_scene: Path, tmp_pa
 def test_build_progress_lines_without_a_terminal_and_the_breakdown_by_kind():
     from rich.console import Console
 
-    from s2camp_ns.nerfstudio.build_progress import BuildProgress
+    from s2camp_ns.tracks.build_progress import BuildProgress
 
     console = Console(file=io.StringIO(), width=200)
     with BuildProgress("Built", console=console) as progress:
@@ -447,7 +447,7 @@ def test_build_progress_on_a_terminal_shows_the_count_read_while_the_stage_runs(
 
     from rich.console import Console
 
-    from s2camp_ns.nerfstudio import build_progress
+    from s2camp_ns.tracks import build_progress
 
     monkeypatch.setattr(build_progress, "POLL_SECONDS", 0.01)
     console = Console(file=io.StringIO(), width=200, force_terminal=True)
@@ -474,7 +474,7 @@ def test_build_progress_on_a_terminal_shows_the_count_read_while_the_stage_runs(
 def test_database_count_reads_rows_or_says_it_cannot(tmp_path: Path):
     import sqlite3
 
-    from s2camp_ns.nerfstudio.build_progress import database_count, duration_text
+    from s2camp_ns.tracks.build_progress import database_count, duration_text
 
     database = tmp_path / "database.db"
     assert database_count(database, "keypoints") is None
@@ -494,7 +494,7 @@ def test_the_database_counter_reads_in_another_process_while_this_one_writes(tmp
     a bus error in COLMAP), follows the rows as they are committed, and the child is gone after the block."""
     import sqlite3
 
-    from s2camp_ns.nerfstudio.build_progress import DatabaseCounter
+    from s2camp_ns.tracks.build_progress import DatabaseCounter
 
     database = tmp_path / "database.db"
     connection = sqlite3.connect(database)
@@ -518,7 +518,7 @@ def test_the_database_counter_reads_in_another_process_while_this_one_writes(tmp
 
 
 def _scene(folder: Path, **config) -> Path:
-    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+    from s2camp_bench.scene.make_scene import MakeSceneConfig, make_scene
 
     return make_scene(MakeSceneConfig(output_dir=folder, seed=0, **config))
 
@@ -585,8 +585,8 @@ def test_perturbed_cameras_are_tracked_as_the_refiner_models_them(tiny_scene: Pa
     cameras the same way: one COLMAP camera per physical camera at that mean, not one per image with a focal length
     free to trade against its depth."""
     from s2camp_ns.core.perturbation import PerturbationConfig
-    from s2camp_ns.nerfstudio import track_evidence
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
+    from s2camp_ns.tracks import track_evidence
 
     seen = []
 
@@ -613,8 +613,8 @@ def test_image_tracks_model_the_physical_cameras_the_refiner_shares(tiny_scene: 
     adjustment must model the same cameras, even where the scene's own model groups them otherwise. The reference here
     (the benchmarks' data parser's ``reference_model``) is the scene's model with every second image on a second camera
     of 5% longer focal length; the scene's own model has one camera."""
-    from s2camp_ns.benchmarks.data_parser import BenchDataParserConfig
-    from s2camp_ns.nerfstudio import track_evidence
+    from s2camp_bench.data_parser import BenchDataParserConfig
+    from s2camp_ns.tracks import track_evidence
 
     seen = []
 
@@ -658,7 +658,7 @@ def test_image_tracks_model_the_physical_cameras_the_refiner_shares(tiny_scene: 
 def test_physical_camera_means_average_each_cameras_intrinsics_and_keep_the_rest():
     from nerfstudio.cameras.cameras import Cameras, CameraType
 
-    from s2camp_ns.nerfstudio.camera_fields import physical_camera_means
+    from s2camp_ns.data.camera_fields import physical_camera_means
 
     c2w = torch.eye(4)[:3].repeat(3, 1, 1)
     c2w[:, 0, 3] = torch.tensor([0.0, 1.0, 2.0])

@@ -65,7 +65,7 @@ def test_runtime_lattice_imports_nothing_above_validation() -> None:
 def test_offline_search_scores_against_the_same_frustum_range() -> None:
     # Regression: the reference Gram once followed SamplingConfig's default t_far (1.5) while the candidates were
     # sampled to 1.99, so every candidate scored about 0.39 and the search chose blindly.
-    from s2camp_ns.benchmarks.lattice_search import LatticeSearchConfig, run
+    from s2camp_bench.lattice_search import LatticeSearchConfig, run
 
     (row,) = run(LatticeSearchConfig(quick=True, write=False))
     assert row["L"] == 100 and row["gram_error"] < 0.05

@@ -13,7 +13,7 @@ import pycolmap
 import pytest
 from PIL import Image
 
-from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_camera, make_scene, validate
+from s2camp_bench.scene.make_scene import MakeSceneConfig, make_camera, make_scene, validate
 
 
 def _cam_from_world(image: pycolmap.Image) -> np.ndarray:
@@ -208,7 +208,7 @@ def test_bad_input_raises(tmp_path: Path, change: dict, pattern: str) -> None:
 
 def test_cli_help() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_ns.benchmarks.scene.make_scene", "--help"],
+        [sys.executable, "-m", "s2camp_bench.scene.make_scene", "--help"],
         capture_output=True,
         text=True,
         check=True,

@@ -22,11 +22,11 @@ from nerfstudio.plugins.types import MethodSpecification
 from s2camp_ns import method_config
 from s2camp_ns.camera_optimizer import TRAIN_CAMERA_KEY, S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
-from s2camp_ns.nerfstudio.model import S2CampModel, S2CampModelConfig
-from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY
-from s2camp_ns.nerfstudio.trainer import S2CampTrainer, S2CampTrainerConfig
+from s2camp_ns.method.datamanager import S2CampDataManagerConfig
+from s2camp_ns.method.model import S2CampModel, S2CampModelConfig
+from s2camp_ns.method.pipeline import S2CampPipelineConfig
+from s2camp_ns.method.rays import PIXEL_KEY
+from s2camp_ns.method.trainer import S2CampTrainer, S2CampTrainerConfig
 
 
 def test_method_specifications():
@@ -46,7 +46,7 @@ def test_method_specifications():
 def test_shipped_camera_optimizers_are_the_config_defaults():
     """s2camp ships the config's defaults (track prior on, common rotation removed); s2camp-splat changes only the
     refined groups, as its model config's own default does; the CamP baseline switches both off."""
-    from s2camp_ns.nerfstudio.splat_model import S2CampSplatModelConfig
+    from s2camp_ns.method.splat_model import S2CampSplatModelConfig
 
     defaults = S2CampCameraOptimizerConfig()
     assert (defaults.track_prior, defaults.fix_common_rotation, defaults.pose_prior_exponent) == (True, True, 1.0)

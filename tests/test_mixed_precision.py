@@ -23,7 +23,7 @@ from torch import nn
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY
+from s2camp_ns.method.rays import PIXEL_KEY
 
 TOLERANCE = {torch.float16: 2e-2, torch.bfloat16: 1e-1}
 """Largest accepted relative error ||g_amp - g_32|| / ||g_32|| of each camera latent's gradient (pose and shared

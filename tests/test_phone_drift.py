@@ -1,8 +1,8 @@
-"""Visual-inertial drift of the benchmarks' phone start (``benchmarks/phone_drift.py``): growth along the capture,
+"""Visual-inertial drift of the benchmarks' phone start (``benchmarks/s2camp_bench/phone_drift.py``): growth along the capture,
 gravity-held roll and pitch, one shared focal, CamP's result untouched, determinism, the up axis, input checks and the
 CLI.
 
-Expected values come from the model's stated equations (module docstring of ``s2camp_ns.benchmarks.phone_drift``)
+Expected values come from the model's stated equations (module docstring of ``s2camp_bench.phone_drift``)
 and from geometry computed here, never from the drift code; the CamP reference numbers were recorded with the
 committed CamP implementation before the drift existed."""
 
@@ -13,7 +13,7 @@ import math
 import pytest
 import torch
 
-from s2camp_ns.benchmarks.phone_drift import DriftConfig, perturb_with_drift
+from s2camp_bench.phone_drift import DriftConfig, perturb_with_drift
 from s2camp_ns.core.perturbation import PerturbationConfig, look_at_rotation, perturb_cameras
 
 NO_CAMP = {"sigma_look_at": 0.0, "sigma_position": 0.0, "sigma_dolly_z": 0.0, "sigma_focal_length": 0.0}
@@ -221,7 +221,7 @@ def test_cli_names():
     """The options of the benchmarks' data parser as ns-train parses them ("--x True", not flags)."""
     import tyro
 
-    from s2camp_ns.benchmarks.data_parser import BenchDataParserConfig
+    from s2camp_bench.data_parser import BenchDataParserConfig
 
     args = [
         "--drift.enabled", "True", "--drift.position-drift", "0.02", "--drift.yaw-drift-deg", "2",

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from joint_latents import reexpress_adam_state
 
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, in_image, project, project_with_delta
 from s2camp_ns.core.lattice import unit_cube_points
@@ -18,7 +19,6 @@ from s2camp_ns.core.preconditioner import (
     condition_number,
     damped_gram,
     gram_from_points,
-    reexpress_adam_state,
     sample_proxy_points,
     symmetric_sqrt_and_inverse,
     whitening_error,
@@ -169,7 +169,7 @@ def test_reexpress_latent_keeps_the_camera_and_maps_adam_moments(dense: bool) ->
     """Re-expressed in P_new, the latent gives the same camera and Adam's state is that of an Adam that ran in the
     P_new basis from the start: m exactly; v exactly when every past gradient had one nonzero component (the
     documented assumption), within 1% for these dense gradients (measured: 0.1%; v left unmapped: 5%)."""
-    from s2camp_ns.core.preconditioner import reexpress_latent
+    from joint_latents import reexpress_latent
 
     old = compute_preconditioner(ROOM)
     changed = Intrinsics.create(fx=820.0, fy=820.0, cx=380.0, cy=262.0, width=778, height=518, k1=-0.02)

@@ -278,9 +278,9 @@ def _tiny_pipeline(scene, sampling):
     from conftest import lpips_offline, tiny_model_config
 
     from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
-    from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-    from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
+    from s2camp_ns.method.datamanager import S2CampDataManagerConfig
+    from s2camp_ns.method.pipeline import S2CampPipelineConfig
 
     model = tiny_model_config(S2CampCameraOptimizerConfig(sampling=sampling))
     config = S2CampPipelineConfig(

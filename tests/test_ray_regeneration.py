@@ -11,9 +11,9 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer, S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.camera_conversion import refined_cameras
-from s2camp_ns.nerfstudio.datamanager import PixelRayGenerator
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY, cast_rays, train_camera_raybundle
+from s2camp_ns.data.camera_conversion import refined_nerfstudio_cameras
+from s2camp_ns.method.datamanager import PixelRayGenerator
+from s2camp_ns.method.rays import PIXEL_KEY, cast_rays, train_camera_raybundle
 
 NUM_CAMERAS = 2
 WIDTH, HEIGHT = 80, 60
@@ -152,7 +152,7 @@ def test_refined_nerfstudio_cameras_match_regenerated_rays(model: str):
     raw = full[list(optimizer.refiner.layout.indices)]
     assert optimizer.refiner.layout.num_params == {"radial": 12, "opencv": 14, "full_opencv": 15}.get(model, 14)
     write_latent(optimizer.refiner, raw.expand(NUM_CAMERAS, raw.shape[0]) * torch.tensor([[1.0], [-0.5]]))
-    refined = refined_cameras(optimizer.refiner, cameras)
+    refined = refined_nerfstudio_cameras(optimizer.refiner, cameras)
     stock = PixelRayGenerator(refined)(all_ray_indices())
     bundle = PixelRayGenerator(cameras)(all_ray_indices())
     with torch.no_grad():

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from s2camp_ns.benchmarks.recovery import RecoveryConfig, _tier2_section
-from s2camp_ns.benchmarks.recovery_photometric import (
+from s2camp_bench.recovery import RecoveryConfig, _tier2_section
+from s2camp_bench.recovery_photometric import (
     PhotometricConfig,
     TrainedRun,
     run_seeds,
@@ -14,7 +14,7 @@ from s2camp_ns.benchmarks.recovery_photometric import (
     seed_arguments,
     summarize_scene,
 )
-from s2camp_ns.benchmarks.recovery_sfm import variant_arguments
+from s2camp_bench.recovery_sfm import variant_arguments
 
 
 def test_every_variant_seeds_nerfstudio() -> None:
@@ -97,8 +97,8 @@ def test_the_report_lists_the_range_of_repeated_variants_only() -> None:
 
 
 def test_the_sfm_report_lists_the_range_of_repeated_variants_and_not_the_start() -> None:
-    from s2camp_ns.benchmarks.recovery import _tier3_section
-    from s2camp_ns.benchmarks.recovery_sfm import SfmRecoveryConfig
+    from s2camp_bench.recovery import _tier3_section
+    from s2camp_bench.recovery_sfm import SfmRecoveryConfig
 
     (row,) = _summary()
     row = dict(row, tier=3, scene="sfm-wide")
@@ -148,8 +148,8 @@ def _check_run(config, method: str, camera: dict, warm: Path) -> None:
 
 
 def test_every_tier2_variant_parses_to_its_camera_optimizer_settings() -> None:
-    from s2camp_ns.benchmarks.recovery_geometric import VARIANTS
-    from s2camp_ns.benchmarks.recovery_photometric import (
+    from s2camp_bench.recovery_geometric import VARIANTS
+    from s2camp_bench.recovery_photometric import (
         METHODS,
         _variant_arguments,
         perturbation_arguments,
@@ -172,8 +172,8 @@ def test_every_tier2_variant_parses_to_its_camera_optimizer_settings() -> None:
 def test_every_tier3_variant_parses_to_its_camera_optimizer_settings() -> None:
     from ns_train_parse import parse_ns_train
 
-    from s2camp_ns.benchmarks.recovery_photometric import variant_command
-    from s2camp_ns.benchmarks.recovery_sfm import METHODS, SFM_VARIANTS, dataparser_arguments
+    from s2camp_bench.recovery_photometric import variant_command
+    from s2camp_bench.recovery_sfm import METHODS, SFM_VARIANTS, dataparser_arguments
 
     assert set(TIER3_EXPECTED) == set(SFM_VARIANTS)
     config = PhotometricConfig(iterations=5, refresh_every=7)

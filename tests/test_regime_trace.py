@@ -1,5 +1,5 @@
 """The camera-path quantities of ``s2camp-bench robustness --trace-every`` on hand-made cameras
-(``benchmarks/regime_trace.py``)."""
+(``benchmarks/s2camp_bench/regime_trace.py``)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from s2camp_ns.benchmarks.regime_trace import _consistency, camera_path_point, error_structure
-from s2camp_ns.core.camera import opengl_to_opencv
+from s2camp_bench.regime_trace import _consistency, camera_path_point, error_structure, rotation_vector
+from s2camp_ns.core.camera import opengl_to_opencv, se3_exp
 
 
 def _ring(n: int = 8, radius: float = 2.0) -> torch.Tensor:
@@ -116,3 +116,19 @@ def test_error_structure_finds_the_rotation_translation_ambiguity_by_hand() -> N
     wrong = _about_own_axis(reference, 0, theta)
     wrong[:, :, 3] -= depth * theta[:, None] * reference[:, :, 1]
     assert error_structure(wrong, reference)["pitch_y_corr"] == pytest.approx(-1.0, abs=1e-9)
+
+
+def test_rotation_vector_is_the_twist_that_made_the_rotation():
+    """se3_exp of a pure rotation twist omega gives R; rotation_vector(I, R) returns omega, tiny to large angles;
+    the identity gives zero, and r_a's own frame is used (r_a^T r_b)."""
+    identity = torch.eye(3, dtype=torch.float64)[None]
+    for omega in ([0.0, 0.0, 1e-9], [1e-4, -2e-4, 3e-4], [0.3, -0.5, 0.2], [0.0, 2.5, 0.0]):
+        twist = torch.tensor([[0.0, 0.0, 0.0, *omega]], dtype=torch.float64)
+        r = se3_exp(twist)[:, :, :3]
+        torch.testing.assert_close(rotation_vector(identity, r)[0], twist[0, 3:], atol=1e-12, rtol=1e-9)
+    assert torch.equal(rotation_vector(identity, identity), torch.zeros(1, 3, dtype=torch.float64))
+    base = se3_exp(torch.tensor([[0.0, 0.0, 0.0, 0.4, 0.1, -0.7]], dtype=torch.float64))[:, :, :3]
+    local = se3_exp(torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 0.05]], dtype=torch.float64))[:, :, :3]
+    torch.testing.assert_close(
+        rotation_vector(base, base @ local)[0], torch.tensor([0.0, 0.0, 0.05], dtype=torch.float64), atol=1e-12, rtol=0
+    )

@@ -1,4 +1,4 @@
-"""``ns-render interpolate`` of an s2camp run whose eval split holds one camera (``s2camp_ns.nerfstudio.render_path``).
+"""``ns-render interpolate`` of an s2camp run whose eval split holds one camera (``s2camp_ns.scripts.render_path``).
 
 With the data parser's default split (every 8th image held out) a scene of 8 images has a single eval camera, and
 nerfstudio's interpolation of the eval cameras stopped with numpy's "need at least one array to stack". The unit
@@ -19,8 +19,8 @@ from hang_guard import HANG_GUARD_S
 from nerfstudio.cameras import camera_paths, camera_utils
 from nerfstudio.cameras.cameras import Cameras
 
-from s2camp_ns.benchmarks import train_commands
-from s2camp_ns.nerfstudio import render_path
+from s2camp_bench import train_commands
+from s2camp_ns.scripts import render_path
 
 SCENE = {"num_cameras": 8, "width": 64, "height": 48, "points_per_image": 150, "seed": 0}
 """The smallest scene of the default split with one eval camera and more than one training camera."""
@@ -116,7 +116,7 @@ def test_ns_render_interpolate_writes_a_video_of_an_eight_camera_run(tmp_path: P
     default pose source (eval): a video of ``--interpolation-steps`` frames at the images' size."""
     import imageio_ffmpeg
 
-    from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+    from s2camp_bench.scene.make_scene import MakeSceneConfig, make_scene
 
     scene = make_scene(MakeSceneConfig(output_dir=tmp_path / "scene", **SCENE))
     outputs = tmp_path / "outputs"

@@ -1,4 +1,4 @@
-"""The SfM model's points re-adjusted with a robust loss (``nerfstudio.robust_adjustment``): closer to the truth than
+"""The SfM model's points re-adjusted with a robust loss (``tracks.robust_adjustment``): closer to the truth than
 a least-squares adjustment leaves them when some keypoints are mismatched, in the model's own frame, used as the
 anchor's points and not for the model check."""
 
@@ -40,7 +40,7 @@ def _centres(reconstruction: pycolmap.Reconstruction, ids: list[int]) -> torch.T
 
 
 def test_the_robust_adjustment_brings_the_points_closer_to_the_truth_in_the_models_frame(tiny_scene, tmp_path):
-    from s2camp_ns.nerfstudio.robust_adjustment import robustly_adjusted_points
+    from s2camp_ns.tracks.robust_adjustment import robustly_adjusted_points
 
     model = _least_squares_model(tiny_scene, tmp_path / "model")
     truth = pycolmap.Reconstruction(tiny_scene / "sparse" / "0")
@@ -65,10 +65,10 @@ def test_the_robust_adjustment_brings_the_points_closer_to_the_truth_in_the_mode
 
 def test_colmap_evidence_anchors_to_the_adjusted_points_and_checks_the_model_with_its_own(tiny_scene, monkeypatch):
     from s2camp_ns.core.tracks import track_reprojection_rms
-    from s2camp_ns.nerfstudio import track_evidence
-    from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
-    from s2camp_ns.nerfstudio.colmap_tracks import read_colmap_tracks
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
+    from s2camp_ns.tracks import track_evidence
+    from s2camp_ns.tracks.colmap_tracks import read_colmap_tracks
 
     outputs = S2CampDataParserConfig(data=tiny_scene, image_tracks="never").setup().get_dataparser_outputs("train")
     names = outputs.metadata["image_names"]
@@ -88,7 +88,7 @@ def test_colmap_evidence_anchors_to_the_adjusted_points_and_checks_the_model_wit
 
 
 def test_tracks_of_images_take_positions_by_point_id(tiny_scene):
-    from s2camp_ns.nerfstudio.colmap_tracks import read_colmap_tracks
+    from s2camp_ns.tracks.colmap_tracks import read_colmap_tracks
 
     model = tiny_scene / "sparse" / "0"
     names = sorted(image.name for image in pycolmap.Reconstruction(model).images.values())[:3]
@@ -100,7 +100,7 @@ def test_tracks_of_images_take_positions_by_point_id(tiny_scene):
 
 
 def test_the_adjusted_points_are_cached_for_the_next_process_by_the_models_content(tiny_scene, tmp_path, monkeypatch):
-    from s2camp_ns.nerfstudio import robust_adjustment
+    from s2camp_ns.tracks import robust_adjustment
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     model = _least_squares_model(tiny_scene, tmp_path / "model")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from s2camp_ns.benchmarks.robustness import (
+from s2camp_bench.robustness import (
     RUNNABLE_VARIANTS,
     SCENES,
     STARTS,
@@ -111,7 +111,7 @@ def test_a_cuda_run_trains_the_methods_own_field_on_the_gpu_and_is_otherwise_the
 
 
 def test_rows_of_the_two_devices_are_summarized_and_resumed_apart(tmp_path: Path) -> None:
-    from s2camp_ns.benchmarks.robustness import record_row, resume
+    from s2camp_bench.robustness import record_row, resume
 
     rows = [_row("perturbed", "off", seed, 25.0, 1.0, 1.0) for seed in range(2)]  # written before --device: the CPU
     rows += [_row("perturbed", "s2camp", 0, 25.5, 0.2, 1.0) | {"device": "cpu"}]
@@ -132,8 +132,8 @@ def test_phone_and_sfm_commands_parse_to_the_benchmarks_data_parser() -> None:
     phone start's drift after CamP's steps with CamP's sigmas zero, the sfm start's truth."""
     from ns_train_parse import parse_ns_train
 
-    from s2camp_ns.benchmarks.data_parser import BenchDataParserConfig
-    from s2camp_ns.benchmarks.phone_drift import DriftConfig
+    from s2camp_bench.data_parser import BenchDataParserConfig
+    from s2camp_bench.phone_drift import DriftConfig
 
     config = RobustnessConfig(iterations=10)
     phone = train_command(RunSpec("near-deep", "phone", "s2camp", 1), Path("scene"), Path("runs"), config)
@@ -272,7 +272,7 @@ def test_summary_spread_difference_against_off_and_removed_start_error() -> None
 
 
 def test_a_seed_run_twice_is_counted_as_a_run_and_named(tmp_path: Path) -> None:
-    from s2camp_ns.benchmarks.robustness import report
+    from s2camp_bench.robustness import report
 
     extra = {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
     rows = [_row("phone", "off", seed, 23.0 + seed, 1.0, 1.0) | extra for seed in (0, 2, 2)]
@@ -323,7 +323,7 @@ def test_the_untracked_true_cameras_compare_with_refinement_off_from_the_tracked
 
 
 def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path: Path) -> None:
-    from s2camp_ns.benchmarks.robustness import TRACE_COLUMNS, report
+    from s2camp_bench.robustness import TRACE_COLUMNS, report
 
     rows = [
         _row("sfm", variant, seed, psnr, rot, 0.1)
@@ -354,7 +354,7 @@ def test_report_rows_are_sorted_by_scene_start_and_variant_in_the_benchmarks_ord
     """Rows arrive in the order runs finished; the report lists them by scene, start and variant as ``SCENES``,
     ``STARTS`` and the variants are listed (names no longer run last, alphabetically), then by passes; the traced
     runs by seed."""
-    from s2camp_ns.benchmarks.robustness import TRACE_COLUMNS, report
+    from s2camp_bench.robustness import TRACE_COLUMNS, report
 
     extra = {"train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
     finished = [
@@ -388,8 +388,8 @@ def test_report_rows_are_sorted_by_scene_start_and_variant_in_the_benchmarks_ord
 def test_report_lists_rows_of_variants_and_starts_that_no_longer_run_apart(tmp_path: Path) -> None:
     """Committed rows of names no longer runnable still render, in their own table after the results, and their
     comparison with refinement off is that of the whole grid."""
-    from s2camp_ns.benchmarks.common import NO_LONGER_RUN_HEADING
-    from s2camp_ns.benchmarks.robustness import report
+    from s2camp_bench.common import NO_LONGER_RUN_HEADING
+    from s2camp_bench.robustness import report
 
     extra = {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
     rows = [_row("sfm", "off", 0, 20.0, 0.1, 0.1) | extra]
@@ -409,7 +409,7 @@ def test_report_lists_rows_of_variants_and_starts_that_no_longer_run_apart(tmp_p
 
 
 def test_a_work_folder_keeps_its_rows_and_a_rerun_skips_the_finished_runs(tmp_path: Path) -> None:
-    from s2camp_ns.benchmarks.robustness import ROWS_FILE, record_row, resume
+    from s2camp_bench.robustness import ROWS_FILE, record_row, resume
 
     specs = [RunSpec("s", "sfm", variant, 0) for variant in ("off", "s2camp")]
     assert resume(specs, tmp_path) == ([], specs)  # a new folder: everything to run
@@ -428,7 +428,7 @@ def test_every_committed_name_that_no_longer_runs_is_described_in_the_results() 
     import json
     import re
 
-    from s2camp_ns.benchmarks import splat_bench
+    from s2camp_bench import splat_bench
 
     root = Path(__file__).resolve().parents[1]
     text = (root / "docs" / "RESULTS.md").read_text(encoding="utf8").split("## Names that no longer run")[1]

@@ -1,4 +1,4 @@
-"""The camera learning-rate schedule that follows the run's length (s2camp_ns/nerfstudio/schedulers.py)."""
+"""The camera learning-rate schedule that follows the run's length (s2camp_ns/method/schedulers.py)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 import torch
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
+from s2camp_ns.method.schedulers import RunLengthScheduleConfig
+from s2camp_ns.method.trainer import S2CampTrainer, plain_numbers, with_run_length
 from s2camp_ns.method_config import s2camp_method, s2camp_so3xr3_method
-from s2camp_ns.nerfstudio.schedulers import RunLengthScheduleConfig
-from s2camp_ns.nerfstudio.trainer import S2CampTrainer, plain_numbers, with_run_length
 
 
 def learning_rates(scheduler_config, steps: int, lr: float = 1e-4) -> list[float]:

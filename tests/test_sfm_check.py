@@ -1,4 +1,4 @@
-"""The SfM check of recovery tier 3 (benchmarks/sfm.py) on models derived from a generated scene's true cameras."""
+"""The SfM check of recovery tier 3 (benchmarks/s2camp_bench/sfm.py) on models derived from a generated scene's true cameras."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from s2camp_ns.benchmarks.sfm import (
+from s2camp_bench.sfm import (
     SfmCheck,
     _with_camera_model,
     compare_with_truth,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from joint_latents import deltas_from_latents, joint_gram, joint_inverse
 
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, project_with_delta
 from s2camp_ns.core.preconditioner import (
@@ -15,9 +16,6 @@ from s2camp_ns.core.preconditioner import (
 from s2camp_ns.core.shared_intrinsics import (
     block_triangular_factor,
     compute_shared_preconditioner,
-    deltas_from_latents,
-    joint_gram,
-    joint_inverse,
     reexpress_latents,
 )
 

@@ -1,4 +1,4 @@
-"""Test-time alignment of held-out views for S2CamP's splat model (s2camp_ns/nerfstudio/splat_alignment.py).
+"""Test-time alignment of held-out views for S2CamP's splat model (s2camp_ns/scripts/splat_alignment.py).
 
 A small S2CampSplatModel (a few hundred Gaussians placed in front of the camera, no training) renders through the
 reference rasterizer on the CPU. Target images are rendered through nerfstudio's own view matrix (``get_viewmat``)
@@ -18,9 +18,10 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.models.splatfacto import SplatfactoModel, get_viewmat
 
 from s2camp_ns.core.camera import Intrinsics, opengl_to_opencv, se3_exp
-from s2camp_ns.nerfstudio.splat_alignment import aligned_view_matrix, base_matrix
-from s2camp_ns.nerfstudio.splat_model import S2CampSplatModel, S2CampSplatModelConfig
-from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, align_and_evaluate, evaluate_held_out_views
+from s2camp_ns.method.splat_model import S2CampSplatModel, S2CampSplatModelConfig
+from s2camp_ns.scripts.alignment_camera import HeldOutView
+from s2camp_ns.scripts.splat_alignment import aligned_view_matrix, base_matrix
+from s2camp_ns.scripts.test_time_alignment import AlignmentConfig, align_and_evaluate_views, evaluate_held_out_views
 
 F64 = torch.float64
 
@@ -157,10 +158,8 @@ def test_splat_alignment_recovers_a_rotated_camera_and_its_focal_length(monkeypa
     offset = torch.tensor([0.0, 0.0, 0.0, 0.6, 0.8, 0.0], dtype=F64) * math.radians(0.5)
     start_cv = opengl_to_opencv(truth) @ torch.cat([se3_exp(offset), torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=F64)])
     before = [p.detach().clone() for p in model.parameters()]
-    view = align_and_evaluate(
-        model, image, opengl_to_opencv(start_cv), pinhole(1.01 * focal, width, height),
-        AlignmentConfig(steps=100, lr=3e-3),
-    )  # fmt: skip
+    start = HeldOutView(image, opengl_to_opencv(start_cv), pinhole(1.01 * focal, width, height), 0)
+    view = align_and_evaluate_views(model, [start], AlignmentConfig(steps=100, lr=3e-3))[0]
     twist = torch.tensor(view.twist, dtype=F64)
     rotation_error = math.degrees(float((twist[3:] + offset[3:]).norm()))
     print(f"PSNR {view.psnr_unaligned:.2f} -> {view.psnr:.2f}, rotation error {rotation_error:.4f} deg, focal scale "

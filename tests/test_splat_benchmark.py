@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from hang_guard import HANG_GUARD_S
 
-from s2camp_ns.benchmarks.splat_bench import (
+from s2camp_bench.splat_bench import (
     RUNNABLE_VARIANTS,
     SCENES,
     STARTS,
@@ -25,7 +25,7 @@ from s2camp_ns.benchmarks.splat_bench import (
     summarize,
     train_command,
 )
-from s2camp_ns.benchmarks.train_commands import SMALL_MODEL, ns_train_arguments, ns_train_base_arguments
+from s2camp_bench.train_commands import SMALL_MODEL, ns_train_arguments, ns_train_base_arguments
 
 
 def _option(command: list[str], name: str) -> str:
@@ -258,7 +258,7 @@ REPORT_FIELDS = {"iterations": 1000, "train_seconds": 1.0, "eval_seconds": 1.0, 
 
 
 def test_report_says_which_rows_were_rebuilt_from_logs(tmp_path: Path) -> None:
-    from s2camp_ns.benchmarks.splat_bench import SplatBenchConfig, report
+    from s2camp_bench.splat_bench import SplatBenchConfig, report
 
     rows = [_row("perturbed", variant, 0, **REPORT_FIELDS) for variant in ("splat-off", "s2camp-splat-so3xr3")]
     config = SplatBenchConfig(output_dir=tmp_path)
@@ -269,8 +269,8 @@ def test_report_says_which_rows_were_rebuilt_from_logs(tmp_path: Path) -> None:
 
 
 def test_report_lists_rows_of_variants_that_no_longer_run_apart(tmp_path: Path) -> None:
-    from s2camp_ns.benchmarks.common import NO_LONGER_RUN_HEADING
-    from s2camp_ns.benchmarks.splat_bench import SplatBenchConfig, report
+    from s2camp_bench.common import NO_LONGER_RUN_HEADING
+    from s2camp_bench.splat_bench import SplatBenchConfig, report
 
     rows = [_row("sfm", variant, 0, **REPORT_FIELDS) for variant in ("splat-off", "s2camp-splat")]
     config = SplatBenchConfig(output_dir=tmp_path)

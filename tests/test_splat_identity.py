@@ -13,7 +13,6 @@ from s2camp_ns.splat.intrinsics_view import (
     corrected_viewmat,
     intrinsics_correction,
     intrinsics_matrix,
-    refined_viewmat,
 )
 from s2camp_ns.splat.reference_rasterizer import covariances_from, project_gaussians, rasterization
 
@@ -85,7 +84,7 @@ def test_correction_rejects_non_pinhole_matrices():
 
 def test_camera_centre_and_depths_unchanged():
     s = scene()
-    viewmat = refined_viewmat(s["viewmats"], k_of(BASE), k_of(REFINED))
+    viewmat = corrected_viewmat(s["viewmats"], intrinsics_correction(k_of(BASE), k_of(REFINED)))
     torch.testing.assert_close(
         torch.linalg.inv(viewmat)[:, :3, 3], torch.linalg.inv(s["viewmats"])[:, :3, 3], rtol=1e-12, atol=1e-12
     )
@@ -99,7 +98,7 @@ def test_render_through_view_matrix_equals_render_with_refined_k():
     """Everything the rasterizer outputs, including Gaussians beyond the field-of-view clamp and the skew."""
     s = scene()
     covariances = covariances_from(s["quats"], s["scales"])
-    viewmat = refined_viewmat(s["viewmats"], k_of(BASE), k_of(REFINED))
+    viewmat = corrected_viewmat(s["viewmats"], intrinsics_correction(k_of(BASE), k_of(REFINED)))
     direct = project_gaussians(s["means"], covariances, s["viewmats"], k_of(REFINED), WIDTH, HEIGHT)
     u, v = direct["means2d"][..., 0], direct["means2d"][..., 1]
     beyond_clamp = (u < -0.15 * WIDTH) | (u > 1.15 * WIDTH) | (v < -0.15 * HEIGHT) | (v > 1.15 * HEIGHT)
@@ -121,7 +120,7 @@ def test_gsplat_projection_through_view_matrix_equals_refined_k():
     s = scene(n=300)
     covariances = covariances_from(s["quats"], s["scales"])
     refined = REFINED[:4] + (0.0,)
-    viewmat = refined_viewmat(s["viewmats"], k_of(BASE), k_of(refined))
+    viewmat = corrected_viewmat(s["viewmats"], intrinsics_correction(k_of(BASE), k_of(refined)))
     direct = _fully_fused_projection(s["means"], covariances, s["viewmats"], k_of(refined), WIDTH, HEIGHT, 0.3,
                                      calc_compensations=True)  # fmt: skip
     through_a = _fully_fused_projection(s["means"], covariances, viewmat, k_of(BASE), WIDTH, HEIGHT, 0.3,
@@ -166,7 +165,7 @@ def test_intrinsics_gradient_through_view_matrix_matches_finite_differences():
 def test_float32_path_matches_refined_camera():
     """The only inexactness: V' = A [R | t] is rounded to float32 before rendering (docs/SPLAT.md sec. 3)."""
     s = scene(dtype=torch.float32)
-    viewmat = refined_viewmat(s["viewmats"], k_of(BASE, torch.float32), k_of(REFINED, torch.float32))
+    viewmat = corrected_viewmat(s["viewmats"], intrinsics_correction(k_of(BASE, torch.float32), k_of(REFINED, torch.float32)))
     colors_a, alphas_a, _ = render(s, viewmat, k_of(BASE, torch.float32))
     colors_k, alphas_k, _ = render(s, s["viewmats"], k_of(REFINED, torch.float32))
     difference = max(float((colors_a - colors_k)[..., :3].abs().max()), float((alphas_a - alphas_k).abs().max()))

@@ -1,4 +1,4 @@
-"""``s2camp-splat``: splatfacto with the S2CamP camera optimizer (s2camp_ns/nerfstudio/splat_model.py).
+"""``s2camp-splat``: splatfacto with the S2CamP camera optimizer (s2camp_ns/method/splat_model.py).
 
 The view matrix of a refined training camera is checked against the core's projection of the refined camera
 (``core.camera.project_with_delta``: pose and intrinsics deltas, no splatting code); the end-to-end test trains the
@@ -24,7 +24,7 @@ from nerfstudio.models.splatfacto import get_viewmat
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.camera import opengl_to_opencv, project_with_delta
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.splat_model import S2CampSplatModel, S2CampSplatModelConfig, world_to_camera
+from s2camp_ns.method.splat_model import S2CampSplatModel, S2CampSplatModelConfig, world_to_camera
 
 WIDTH, HEIGHT = 64, 48
 
@@ -141,7 +141,7 @@ def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
     assert {"camera_errors/rot_err_mean", "camera_errors/pos_err_mean", "camera_errors/focal_err_mean"} <= set(errors)
     assert all(math.isfinite(v) for v in errors.values())
     # The export path of s2camp-export-cameras: the refined cameras of the splatting run, refined intrinsics included.
-    from s2camp_ns.nerfstudio.export_cameras import refined_training_cameras
+    from s2camp_ns.scripts.export_cameras import refined_training_cameras
 
     exported = refined_training_cameras(trainer.pipeline)
     torch.testing.assert_close(
@@ -149,9 +149,9 @@ def test_s2camp_splat_trains_on_the_cpu(tiny_scene: Path, tmp_path: Path):
     )
     print(f"s2camp-splat, 40 CPU steps: {elapsed:.1f} s, {seeds} -> {model.num_points} Gaussians, {errors}")
     # s2camp-eval on the run's config.yml and final checkpoint: test-time alignment of the held-out views.
-    from s2camp_ns.nerfstudio.eval_aligned import EvalAlignedConfig
-    from s2camp_ns.nerfstudio.eval_aligned import main as eval_aligned
-    from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig
+    from s2camp_ns.scripts.eval_aligned import EvalAlignedConfig
+    from s2camp_ns.scripts.eval_aligned import main as eval_aligned
+    from s2camp_ns.scripts.test_time_alignment import AlignmentConfig
 
     config.save_config()  # what ns-train writes before training
     output = tmp_path / "aligned.json"
@@ -210,8 +210,8 @@ def test_splat_baseline_differs_only_in_the_camera_optimizer():
 def test_held_out_alignment_refuses_foreign_splatfacto_models_by_name_and_takes_ours():
     from nerfstudio.models.splatfacto import SplatfactoModel
 
-    from s2camp_ns.nerfstudio.splat_alignment import SplatRenderer
-    from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_held_out_views, renderer_for
+    from s2camp_ns.scripts.splat_alignment import SplatRenderer
+    from s2camp_ns.scripts.test_time_alignment import AlignmentConfig, evaluate_held_out_views, renderer_for
 
     pipeline = SimpleNamespace(model=object.__new__(SplatfactoModel))
     with pytest.raises(ValueError, match="is SplatfactoModel, a splatfacto model it does not support: use ns-eval"):
@@ -228,9 +228,9 @@ def test_splat_training_step_on_emulated_cuda(tiny_scene: Path):
     from nerfstudio.engine.callbacks import TrainingCallbackAttributes
     from nerfstudio.engine.optimizers import Optimizers
 
+    from s2camp_ns.method.trainer import with_run_length
     from s2camp_ns.method_config import s2camp_splat_method
-    from s2camp_ns.nerfstudio.test_time_alignment import AlignmentConfig, evaluate_held_out_views
-    from s2camp_ns.nerfstudio.trainer import with_run_length
+    from s2camp_ns.scripts.test_time_alignment import AlignmentConfig, evaluate_held_out_views
 
     config = copy.deepcopy(s2camp_splat_method.config)
     config.pipeline.datamanager.data = tiny_scene
@@ -325,7 +325,7 @@ def test_undistorted_cameras_keep_the_given_anchor_and_the_tracks_standard_error
 
 
 def test_undistortion_scale_is_the_data_managers_focal_over_the_dataparsers():
-    from s2camp_ns.nerfstudio.pipeline import undistortion_scale
+    from s2camp_ns.method.pipeline import undistortion_scale
 
     given = SimpleNamespace(fx=torch.tensor([[36.0], [36.0]]), fy=torch.tensor([[30.0], [30.0]]))
     seen = SimpleNamespace(fx=torch.tensor([[36.72], [36.0]]), fy=torch.tensor([[30.3], [30.0]]))

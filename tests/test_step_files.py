@@ -1,6 +1,6 @@
 """A training step of ``ns-train s2camp`` is short to follow: the files of ours whose functions run in one step.
 
-nerfstudio's Trainer built as ``ns-train`` builds it (``benchmarks/step_cost.py``), on the session's tiny PINHOLE
+nerfstudio's Trainer built as ``ns-train`` builds it (``benchmarks/s2camp_bench/step_cost.py``), on the session's tiny PINHOLE
 scene, with the viewer panel's per-step callback attached; a profiler hook records every function call of one step
 after three uncounted ones. docs/ARCHITECTURE.md lists the same files in the order they run.
 """
@@ -42,7 +42,7 @@ def files_run_by(function) -> list[str]:
 
 @pytest.mark.parametrize("method", ["s2camp", "s2camp-splat"])
 def test_one_training_step_runs_at_most_eight_files_of_ours(method: str, tiny_scene: Path, tmp_path: Path) -> None:
-    from s2camp_ns.benchmarks.step_cost import attach_viewer_stand_in, build_trainer, training_step
+    from s2camp_bench.step_cost import attach_viewer_stand_in, build_trainer, training_step
 
     trainer = build_trainer(method, tiny_scene, tmp_path, "per-camera", rays_per_batch=256)
     assert attach_viewer_stand_in(trainer)

@@ -1,8 +1,8 @@
 """The camera work of a training step is made for launch-bound devices: no host read, one graph.
 
-- The op counter (``benchmarks/op_count.py``) finds the ops that synchronise a CUDA device, so the checks below can
-  fail: ``.item()``, ``bool(t)``, ``torch.unique``, ``nonzero``, boolean masks, ``masked_select``; views are told
-  apart from launches; the optimizers' CPU step counts are no syncs.
+- The op counter (``benchmarks/s2camp_bench/op_count.py``) finds the ops that synchronise a CUDA device, so the checks
+  below can fail: ``.item()``, ``bool(t)``, ``torch.unique``, ``nonzero``, boolean masks, ``masked_select``; views are
+  told apart from launches; the optimizers' CPU step counts are no syncs.
 - Everything S2CamP runs in a training step (the rays cast through the refined cameras forward and backward, the
   track prior's proximal step, the common rotation removed, the refresh schedule, the metrics on a step that does not
   log them, the loss terms) synchronises nothing, for every camera model and both intrinsics layouts.
@@ -20,11 +20,11 @@ import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.cameras.rays import RayBundle
 
-from s2camp_ns.benchmarks.op_count import OpCounter
+from s2camp_bench.op_count import OpCounter
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer, S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.rays import PIXEL_KEY, cast_rays
-from s2camp_ns.nerfstudio.splat_model import refined_view_matrix
+from s2camp_ns.method.rays import PIXEL_KEY, cast_rays
+from s2camp_ns.method.splat_model import refined_view_matrix
 from s2camp_ns.splat.intrinsics_view import intrinsics_matrix
 
 NUM_IMAGES, WIDTH, HEIGHT = 4, 64, 48

@@ -12,11 +12,10 @@ from torch import nn
 
 from s2camp_ns.core.alignment import Similarity
 from s2camp_ns.core.camera import Intrinsics, se3_exp
-from s2camp_ns.nerfstudio.ray_alignment import camera_rays
-from s2camp_ns.nerfstudio.test_time_alignment import (
+from s2camp_ns.scripts.ray_alignment import camera_rays
+from s2camp_ns.scripts.test_time_alignment import (
     AlignmentConfig,
     HeldOutView,
-    align_and_evaluate,
     align_and_evaluate_views,
     alignment_work,
     frame_similarity,
@@ -119,9 +118,9 @@ def test_alignment_recovers_a_perturbed_camera_and_leaves_the_field_alone():
     perturbation = se3_exp(torch.tensor([0.02, -0.01, 0.015, 0.01, -0.015, 0.01], dtype=torch.float64))
     start = torch.cat([truth[:, :3] @ perturbation[:, :3], truth[:, 3:] + truth[:, :3] @ perturbation[:, 3:]], -1)
     before = [p.detach().clone() for p in field.parameters()]
-    view = align_and_evaluate(
-        field, image, start, _intrinsics(FOCAL * 1.02), AlignmentConfig(steps=150, rays=256, lr=3e-3)
-    )
+    view = align_and_evaluate_views(
+        field, [HeldOutView(image, start, _intrinsics(FOCAL * 1.02), 0)], AlignmentConfig(steps=150, rays=256, lr=3e-3)
+    )[0]
     assert view.psnr > view.psnr_unaligned + 8.0, (view.psnr_unaligned, view.psnr)
     assert view.psnr > 35.0 and 0.9 < view.ssim <= 1.0 and math.isnan(view.lpips)
     assert all(torch.equal(a, b) for a, b in zip(before, field.parameters(), strict=True))
@@ -143,7 +142,7 @@ def test_views_aligned_together_follow_the_same_steps_as_alone():
         for index, t in enumerate(twists)
     ]
     config = AlignmentConfig(steps=20, rays=64, lr=3e-3)
-    alone = [align_and_evaluate(field, v.image, v.c2w_gl, v.intrinsics, config, index=v.index) for v in views]
+    alone = [align_and_evaluate_views(field, [view], config)[0] for view in views]
     calls = field.calls
     together = align_and_evaluate_views(field, views, config)
     assert field.calls - calls == 20 + 2 * 2  # one forward per step for both views, plus the full renders
@@ -177,7 +176,7 @@ def test_progress_counts_every_render_and_step_up_to_the_announced_total(views_p
 def test_zero_steps_evaluates_the_mapped_camera_as_is():
     field = AnalyticField()
     image = _true_image(field, _c2w_gl())
-    view = align_and_evaluate(field, image, _c2w_gl(), _intrinsics(), AlignmentConfig(steps=0))
+    view = align_and_evaluate_views(field, [HeldOutView(image, _c2w_gl(), _intrinsics(), 0)], AlignmentConfig(steps=0))[0]
     assert view.psnr == view.psnr_unaligned and view.psnr > 60.0
 
 
@@ -213,7 +212,7 @@ def test_held_out_cameras_are_the_evaluation_reference_when_given(monkeypatch, w
     views start from it, not from the evaluation cameras as given (there: SfM's)."""
     from types import SimpleNamespace
 
-    import s2camp_ns.nerfstudio.test_time_alignment as module
+    import s2camp_ns.scripts.test_time_alignment as module
 
     train = _cameras(torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), FOCAL)
     refined = (train.camera_to_worlds.double(), train.fx.reshape(-1).double())  # identity frame map

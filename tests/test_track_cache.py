@@ -1,4 +1,4 @@
-"""Where the image tracks' cache lives and who builds an entry (``s2camp_ns.nerfstudio.track_cache``): a scene
+"""Where the image tracks' cache lives and who builds an entry (``s2camp_ns.tracks.track_cache``): a scene
 folder that cannot be written has new tracks built in the user's cache folder and its shipped tracks read; of
 processes that ask for one entry at once exactly one builds, the others wait and read the same entry, and a waiter
 whose builder dies builds itself.
@@ -29,10 +29,10 @@ import pycolmap
 import pytest
 from hang_guard import HANG_GUARD_S
 
-from s2camp_ns.nerfstudio import image_tracks as module
-from s2camp_ns.nerfstudio import track_cache
-from s2camp_ns.nerfstudio.image_tracks import cache_key, image_tracks
-from s2camp_ns.nerfstudio.track_cache import user_cache_folder, write_error
+from s2camp_ns.tracks import image_tracks as module
+from s2camp_ns.tracks import track_cache
+from s2camp_ns.tracks.image_tracks import cache_key, image_tracks
+from s2camp_ns.tracks.track_cache import user_cache_folder, write_error
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 WAITING = "Image tracks: waiting for process"
@@ -43,7 +43,7 @@ from pathlib import Path
 
 args = json.loads(sys.argv[1])
 import pycolmap
-from s2camp_ns.nerfstudio import image_tracks as module
+from s2camp_ns.tracks import image_tracks as module
 
 real_build = module._build
 
@@ -123,7 +123,7 @@ def _fake_builds(monkeypatch: pytest.MonkeyPatch, reason: str = "fake build") ->
 
 def _parse(scene: Path) -> dict:
     """The data parser's training metadata of ``scene`` with tracks made from its images (default cache)."""
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     config = S2CampDataParserConfig(data=scene, downscale_factor=2, image_tracks="always")
     return config.setup()._generate_dataparser_outputs("train").metadata

@@ -15,7 +15,7 @@ import torch
 
 from s2camp_ns.core import track_fit
 from s2camp_ns.core.camera import se3_exp
-from s2camp_ns.core.colmap_models import intrinsics_from_colmap
+from s2camp_ns.core.colmap_camera_models import intrinsics_from_colmap
 from s2camp_ns.core.perturbation import look_at_rotation
 from s2camp_ns.core.track_fit import fit_cameras_to_tracks
 from s2camp_ns.core.tracks import Tracks
@@ -160,7 +160,7 @@ SIMPLE_RADIAL = [480.0, 318.0, 243.0, -0.04]  # f, cx, cy, k
 
 
 def test_the_bundle_adjustments_of_tracks_use_the_anchor_fits_cauchy_loss() -> None:
-    from s2camp_ns.nerfstudio.robust_adjustment import cauchy_adjustment_options
+    from s2camp_ns.tracks.robust_adjustment import cauchy_adjustment_options
 
     options = cauchy_adjustment_options(refine_focal_length=False, refine_principal_point=False)
     assert options.ceres.loss_function_type == pycolmap.LossFunctionType.CAUCHY

@@ -94,7 +94,7 @@ def _tiny_model(folder, observations: list[tuple[str, list[tuple[float, float, i
 
 
 def test_read_colmap_tracks_follows_the_requested_names_and_image_size(tmp_path) -> None:
-    from s2camp_ns.nerfstudio.colmap_tracks import read_colmap_tracks
+    from s2camp_ns.tracks.colmap_tracks import read_colmap_tracks
 
     model = _tiny_model(
         tmp_path / "sparse",
@@ -113,7 +113,7 @@ def test_read_colmap_tracks_follows_the_requested_names_and_image_size(tmp_path)
 
 
 def test_data_parser_measures_exact_tracks_at_zero_and_moved_cameras_above(tiny_scene) -> None:
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     accurate = S2CampDataParserConfig(data=tiny_scene).setup().get_dataparser_outputs("train")
     rms = accurate.metadata["track_rms_px"]
@@ -224,9 +224,9 @@ def test_perturbed_cameras_never_get_the_tracks_of_the_unperturbed_ones(tiny_sce
     """The scene's tracks were made with the true cameras: a prior on them would lead perturbed cameras back to the
     reference. Perturbed cameras get tracks made from the images with the perturbed cameras, or none, and the log
     says which."""
-    import s2camp_ns.nerfstudio.track_evidence as track_evidence
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-    from s2camp_ns.nerfstudio.image_tracks import ImageTracks
+    import s2camp_ns.tracks.track_evidence as track_evidence
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
+    from s2camp_ns.tracks.image_tracks import ImageTracks
 
     asked = []
 
@@ -254,7 +254,7 @@ def test_perturbed_cameras_never_get_the_tracks_of_the_unperturbed_ones(tiny_sce
     by_name = {image.name: image for image in given.images.values()}
     centres = torch.tensor(np.stack([by_name[name].projection_center() for name in names]))
     # The parser's cameras (perturbed) in COLMAP's world are the ones handed to the image tracks.
-    from s2camp_ns.nerfstudio.colmap_world import c2w_to_colmap_world
+    from s2camp_ns.data.colmap_world import c2w_to_colmap_world
 
     scale = float(outputs.dataparser_scale)
     perturbed = c2w_to_colmap_world(outputs.cameras.camera_to_worlds, outputs.dataparser_transform, scale)
@@ -269,10 +269,10 @@ def _moved_cameras_with_exact_tracks(scene, **optimizer_options):
     cameras these tracks), an S2CamP optimizer on them with the exact tracks' prior, and the true cameras."""
     from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
     from s2camp_ns.core.perturbation import PerturbationConfig
-    from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-    from s2camp_ns.nerfstudio.scene_formats import detect_format
-    from s2camp_ns.nerfstudio.track_evidence import colmap_track_evidence
+    from s2camp_ns.data.camera_perturbation import perturb_nerfstudio_cameras
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.scene_formats import detect_format
+    from s2camp_ns.tracks.track_evidence import colmap_track_evidence
 
     config = S2CampDataParserConfig(data=scene, image_tracks="never")
     outputs = config.setup().get_dataparser_outputs("train")

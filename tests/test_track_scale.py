@@ -79,7 +79,7 @@ def rounded_scene(tmp_path_factory) -> tuple[Path, dict[str, np.ndarray]]:
 
 
 def test_given_cameras_miss_their_tracks_by_the_full_size_noise_times_the_folder_ratio(rounded_scene) -> None:
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     scene, noise = rounded_scene
     config = S2CampDataParserConfig(data=scene, downscale_factor=4, eval_mode="all", image_tracks="never")
@@ -98,8 +98,8 @@ def test_given_cameras_miss_their_tracks_by_the_full_size_noise_times_the_folder
 def test_the_anchor_keeps_the_given_intrinsics_of_a_rounded_folder(rounded_scene) -> None:
     from s2camp_ns.core.camera import ParameterLayout
     from s2camp_ns.core.track_fit import fit_anchor
-    from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     scene, _ = rounded_scene
     config = S2CampDataParserConfig(data=scene, downscale_factor=4, eval_mode="all", image_tracks="never")
@@ -114,7 +114,7 @@ def test_the_anchor_keeps_the_given_intrinsics_of_a_rounded_folder(rounded_scene
 def test_a_model_whose_keypoints_are_at_another_scale_is_refused_by_name(tmp_path: Path) -> None:
     """Keypoints left at the resolution SfM ran on (a quarter of the cameras' declared size, as after rescaling
     cameras.bin by hand): the given cameras miss their tracks by hundreds of pixels, and the model is refused."""
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     scene = tmp_path / "edited"
     (scene / "images").mkdir(parents=True)
@@ -134,7 +134,7 @@ def test_a_model_whose_keypoints_are_at_another_scale_is_refused_by_name(tmp_pat
 
 
 def test_the_refusal_threshold_is_in_the_model_s_pixels() -> None:
-    from s2camp_ns.nerfstudio.colmap_tracks import MAX_SFM_TRACK_RMS_PX, check_sfm_track_rms
+    from s2camp_ns.tracks.colmap_tracks import MAX_SFM_TRACK_RMS_PX, check_sfm_track_rms
 
     width, model_width = torch.tensor([779.0, 779.0, 779.0]), torch.full((3,), 3114.0)
     # 2.4 px at 779 px are 9.6 px at 3114: accepted; 2.6 px are 10.4 px: refused (median of the three).

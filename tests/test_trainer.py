@@ -21,8 +21,8 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig, Optimizers
 from nerfstudio.model_components.ray_samplers import ProposalNetworkSampler
 from nerfstudio.utils.eval_utils import eval_load_checkpoint
 
-from s2camp_ns.nerfstudio import trainer as trainer_module
-from s2camp_ns.nerfstudio.trainer import S2CampTrainer, S2CampTrainerConfig, partial_dir, set_sampler_state
+from s2camp_ns.method import trainer as trainer_module
+from s2camp_ns.method.trainer import S2CampTrainer, S2CampTrainerConfig, partial_dir, set_sampler_state
 
 
 class TinyModel(torch.nn.Module):
@@ -134,7 +134,7 @@ def test_killed_write_keeps_the_previous_checkpoint(tmp_path: Path):
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         import torch
         from test_trainer import make_trainer, snapshot, train_step
-        from s2camp_ns.nerfstudio import trainer as trainer_module
+        from s2camp_ns.method import trainer as trainer_module
 
         trainer = make_trainer(Path({str(tmp_path)!r}))
         train_step(trainer)
@@ -240,9 +240,9 @@ def _tiny_pipeline(scene: Path, eval_interval: int):
 
     from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
     from s2camp_ns.core.preconditioner import SamplingConfig
-    from s2camp_ns.nerfstudio.datamanager import S2CampDataManagerConfig
-    from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
-    from s2camp_ns.nerfstudio.pipeline import S2CampPipelineConfig
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
+    from s2camp_ns.method.datamanager import S2CampDataManagerConfig
+    from s2camp_ns.method.pipeline import S2CampPipelineConfig
 
     config = S2CampPipelineConfig(
         datamanager=S2CampDataManagerConfig(
@@ -260,7 +260,7 @@ def test_checkpoint_of_another_scene_is_refused_with_both_camera_counts(tiny_sce
     """A checkpoint trained on 10 training cameras (the 12-image scene, every 8th held out) loaded onto 9 (every 4th
     held out): ``--load-dir`` / ``--load-checkpoint`` (the trainer) and nerfstudio's ``eval_setup`` loader (ns-render,
     ns-eval) stop with both counts instead of torch's list of size mismatches; the same split still loads."""
-    from s2camp_ns.nerfstudio.pipeline import CheckpointCamerasError
+    from s2camp_ns.method.pipeline import CheckpointCamerasError
 
     trained = _tiny_pipeline(tiny_scene, eval_interval=8)
     assert trained.model.num_train_data == 10
@@ -290,7 +290,7 @@ def test_checkpoint_of_another_scene_is_refused_with_both_camera_counts(tiny_sce
 def test_checkpoint_camera_count_reads_every_method_state():
     """s2camp (P), s2camp-so3xr3 (nerfstudio's pose deltas) and a model without camera optimizer (nerfacto's
     appearance codes), with the pipeline's and DDP's prefixes."""
-    from s2camp_ns.nerfstudio.pipeline import check_checkpoint_cameras, checkpoint_camera_count
+    from s2camp_ns.method.pipeline import check_checkpoint_cameras, checkpoint_camera_count
 
     assert checkpoint_camera_count({"_model.camera_optimizer.refiner.precond": torch.zeros(4, 6, 6)}) == 4
     assert checkpoint_camera_count({"_model.module.camera_optimizer.pose_adjustment": torch.zeros(3, 6)}) == 3

@@ -1,5 +1,5 @@
 """The track prior's scale for ``ns-process-data`` scenes: a transforms.json beside ``colmap/sparse/0``
-(``s2camp_ns.nerfstudio.transforms_tracks``). Each scene is laid out from the session's generated scene by
+(``s2camp_ns.tracks.transforms_tracks``). Each scene is laid out from the session's generated scene by
 nerfstudio's own ``colmap_to_json``, as ``ns-process-data`` writes it."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from s2camp_ns.nerfstudio.dataparser import S2CampDataParserConfig
+from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
 
 def _ns_process_data_layout(scene: Path, data: Path, keep_original_world_coordinate: bool = False) -> Path:
@@ -39,9 +39,9 @@ def perturbed_with_scene_tracks(data: Path, **options):
     import dataclasses
 
     from s2camp_ns.core.perturbation import PerturbationConfig
-    from s2camp_ns.nerfstudio.camera_perturbation import perturb_nerfstudio_cameras
-    from s2camp_ns.nerfstudio.scene_formats import detect_format
-    from s2camp_ns.nerfstudio.track_evidence import colmap_track_evidence, transforms_track_evidence
+    from s2camp_ns.data.camera_perturbation import perturb_nerfstudio_cameras
+    from s2camp_ns.data.scene_formats import detect_format
+    from s2camp_ns.tracks.track_evidence import colmap_track_evidence, transforms_track_evidence
 
     config = S2CampDataParserConfig(data=data, image_tracks="never", **options)
     parser = config.setup()

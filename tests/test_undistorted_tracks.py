@@ -1,4 +1,4 @@
-"""Track keypoints moved into the images splatfacto's data manager undistorted (``nerfstudio.undistorted_tracks``),
+"""Track keypoints moved into the images splatfacto's data manager undistorted (``tracks.undistorted_tracks``),
 checked against nerfstudio's own undistortion of an image."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import Tracks
-from s2camp_ns.nerfstudio.camera_conversion import intrinsics_from_cameras
-from s2camp_ns.nerfstudio.undistorted_tracks import undistorted_pixels, undistorted_track_evidence
+from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
+from s2camp_ns.tracks.undistorted_tracks import undistorted_pixels, undistorted_track_evidence
 
 WIDTH, HEIGHT = 200, 150
 

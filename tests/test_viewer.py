@@ -40,8 +40,8 @@ from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerElement
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.camera import vertical_field_of_view
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.nerfstudio.model import S2CampModel
-from s2camp_ns.nerfstudio.viewer_panel import FRUSTUM_COLORS, MAX_DRAWN_FOV, DisplayText, S2CampViewerPanel
+from s2camp_ns.method.model import S2CampModel
+from s2camp_ns.viewer.panel import FRUSTUM_COLORS, MAX_DRAWN_FOV, DisplayText, S2CampViewerPanel
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO_ROOT / "docs" / "viewer-screenshot.png"
@@ -711,7 +711,7 @@ def test_viewer_panel_in_headless_chromium(chromium: str, tiny_scene: Path, tmp_
     number_pair = re.compile(r"[0-9.e+-]+ / [0-9.e+-]+")
     scene, setup_arguments, load_dir = tiny_scene, TEST_SETUP, None
     if UPDATING_SCREENSHOT:  # a scene, a field and a training run that show the scene in the viewer
-        from s2camp_ns.benchmarks.scene.make_scene import MakeSceneConfig, make_scene
+        from s2camp_bench.scene.make_scene import MakeSceneConfig, make_scene
 
         scene = make_scene(MakeSceneConfig(output_dir=tmp_path / "data" / "screenshot-scene", **SCREENSHOT_SCENE))
         setup_arguments, load_dir = SCREENSHOT_SETUP, train_for_screenshot(scene, tmp_path)

@@ -22,7 +22,7 @@ from s2camp_ns.core.camera import (
     tangent_bounds,
     unproject,
 )
-from s2camp_ns.core.colmap_models import SUPPORTED_COLMAP_MODELS, intrinsics_from_colmap
+from s2camp_ns.core.colmap_camera_models import SUPPORTED_COLMAP_MODELS, intrinsics_from_colmap
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian, relative_gram_error
 from s2camp_ns.core.preconditioner import (
     DampingConfig,

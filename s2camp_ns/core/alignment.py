@@ -28,10 +28,6 @@ class Similarity:
     rotation: Float[Tensor, "3 3"]
     translation: Float[Tensor, " 3"]
 
-    @classmethod
-    def identity(cls, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Similarity:
-        return cls(1.0, torch.eye(3, dtype=dtype, device=device), torch.zeros(3, dtype=dtype, device=device))
-
     def apply_to_points(self, points: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
         return self.scale * points @ self.rotation.T + self.translation
 
@@ -68,7 +64,7 @@ def umeyama(source: Float[Tensor, "n 3"], target: Float[Tensor, "n 3"]) -> Simil
     return Similarity(scale, rotation, translation)
 
 
-def _relative_skew_and_angle(
+def relative_rotation(
     r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]
 ) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"]]:
     """Of R = r_a^T r_b: the vector of R - R^T (2 sin(angle) times the axis) and the angle, atan2 form."""
@@ -80,14 +76,7 @@ def _relative_skew_and_angle(
 
 def rotation_angle(r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]) -> Float[Tensor, " n"]:
     """Geodesic angle (rad, in [0, pi]) between rotations, atan2 form: accurate for tiny and near-pi angles."""
-    return _relative_skew_and_angle(r_a, r_b)[1]
-
-
-def rotation_vector(r_a: Float[Tensor, "n 3 3"], r_b: Float[Tensor, "n 3 3"]) -> Float[Tensor, "n 3"]:
-    """Axis-angle vector (rad) of r_a^T r_b, the rotation from r_a to r_b in r_a's frame, for angles below pi."""
-    skew, angle = _relative_skew_and_angle(r_a, r_b)
-    norm = torch.linalg.norm(skew, dim=-1, keepdim=True)
-    return torch.where(norm > 0, skew * (angle[:, None] / norm.clamp(min=torch.finfo(skew.dtype).tiny)), 0.0)
+    return relative_rotation(r_a, r_b)[1]
 
 
 def align_cameras(est_c2w: Float[Tensor, "n 3 4"], ref_c2w: Float[Tensor, "n 3 4"]) -> Similarity:

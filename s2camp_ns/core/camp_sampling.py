@@ -19,7 +19,7 @@ from s2camp_ns.core.validation import check_positive_int, check_range
 
 __all__ = [
     "CAMP_LADDER_P", "CAMP_T_FAR", "CAMP_T_NEAR", "camp_frustum_points", "inverse_power_ladder", "ladder_distance",
-    "ladder_distance_density", "power_ladder", "validate_ladder",
+    "power_ladder", "validate_ladder",
 ]  # fmt: skip
 
 CAMP_T_NEAR = 0.4  # CamP's PRECONDITION_NEAR: near distance along the unit ray, scene units
@@ -51,14 +51,6 @@ def ladder_distance(s: Tensor, t_near: float, t_far: float, ladder_p: float) -> 
     near, far = power_ladder(t_near, ladder_p), power_ladder(t_far, ladder_p)
     t = inverse_power_ladder((1.0 - s) * near + s * far, ladder_p)
     return t.clamp(min=t_near, max=t_far)
-
-
-def ladder_distance_density(t: Tensor, t_near: float, t_far: float, ladder_p: float) -> Tensor:
-    """Density of ``ladder_distance`` of a uniform ``s``: ``L'(t) / (L(t_far) - L(t_near))``."""
-    near, far = power_ladder(t_near, ladder_p), power_ladder(t_far, ladder_p)
-    inside = (t >= t_near) & (t <= t_far)
-    density = (1.0 + t / abs(ladder_p - 1.0)) ** (ladder_p - 1.0) / (far - near)
-    return torch.where(inside, density, torch.zeros_like(density))
 
 
 def _pixel_directions(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> Float[Tensor, "n l 3"]:

@@ -1,4 +1,4 @@
-"""mip-NeRF 360 scene contraction about the camera centre (paper eq. 10) and its closed-form inverse on radii.
+"""mip-NeRF 360 scene contraction of radii about the camera centre (paper eq. 10) and its closed-form inverse.
 
 ``|x| <= 1`` is kept, ``|x| > 1`` goes to radius ``2 - 1/|x|`` in the same direction; radius ``t >= 2`` has no
 preimage. Any leading batch shape; dtype and device kept.
@@ -10,9 +10,9 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.core.validation import check_finite, check_range
+from s2camp_ns.core.validation import check_range
 
-__all__ = ["contract", "contract_radius", "uncontract_radius"]
+__all__ = ["contract_radius", "uncontract_radius"]
 
 
 def contract_radius(radius: Float[Tensor, "*batch"]) -> Float[Tensor, "*batch"]:
@@ -28,17 +28,3 @@ def uncontract_radius(t: Float[Tensor, "*batch"]) -> Float[Tensor, "*batch"]:
     check_range("t", t, low=0.0, high=2.0, high_inclusive=False)
     far = t.clamp_min(1.0)  # the discarded branch of torch.where must stay finite as well
     return torch.where(t <= 1.0, t, 1.0 / (2.0 - far))
-
-
-def _norm(points: Tensor) -> Tensor:
-    return torch.linalg.vector_norm(points, dim=-1, keepdim=True)
-
-
-def contract(points: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
-    """Contract camera-centred Euclidean points into the radius-2 ball (paper eq. 10)."""
-    check_finite("points", points)
-    radius = _norm(points)
-    # s(r) / r, exactly 1 for r <= 1
-    far = radius.clamp_min(1.0)
-    factor = torch.where(radius <= 1.0, torch.ones_like(radius), (2.0 - 1.0 / far) / far)
-    return points * factor

@@ -1,7 +1,8 @@
 """Lens distortion of ``core.camera``: forward maps, their derivatives and inverses, and the one-to-one check.
 
 Coefficients k1, k2, k3, k4, p1, p2 of N ``Intrinsics`` are read as [N, 1] columns broadcasting against per-point
-[N, L] tensors (``per_camera_columns``). ``core.camera`` imports this module; it imports ``core.camera`` only for types.
+[N, L] tensors (``per_camera_columns``). ``core.camera`` imports this module; what this one reads of its ``Intrinsics``
+is the protocol ``Lens``.
 
 - perspective (OpenCV) on tangents (a, b) = (x / z, y / z), r^2 = a^2 + b^2:
   a_d = a D + 2 p1 a b + p2 (r^2 + 2 a^2), b_d = b D + 2 p2 a b + p1 (r^2 + 2 b^2),
@@ -16,16 +17,48 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
 
-if TYPE_CHECKING:
-    from s2camp_ns.core.camera import Intrinsics
-
 UNDISTORT_ITERATIONS = 20
+
+
+class Lens(Protocol):
+    """What the functions here read of N cameras (``core.camera.Intrinsics``): [N] tensors, and the form."""
+
+    fx: Tensor
+    fy: Tensor
+    cx: Tensor
+    cy: Tensor
+    skew: Tensor
+    width: Tensor
+    height: Tensor
+    k1: Tensor
+    k2: Tensor
+    k3: Tensor
+    k4: Tensor
+    p1: Tensor
+    p2: Tensor
+    distortion_terms: tuple[str, ...] | None
+    """The coefficients that may be nonzero (None: read from the values)."""
+    newton_iterations: int
+
+    @property
+    def is_fisheye(self) -> bool: ...
+
+    @property
+    def num_cameras(self) -> int: ...
+
+    @property
+    def device(self) -> torch.device: ...
+
+    @property
+    def dtype(self) -> torch.dtype: ...
+
+    def detach(self) -> Lens: ...
 
 
 Coefficient = Tensor | float | None  # None: the form has no such term, left out of the arithmetic
@@ -51,7 +84,7 @@ def distortion_slope(r2: Tensor, k1: Tensor, k2: Tensor, k3: Coefficient = 0.0, 
     return k1 + 2.0 * k2 * r2 + r2 * r2 * (3.0 * k3 + 4.0 * k4 * r2)
 
 
-def per_camera_columns(intrinsics: Intrinsics, *names: str) -> tuple[Tensor, ...]:
+def per_camera_columns(intrinsics: Lens, *names: str) -> tuple[Tensor, ...]:
     """Per-camera fields as [N, 1] columns that broadcast against per-point [N, L] tensors."""
     return tuple(getattr(intrinsics, name)[:, None] for name in names)
 
@@ -59,8 +92,8 @@ def per_camera_columns(intrinsics: Intrinsics, *names: str) -> tuple[Tensor, ...
 DISTORTION_NAMES: tuple[str, ...] = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
-def distortion_columns(intrinsics: Intrinsics) -> tuple[Tensor | None, ...]:
-    """k1, k2, k3, k4, p1, p2 as [N, 1] columns, None for terms outside ``Intrinsics.distortion_terms``."""
+def distortion_columns(intrinsics: Lens) -> tuple[Tensor | None, ...]:
+    """k1, k2, k3, k4, p1, p2 as [N, 1] columns, None for terms outside ``Lens.distortion_terms``."""
     terms = intrinsics.distortion_terms
     return tuple(
         getattr(intrinsics, name)[:, None] if terms is None or name in terms else None for name in DISTORTION_NAMES
@@ -75,7 +108,7 @@ def _tangential_terms(a: Tensor, b: Tensor, r2: Tensor, p1: Coefficient, p2: Coe
     return 2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a), 2.0 * p2 * a * b + p1 * (r2 + 2.0 * b * b)
 
 
-def distort_tangents(a: Tensor, b: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
+def distort_tangents(a: Tensor, b: Tensor, intrinsics: Lens) -> tuple[Tensor, Tensor]:
     """Perspective distortion (a, b) -> (a_d, b_d) (module doc)."""
     return _distort(a, b, distortion_columns(intrinsics))
 
@@ -90,7 +123,7 @@ def _distort(a: Tensor, b: Tensor, columns: tuple) -> tuple[Tensor, Tensor]:
     return a * factor + tangential_a, b * factor + tangential_b
 
 
-def tangent_distortion_jacobian(a: Tensor, b: Tensor, intrinsics: Intrinsics) -> Float[Tensor, "n l 2 2"]:
+def tangent_distortion_jacobian(a: Tensor, b: Tensor, intrinsics: Lens) -> Float[Tensor, "n l 2 2"]:
     """d(a_d, b_d)/d(a, b) of the perspective distortion."""
     return _distortion_jacobian(a, b, distortion_columns(intrinsics))
 
@@ -157,7 +190,7 @@ def fisheye_terms(points_cam: Float[Tensor, "n l 3"]) -> FisheyeTerms:
 FOLD_SCAN_SAMPLES = 4097
 
 
-def fisheye_fold_angle(intrinsics: Intrinsics) -> tuple[Float[Tensor, " n"], Float[Tensor, " n"]]:
+def fisheye_fold_angle(intrinsics: Lens) -> tuple[Float[Tensor, " n"], Float[Tensor, " n"]]:
     """([n] theta_fold in (0, pi] up to which theta_d increases, [n] theta_d there), scanned on a grid; no gradient."""
     k1, k2, k3, k4 = (
         getattr(intrinsics, name).detach().to(torch.float64)[:, None] for name in ("k1", "k2", "k3", "k4")
@@ -235,7 +268,7 @@ def _newton_tangential(
     return a, b
 
 
-def _undistortion_form(intrinsics: Intrinsics) -> tuple[tuple[str, ...], int]:
+def _undistortion_form(intrinsics: Lens) -> tuple[tuple[str, ...], int]:
     """(terms, Newton iterations): the declared form, or, undeclared, read from the values (a host read)."""
     if intrinsics.distortion_terms is not None:
         return intrinsics.distortion_terms, intrinsics.newton_iterations
@@ -243,7 +276,7 @@ def _undistortion_form(intrinsics: Intrinsics) -> tuple[tuple[str, ...], int]:
     return DISTORTION_NAMES if tangential else DISTORTION_NAMES[:4], UNDISTORT_ITERATIONS
 
 
-def undistort_tangents(a_d: Tensor, b_d: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
+def undistort_tangents(a_d: Tensor, b_d: Tensor, intrinsics: Lens) -> tuple[Tensor, Tensor]:
     """Inverse of ``distort_tangents``: radial-only via ``undistort_scale``; tangential by 2-D Newton, then one step
     with the Jacobian detached, the implicit-function gradient d(a, b)/dtheta = -J^-1 dF/dtheta."""
     terms, iterations = _undistortion_form(intrinsics)
@@ -272,7 +305,7 @@ NEWTON_TOLERANCE = 1e-10  # largest relative error of the undistorted tangents
 COEFFICIENT_MARGIN = 2.0  # counted with coefficients this many times as large: room to refine until the next refresh
 
 
-def undistortion_iterations(intrinsics: Intrinsics) -> int:
+def undistortion_iterations(intrinsics: Lens) -> int:
     """Newton steps (0 without distortion, else at least ``MIN_NEWTON_ITERATIONS``) inverting every ``image_grid``
     pixel to ``NEWTON_TOLERANCE``, the coefficients scaled by ``COEFFICIENT_MARGIN`` unless that folds."""
     terms = intrinsics.distortion_terms
@@ -312,7 +345,7 @@ def undistortion_iterations(intrinsics: Intrinsics) -> int:
     return UNDISTORT_ITERATIONS
 
 
-def distorted_coordinates(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
+def distorted_coordinates(pixels: Float[Tensor, "n l 2"], intrinsics: Lens) -> tuple[Tensor, Tensor]:
     """(a_d, b_d) of pixels: the inverse of the affine map u = fx a_d + s b_d + cx, v = fy b_d + cy."""
     fx, fy, cx, cy, skew = per_camera_columns(intrinsics, "fx", "fy", "cx", "cy", "skew")
     b_d = (pixels[..., 1] - cy) / fy
@@ -320,7 +353,7 @@ def distorted_coordinates(pixels: Float[Tensor, "n l 2"], intrinsics: Intrinsics
     return a_d, b_d
 
 
-def _corner_distorted_radius(intrinsics: Intrinsics) -> Tensor:
+def _corner_distorted_radius(intrinsics: Lens) -> Tensor:
     """Largest distorted radius |(a_d, b_d)| over the four image corners, [N]."""
     us = torch.stack([torch.zeros_like(intrinsics.width), intrinsics.width], dim=-1)
     vs = torch.stack([torch.zeros_like(intrinsics.height), intrinsics.height], dim=-1)
@@ -331,11 +364,11 @@ def _corner_distorted_radius(intrinsics: Intrinsics) -> Tensor:
     return r_d.reshape(intrinsics.num_cameras, -1).amax(dim=-1)
 
 
-def _coefficients(intrinsics: Intrinsics, index: int, names: tuple[str, ...]) -> str:
+def _coefficients(intrinsics: Lens, index: int, names: tuple[str, ...]) -> str:
     return ", ".join(names) + " = (" + ", ".join(f"{getattr(intrinsics, n)[index].item():g}" for n in names) + ")"
 
 
-def check_distortion_monotonic(intrinsics: Intrinsics) -> None:
+def check_distortion_monotonic(intrinsics: Lens) -> None:
     """ValueError, naming the coefficients and the camera, unless the distortion is one-to-one over the image:
     analytic fold radius (k1, k2 only), a grid check (other perspective) or ``fisheye_fold_angle`` (fisheye)."""
     if intrinsics.is_fisheye:
@@ -348,7 +381,7 @@ def check_distortion_monotonic(intrinsics: Intrinsics) -> None:
         _check_perspective_grid(intrinsics)
 
 
-def _check_radial(intrinsics: Intrinsics) -> None:
+def _check_radial(intrinsics: Lens) -> None:
     """r (1 + k1 r^2 + k2 r^4) must increase up to the corners: its distorted radius at the fold, the smallest
     positive root of 1 + 3 k1 s + 5 k2 s^2 (s = r^2), must exceed the corner radius."""
     k1 = intrinsics.k1.detach().double()
@@ -376,7 +409,7 @@ def _check_radial(intrinsics: Intrinsics) -> None:
         )
 
 
-def _check_fisheye(intrinsics: Intrinsics) -> None:
+def _check_fisheye(intrinsics: Lens) -> None:
     """theta_d(theta) must increase from the optical axis up to the image corners."""
     intrinsics64 = intrinsics.detach().to(dtype=torch.float64)
     theta_fold, theta_d_fold = fisheye_fold_angle(intrinsics64)
@@ -396,7 +429,7 @@ GRID_EDGE_SAMPLES = 65
 GRID_INTERIOR_SAMPLES = 17
 
 
-def image_grid(intrinsics: Intrinsics, edge: int = GRID_EDGE_SAMPLES, interior: int = GRID_INTERIOR_SAMPLES) -> Tensor:
+def image_grid(intrinsics: Lens, edge: int = GRID_EDGE_SAMPLES, interior: int = GRID_INTERIOR_SAMPLES) -> Tensor:
     """Pixels [N, L, 2] on the image border (``edge`` per side) and on an ``interior`` x ``interior`` grid."""
     t = torch.linspace(0.0, 1.0, edge, dtype=intrinsics.dtype, device=intrinsics.device)
     s = torch.linspace(0.0, 1.0, interior, dtype=intrinsics.dtype, device=intrinsics.device)
@@ -408,7 +441,7 @@ def image_grid(intrinsics: Intrinsics, edge: int = GRID_EDGE_SAMPLES, interior: 
     return unit[None] * size[:, None, :]
 
 
-def _check_perspective_grid(intrinsics: Intrinsics) -> None:
+def _check_perspective_grid(intrinsics: Lens) -> None:
     """Undistortion must converge with an invertible Jacobian on ``image_grid``."""
     intrinsics64 = intrinsics.detach().to(dtype=torch.float64)
     pixels = image_grid(intrinsics64)

@@ -299,26 +299,3 @@ def condition_number(sigma: Float[Tensor, "n k k"]) -> Float[Tensor, " n"]:
     """Largest over smallest eigenvalue of symmetric PSD matrices."""
     eigenvalues = torch.linalg.eigvalsh(sigma.to(torch.float64))
     return eigenvalues[..., -1] / eigenvalues[..., 0].clamp(min=torch.finfo(torch.float64).tiny)
-
-
-@torch.no_grad()
-def reexpress_latent(
-    latent: Float[Tensor, "n k"], old: Preconditioner, new: Preconditioner, adam_state: dict | None = None
-) -> None:
-    """phi_hat_new = P_new P_old^-1 phi_hat_old in place, so phi is unchanged (paper eq. 15); Adam's state too."""
-    change = new.matrix @ old.inverse
-    latent.copy_((change.to(latent.device) @ latent.to(torch.float64)[..., None])[..., 0].to(latent.dtype))
-    if adam_state:
-        reexpress_adam_state(old, new, adam_state)
-
-
-def reexpress_adam_state(old: Preconditioner, new: Preconditioner, adam_state: dict) -> None:
-    """Map Adam's moments from P_old to P_new in place (eq. 15), M = P_new P_old^-1: m_new = M^-T m_old (exact),
-    v_new = (M^-T)^2 v_old elementwise (exact for diagonal M). The step count is kept."""
-    gradient_map = new.inverse.transpose(-1, -2) @ old.matrix.transpose(-1, -2)
-    if "exp_avg" in adam_state:
-        m = adam_state["exp_avg"]
-        m.copy_((gradient_map.to(m.device) @ m.to(torch.float64)[..., None])[..., 0].to(m.dtype))
-    if "exp_avg_sq" in adam_state:
-        v = adam_state["exp_avg_sq"]
-        v.copy_(((gradient_map**2).to(v.device) @ v.to(torch.float64)[..., None])[..., 0].to(v.dtype))

@@ -393,19 +393,21 @@ class CameraRefiner(nn.Module):
             for latent, block_anchor, block_radius in self._prior_blocks():
                 place_at_anchor(latent, block_anchor, block_radius)
 
-    def _prior_blocks(self) -> list[tuple[nn.Parameter, Tensor, Tensor]]:
-        """(latent, anchor a_hat = P a (paper eq. 15), radius) per latent; intrinsics rows from their first image."""
-        anchor = (self.precond @ self.prior_anchor[..., None])[..., 0]  # [n, K]
-        blocks = [(self.whitened_delta, anchor[:, :NUM_POSE_PARAMS], self.prior_radius)]
-        if hasattr(self, "whitened_intrinsics"):
-            rows = anchor[self.first_image_of_each_row(), NUM_POSE_PARAMS:]
-            blocks.append((self.whitened_intrinsics, rows, self.prior_radius_intrinsics))
-        return blocks
-
     def prior_anchor_latents(self) -> tuple[Float[Tensor, "n 6"], Float[Tensor, "c m"] | None]:
-        """([n, 6] pose anchor, [c, m] intrinsics anchor or None) in the whitened latents."""
-        blocks = self._prior_blocks()
-        return blocks[0][1], blocks[1][1] if len(blocks) > 1 else None
+        """The anchor a_hat = P a (paper eq. 15) in the whitened latents: [n, 6] pose rows and, with intrinsics, the
+        [c, m] rows of each intrinsics row's first image (else None)."""
+        anchor = (self.precond @ self.prior_anchor[..., None])[..., 0]  # [n, K]
+        if not hasattr(self, "whitened_intrinsics"):
+            return anchor[:, :NUM_POSE_PARAMS], None
+        return anchor[:, :NUM_POSE_PARAMS], anchor[self.first_image_of_each_row(), NUM_POSE_PARAMS:]
+
+    def _prior_blocks(self) -> list[tuple[nn.Parameter, Tensor, Tensor]]:
+        """(latent, its anchor, radius) per latent (``prior_anchor_latents``)."""
+        pose, intrinsics = self.prior_anchor_latents()
+        blocks = [(self.whitened_delta, pose, self.prior_radius)]
+        if intrinsics is not None:
+            blocks.append((self.whitened_intrinsics, intrinsics, self.prior_radius_intrinsics))
+        return blocks
 
     @torch.no_grad()
     def apply_track_prior(self, lr: float) -> None:
@@ -568,7 +570,7 @@ class CameraRefiner(nn.Module):
     @torch.no_grad()
     def recompute_stale_preconditioner(self, step: int, optimizer: torch.optim.Optimizer | None) -> None:
         """Recompute a stale P as a refresh does; ValueError, naming why, if no P exists for these cameras."""
-        if self._stale_preconditioner is None:
+        if not self.preconditioner_is_stale:
             return
         reason, self._stale_preconditioner = self._stale_preconditioner, None
         try:

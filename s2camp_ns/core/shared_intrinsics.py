@@ -44,7 +44,7 @@ from s2camp_ns.core.preconditioner import (
     sample_proxy_points,
     symmetric_sqrt_and_inverse,
 )
-from s2camp_ns.core.validation import check_finite, check_range
+from s2camp_ns.core.validation import check_finite
 
 NUM_POSE_PARAMS = 6
 
@@ -56,10 +56,6 @@ class SharedPreconditioner:
     matrix: Float[Tensor, "c k k"]
     inverse: Float[Tensor, "c k k"]
     gram: Float[Tensor, "c k k"]
-
-    @property
-    def num_intrinsics(self) -> int:
-        return self.matrix.shape[-1] - NUM_POSE_PARAMS
 
 
 def block_triangular_factor(
@@ -110,50 +106,6 @@ def compute_shared_preconditioner(
     sigma, _ = gram_from_points(points, intrinsics, layout)
     matrix, inverse = block_triangular_factor(sigma, damping)
     return SharedPreconditioner(matrix=matrix, inverse=inverse, gram=sigma)
-
-
-def deltas_from_latents(
-    pose_latent: Float[Tensor, "n 6"],
-    intrinsics_latent: Float[Tensor, "c m"],
-    camera_of_image: Int[Tensor, " n"],
-    inverse: Float[Tensor, "c k k"],
-) -> Float[Tensor, "n k"]:
-    """Per-image deltas phi_i = T_c^-1 [z_i; w_c] (paper eq. 15 with the shared latent), float64, differentiable."""
-    _check_camera_index(camera_of_image, intrinsics_latent.shape[0], pose_latent.shape[0])
-    latent = torch.cat([pose_latent.to(torch.float64), intrinsics_latent.to(torch.float64)[camera_of_image]], dim=-1)
-    return (inverse[camera_of_image] @ latent[..., None])[..., 0]
-
-
-def joint_gram(sigma: Float[Tensor, "k k"], num_images: int) -> Float[Tensor, "kk kk"]:
-    """Arrowhead Gram over (d_1, ..., d_n, e) of ``num_images`` images sharing intrinsics, each with ``sigma``."""
-    check_range("num_images", num_images, low=1)
-    p, k = NUM_POSE_PARAMS, sigma.shape[-1]
-    m = k - p
-    size = p * num_images + m
-    out = sigma.new_zeros(size, size, dtype=torch.float64)
-    sigma = sigma.to(torch.float64)
-    for i in range(num_images):
-        rows = slice(p * i, p * (i + 1))
-        out[rows, rows] = sigma[:p, :p]
-        out[rows, size - m :] = sigma[:p, p:]
-        out[size - m :, rows] = sigma[p:, :p]
-    out[size - m :, size - m :] = num_images * sigma[p:, p:]
-    return out
-
-
-def joint_inverse(inverse: Float[Tensor, "k k"], num_images: int) -> Float[Tensor, "kk kk"]:
-    """The map from the joint latent (z_1, ..., z_n, w) to the joint deltas (d_1, ..., d_n, e) of one camera."""
-    check_range("num_images", num_images, low=1)
-    p, k = NUM_POSE_PARAMS, inverse.shape[-1]
-    m = k - p
-    size = p * num_images + m
-    out = inverse.new_zeros(size, size, dtype=torch.float64)
-    for i in range(num_images):
-        rows = slice(p * i, p * (i + 1))
-        out[rows, rows] = inverse[:p, :p]
-        out[rows, size - m :] = inverse[:p, p:]
-    out[size - m :, size - m :] = inverse[p:, p:]
-    return out
 
 
 @torch.no_grad()
@@ -227,9 +179,6 @@ __all__ = [
     "SharedPreconditioner",
     "block_triangular_factor",
     "compute_shared_preconditioner",
-    "deltas_from_latents",
-    "joint_gram",
-    "joint_inverse",
     "mean_per_camera",
     "reexpress_latents",
 ]

@@ -33,7 +33,7 @@ and get RMS NaN (no prior)."""
 LOSS_SCALE_PX = 1.0
 """Scale c (px) of the Cauchy loss: residuals well within c count as in least squares, those beyond it about
 logarithmically. The bundle adjustments that place the tracks' points use the same loss
-(``s2camp_ns.nerfstudio.robust_adjustment.cauchy_adjustment_options``)."""
+(``s2camp_ns.tracks.robust_adjustment.cauchy_adjustment_options``)."""
 _MAX_ITERATIONS = 50
 
 
@@ -54,6 +54,10 @@ class TrackFit:
     """Valid observations per image at the fit (0 for an image that was not fitted)."""
     intrinsics_held: Bool[Tensor, " c"] | None = None
     """``fit_anchor`` only: per physical camera, True where the fit kept the given intrinsics (poses only)."""
+    squared_px2: Float[Tensor, " o"] | None = None
+    """``fit_cameras_to_tracks`` only: each observation's squared residual (px^2) at the fit."""
+    valid: Float[Tensor, " o"] | None = None
+    """``fit_cameras_to_tracks`` only: 1 where an observation counts at the fit (in front, its image fitted), else 0."""
 
 
 def cauchy_loss(squared: Float[Tensor, " o"]) -> Float[Tensor, " o"]:
@@ -216,15 +220,17 @@ def _levenberg_marquardt(
     return pose, intr, residual, valid, iterations
 
 
-def _fit(
+def fit_cameras_to_tracks(
     tracks: Tracks,
     c2w: Float[Tensor, "n 3 4"],
     intrinsics: Intrinsics,
     free: Bool[Tensor, " 16"] | tuple[int, ...],
-    camera_of_image: Int[Tensor, " n"] | None,
-    max_iterations: int,
-) -> tuple[TrackFit, Float[Tensor, " o"], Float[Tensor, " o"]]:
-    """``fit_cameras_to_tracks``, with each observation's squared residual (px^2) and validity at the fit."""
+    camera_of_image: Int[Tensor, " n"] | None = None,
+    max_iterations: int = _MAX_ITERATIONS,
+) -> TrackFit:
+    """Robust fit of the ``free`` deltas to the tracks (module docstring), float64 on the CPU. ``c2w``: OpenCV
+    camera-to-world in the tracks' world; ``free``: mask or indices of the 16 ``PARAMETER_NAMES`` columns that move;
+    ``camera_of_image``: physical camera 0..C-1 of each image (default: one per image)."""
     problem = _problem(tracks, c2w, intrinsics, free, camera_of_image)
     n, image = c2w.shape[0], problem.image
     no_pose = torch.zeros(n, len(problem.pose_columns), dtype=torch.float64)
@@ -239,22 +245,8 @@ def _fit(
     deltas[:, problem.intrinsics_columns] = intr[problem.groups]
     squared = residual.square().sum(-1)
     observations = torch.zeros(n, dtype=torch.float64).index_add_(0, image, valid)
-    fit = TrackFit(deltas, per_image_rms(squared, valid, image, n), rms_given, iterations, observations)
-    return fit, squared, valid
-
-
-def fit_cameras_to_tracks(
-    tracks: Tracks,
-    c2w: Float[Tensor, "n 3 4"],
-    intrinsics: Intrinsics,
-    free: Bool[Tensor, " 16"] | tuple[int, ...],
-    camera_of_image: Int[Tensor, " n"] | None = None,
-    max_iterations: int = _MAX_ITERATIONS,
-) -> TrackFit:
-    """Robust fit of the ``free`` deltas to the tracks (module docstring), float64 on the CPU. ``c2w``: OpenCV
-    camera-to-world in the tracks' world; ``free``: mask or indices of the 16 ``PARAMETER_NAMES`` columns that move;
-    ``camera_of_image``: physical camera 0..C-1 of each image (default: one per image)."""
-    return _fit(tracks, c2w, intrinsics, free, camera_of_image, max_iterations)[0]
+    rms = per_image_rms(squared, valid, image, n)
+    return TrackFit(deltas, rms, rms_given, iterations, observations, squared_px2=squared, valid=valid)
 
 
 def fit_anchor(
@@ -274,7 +266,8 @@ def fit_anchor(
     camera from the refit's residuals with the factor N / dof (N valid observations, dof residuals less fitted
     parameters); with rho(s) = s it is the unbiased noise variance per axis and the test is Wilks'.
     """
-    full, full_squared, full_valid = _fit(tracks, c2w, intrinsics, free, camera_of_image, _MAX_ITERATIONS)
+    full = fit_cameras_to_tracks(tracks, c2w, intrinsics, free, camera_of_image)
+    full_squared, full_valid = full.squared_px2, full.valid
     mask = _free_mask(free)
     m = int(mask[NUM_POSE_PARAMS:].sum())
     n = c2w.shape[0]
@@ -284,7 +277,8 @@ def fit_anchor(
         return full
     pose_mask = mask.clone()
     pose_mask[NUM_POSE_PARAMS:] = False
-    held, held_squared, held_valid = _fit(tracks, c2w, intrinsics, pose_mask, camera_of_image, _MAX_ITERATIONS)
+    held = fit_cameras_to_tracks(tracks, c2w, intrinsics, pose_mask, camera_of_image)
+    held_squared, held_valid = held.squared_px2, held.valid
     group = groups[tracks.image.to("cpu", torch.long)]
 
     def per_group(values: Tensor, index: Tensor = group) -> Tensor:

@@ -74,11 +74,4 @@ def corrected_viewmat(viewmat: Float[Tensor, "n 4 4"], correction: Float[Tensor,
     return torch.cat([top, viewmat[..., 3:, :]], dim=-2)
 
 
-def refined_viewmat(
-    viewmat: Float[Tensor, "n 4 4"], base_k: Float[Tensor, "n 3 3"], refined_k: Float[Tensor, "n 3 3"]
-) -> Float[Tensor, "n 4 4"]:
-    """The view matrix that, rendered with ``base_k``, renders as ``refined_k`` (A = K^-1 K')."""
-    return corrected_viewmat(viewmat, intrinsics_correction(base_k, refined_k))
-
-
-__all__ = ["corrected_viewmat", "intrinsics_correction", "intrinsics_matrix", "refined_viewmat"]
+__all__ = ["corrected_viewmat", "intrinsics_correction", "intrinsics_matrix"]

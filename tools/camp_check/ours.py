@@ -4,7 +4,7 @@ Run from the repository root with the project's environment (see tools/camp_chec
 
     .venv/bin/python tools/camp_check/ours.py --out /tmp/camp_check/ours.npz
 
-For every check camera (room intrinsics at 1/4 resolution and the 90 degree "wide" camera of benchmarks/common.py,
+For every check camera (room intrinsics at 1/4 resolution and the 90 degree "wide" camera of benchmarks/s2camp_bench/common.py,
 each at the identity pose and at a generic world pose) it writes
 
 - the cameras (OpenCV c2w, fx, fy, cx, cy, W, H),
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from s2camp_ns.benchmarks.common import FRUSTA
+from s2camp_bench.common import FRUSTA
 from s2camp_ns.core.camera import Intrinsics, se3_exp, tangent_bounds
 from s2camp_ns.core.camp_sampling import camp_frustum_points
 from s2camp_ns.core.frustum import sample_frustum

@@ -1,0 +1,159 @@
+"""``python -m s2camp_bench.gpu_check.bundle``: the wheels a lent GPU machine needs to run the check offline.
+
+The machine reaches no package registry and holds its own Python 3.12 with torch (``device_image``). The bundle is
+exactly the packages the training path imports (``TRAINING_MODULES``, imported here in a fresh process) that the
+machine lacks, at this checkout's versions, as Python 3.12 x86_64 wheels; a package the registry has no such wheel of
+is built from its sdist with a Python 3.12 interpreter (``--python312``) or named as missing; plus a wheel of this
+package. Wheels are slimmed of folders nothing on the machine reads (``SLIM``). It goes into ``--output`` (``.whl/``,
+ignored by git) only when, with the files git tracks, it stays within ``--limit-mib`` (what one call to the machine
+carries); the sizes are printed either way. ``--dry-run`` lists what it would fetch and build, and fetches nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+
+from .device_image import DEVICE_PACKAGES
+from .wheels import build_command, download_command, own_wheel, python_version, run_quietly, slim_wheel
+
+TRAINING_MODULES = (
+    "nerfstudio.scripts.train", "nerfstudio.configs.method_configs", "nerfstudio.engine.trainer",
+    "nerfstudio.models.splatfacto", "nerfstudio.data.datamanagers.full_images_datamanager", "torch.utils.tensorboard",
+    "torchmetrics.image.lpip", "gsplat.rendering", "pycolmap", "pytest", "s2camp_ns.method_config",
+    "s2camp_bench.evaluation", "s2camp_bench.gpu_check.cli", "s2camp_bench.gpu_check.regime",
+    "s2camp_bench.gpu_check.measured_train",
+)  # fmt: skip
+"""What the check, the regime command and the ``cuda`` tests import on the machine."""
+OWN_DISTRIBUTION = "s2camp-ns"
+SLIM = {
+    "gsplat": ("gsplat/cuda/csrc/third_party/glm/doc/", "gsplat/cuda/csrc/third_party/glm/test/"),
+    "tensorly": ("tensorly/datasets/data/",),
+    "viser": ("viser/client/src/", "viser/client/public/"),
+    "torch-fidelity": ("tests/",),
+}
+"""Folders left out of a wheel: glm's manual and tests (gsplat compiles with glm's headers only), tensorly's sample
+data sets, viser's client sources (it serves its built client, and checks the sources only to rebuild them),
+torch-fidelity's tests (installed as a top-level package ``tests``)."""
+LISTING = """
+import importlib, importlib.metadata as metadata, json, sys
+for name in sys.argv[1:]:
+    importlib.import_module(name)
+owners = metadata.packages_distributions()
+found = {d for module in list(sys.modules) for d in owners.get(module.split(".")[0], [])}
+print(json.dumps({d: metadata.version(d) for d in sorted(found)}))
+"""
+
+
+def normalized(name: str) -> str:
+    """A distribution name as the registry compares them (PEP 503)."""
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+@dataclass
+class BundleConfig:
+    """Prepare the offline bundle of wheels for a lent GPU machine."""
+
+    output: Path = Path(".whl")
+    """The bundle's folder (ignored by git); replaced only by a bundle within the limit."""
+    limit_mib: float = 64.0
+    """The most that one call to the machine carries: the bundle plus the files git tracks."""
+    python312: str = "python3.12"
+    """A Python 3.12 interpreter to build wheels from sdists with (with pyenv: ``PYENV_VERSION=3.12.1``)."""
+    dry_run: bool = False
+    """List the packages and what would be done with each; fetch and build nothing."""
+
+
+def training_distributions() -> dict[str, str]:
+    """Distribution -> version of everything ``TRAINING_MODULES`` import, read in a fresh process."""
+    result = subprocess.run(
+        [sys.executable, "-c", LISTING, *TRAINING_MODULES], capture_output=True, text=True, check=False
+    )
+    if result.returncode != 0:
+        raise SystemExit(f"importing the training path failed:\n{result.stderr[-3000:]}")
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def to_carry(distributions: dict[str, str]) -> dict[str, str]:
+    """Those the machine lacks, this package left out (its own wheel is built from the checkout)."""
+    present = {normalized(name) for name in DEVICE_PACKAGES} | {OWN_DISTRIBUTION}
+    return {name: version for name, version in distributions.items() if normalized(name) not in present}
+
+
+def tracked_bytes(repository: Path) -> int:
+    listed = subprocess.run(["git", "ls-files", "-z"], cwd=repository, capture_output=True, check=True).stdout
+    paths = (repository / name for name in listed.decode().split("\0") if name)
+    return sum(path.stat().st_size for path in paths if path.is_file() and not path.is_symlink())
+
+
+def fetch(packages: dict[str, str], folder: Path, python312: str) -> list[str]:
+    """Download each package's wheel into ``folder``, building it from its sdist where there is none; what could
+    not be had, and why."""
+    missing = []
+    for name, version in packages.items():
+        requirement = f"{name}=={version}"
+        if run_quietly(download_command(requirement, folder)) is None:
+            print(f"  fetched {requirement}", flush=True)
+            continue
+        found = python_version(python312)
+        if found != "3.12":
+            missing.append(f"{requirement}: no Python 3.12 wheel on the registry, and {python312!r} is not Python 3.12 "
+                           f"({found or 'does not run'}) to build one; pass --python312")  # fmt: skip
+            continue
+        problem = run_quietly(build_command(python312, requirement, folder))
+        if problem is None:
+            print(f"  built {requirement} from its sdist with {python312}", flush=True)
+        else:
+            missing.append(f"{requirement}: no Python 3.12 wheel on the registry, and building it failed: {problem}")
+    return missing
+
+
+def mib(size: int) -> str:
+    return f"{size / 2**20:.1f} MiB"
+
+
+def main(config: BundleConfig) -> int:
+    repository = Path(__file__).resolve().parents[2]
+    if not (repository / "setup.py").is_file():
+        raise SystemExit(f"the bundle is made from a checkout of this repository (editable install), not {repository}")
+    packages = to_carry(training_distributions())
+    print(f"the training path imports {len(packages)} packages the machine lacks:", flush=True)
+    for name, version in packages.items():
+        slim = f" (slimmed: without {', '.join(SLIM[normalized(name)])})" if normalized(name) in SLIM else ""
+        print(f"  {name}=={version}{slim}")
+    print(f"  {OWN_DISTRIBUTION} (this checkout, built as a wheel)")
+    if config.dry_run:
+        return 0
+    staging = config.output.with_name(config.output.name + ".partial")
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    missing = fetch(packages, staging, config.python312)
+    own_wheel(repository, staging)
+    for wheel in staging.glob("*.whl"):
+        drop = SLIM.get(normalized(wheel.name.split("-")[0]))
+        if drop:
+            print(f"  slimmed {wheel.name} by {mib(slim_wheel(wheel, drop))}", flush=True)
+    bundle, tree = sum(w.stat().st_size for w in staging.glob("*.whl")), tracked_bytes(repository)
+    print(f"bundle: {len(list(staging.glob('*.whl')))} wheels, {mib(bundle)}; tracked files: {mib(tree)}; "
+          f"together {mib(bundle + tree)} of {config.limit_mib:g} MiB", flush=True)  # fmt: skip
+    if missing:
+        print("missing (the check cannot run without them):\n  " + "\n  ".join(missing), flush=True)
+        return 1
+    if bundle + tree > config.limit_mib * 2**20:
+        print(f"refused: over the limit of {config.limit_mib:g} MiB; {config.output} left as it was", flush=True)
+        return 1
+    shutil.rmtree(config.output, ignore_errors=True)
+    staging.rename(config.output)
+    print(f"bundle ready in {config.output}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(tyro.cli(BundleConfig, description=__doc__)))

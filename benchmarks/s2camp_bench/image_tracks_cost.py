@@ -1,0 +1,174 @@
+"""``s2camp-bench image-tracks``: wall time of an image tracks build (``s2camp_ns.tracks.image_tracks``) at
+several image counts of 1080p images, per stage.
+
+One generated scene (``scene``: 300 images of 1920x1080 on a ring, 80 degrees wide, JPEG) is made once in ``scene_dir``
+and kept there (its generation, slow on one CPU core, is not timed; its cost: docs/IMAGE-TRACKS.md, "Cost"). Each count
+takes evenly spaced images of it (every 6th of 300 for 50, every 2nd for 150), gives them the true cameras turned and
+moved as a phone's visual-inertial poses are (``rotation_deg``, ``centre_noise``; one focal length ``focal_error`` long)
+and builds their tracks into a fresh cache folder, as the data parser does before training. Up to ``EXHAUSTIVE_LIMIT``
+images every pair is matched, beyond it each image with its ``NEIGHBOURS`` (``neighbour_pairs``), so the matching's
+pairs grow quadratically up to 100 images and linearly after. A row records the build's wall time, its stages'
+(``ImageTracks.stage_seconds``), the pairs matched, the summary (points, observations, reprojection error, how far the
+adjusted cameras lie from the given ones) and the load average before and after: the build shares the machine with
+whatever else runs on it, and its CPU stages use every core.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from s2camp_bench.report import markdown_table
+from s2camp_bench.scene.make_scene import MakeSceneConfig
+from s2camp_ns.tracks.image_tracks import (
+    EXHAUSTIVE_LIMIT,
+    NEIGHBOURS,
+    feature_device,
+    image_tracks,
+    neighbour_pairs,
+)
+
+from .common import (
+    DEFAULT_OUTPUT_DIR,
+    generated_scene,
+    in_work_folder,
+    log,
+    write_report,
+)
+
+STAGES = ("SIFT", "matching", "triangulation", "adjustment")
+"""The build's kinds of stage (``image_tracks``' progress), the report's columns."""
+
+
+@dataclass
+class ImageTracksCostConfig:
+    """Wall time of image tracks builds of 50, 150 and 300 generated 1080p images (module docstring)."""
+
+    counts: tuple[int, ...] = (300, 150, 50)
+    """Image counts to build, each from evenly spaced images of the scene (the largest first: the one that matters)."""
+    scene: MakeSceneConfig = field(
+        default_factory=lambda: MakeSceneConfig(
+            num_cameras=300, width=1920, height=1080, fov="wide", image_format="jpg", supersample=1, seed=0
+        )
+    )
+    """The generated scene (s2camp-make-scene settings); its images are the largest count's."""
+    rotation_deg: float = 1.0
+    """RMS rotation error of the given cameras (degrees): a phone's visual-inertial poses."""
+    centre_noise: float = 0.02
+    """Per-axis centre noise of the given cameras (scene units; the generated ring's radius is 4)."""
+    focal_error: float = 0.02
+    """Relative error of the given focal length (one camera: a factory calibration)."""
+    seed: int = 0
+    """Seed of the given cameras' errors."""
+    quick: bool = False
+    """Small run for CI: 12 and 8 images of 160x120; asserts only that it runs."""
+    scene_dir: Path | None = None
+    """Where the scene and the caches go (a temporary folder by default, removed afterwards; name one to keep the
+    scene for later runs)."""
+    output_dir: Path = DEFAULT_OUTPUT_DIR
+    """Folder of the report (``--output-dir docs/benchmarks`` rewrites the committed one)."""
+    write: bool = True
+    json: bool = False
+
+    def effective(self) -> ImageTracksCostConfig:
+        if not self.quick:
+            return self
+        scene = replace(self.scene, num_cameras=12, width=160, height=120)
+        return replace(self, counts=(12, 8), scene=scene)
+
+
+def given_cameras(truth: pycolmap.Reconstruction, count: int, config: ImageTracksCostConfig) -> pycolmap.Reconstruction:
+    """``count`` evenly spaced images of ``truth`` (by name) with the configured pose and focal errors, no points."""
+    rng = np.random.default_rng(config.seed)
+    images = sorted(truth.images.values(), key=lambda image: image.name)
+    chosen = [images[i] for i in np.linspace(0, len(images), count, endpoint=False).astype(int)]
+    given = pycolmap.Reconstruction()
+    for camera_id in sorted({image.camera_id for image in chosen}):
+        camera = copy.copy(truth.cameras[camera_id])
+        params = camera.params.copy()
+        params[0] *= 1.0 + config.focal_error
+        camera.params = params
+        given.add_camera_with_trivial_rig(camera)
+    per_axis = math.radians(config.rotation_deg) / math.sqrt(3.0)
+    for image in chosen:
+        pose = image.cam_from_world()
+        centre = -(pose.rotation.inverse() * pose.translation) + rng.normal(0.0, config.centre_noise, 3)
+        rotation = pycolmap.Rotation3d(rng.normal(0.0, per_axis, 3)) * pose.rotation
+        noisy = pycolmap.Rigid3d(rotation, -(rotation * centre))
+        posed = pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id)
+        given.add_image_with_trivial_frame(posed, noisy)
+    return given
+
+
+def run(config: ImageTracksCostConfig) -> list[dict]:
+    config = config.effective()
+    for count in config.counts:
+        if count < 1 or count > config.scene.num_cameras:
+            raise ValueError(f"counts must lie in 1..scene.num_cameras ({config.scene.num_cameras}), got {count}")
+    return in_work_folder(config.scene_dir, "s2camp-image-tracks-", lambda root: _run(config, root))
+
+
+def _run(config: ImageTracksCostConfig, root: Path) -> list[dict]:
+    scene = generated_scene(replace(config.scene, output_dir=root / "scene"))
+    truth = pycolmap.Reconstruction(scene / "sparse" / "0")
+    rows = []
+    for index, count in enumerate(config.counts):
+        log(f"image-tracks: build {index + 1}/{len(config.counts)}, {count} images")
+        cache = root / "caches" / f"{count}"
+        shutil.rmtree(cache, ignore_errors=True)
+        given = given_cameras(truth, count, config)
+        load_before = os.getloadavg()
+        start = time.perf_counter()
+        result = image_tracks(given, scene / "images", cache)
+        seconds = time.perf_counter() - start
+        pairs = count * (count - 1) // 2 if count <= EXHAUSTIVE_LIMIT else len(neighbour_pairs(given))
+        row = {
+            "images": count,
+            "size": f"{config.scene.width}x{config.scene.height}",
+            "pairs": pairs,
+            "seconds": seconds,
+            **{f"{stage}_seconds": result.stage_seconds.get(stage, 0.0) for stage in STAGES},
+            "summary": result.summary or result.reason,
+            "device": "GPU" if feature_device()[0] == pycolmap.Device.cuda else "CPU",
+            "load_before": round(load_before[0], 2),
+            "load_after": round(os.getloadavg()[0], 2),
+            "cpus": os.cpu_count(),
+        }
+        log(f"image-tracks: {count} images in {seconds:.0f} s: {row['summary']}")
+        rows.append(row)
+    return rows
+
+
+def report(rows: list[dict], config: ImageTracksCostConfig) -> Path:
+    config = config.effective()
+    s = config.scene
+    setup = (
+        f"Image tracks builds (`s2camp_ns/tracks/image_tracks.py`) of evenly spaced images of one generated "
+        f"scene ({s.num_cameras} images of {s.width}x{s.height} on a ring, {s.fov} field of view, {s.image_format}), "
+        f"the given cameras {config.rotation_deg:g} deg RMS and {config.centre_noise:g} units per axis off, the "
+        f"focal length {config.focal_error:.0%} long (a phone's poses); every pair matched up to {EXHAUSTIVE_LIMIT} "
+        f"images, else each image with its {NEIGHBOURS} nearest cameras that face alike. Wall seconds of the whole "
+        f"build and of each kind of stage; load = the 1-minute load average before the build (the CPU stages use "
+        f"every core: a loaded machine slows them)."
+    )
+    columns = ["images", "pairs", "seconds", *(f"{stage}_seconds" for stage in STAGES), "device", "load_before"]
+    headers = ["images", "pairs", "total s", *(f"{stage} s" for stage in STAGES), "device", "load before"]
+    summaries = "\n".join(f"- {row['images']} images: {row['summary']}" for row in rows)
+    return write_report(
+        config.output_dir,
+        "image-tracks",
+        "Image tracks: the cost of a build",
+        "s2camp-bench image-tracks" + (" --quick" if config.quick else ""),
+        [setup, markdown_table(rows, columns, headers), "## What each build made", summaries],
+    )
+
+
+__all__ = ["ImageTracksCostConfig", "given_cameras", "report", "run"]

@@ -1,0 +1,1 @@
+"""The viewer's S2CamP panel and training-camera frusta."""
