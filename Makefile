@@ -63,13 +63,14 @@ bench: venv
 	$(BIN)/s2camp-bench all --output-dir $(BENCH_DIR)
 
 # The GPU check (docs/GPU-CHECK.md): refuses to run without CUDA; report in outputs/gpu-check/gpu-check.md.
-# Options go through GPU_CHECK_ARGS, e.g. make gpu-check GPU_CHECK_ARGS="--deadline 600 --write-docs".
+# Options go through GPU_CHECK_ARGS, e.g. make gpu-check GPU_CHECK_ARGS="--deadline 600 --stages timing".
 gpu-check: venv
 	@echo ">>> python -m s2camp_bench.gpu_check $(GPU_CHECK_ARGS)"
 	$(BIN)/python -m s2camp_bench.gpu_check $(GPU_CHECK_ARGS)
 
-# The wheels a lent GPU machine without a package registry needs (Python 3.12), into .whl/ (ignored by git); needs
-# the registry and a Python 3.12 (GPU_BUNDLE_ARGS="--python312 PATH", or PYENV_VERSION=3.12.1 with pyenv).
+# The wheels a lent GPU machine without a package registry needs (Python 3.12; s2camp-ns and s2camp-bench among
+# them), into .whl/ (ignored by git); needs the registry and a Python 3.12 (GPU_BUNDLE_ARGS="--python312 PATH", or
+# PYENV_VERSION=3.12.1 with pyenv).
 gpu-bundle: venv
 	@echo ">>> python -m s2camp_bench.gpu_check.bundle $(GPU_BUNDLE_ARGS)"
 	$(BIN)/python -m s2camp_bench.gpu_check.bundle $(GPU_BUNDLE_ARGS)

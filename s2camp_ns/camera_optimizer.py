@@ -21,8 +21,8 @@ from nerfstudio.cameras.rays import RayBundle
 from rich.console import Console
 from torch import Tensor, nn
 
+from s2camp_ns.compat import DefaultsOnLoad, refiner_keys
 from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout, opengl_to_opencv
-from s2camp_ns.core.config_defaults import DefaultsOnLoad
 from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig
 from s2camp_ns.core.proxy_range import describe_proxy_ranges
 from s2camp_ns.core.refiner import CameraRefiner
@@ -31,7 +31,6 @@ from s2camp_ns.core.track_prior import checked_evidence, describe_anchor_fit, ev
 from s2camp_ns.core.validation import check_range
 from s2camp_ns.data import camera_conversion
 from s2camp_ns.method import rays
-from s2camp_ns.method.checkpoint_compat import refiner_keys
 
 LOG = Console(stderr=True, width=120)
 """Start-up notes (the proxy range, the anchor fit), on stderr: a caller's stdout (JSON) stays clean."""
@@ -45,7 +44,8 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
 
     _target: type = field(default_factory=lambda: S2CampCameraOptimizer)
     mode: Literal["off", "SO3xR3", "SE3"] = "SE3"
-    """"off" disables camera refinement; "SE3" and "SO3xR3" (nerfstudio's names) both refine the local se(3) twist."""
+    """"off" disables camera refinement; "SE3" refines the local se(3) twist ("SO3xR3", nerfstudio's other name, means
+    SE3 here, with a warning: nerfstudio's SO3xR3 optimizer is the method s2camp-so3xr3)."""
     parameters: Literal["pose", "pose+focal", "pose+intrinsics", "all"] = "all"
     """Refined groups: pose; + focal length; + principal point and skew; + the distortion of the cameras' model."""
     intrinsics: Literal["per-camera", "per-image"] = "per-camera"
@@ -74,6 +74,13 @@ class S2CampCameraOptimizerConfig(DefaultsOnLoad, CameraOptimizerConfig):
 
     def validate(self) -> None:
         ParameterLayout.from_preset(self.parameters)
+        if self.mode == "SO3xR3":
+            warnings.warn(
+                "camera-optimizer mode SO3xR3 means SE3 in S2CamP's camera optimizer (it refines the local se(3) "
+                "twist, preconditioned); for nerfstudio's own SO3xR3 pose optimizer train s2camp-so3xr3 (or "
+                "s2camp-splat-so3xr3)",
+                stacklevel=2,
+            )
         if not self.photometric and not self.track_prior:
             raise ValueError(
                 "camera-optimizer.photometric False places the cameras at the track prior's anchor and needs "
@@ -195,7 +202,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
 
     def apply_to_camera(self, camera: Cameras) -> Tensor:
         """Refined OpenGL c2w [1, 3, 4] of a training camera (metadata "cam_idx", as nerfstudio sets it; used by its
-        exporter); other cameras unchanged. ``camera_conversion.refined_nerfstudio_cameras`` also gives the intrinsics."""
+        exporter); other cameras unchanged. ``camera_conversion.refined_nerfstudio_cameras`` also gives the
+        intrinsics."""
         if not self.enabled or camera.metadata is None or "cam_idx" not in camera.metadata:
             return camera.camera_to_worlds
         correction = self(torch.tensor([int(camera.metadata["cam_idx"])], dtype=torch.long))

@@ -21,6 +21,7 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+import s2camp_ns.compat  # noqa: F401  (earlier runs' config.yml name classes by their old module paths)
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING, DampingConfig
 from s2camp_ns.data.dataparser import S2CampDataParserConfig

@@ -17,8 +17,8 @@ import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+from s2camp_ns.compat import split_per_image_adam_state
 from s2camp_ns.core.preconditioner import SamplingConfig
-from s2camp_ns.method.checkpoint_compat import split_per_image_adam_state
 from s2camp_ns.method.pipeline import checkpoint_camera_count
 
 DATA = Path(__file__).parent / "data"
@@ -57,7 +57,7 @@ def test_a_checkpoint_of_the_previous_version_loads_with_its_cameras_and_adam_st
     torch.testing.assert_close(refiner.refined_c2w().detach(), saved["refined_c2w"], rtol=0, atol=1e-12)
     torch.testing.assert_close(refiner.refined_fields().detach(), saved["refined_fields"], rtol=0, atol=1e-12)
     adam = torch.optim.Adam(list(optimizer.parameters()), lr=1e-3)
-    adam.load_state_dict(split_per_image_adam_state(saved["adam"]))
+    adam.load_state_dict(split_per_image_adam_state(saved["adam"], 6))
     old = saved["adam"]["state"]
     latents = (refiner.whitened_delta, refiner.whitened_intrinsics)
     for key in ("exp_avg", "exp_avg_sq"):

@@ -432,3 +432,35 @@ def test_transforms_images_of_a_downscaled_folder_are_checked_and_fitted(generat
         r"downscale_factor 4 gives 12\.5x9\.5.*pick the downscale_factor that matches the folder",
     ):
         parse(source, downscale_factor=4)
+
+
+@pytest.mark.parametrize("convention", [True, False])
+@pytest.mark.parametrize("masks", [False, True])
+def test_colmap_frames_are_those_of_nerfstudios_reader(generated_scene: Path, convention: bool, masks: bool):
+    """Our reader of the COLMAP model (``ValidatingColmapDataParser._get_all_images_and_cameras``) gives nerfstudio's
+    frames for a model nerfstudio reads (PINHOLE): paths, OpenGL c2w in either world convention, ids, intrinsics,
+    mask paths; and it leaves nerfstudio's module as it was."""
+    from nerfstudio.data.dataparsers import colmap_dataparser
+    from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
+
+    from s2camp_ns.data.colmap_scene import ValidatingColmapDataParser
+
+    nerfstudio_reader = colmap_dataparser.parse_colmap_camera_params
+    config = ColmapDataParserConfig(
+        data=generated_scene, colmap_path=Path("sparse/0"), assume_colmap_world_coordinate_convention=convention,
+        masks_path=Path("masks") if masks else None,
+    )  # fmt: skip
+    model = generated_scene / "sparse" / "0"
+    ours = ValidatingColmapDataParser(config, generated_scene / "images")._get_all_images_and_cameras(model)
+    theirs = ColmapDataParser(config)._get_all_images_and_cameras(model)
+    assert colmap_dataparser.parse_colmap_camera_params is nerfstudio_reader
+    assert ours["camera_model"] == "OPENCV" and theirs["camera_model"] == "OPENCV"
+    assert ("applied_transform" in ours) == convention
+    if convention:
+        np.testing.assert_array_equal(np.asarray(ours["applied_transform"]), np.asarray(theirs["applied_transform"]))
+    assert len(ours["frames"]) == len(theirs["frames"]) == NUM_CAMERAS
+    for mine, reference in zip(ours["frames"], theirs["frames"], strict=True):
+        np.testing.assert_allclose(mine.pop("transform_matrix"), reference.pop("transform_matrix"), rtol=0, atol=1e-12)
+        for name in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "p1", "p2"):  # nerfstudio omits a zero k3
+            assert mine.pop(name, 0.0) == pytest.approx(reference.pop(name, 0.0), rel=1e-12, abs=1e-15), name
+        assert mine == reference

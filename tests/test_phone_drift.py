@@ -1,6 +1,6 @@
-"""Visual-inertial drift of the benchmarks' phone start (``benchmarks/s2camp_bench/phone_drift.py``): growth along the capture,
-gravity-held roll and pitch, one shared focal, CamP's result untouched, determinism, the up axis, input checks and the
-CLI.
+"""Visual-inertial drift of the benchmarks' phone start (``benchmarks/s2camp_bench/phone_drift.py``): growth along the
+capture, gravity-held roll and pitch, one shared focal, CamP's result untouched, determinism, the up axis, input checks
+and the CLI.
 
 Expected values come from the model's stated equations (module docstring of ``s2camp_bench.phone_drift``)
 and from geometry computed here, never from the drift code; the CamP reference numbers were recorded with the

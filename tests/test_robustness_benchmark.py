@@ -8,18 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from s2camp_bench.robustness import (
-    RUNNABLE_VARIANTS,
-    SCENES,
-    STARTS,
-    VARIANTS,
-    RobustnessConfig,
-    RunSpec,
-    focal_for_fov,
-    run_specs,
-    summarize,
-    train_command,
-)
+from s2camp_bench.grid import RunSpec, focal_for_fov, run_specs
+from s2camp_bench.robustness import SCENES, STARTS, VARIANTS, RobustnessConfig, train_command
+from s2camp_bench.robustness_report import summarize
 
 
 def _option(command: list[str], name: str) -> str:
@@ -32,11 +23,11 @@ def _dataparser_index(command: list[str]) -> int:
     return index
 
 
-@pytest.mark.parametrize("start", ["accurate", "perturbed", "phone", "accurate-untracked"])
-@pytest.mark.parametrize("variant", RUNNABLE_VARIANTS)
+@pytest.mark.parametrize("start", ["accurate", "perturbed", "phone"])
+@pytest.mark.parametrize("variant", VARIANTS)
 def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant: str, start: str) -> None:
     config = RobustnessConfig(iterations=123)
-    command = train_command(RunSpec("near-deep", start, variant, 2), Path("scene"), Path("runs"), config)
+    command = train_command(RunSpec("regime-wide", start, variant, 2), Path("scene"), Path("runs"), config)
     methods = {"s2camp-so3xr3": "s2camp-so3xr3", "s2camp-camp": "s2camp-camp", "s2camp-camp-prior": "s2camp-camp"}
     assert command[1] == methods.get(variant, "s2camp")
     assert _option(command, "--max-num-iterations") == "123"
@@ -55,29 +46,26 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
     # changes; "s2camp" and the baselines take the method's own defaults.
     photometric = "--pipeline.model.camera-optimizer.photometric"
     precondition = "--pipeline.model.camera-optimizer.precondition"
-    exponent = "--pipeline.model.camera-optimizer.pose-prior-exponent"
     expected_options = {
         "off": {"--pipeline.model.camera-optimizer.mode": "off"},
         "tracks": {photometric: "False", rotation: "True", prior: "True"},
         "s2camp-photometric": {rotation: "True", prior: "False"},
         "s2camp-camp-prior": {rotation: "True", prior: "True"},
         "s2camp-identity-prior": {precondition: "False", rotation: "True", prior: "True"},
-        "s2camp-pose-exp0": {exponent: "0"},
-        "s2camp-pose-exp0.5": {exponent: "0.5"},
     }  # fmt: skip
     assert camera_options == expected_options.get(variant, {})
     tail = command[_dataparser_index(command) :]
-    seed = str(SCENES["near-deep"].perturbation_seed)
+    seed = str(SCENES["regime-wide"].perturbation_seed)
     # Every start but sfm trains with tracks made from its images, never the generated scene's exact projections.
-    if start in ("accurate", "accurate-untracked"):
-        assert tail == ["s2camp-data", "--downscale-factor", "1", "--image-tracks", "always"]
+    if start == "accurate":
+        assert tail == ["s2camp-data", "--downscale-factor", "2", "--image-tracks", "always"]
     elif start == "perturbed":
-        assert tail == ["s2camp-data", "--downscale-factor", "1", "--perturbation.enabled", "True",
+        assert tail == ["s2camp-data", "--downscale-factor", "2", "--perturbation.enabled", "True",
                         "--perturbation.seed", seed, "--image-tracks", "always"]  # fmt: skip
     else:  # phone: CamP's steps off, the VIO drift on, one draw per run seed (scene seed + run seed 2), own tracks
-        phone_seed = str(SCENES["near-deep"].perturbation_seed + 2)
+        phone_seed = str(SCENES["regime-wide"].perturbation_seed + 2)
         assert tail == [
-            "s2camp-bench-data", "--downscale-factor", "1", "--perturbation.enabled", "True", "--perturbation.seed",
+            "s2camp-bench-data", "--downscale-factor", "2", "--perturbation.enabled", "True", "--perturbation.seed",
             phone_seed, "--perturbation.sigma-position", "0.0", "--perturbation.sigma-look-at", "0.0",
             "--perturbation.sigma-dolly-z", "0.0", "--perturbation.sigma-focal-length", "0.0",
             "--drift.enabled", "True", "--drift.position-drift", "0.01",
@@ -85,46 +73,6 @@ def test_every_run_trains_with_the_method_defaults_plus_the_cpu_settings(variant
             "--drift.focal-error", "0.015", "--image-tracks", "always",
         ]  # fmt: skip
     assert "--save-only-latest-checkpoint" not in command
-
-
-def test_a_cuda_run_trains_the_methods_own_field_on_the_gpu_and_is_otherwise_the_same_run() -> None:
-    spec = RunSpec("regime-wide-full", "perturbed", "s2camp-photometric", 1)
-    cpu = train_command(spec, Path("scene"), Path("runs"), RobustnessConfig(iterations=3000, rays_per_batch=4096))
-    cuda = train_command(spec, Path("scene"), Path("runs"), RobustnessConfig(iterations=3000, rays_per_batch=4096,
-                                                                             device="cuda"))  # fmt: skip
-    assert _option(cpu, "--machine.device-type") == "cpu" and _option(cuda, "--machine.device-type") == "cuda"
-    assert _option(cuda, "--pipeline.datamanager.train-num-rays-per-batch") == "4096"
-    # The small field's options are the only other difference: nerfacto's own field (16 levels of 2^19 entries).
-    small = {"--pipeline.model.log2-hashmap-size": "15", "--pipeline.model.num-levels": "8",
-             "--pipeline.model.max-res": "128", "--pipeline.model.num-nerf-samples-per-ray": "32"}  # fmt: skip
-    assert all(_option(cpu, name) == value for name, value in small.items())
-    assert not [arg for arg in cuda if arg in small or arg == "--pipeline.model.num-proposal-samples-per-ray"]
-    stripped = [arg for arg in cpu if arg != "cpu"]
-    for name in [*small, "--pipeline.model.num-proposal-samples-per-ray"]:
-        index = stripped.index(name)
-        del stripped[index : index + (3 if name.endswith("proposal-samples-per-ray") else 2)]
-    assert stripped == [arg for arg in cuda if arg != "cuda"]
-    assert "--device cuda" in RobustnessConfig(device="cuda").command()
-    assert "--device" not in RobustnessConfig().command()
-    with pytest.raises(ValueError, match="device must be one of 'cpu', 'cuda', got 'gpu'"):
-        RobustnessConfig(device="gpu").validate()
-
-
-def test_rows_of_the_two_devices_are_summarized_and_resumed_apart(tmp_path: Path) -> None:
-    from s2camp_bench.robustness import record_row, resume
-
-    rows = [_row("perturbed", "off", seed, 25.0, 1.0, 1.0) for seed in range(2)]  # written before --device: the CPU
-    rows += [_row("perturbed", "s2camp", 0, 25.5, 0.2, 1.0) | {"device": "cpu"}]
-    rows += [_row("perturbed", "s2camp", 0, 27.0, 0.1, 1.0) | {"device": "cuda"}]
-    summary = {(entry["variant"], entry["device"]): entry for entry in summarize(rows)}
-    assert sorted(summary) == [("off", "cpu"), ("s2camp", "cpu"), ("s2camp", "cuda")]
-    assert summary[("s2camp", "cuda")]["rot_err"].mean == pytest.approx(0.1)
-    assert summary[("s2camp", "cpu")]["psnr_vs_off"] == pytest.approx(0.5)
-    assert math.isnan(summary[("s2camp", "cuda")]["psnr_vs_off"])  # no refinement off on the GPU
-    specs = [RunSpec("s", "perturbed", "s2camp", 0)]
-    record_row(rows[2], tmp_path / "gone", tmp_path)
-    assert resume(specs, tmp_path) == ([rows[2]], [])
-    assert resume(specs, tmp_path, "cuda") == ([], specs)  # a CPU row is no GPU run
 
 
 def test_phone_and_sfm_commands_parse_to_the_benchmarks_data_parser() -> None:
@@ -136,12 +84,12 @@ def test_phone_and_sfm_commands_parse_to_the_benchmarks_data_parser() -> None:
     from s2camp_bench.phone_drift import DriftConfig
 
     config = RobustnessConfig(iterations=10)
-    phone = train_command(RunSpec("near-deep", "phone", "s2camp", 1), Path("scene"), Path("runs"), config)
-    sfm = train_command(RunSpec("near-deep", "sfm", "s2camp", 1), Path("sfm"), Path("runs"), config, Path("truth"))
+    phone = train_command(RunSpec("regime-wide", "phone", "s2camp", 1), Path("scene"), Path("runs"), config)
+    sfm = train_command(RunSpec("regime-wide", "sfm", "s2camp", 1), Path("sfm"), Path("runs"), config, Path("truth"))
     parsed = [config.pipeline.datamanager.dataparser for config in parse_ns_train([phone, sfm])]
     assert all(isinstance(dataparser, BenchDataParserConfig) for dataparser in parsed)
     perturbation = parsed[0].perturbation
-    assert perturbation.enabled and perturbation.seed == SCENES["near-deep"].perturbation_seed + 1
+    assert perturbation.enabled and perturbation.seed == SCENES["regime-wide"].perturbation_seed + 1
     sigmas = (perturbation.sigma_position, perturbation.sigma_look_at, perturbation.sigma_dolly_z,
               perturbation.sigma_focal_length)  # fmt: skip
     assert sigmas == (0.0, 0.0, 0.0, 0.0)
@@ -167,9 +115,9 @@ def test_regime_scene_sees_each_training_pixel_one_and_a_half_times() -> None:
     preset = SCENES["regime-wide"]
     # 56 images, every 8th held out (7): 49 training images of 160 x 120 (trained at half of 320 x 240).
     assert preset.training_pixels == 49 * 160 * 120
-    config = RobustnessConfig(preset="regime").effective()
-    starts = ("accurate", "perturbed", "sfm", "phone")  # accurate-untracked only when asked for
-    assert (config.scenes, config.starts, config.iterations) == (("regime-wide",), starts, 3000)
+    config = RobustnessConfig()
+    assert (config.scenes, config.starts, config.iterations) == (("regime-wide",), STARTS, 3000)
+    assert STARTS == ("accurate", "perturbed", "sfm", "phone")
     assert config.iterations * config.rays_per_batch / preset.training_pixels == pytest.approx(1536000 / 940800)
     # Each evidence alone and the prior under each P, beside refinement off and the baselines.
     assert config.variants == (
@@ -178,35 +126,27 @@ def test_regime_scene_sees_each_training_pixel_one_and_a_half_times() -> None:
     )  # fmt: skip
 
 
-def test_the_regime_preset_keeps_the_starts_and_variants_the_command_line_chose() -> None:
-    config = RobustnessConfig(preset="regime", starts=("sfm",), variants=("off",), seeds=1).effective()
-    assert (config.starts, config.variants, config.seeds) == (("sfm",), ("off",), 1)
-    assert (config.scenes, config.iterations) == (("regime-wide",), 3000)
+def test_the_command_names_the_preset_and_what_the_command_line_chose() -> None:
+    config = RobustnessConfig(starts=("sfm",), variants=("off",), seeds=1)
     assert config.command() == "s2camp-bench robustness --preset regime --starts sfm --variants off --seeds 1"
+    assert RobustnessConfig(quick=True).command() == "s2camp-bench robustness --quick"
+    quick = RobustnessConfig(quick=True).effective()
+    assert (quick.scenes, quick.starts, quick.variants) == (("small-narrow-far",), ("accurate", "perturbed"),
+                                                            ("off", "s2camp"))  # fmt: skip
+    assert (quick.iterations, quick.seeds, quick.alignment.steps, quick.alignment.rays) == (20, 1, 10, 64)
 
 
-def test_the_scenes_differ_in_resolution_field_of_view_image_count_and_depth() -> None:
-    chosen = [SCENES[name] for name in RobustnessConfig().scenes]
-    widths = [preset.scene.width for preset in chosen]
-    assert max(widths) == 4 * min(widths)
-    fovs = [preset.fov_degrees for preset in chosen]
-    assert (min(fovs), max(fovs)) == (40.0, 100.0)
-    for preset in SCENES.values():
+def test_the_scenes_have_the_field_of_view_they_state_and_a_perturbation_seed_each() -> None:
+    from s2camp_bench.robustness import RETIRED_SCENES
+
+    for preset in (*SCENES.values(), *RETIRED_SCENES.values()):
         # The focal length written into the scene gives the stated field of view.
         fov = 2.0 * math.degrees(math.atan(0.5 * preset.scene.width / preset.scene.focal))
         assert fov == pytest.approx(preset.fov_degrees, abs=1e-9)
-    assert len({preset.scene.num_cameras for preset in chosen}) == len(chosen)
-    assert len({preset.scene.ring_radius for preset in chosen}) == len(chosen)
-    # One perturbation seed per generated scene, another for each other scene (a scene trained at two resolutions
-    # keeps its own).
     pairs = {(preset.scene.seed, preset.perturbation_seed) for preset in SCENES.values()}
     assert len(pairs) == len({seed for seed, _ in pairs}) == len({seed for _, seed in pairs})
-
-
-def test_the_full_resolution_regime_scene_is_the_regime_scene_with_four_times_its_training_pixels() -> None:
-    low, full = SCENES["regime-wide"], SCENES["regime-wide-full"]
+    low, full = SCENES["regime-wide"], RETIRED_SCENES["regime-wide-full"]
     assert full.scene == low.scene and full.perturbation_seed == low.perturbation_seed
-    assert (low.downscale, full.downscale) == (2, 1)
     assert full.training_pixels == 4 * low.training_pixels == 49 * 320 * 240
 
 
@@ -215,13 +155,13 @@ def test_focal_for_fov_of_a_right_angle_is_half_the_width() -> None:
 
 
 def test_seeds_are_the_outermost_loop_of_the_runs() -> None:
-    specs = run_specs(RobustnessConfig(scenes=("large-wide",), seeds=2))
-    assert len(specs) == 2 * 2 * 4  # seeds x default starts x default variants
-    assert [spec.seed for spec in specs] == [0] * 8 + [1] * 8
+    specs = run_specs(RobustnessConfig(seeds=2))
+    assert len(specs) == 2 * 4 * 8  # seeds x starts x variants
+    assert [spec.seed for spec in specs] == [0] * 32 + [1] * 32
 
 
 def test_a_later_session_adds_seeds_from_first_seed() -> None:
-    config = RobustnessConfig(scenes=("large-wide",), starts=("sfm",), variants=("s2camp",), seeds=2, first_seed=1)
+    config = RobustnessConfig(starts=("sfm",), variants=("s2camp",), seeds=2, first_seed=1)
     assert [spec.seed for spec in run_specs(config)] == [1, 2]
     assert "--first-seed 1" in config.command()
     with pytest.raises(ValueError, match="first_seed must be >= 0, got -1"):
@@ -238,7 +178,9 @@ def test_bad_choices_are_rejected_with_the_parameter_name() -> None:
     with pytest.raises(ValueError, match=r"trace_every must be >= 0 steps \(0: no trace\), got -1"):
         RobustnessConfig(trace_every=-1).validate()
     with pytest.raises(ValueError, match="preset"):
-        RobustnessConfig(preset="fast").validate()
+        RobustnessConfig(preset="fast").validate()  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="starts"):
+        RobustnessConfig(starts=("accurate-untracked",)).validate()  # committed rows only
 
 
 def _row(start: str, variant: str, seed: int, psnr: float, rot: float, start_rot: float) -> dict:
@@ -277,7 +219,7 @@ def test_a_seed_run_twice_is_counted_as_a_run_and_named(tmp_path: Path) -> None:
     extra = {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
     rows = [_row("phone", "off", seed, 23.0 + seed, 1.0, 1.0) | extra for seed in (0, 2, 2)]
     rows += [_row("phone", "s2camp", seed, 26.0, 0.1, 1.0) | extra for seed in (0, 1, 2)]
-    text = report(rows, RobustnessConfig(preset="regime", output_dir=tmp_path)).read_text()
+    text = report(rows, RobustnessConfig(output_dir=tmp_path)).read_text()
     assert "| regime-wide | phone | off | 3 runs, 2 seeds (seed 2 x2) | 1.50 |" in text
     assert "| regime-wide | phone | s2camp | 3 | 1.50 |" in text
 
@@ -323,7 +265,8 @@ def test_the_untracked_true_cameras_compare_with_refinement_off_from_the_tracked
 
 
 def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path: Path) -> None:
-    from s2camp_bench.robustness import TRACE_COLUMNS, report
+    from s2camp_bench.robustness import report
+    from s2camp_bench.robustness_report import TRACE_COLUMNS
 
     rows = [
         _row("sfm", variant, seed, psnr, rot, 0.1)
@@ -338,7 +281,7 @@ def test_regime_report_gives_passes_unaligned_psnr_and_the_camera_path(tmp_path:
         for seed in (0, 1)
     ]
     rows[-1]["trace"] = [dict.fromkeys(TRACE_COLUMNS, 0.5) | {"step": 250}, dict.fromkeys(TRACE_COLUMNS, 0.25)]
-    config = RobustnessConfig(preset="regime", output_dir=tmp_path)
+    config = RobustnessConfig(output_dir=tmp_path)
     path = report(rows, config)
     assert path == tmp_path / "regime.md"
     text = path.read_text()
@@ -354,7 +297,8 @@ def test_report_rows_are_sorted_by_scene_start_and_variant_in_the_benchmarks_ord
     """Rows arrive in the order runs finished; the report lists them by scene, start and variant as ``SCENES``,
     ``STARTS`` and the variants are listed (names no longer run last, alphabetically), then by passes; the traced
     runs by seed."""
-    from s2camp_bench.robustness import TRACE_COLUMNS, report
+    from s2camp_bench.robustness import report
+    from s2camp_bench.robustness_report import TRACE_COLUMNS
 
     extra = {"train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
     finished = [
@@ -376,7 +320,7 @@ def test_report_rows_are_sorted_by_scene_start_and_variant_in_the_benchmarks_ord
         ("regime-wide", "perturbed", "tracks", "1.5"), ("regime-wide", "sfm", "off", "1.5"),
         ("regime-wide", "sfm", "s2camp", "1.5"), ("regime-wide-full", "perturbed", "off", "1.5"),
     ]  # fmt: skip
-    text = report(rows, RobustnessConfig(preset="regime", output_dir=tmp_path)).read_text()
+    text = report(rows, RobustnessConfig(output_dir=tmp_path)).read_text()
     table = [line.split(" | ")[:3] for line in text.splitlines() if line.startswith("| regime-wide")]
     order = [(scene.lstrip("| "), start, variant) for scene, start, variant in table if start != "56"]
     # The results, then the rows of names no longer run.
@@ -388,12 +332,12 @@ def test_report_rows_are_sorted_by_scene_start_and_variant_in_the_benchmarks_ord
 def test_report_lists_rows_of_variants_and_starts_that_no_longer_run_apart(tmp_path: Path) -> None:
     """Committed rows of names no longer runnable still render, in their own table after the results, and their
     comparison with refinement off is that of the whole grid."""
-    from s2camp_bench.common import NO_LONGER_RUN_HEADING
+    from s2camp_bench.grid_report import NO_LONGER_RUN_HEADING
     from s2camp_bench.robustness import report
 
     extra = {"scene": "regime-wide", "train_seconds": 1.0, "iterations": 3000, "eval_seconds": 1.0, "sec_per_iter": 0.5}
     rows = [_row("sfm", "off", 0, 20.0, 0.1, 0.1) | extra]
-    config = RobustnessConfig(preset="regime", output_dir=tmp_path)
+    config = RobustnessConfig(output_dir=tmp_path)
     assert "no longer run" not in report(rows, config).read_text()
     assert "s2camp-damped" not in VARIANTS and "phone-iid" not in STARTS  # committed names, no longer runnable
     rows.append(_row("sfm", "s2camp-damped", 0, 21.0, 0.1, 0.1) | extra)
@@ -409,7 +353,7 @@ def test_report_lists_rows_of_variants_and_starts_that_no_longer_run_apart(tmp_p
 
 
 def test_a_work_folder_keeps_its_rows_and_a_rerun_skips_the_finished_runs(tmp_path: Path) -> None:
-    from s2camp_bench.robustness import ROWS_FILE, record_row, resume
+    from s2camp_bench.grid import ROWS_FILE, record_row, resume
 
     specs = [RunSpec("s", "sfm", variant, 0) for variant in ("off", "s2camp")]
     assert resume(specs, tmp_path) == ([], specs)  # a new folder: everything to run
@@ -434,7 +378,7 @@ def test_every_committed_name_that_no_longer_runs_is_described_in_the_results() 
     text = (root / "docs" / "RESULTS.md").read_text(encoding="utf8").split("## Names that no longer run")[1]
     described = set(re.findall(r"^\| `([^`]+)` \|", text, flags=re.M))
     benchmarks = (
-        ("regime-rows.jsonl", RUNNABLE_VARIANTS, STARTS),
+        ("regime-rows.jsonl", VARIANTS, STARTS),
         ("splat-rows.jsonl", splat_bench.RUNNABLE_VARIANTS, splat_bench.STARTS),
     )
     for name, variants, starts in benchmarks:
@@ -443,3 +387,19 @@ def test_every_committed_name_that_no_longer_runs_is_described_in_the_results() 
         old = {row["variant"] for row in rows if row["variant"] not in variants}
         old |= {row["start"] for row in rows if row["start"] not in starts}
         assert old and old <= described, (name, sorted(old - described))
+
+
+@pytest.mark.parametrize(("benchmark", "name"), [("robustness", "regime"), ("splat_bench", "splat")])
+def test_the_committed_report_is_rendered_from_the_committed_rows(benchmark: str, name: str, tmp_path: Path) -> None:
+    """``--rows-from`` the committed rows file gives the committed report, line for line but the command's output
+    folder and the machine line (rows of names that no longer run, and traces, included)."""
+    import importlib
+
+    module = importlib.import_module(f"s2camp_bench.{benchmark}")
+    root = Path(__file__).resolve().parents[1] / "docs" / "benchmarks"
+    config_type = module.RobustnessConfig if benchmark == "robustness" else module.SplatBenchConfig
+    config = config_type(rows_from=root / f"{name}-rows.jsonl", output_dir=tmp_path)
+    written = module.report(module.run(config), config).read_text().splitlines()
+    committed = (root / f"{name}.md").read_text().splitlines()
+    assert written[2] == committed[2].replace("docs/benchmarks", tmp_path.as_posix())
+    assert written[5:] == committed[5:]

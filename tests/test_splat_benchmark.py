@@ -12,19 +12,18 @@ from pathlib import Path
 import pytest
 from hang_guard import HANG_GUARD_S
 
+from s2camp_bench.grid import RunSpec, run_specs
 from s2camp_bench.splat_bench import (
     RUNNABLE_VARIANTS,
     SCENES,
     STARTS,
     VARIANTS,
-    RunSpec,
     SplatBenchConfig,
     add_quarter_images,
     passes,
-    run_specs,
-    summarize,
     train_command,
 )
+from s2camp_bench.splat_report import summarize
 from s2camp_bench.train_commands import SMALL_MODEL, ns_train_arguments, ns_train_base_arguments
 
 
@@ -60,11 +59,11 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
         "s2camp-splat-photometric": {prior: "False"},
     }
     assert {arg: _option(command, arg) for arg in camera_options} == expected_options.get(variant, {})
-    # The compressed schedule: 900 of splatfacto's 30000 steps = 3 %.
+    # The scaled schedule: 900 of splatfacto's 30000 steps = 3 %.
     assert _option(command, "--pipeline.model.resolution-schedule") == "90"  # 3000 x 0.03
     assert _option(command, "--pipeline.model.sh-degree-interval") == "30"  # 1000 x 0.03
     assert _option(command, "--optimizers.means.scheduler.max-steps") == "900"
-    assert _option(command, "--pipeline.model.stop-split-at") == "0"  # densification off by default
+    assert _option(command, "--pipeline.model.stop-split-at") == "0"  # densification off
     camera_schedule = [arg for arg in command if arg.startswith("--optimizers.camera-opt.")]
     if variant == "s2camp-splat-so3xr3":  # splatfacto's absolute camera schedule, compressed like the rest
         assert _option(command, "--optimizers.camera-opt.scheduler.warmup-steps") == "30"  # 1000 x 0.03
@@ -86,19 +85,6 @@ def test_splat_runs_get_no_nerfacto_options_and_only_their_variants_camera_optio
     assert (tail[-2:] == ["--image-tracks", "always"]) == (start != "sfm")
     if start == "sfm":
         assert _option(tail, "--reference-model") == str(Path("truth") / "sparse" / "0")
-
-
-def test_schedule_options_follow_densify_and_compress_schedule() -> None:
-    densified = _command("s2camp-splat", "accurate", iterations=3000, densify=True)
-    assert _option(densified, "--pipeline.model.stop-split-at") == "1500"  # 15000 x 0.1
-    assert _option(densified, "--pipeline.model.refine-every") == "10"
-    assert _option(densified, "--pipeline.model.warmup-length") == "50"
-    plain = _command("s2camp-splat-so3xr3", "accurate", iterations=3000, compress_schedule=False)
-    assert _option(plain, "--pipeline.model.stop-split-at") == "0"
-    assert not [arg for arg in plain if arg.startswith("--optimizers.")]
-    assert "--pipeline.model.resolution-schedule" not in plain
-    untouched = _command("s2camp-splat", "accurate", iterations=3000, compress_schedule=False, densify=True)
-    assert "--pipeline.model.stop-split-at" not in untouched
 
 
 def test_an_sfm_start_without_the_true_scene_is_refused() -> None:
@@ -153,7 +139,8 @@ def test_config_is_validated_by_name() -> None:
     quick = SplatBenchConfig(quick=True).effective()
     assert quick.variants == VARIANTS and quick.starts == ("perturbed",) and quick.seeds == 1
     assert len(run_specs(quick)) == 3
-    assert SplatBenchConfig(seeds=2, densify=True).command() == "s2camp-bench splat --seeds 2 --densify True"
+    assert SplatBenchConfig(seeds=2, workers=1).command() == "s2camp-bench splat --seeds 2 --workers 1"
+    assert SplatBenchConfig(quick=True).command() == "s2camp-bench splat --quick"
 
 
 def _row(start: str, variant: str, seed: int, **values) -> dict:
@@ -252,8 +239,7 @@ def test_quick_splat_benchmark_trains_the_three_variants(tmp_path: Path) -> None
     assert "time ratio vs so3xr3" in text and (tmp_path / "splat.png").exists()
 
 
-REPORT_FIELDS = {"iterations": 1000, "train_seconds": 1.0, "eval_seconds": 1.0, "compress_schedule": True,
-                 "densify": False, "workers": 1}  # fmt: skip
+REPORT_FIELDS = {"iterations": 1000, "train_seconds": 1.0, "eval_seconds": 1.0, "workers": 1}
 """What a row needs beyond ``_row`` for the report: run settings and timings."""
 
 
@@ -269,7 +255,7 @@ def test_report_says_which_rows_were_rebuilt_from_logs(tmp_path: Path) -> None:
 
 
 def test_report_lists_rows_of_variants_that_no_longer_run_apart(tmp_path: Path) -> None:
-    from s2camp_bench.common import NO_LONGER_RUN_HEADING
+    from s2camp_bench.grid_report import NO_LONGER_RUN_HEADING
     from s2camp_bench.splat_bench import SplatBenchConfig, report
 
     rows = [_row("sfm", variant, 0, **REPORT_FIELDS) for variant in ("splat-off", "s2camp-splat")]

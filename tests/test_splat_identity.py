@@ -165,7 +165,8 @@ def test_intrinsics_gradient_through_view_matrix_matches_finite_differences():
 def test_float32_path_matches_refined_camera():
     """The only inexactness: V' = A [R | t] is rounded to float32 before rendering (docs/SPLAT.md sec. 3)."""
     s = scene(dtype=torch.float32)
-    viewmat = corrected_viewmat(s["viewmats"], intrinsics_correction(k_of(BASE, torch.float32), k_of(REFINED, torch.float32)))
+    correction = intrinsics_correction(k_of(BASE, torch.float32), k_of(REFINED, torch.float32))
+    viewmat = corrected_viewmat(s["viewmats"], correction)
     colors_a, alphas_a, _ = render(s, viewmat, k_of(BASE, torch.float32))
     colors_k, alphas_k, _ = render(s, s["viewmats"], k_of(REFINED, torch.float32))
     difference = max(float((colors_a - colors_k)[..., :3].abs().max()), float((alphas_a - alphas_k).abs().max()))

@@ -176,7 +176,8 @@ def test_progress_counts_every_render_and_step_up_to_the_announced_total(views_p
 def test_zero_steps_evaluates_the_mapped_camera_as_is():
     field = AnalyticField()
     image = _true_image(field, _c2w_gl())
-    view = align_and_evaluate_views(field, [HeldOutView(image, _c2w_gl(), _intrinsics(), 0)], AlignmentConfig(steps=0))[0]
+    views = [HeldOutView(image, _c2w_gl(), _intrinsics(), 0)]
+    view = align_and_evaluate_views(field, views, AlignmentConfig(steps=0))[0]
     assert view.psnr == view.psnr_unaligned and view.psnr > 60.0
 
 

@@ -1,5 +1,5 @@
 """``s2camp-bench``: run a benchmark, write its report under outputs/benchmarks/ (``--output-dir`` elsewhere, e.g.
-docs/benchmarks for the committed tables), optionally print JSON rows."""
+docs/benchmarks for the committed reports), optionally print JSON rows."""
 
 from __future__ import annotations
 
@@ -14,34 +14,19 @@ from .common import DEFAULT_OUTPUT_DIR, emit_json, log
 from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
 from .image_tracks_cost import ImageTracksCostConfig
-from .lattice_search import LatticeSearchConfig
-from .proxy_range import ProxyRangeBenchConfig
-from .recovery import RecoveryConfig
 from .robustness import RobustnessConfig
-from .scaling import ScalingConfig
-from .shared_intrinsics import SharedIntrinsicsConfig
-from .speed import SpeedConfig
 from .splat_bench import SplatBenchConfig
 from .step_cost import StepCostConfig
-from .train_time import TrainTimeConfig
 
 MODULES = {
-    DispersionConfig: "dispersion",
-    GramErrorConfig: "gram_error",
-    SpeedConfig: "speed",
-    RecoveryConfig: "recovery",
-    ScalingConfig: "scaling",
-    TrainTimeConfig: "train_time",
-    SharedIntrinsicsConfig: "shared_intrinsics",
-    ProxyRangeBenchConfig: "proxy_range",
+    StepCostConfig: "step_cost",
     RobustnessConfig: "robustness",
     SplatBenchConfig: "splat_bench",
-    StepCostConfig: "step_cost",
+    GramErrorConfig: "gram_error",
+    DispersionConfig: "dispersion",
     ImageTracksCostConfig: "image_tracks_cost",
 }
-"""The benchmarks ``s2camp-bench all`` runs."""
-TOOLS = {LatticeSearchConfig: "lattice_search"}
-"""Offline tools with the same command-line shape, not part of ``all``."""
+"""Every benchmark, in the order ``s2camp-bench all`` runs them."""
 
 
 @dataclass
@@ -50,29 +35,23 @@ class AllConfig:
 
     quick: bool = False
     output_dir: Path = DEFAULT_OUTPUT_DIR
-    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
+    """Folder of the reports and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
 
 
 Command = Union[
-    Annotated[DispersionConfig, tyro.conf.subcommand("dispersion")],
-    Annotated[GramErrorConfig, tyro.conf.subcommand("gram-error")],
-    Annotated[SpeedConfig, tyro.conf.subcommand("speed")],
-    Annotated[RecoveryConfig, tyro.conf.subcommand("recovery")],
-    Annotated[ScalingConfig, tyro.conf.subcommand("scaling")],
-    Annotated[TrainTimeConfig, tyro.conf.subcommand("train-time")],
-    Annotated[SharedIntrinsicsConfig, tyro.conf.subcommand("shared-intrinsics")],
-    Annotated[ProxyRangeBenchConfig, tyro.conf.subcommand("proxy-range")],
+    Annotated[StepCostConfig, tyro.conf.subcommand("step-cost")],
     Annotated[RobustnessConfig, tyro.conf.subcommand("robustness")],
     Annotated[SplatBenchConfig, tyro.conf.subcommand("splat")],
-    Annotated[StepCostConfig, tyro.conf.subcommand("step-cost")],
+    Annotated[GramErrorConfig, tyro.conf.subcommand("gram-error")],
+    Annotated[DispersionConfig, tyro.conf.subcommand("dispersion")],
     Annotated[ImageTracksCostConfig, tyro.conf.subcommand("image-tracks")],
-    Annotated[LatticeSearchConfig, tyro.conf.subcommand("lattice-search")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]
 
 
 def run_benchmark(config) -> list[dict]:
-    module = importlib.import_module(f"{__package__}.{({**MODULES, **TOOLS})[type(config)]}")
+    """``run`` of the config's benchmark module, and its ``report`` unless ``write`` is off; the rows."""
+    module = importlib.import_module(f"{__package__}.{MODULES[type(config)]}")
     rows = module.run(config)
     if config.write:
         log(f"wrote {module.report(rows, config)}")
@@ -81,10 +60,8 @@ def run_benchmark(config) -> list[dict]:
 
 def main(config) -> list[dict]:
     if isinstance(config, AllConfig):
-        rows = []
-        for config_type in MODULES:
-            rows.extend(run_benchmark(config_type(quick=config.quick, output_dir=config.output_dir)))
-        return rows
+        configs = [kind(quick=config.quick, output_dir=config.output_dir) for kind in MODULES]
+        return [row for each in configs for row in run_benchmark(each)]
     rows = run_benchmark(config)
     if config.json:
         emit_json(rows)

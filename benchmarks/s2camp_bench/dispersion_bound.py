@@ -1,4 +1,4 @@
-"""Dispersion of a point set in the contracted view frustum (paper Sec. 5, Table 1), and reference values.
+"""Dispersion of a point set in the contracted view frustum (paper Sec. 5, Table 1).
 
 Protocol. The dispersion of points ``P`` in a frustum ``F`` is the radius of the largest empty open ball whose
 centre lies in ``F`` (the ball itself may stick out of ``F``): ``d(P) = max_{x in F} min_{p in P} |x - p|``.
@@ -7,18 +7,13 @@ frustum parameters ``(rho, v, w) in [0, 1]^3`` with radius ``r = t_near + rho (t
 ``r`` so cells near the apex stay small) and the angular CDF coordinates ``(v, w)`` of the frustum transform
 (see :mod:`s2camp_ns.core.frustum`), so the cells tile exactly the frustum of that transform.
 
-For a cell with mapped vertices ``c_k``, every point ``x`` of the cell is within ``h`` of some vertex, where
-``h`` is half the longest body diagonal of the mapped cell (exact for a parallelepiped; the mapped cells are
-curved, with a deviation that is second order in the cell size). Since ``min_p |x - p|`` is 1-Lipschitz,
-``f(x) <= max_k f(c_k) + h``. Cells whose upper bound is below the best value found so far are discarded, the
-rest are split in eight, until the gap between the best value (a lower bound, attained at a probe inside
-``F``) and the largest remaining upper bound is below the requested tolerance. The result reports both:
-``lower <= d(P) <= upper`` (to first order in the final cell size).
-
-Reference values: the frustum volume (solid angle of the tangent rectangle times ``(t_far^3 - t_near^3) / 3``)
-and the covering radius of the ideal body-centred cubic lattice with ``L`` points in that volume,
-``R = (3 theta V / (4 pi L))^(1/3)`` with covering density ``theta = 5 sqrt(5) pi / 24`` (Conway & Sloane,
-Sphere Packings, Lattices and Groups, ch. 2). Boundary effects make ``R`` unattainable for a bounded domain.
+For a cell with mapped vertices ``c_k``, every point ``x`` of the cell is within ``h`` of some vertex, where ``h`` is
+half the longest body diagonal of the mapped cell (exact for a parallelepiped; the mapped cells are curved, with a
+deviation that is second order in the cell size). Since ``min_p |x - p|`` is 1-Lipschitz, ``f(x) <= max_k f(c_k) + h``.
+Cells whose upper bound is below the best value found so far are discarded, the rest are split in two across their
+longest mapped edge, until the gap between the best value (a lower bound, attained at a probe inside ``F``) and the
+largest remaining upper bound is below the requested tolerance. The result reports both: ``lower <= d(P) <= upper`` (to
+first order in the final cell size).
 """
 
 from __future__ import annotations
@@ -33,19 +28,7 @@ from torch import Tensor
 from s2camp_ns.core.frustum import TRANSFORMS, directions_from_unit, validate_frustum
 from s2camp_ns.core.validation import check_choice, check_finite, check_positive_int, check_range
 
-__all__ = [
-    "BCC_COVERING_DENSITY",
-    "DispersionResult",
-    "covering_bound",
-    "dispersion",
-    "frustum_volume",
-    "nearest_distance",
-    "reference_tangent_bounds",
-    "solid_angle",
-    "transform_volume",
-]
-
-BCC_COVERING_DENSITY = 5.0 * math.sqrt(5.0) * math.pi / 24.0
+__all__ = ["DispersionResult", "dispersion", "nearest_distance", "reference_tangent_bounds"]
 
 
 @dataclass(frozen=True)
@@ -74,69 +57,12 @@ def reference_tangent_bounds(name: str) -> Float[Tensor, "1 4"]:
     return torch.tensor([box], dtype=torch.float64)
 
 
-def _tangent_G(a: Tensor, b: Tensor) -> Tensor:
-    return torch.atan(a * b / torch.sqrt(1.0 + a * a + b * b))
-
-
-def solid_angle(tangent_bounds: Float[Tensor, "n 4"]) -> Float[Tensor, " n"]:
-    """Solid angle of the tangent rectangle ``[a0, a1] x [b0, b1]`` (integral of the density behind eq. 11):
-    ``G(a1, b1) - G(a0, b1) - G(a1, b0) + G(a0, b0)`` with ``G(a, b) = atan(a b / sqrt(1 + a^2 + b^2))``."""
-    bounds = validate_frustum(tangent_bounds, 0.0, 1.0)
-    a0, a1, b0, b1 = bounds.unbind(-1)
-    return _tangent_G(a1, b1) - _tangent_G(a0, b1) - _tangent_G(a1, b0) + _tangent_G(a0, b0)
-
-
-def frustum_volume(tangent_bounds: Float[Tensor, "n 4"], t_near: float, t_far: float) -> Float[Tensor, " n"]:
-    """Contracted volume of the pinhole frustum: solid angle times ``(t_far^3 - t_near^3) / 3`` (paper eq. 11).
-
-    The ``"spherical"`` region (a latitude-longitude rectangle) has a slightly different volume,
-    ``(atan a1 - atan a0) (sin e1 - sin e0) (t_far^3 - t_near^3) / 3``; see :func:`transform_volume`.
-    """
-    validate_frustum(tangent_bounds, t_near, t_far)
-    return solid_angle(tangent_bounds) * (t_far**3 - t_near**3) / 3.0
-
-
-def transform_volume(
-    tangent_bounds: Float[Tensor, "n 4"], t_near: float, t_far: float, transform: str = "pyramid"
-) -> Float[Tensor, " n"]:
-    """Contracted volume of the region covered by ``transform`` (pyramid or latitude-longitude rectangle)."""
-    bounds = validate_frustum(tangent_bounds, t_near, t_far, transform)
-    if transform == "pyramid":
-        return frustum_volume(bounds, t_near, t_far)
-    a0, a1, b0, b1 = bounds.unbind(-1)
-    sin_span = b1 / torch.sqrt(1.0 + b1 * b1) - b0 / torch.sqrt(1.0 + b0 * b0)
-    return (torch.atan(a1) - torch.atan(a0)) * sin_span * (t_far**3 - t_near**3) / 3.0
-
-
-def covering_bound(volume: float | Tensor, num_points: int) -> float | Tensor:
-    """Covering radius of the ideal body-centred cubic lattice with ``num_points`` points per ``volume``:
-    ``R = (3 theta V / (4 pi L))^(1/3)``, ``theta = 5 sqrt(5) pi / 24`` (reference for paper Table 1)."""
-    check_positive_int("num_points", num_points)
-    check_range("volume", volume, low=0.0, low_inclusive=False)
-    return (3.0 * BCC_COVERING_DENSITY * volume / (4.0 * math.pi * num_points)) ** (1.0 / 3.0)
-
-
 def nearest_distance(queries: Float[Tensor, "m 3"], points: Float[Tensor, "l 3"]) -> Float[Tensor, " m"]:
-    """Euclidean distance from each query to its nearest point.
+    """Euclidean distance from each query to its nearest point (a k-d tree: exact distances, on the CPU)."""
+    from scipy.spatial import cKDTree
 
-    On the CPU a k-d tree (scipy, exact distances) is used when scipy is importable; otherwise chunked
-    ``torch.cdist`` without the matmul expansion (exact to rounding) on the device of ``points``.
-    """
-    if points.device.type == "cpu":
-        try:
-            from scipy.spatial import cKDTree
-        except ImportError:  # pragma: no cover - scipy ships with nerfstudio
-            cKDTree = None
-        if cKDTree is not None:
-            tree = cKDTree(points.detach().numpy())
-            distances, _ = tree.query(queries.detach().numpy(), k=1)
-            return torch.from_numpy(distances).to(dtype=points.dtype)
-    chunk = max(1, (1 << 24) // max(1, points.shape[0]))
-    out = [
-        torch.cdist(queries[s : s + chunk], points, compute_mode="donot_use_mm_for_euclid_dist").amin(dim=1)
-        for s in range(0, queries.shape[0], chunk)
-    ]
-    return torch.cat(out) if out else queries.new_zeros(0)
+    distances, _ = cKDTree(points.detach().cpu().numpy()).query(queries.detach().cpu().numpy(), k=1)
+    return torch.from_numpy(distances).to(dtype=points.dtype, device=points.device)
 
 
 def _map_params(params: Tensor, bounds: Tensor, t_near: float, t_far: float, transform: str) -> Tensor:
@@ -156,13 +82,11 @@ def _dispersion_one(
     device = points.device
     corners = _CORNERS.to(device)
     a0, a1, b0, b1 = bounds[0].tolist()
-    # Initial cells about half the mean point spacing along each mapped direction.
-    spacing = 0.5 * (float(transform_volume(bounds, t_near, t_far, transform)[0]) / points.shape[0]) ** (1.0 / 3.0)
-    sizes = (
-        t_far - t_near,
-        t_far * (math.atan(b1) - math.atan(b0)),
-        t_far * (math.atan(a1) - math.atan(a0)),
-    )
+    # Initial cells about half the mean point spacing along each mapped direction (the volume from the angular
+    # spans, close to the frustum's for the fields of view measured here; it only sets where the search starts).
+    sizes = (t_far - t_near, t_far * (math.atan(b1) - math.atan(b0)), t_far * (math.atan(a1) - math.atan(a0)))
+    volume = (t_far**3 - t_near**3) / 3.0 * (math.atan(a1) - math.atan(a0)) * (math.atan(b1) - math.atan(b0))
+    spacing = 0.5 * (volume / points.shape[0]) ** (1.0 / 3.0)
     counts = [max(2, min(256, math.ceil(size / spacing))) for size in sizes]
     axes = [torch.arange(c + 1, device=device, dtype=torch.float64) / c for c in counts]
     grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)

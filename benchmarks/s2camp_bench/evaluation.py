@@ -1,25 +1,30 @@
-"""A trained pipeline's evaluation, the same for every method: camera errors, drift and held-out PSNR / SSIM.
+"""A trained run's evaluation, the same for every method: camera errors, drift, held-out PSNR / SSIM, step time.
 
 Start and final training cameras against the true ones (``reference_cameras``, else as given) after a similarity
 alignment, the reprojection drift of the sparse points (``points3D_xyz``), then the held-out views after test-time
 alignment. The model needs S2CampModel's camera interface: ``_train_cameras``, ``reference_cameras()``,
-``uses_s2camp_optimizer`` and (nerfstudio's pose optimizer) ``refined_train_cameras()``.
+``uses_s2camp_optimizer`` and (nerfstudio's pose optimizer) ``refined_train_cameras()``. ``load_pipeline`` loads a
+finished ``ns-train`` run and ``seconds_per_iteration`` reads its step time from its tensorboard events.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import statistics
+import sys
 import time
 import warnings
+from pathlib import Path
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from s2camp_bench.drift import reprojection_drift
 from s2camp_ns.core.alignment import camera_errors
 from s2camp_ns.core.camera import Intrinsics, opengl_to_opencv
-from s2camp_bench.drift import reprojection_drift
 from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.scripts.test_time_alignment import AlignmentConfig, evaluate_held_out_views
 
@@ -82,4 +87,41 @@ def evaluate_pipeline(pipeline, alignment: AlignmentConfig) -> dict:
     return result
 
 
-__all__ = ["camera_metrics", "evaluate_pipeline", "estimated_cameras"]
+SKIPPED_TIMING_STEPS = 5
+"""Logged steps left out of ``seconds_per_iteration`` (start-up: caches, first allocations)."""
+
+
+def load_pipeline(run: Path):
+    """The pipeline of the finished ``ns-train`` run folder ``run`` (nerfstudio's ``eval_setup``, latest checkpoint),
+    its start-up chatter kept off the terminal unless loading fails."""
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(captured), contextlib.redirect_stderr(captured), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            from nerfstudio.utils.eval_utils import eval_setup
+
+            _, pipeline, _, _ = eval_setup(run / "config.yml", test_mode="test")
+    except Exception:
+        print(captured.getvalue(), file=sys.stderr, flush=True)
+        raise
+    return pipeline
+
+
+def seconds_per_iteration(run: Path) -> float:
+    """Mean wall-clock seconds per training step of the run folder ``run``, from nerfstudio's per-step tensorboard
+    events after the first ``SKIPPED_TIMING_STEPS`` logged ones; NaN without events."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = sorted(run.glob("events.out.tfevents.*"))
+    if not events:
+        return math.nan
+    accumulator = EventAccumulator(str(events[-1]), size_guidance={"scalars": 0})
+    accumulator.Reload()
+    stamps = accumulator.Scalars("Train Iter (time)")
+    stamps = stamps[SKIPPED_TIMING_STEPS:] if len(stamps) > SKIPPED_TIMING_STEPS + 1 else stamps
+    if len(stamps) < 2:
+        return math.nan
+    return (stamps[-1].wall_time - stamps[0].wall_time) / (stamps[-1].step - stamps[0].step)
+
+
+__all__ = ["camera_metrics", "estimated_cameras", "evaluate_pipeline", "load_pipeline", "seconds_per_iteration"]

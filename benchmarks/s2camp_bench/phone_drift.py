@@ -62,8 +62,8 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from s2camp_ns.compat import DefaultsOnLoad
 from s2camp_ns.core.camera import se3_exp
-from s2camp_ns.core.config_defaults import DefaultsOnLoad
 from s2camp_ns.core.perturbation import PerturbationConfig, PerturbedCameras, perturb_cameras
 from s2camp_ns.core.validation import check_range
 

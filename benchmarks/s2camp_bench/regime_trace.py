@@ -145,9 +145,9 @@ def trace_run(run: Path) -> list[dict]:
     """One row per checkpoint of ``run`` (module docstring); [] for a run without S2CamP's camera optimizer."""
     from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
 
-    from .recovery_photometric import _load_pipeline
+    from .evaluation import load_pipeline
 
-    pipeline = _load_pipeline(run)
+    pipeline = load_pipeline(run)
     model = pipeline.model
     if not model.uses_s2camp_optimizer or not model.camera_optimizer.enabled:
         return []

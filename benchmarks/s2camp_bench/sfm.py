@@ -1,17 +1,13 @@
 """Structure from motion on a generated scene (pycolmap SIFT, exhaustive matching, incremental mapping).
 
 ``run_sfm`` writes a scene folder that ``ns-train`` reads like the generated one: the same ``images/`` and
-``images_2/`` (symbolic links) and ``sparse/0`` = the SfM model, whose image names are the truth's. One shared camera
-(``CameraMode.SINGLE``) of the chosen COLMAP model. COLMAP's log lines go to ``sfm.log`` in the output folder.
+``images_2/`` (symbolic links) and ``sparse/0`` = the SfM model, whose image names are the truth's. One shared
+SIMPLE_RADIAL camera (``CameraMode.SINGLE``). COLMAP's log lines go to ``sfm.log`` in the output folder.
 
 ``focal_prior`` plays the EXIF focal length a real capture carries: the mapper starts from that factor times the true
 focal length instead of COLMAP's guess for images without EXIF (1.2 x max(W, H), twice the generated wide scene's
 true focal length). From that guess SfM of the wide scene ends several times further from the truth in rotation,
-centres and focal length than from an EXIF-like prior 5% off (measured in docs/benchmarks/recovery.md, tier 3, "What
-the SfM table shows").
-
-``local_refinement_check`` asks whether SfM's error is something local refinement can remove: bundle adjustment with
-the true camera model from SfM's result, and SfM's tracks reprojected under SfM's and under the true cameras.
+centres and focal length than from an EXIF-like prior 5% off (docs/benchmarks/recovery.md, tier 3, a record).
 
 ``compare_with_truth`` compares the SfM model with the truth (the generated scene's ``sparse/0``) after a similarity
 alignment of the camera centres (Umeyama, ``s2camp_ns.core.alignment``): a reconstruction that misses images, splits
@@ -28,12 +24,11 @@ import numpy as np
 import torch
 
 from s2camp_ns.core.alignment import rotation_angle, umeyama
-from s2camp_ns.core.validation import check_choice, check_range
+from s2camp_ns.core.validation import check_range
 from s2camp_ns.tracks.colmap_log import colmap_log_to
 
-SFM_CAMERA_MODELS = ("SIMPLE_RADIAL", "OPENCV")
-"""Shared camera models of the SfM start (both map onto S2CamP's intrinsics; OPENCV's p1, p2 are zeroed)."""
-
+CAMERA_MODEL = "SIMPLE_RADIAL"
+"""The shared camera model of the SfM start (it maps onto S2CamP's intrinsics)."""
 
 SFM_THREADS = 1
 """One thread and a fixed seed: COLMAP's multi-threaded mapper registers images in a run-dependent order (two runs of
@@ -90,29 +85,17 @@ class SfmResult:
     """Why the reconstruction is not usable (None: it is)."""
 
 
-def initial_camera_params(camera_model: str, focal: float, width: int, height: int) -> str:
-    """COLMAP's ``camera_params`` string for a start at ``focal`` (pixels), principal point at the image centre and
-    no distortion, in the parameter order of ``camera_model``."""
-    cx, cy = width / 2.0, height / 2.0
-    values = {
-        "SIMPLE_RADIAL": (focal, cx, cy, 0.0),
-        "OPENCV": (focal, focal, cx, cy, 0.0, 0.0, 0.0, 0.0),
-    }[camera_model]
-    return ",".join(repr(float(value)) for value in values)
+def initial_camera_params(focal: float, width: int, height: int) -> str:
+    """COLMAP's SIMPLE_RADIAL ``camera_params`` string for a start at ``focal`` (pixels), principal point at the
+    image centre and no distortion."""
+    return ",".join(repr(float(value)) for value in (focal, width / 2.0, height / 2.0, 0.0))
 
 
-def run_sfm(
-    scene: Path,
-    output: Path,
-    camera_model: str = "SIMPLE_RADIAL",
-    check: SfmCheck = SfmCheck(),
-    focal_prior: float | None = None,
-) -> SfmResult:
+def run_sfm(scene: Path, output: Path, check: SfmCheck = SfmCheck(), focal_prior: float | None = None) -> SfmResult:
     """SfM on ``scene/images`` into ``output`` (module docstring); compared with ``scene/sparse/0``. ``focal_prior``:
     the mapper's initial focal length as a factor of the true one (None: COLMAP's guess without EXIF)."""
     import pycolmap
 
-    check_choice("camera_model", camera_model, SFM_CAMERA_MODELS)
     if focal_prior is not None:
         check_range("focal_prior", focal_prior, low=0.1, high=10.0)
     if output.exists():
@@ -124,12 +107,10 @@ def run_sfm(
     database = work / "database.db"
     images = scene / "images"
     truth = pycolmap.Reconstruction(scene / "sparse" / "0")
-    reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
+    reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODEL)
     if focal_prior is not None:
         camera = next(iter(truth.cameras.values()))
-        reader.camera_params = initial_camera_params(
-            camera_model, focal_prior * camera.focal_length_x, camera.width, camera.height
-        )
+        reader.camera_params = initial_camera_params(focal_prior * camera.focal_length_x, camera.width, camera.height)
     with colmap_log_to(output / "sfm.log"):
         pycolmap.extract_features(
             database,
@@ -148,11 +129,6 @@ def run_sfm(
     if not models:
         return _failed(output, truth, "incremental mapping produced no model")
     best = max(models.values(), key=lambda model: model.num_reg_images())
-    if camera_model == "OPENCV":
-        for camera in best.cameras.values():  # S2CamP refines radial k1, k2 only; p1, p2 were free in the mapper
-            params = camera.params.copy()
-            params[6:8] = 0.0
-            camera.params = params
     sparse = output / "sparse" / "0"
     sparse.mkdir(parents=True)
     best.write_binary(sparse)
@@ -235,78 +211,3 @@ def _failed(output: Path, truth, failure: str, registered: int = 0, models: int 
         true_focal=_focal(truth),
         failure=failure,
     )
-
-
-LOCAL_REFINEMENT_ITERATIONS = 1000
-"""Iteration cap of the diagnostic bundle adjustment (every tolerance zero: it stops when no step lowers the cost)."""
-
-
-def triangulated_reprojection_errors(sfm, reference) -> np.ndarray:
-    """Reprojection error (px) of every observation of ``sfm``'s SIFT tracks under ``reference``'s cameras (matched by
-    image name), each 3D point triangulated from its track by linear least squares (DLT) with those cameras."""
-    camera_and_pose = {
-        image.name: (reference.cameras[image.camera_id], np.asarray(image.cam_from_world().matrix()))
-        for image in reference.images.values()
-    }
-    errors = []
-    for point in sfm.points3D.values():
-        rows, observations = [], []
-        for element in point.track.elements:
-            image = sfm.images[element.image_id]
-            pixel = np.asarray(image.points2D[element.point2D_idx].xy, dtype=np.float64)
-            camera, pose = camera_and_pose[image.name]
-            ray = np.asarray(camera.cam_from_img(pixel))
-            rows += [ray[0] * pose[2] - pose[0], ray[1] * pose[2] - pose[1]]
-            observations.append((pixel, pose, camera))
-        homogeneous = np.linalg.svd(np.stack(rows))[2][-1]
-        position = homogeneous[:3] / homogeneous[3]
-        for pixel, pose, camera in observations:
-            projected = np.asarray(camera.img_from_cam(pose[:, :3] @ position + pose[:, 3]))
-            errors.append(float(np.linalg.norm(projected - pixel)))
-    return np.asarray(errors)
-
-
-def _with_camera_model(reconstruction, model: str):
-    """A copy of ``reconstruction`` whose SIMPLE_RADIAL cameras become ``model`` = RADIAL (k becomes k1, k2 = 0); any
-    other camera is kept (OPENCV already has RADIAL's k1, k2)."""
-    import pycolmap
-
-    copy = pycolmap.Reconstruction(reconstruction)
-    for camera_id, camera in copy.cameras.items():
-        if (camera.model.name, model) != ("SIMPLE_RADIAL", "RADIAL"):
-            continue
-        params = [*camera.params, 0.0]
-        copy.cameras[camera_id] = pycolmap.Camera(
-            model=model, width=camera.width, height=camera.height, params=params, camera_id=camera_id
-        )
-    return copy
-
-
-def local_refinement_check(scene: Path, sfm_scene: Path, check: SfmCheck = SfmCheck()) -> dict[str, float]:
-    """Can local refinement reach the truth from SfM's cameras? Bundle adjustment of the SfM model with the true
-    camera model (RADIAL for a SIMPLE_RADIAL start; an OPENCV start keeps its model, which contains RADIAL), no
-    tolerance, until no step lowers the cost, and its errors against the truth; beside them the median and
-    root-mean-square reprojection errors of SfM's tracks under SfM's cameras and under the true ones (points
-    triangulated for both). Bundle adjustment minimizes the squared errors, so a few tracks the true cameras cannot
-    fit (mismatched or poorly localised keypoints) can hold SfM's cameras away from the truth although the truth fits
-    most observations better."""
-    import pycolmap
-
-    truth = pycolmap.Reconstruction(scene / "sparse" / "0")
-    sfm = pycolmap.Reconstruction(sfm_scene / "sparse" / "0")
-    adjusted = _with_camera_model(sfm, next(iter(truth.cameras.values())).model.name)
-    options = pycolmap.BundleAdjustmentOptions()
-    solver = options.ceres.solver_options
-    solver.max_num_iterations = LOCAL_REFINEMENT_ITERATIONS
-    solver.function_tolerance = solver.gradient_tolerance = solver.parameter_tolerance = 0.0
-    with colmap_log_to(sfm_scene / "sfm.log"):
-        pycolmap.bundle_adjustment(adjusted, options)
-    after = compare_with_truth(sfm_scene, adjusted, truth, 1, check)
-    errors = {"sfm": triangulated_reprojection_errors(sfm, sfm), "truth": triangulated_reprojection_errors(sfm, truth)}
-    return {
-        **{f"{name}_reprojection_median_px": float(np.median(value)) for name, value in errors.items()},
-        **{f"{name}_reprojection_rms_px": float(np.sqrt(np.mean(value**2))) for name, value in errors.items()},
-        "ba_rot_err_mean": after.rot_err_mean,
-        "ba_centre_err_mean": after.centre_err_mean,
-        "ba_focal": after.focal,
-    }

@@ -1,10 +1,10 @@
 """``s2camp-bench step-cost``: what the camera path adds to a training step on a launch-bound device (a GPU).
 
-On a GPU each aten op that computes is a kernel launch and each op whose result the host reads is a synchronisation,
-so a step's cost there follows its counts, measured here without a GPU (``benchmarks/s2camp_bench/op_count.py``): every method's
-``ns-train`` configuration is built in-process with nerfstudio's Trainer on a generated scene (the small nerfacto
-field of the CPU runs, ``train_commands.SMALL_MODEL``: the field's size changes no camera op), a few steps are run,
-and one later training step is counted phase by phase:
+On a GPU each aten op that computes is a kernel launch and each op whose result the host reads is a synchronisation, so
+a step's cost there follows its counts, measured here without a GPU (``benchmarks/s2camp_bench/op_count.py``): every
+method's ``ns-train`` configuration is built in-process with nerfstudio's Trainer on a generated scene (the small
+nerfacto field of the CPU runs, ``train_commands.SMALL_MODEL``: the field's size changes no camera op), a few steps are
+run, and one later training step is counted phase by phase:
 
 - ``before``: the callbacks before the step (S2CamP: a stale P's recomputation, a no-op);
 - ``rays``: the data manager's batch and rays (pixel sampling, ray casting);
@@ -371,7 +371,8 @@ def report(rows: list[dict], config: StepCostConfig) -> Path:
     phases += [f"{kind}_{phase}" for phase in PHASES for kind in ("ops", "syncs")]
     sections = [
         "What the camera path adds to one training step, counted without a GPU (module docstring of "
-        "`benchmarks/s2camp_bench/step_cost.py`; counter: `benchmarks/s2camp_bench/op_count.py`). ops: aten ops of the whole step, forward and "
+        "`benchmarks/s2camp_bench/step_cost.py`; counter: `benchmarks/s2camp_bench/op_count.py`). ops: aten ops of "
+        "the whole step, forward and "
         "backward; launches: ops that are not views (the kernel launches on a GPU); syncs: ops that make the host "
         "wait for a CUDA device. added: minus the same model's 'off' row (camera refinement off) on the same camera. "
         f"{config.rays_per_batch} rays per nerfacto step; splatfacto renders one image per step. Camera path: the "

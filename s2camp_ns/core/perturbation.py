@@ -11,8 +11,8 @@ The training images of a normalized scene are perturbed in this order, with one 
    sigma_look_at times a random unit vector and the camera is re-aimed at it from its new centre, same up vector;
 5. radial distortion is zeroed (by the caller, which owns the distortion parameters).
 
-Sigmas are in normalized scene units; cameras are OpenCV (x right, y down, z forward). A ``DriftConfig`` that a saved
-config.yml names loads as ``RemovedConfig``; one that is on is refused by ``PerturbationConfig.validate``.
+Sigmas are in normalized scene units; cameras are OpenCV (x right, y down, z forward). Configs of earlier versions:
+``s2camp_ns.compat``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from s2camp_ns.core.config_defaults import DefaultsOnLoad, RemovedConfig
+from s2camp_ns.compat import DefaultsOnLoad, old_names, refuse_removed_fields
 from s2camp_ns.core.validation import check_finite, check_range
 
 
@@ -50,12 +50,7 @@ class PerturbationConfig(DefaultsOnLoad):
             check_range(f"perturbation.{name}", getattr(self, name), low=0.0)
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"perturbation.seed must be an integer in [0, inf), got {self.seed!r}")
-        if getattr(self.__dict__.get("drift"), "enabled", False):
-            raise ValueError(
-                "perturbation.drift: this run's config.yml turns on a visual-inertial drift of the cameras, which "
-                "this version's s2camp-data no longer applies (s2camp-bench-data does, as --drift); load the run "
-                "with the version that trained it"
-            )
+        refuse_removed_fields("perturbation", self)
 
 
 @dataclass
@@ -159,8 +154,4 @@ def perturb_cameras(
     )
 
 
-def __getattr__(name: str) -> type:
-    """``DriftConfig`` (a name saved configs use) is ``RemovedConfig``."""
-    if name == "DriftConfig":
-        return RemovedConfig
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = old_names(__name__)  # names of earlier versions' configs (s2camp_ns.compat.RENAMED)

@@ -16,9 +16,9 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from s2camp_ns.compat import DefaultsOnLoad
 from s2camp_ns.core.camera import Intrinsics, ParameterLayout, pixel_to_ray_direction, tangent_bounds
 from s2camp_ns.core.camp_sampling import CAMP_LADDER_P, CAMP_T_FAR, CAMP_T_NEAR, camp_frustum_points, validate_ladder
-from s2camp_ns.core.config_defaults import DefaultsOnLoad
 from s2camp_ns.core.contraction import uncontract_radius
 from s2camp_ns.core.frustum import RADIALS, Radial, radius_from_unit, radius_per_camera, sample_frustum
 from s2camp_ns.core.jacobian import gram_matrix, projection_jacobian

@@ -1,17 +1,19 @@
 """A COLMAP scene (mip-NeRF 360 layout) read through nerfstudio's ``ColmapDataParser``, validated: model files read
-strictly, camera models checked and their distortion mapped explicitly (``core.colmap_models``), the listed images
-found on disk and the intrinsics fitted to their sizes (``scene_formats.fit_intrinsics_to_images``)."""
+strictly, camera models checked and their distortion mapped explicitly (``core.colmap_camera_models``), the listed
+images found on disk and the intrinsics fitted to their sizes (``scene_formats.fit_intrinsics_to_images``). Its
+frames are ours (``ValidatingColmapDataParser._get_all_images_and_cameras``, the parser's extension point); splits,
+scaling and orientation are nerfstudio's."""
 
 from __future__ import annotations
 
 import dataclasses
-from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import torch
-from nerfstudio.data.dataparsers import colmap_dataparser
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
+from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 
 from s2camp_ns.core.camera import CAMERA_MODEL_PROJECTION
 from s2camp_ns.core.colmap_camera_models import SUPPORTED_COLMAP_MODELS, colmap_to_values
@@ -72,15 +74,19 @@ def distortion_of(camera) -> list[float]:
     return [values[name] for name in NERFSTUDIO_DISTORTION]
 
 
-@contextmanager
-def _explicit_camera_mapping():
-    """nerfstudio's COLMAP reader with ``nerfstudio_frame_intrinsics`` (its own refuses FULL_OPENCV) in the block."""
-    original = colmap_dataparser.parse_colmap_camera_params
-    colmap_dataparser.parse_colmap_camera_params = nerfstudio_frame_intrinsics
-    try:
-        yield
-    finally:
-        colmap_dataparser.parse_colmap_camera_params = original
+COLMAP_TO_NERFSTUDIO_WORLD = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0]])
+"""nerfstudio's world convention for COLMAP models (``assume_colmap_world_coordinate_convention``): COLMAP's y (its
+gravity guess points along -y) becomes nerfstudio's z: (x, y, z) -> (x, z, -y)."""
+
+
+def opengl_c2w(image) -> np.ndarray:
+    """Camera-to-world [3, 4] of a COLMAP image (its world-to-camera qvec, tvec), in nerfstudio's OpenGL camera axes
+    (y up, z backwards: the OpenCV y and z columns negated)."""
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = colmap_utils.qvec2rotmat(image.qvec), image.tvec
+    c2w = np.linalg.inv(w2c)[:3]
+    c2w[:, 1:3] *= -1.0
+    return c2w
 
 
 class ValidatingColmapDataParser(ColmapDataParser):
@@ -94,21 +100,40 @@ class ValidatingColmapDataParser(ColmapDataParser):
         self.size_source: dict[str, str] = {}
         """Image name -> the COLMAP camera that declares its size (for errors)."""
 
-    def _get_all_images_and_cameras(self, recon_dir: Path):
-        images_file = self._read_model_strictly(recon_dir)
-        try:
-            with _explicit_camera_mapping():
-                out = super()._get_all_images_and_cameras(recon_dir)
-        except AssertionError as error:
-            if "No images" in str(error):
-                raise ValueError(f"COLMAP model {images_file} lists no images: the scene is empty") from error
-            raise
-        self._check_images_on_disk(out["frames"], images_file)
+    def _get_all_images_and_cameras(self, recon_dir: Path) -> dict:
+        """The frames nerfstudio's parser reads (in image-id order: path, OpenGL c2w, image id, the intrinsics of
+        ``nerfstudio_frame_intrinsics``, mask and depth paths), the camera model and the world transform it applies,
+        from the model read strictly; its own reader refuses FULL_OPENCV."""
+        cameras, images, images_file = self._read_model_strictly(recon_dir)
+        if not images:
+            raise ValueError(f"COLMAP model {images_file} lists no images: the scene is empty")
+        config, convention = self.config, self.config.assume_colmap_world_coordinate_convention
+        frames = []
+        for image_id in sorted(images):
+            image = images[image_id]
+            c2w = opengl_c2w(image)
+            if convention:
+                c2w = COLMAP_TO_NERFSTUDIO_WORLD[:, :3] @ c2w
+            frame = {
+                "file_path": (config.data / config.images_path / image.name).as_posix(),
+                "transform_matrix": np.concatenate([c2w, [[0.0, 0.0, 0.0, 1.0]]]),
+                "colmap_im_id": image_id,
+                **nerfstudio_frame_intrinsics(cameras[image.camera_id]),
+            }
+            for key, folder in (("mask_path", config.masks_path), ("depth_path", config.depths_path)):
+                if folder is not None:
+                    frame[key] = (config.data / folder / image.name).with_suffix(".png").as_posix()
+            frames.append(frame)
+        self._check_images_on_disk(frames, images_file)
+        out = {"frames": frames, "camera_model": frames[0]["camera_model"]}
+        if convention:
+            out["applied_transform"] = COLMAP_TO_NERFSTUDIO_WORLD.tolist()
         return out
 
-    def _read_model_strictly(self, recon_dir: Path) -> Path:
-        """Read the cameras and images strictly (a corrupt file named before nerfstudio's reader trips over it),
-        remember each image's distortion and size source; returns the images file."""
+    def _read_model_strictly(self, recon_dir: Path) -> tuple[dict, dict, Path]:
+        """Read the cameras and images strictly (a corrupt file named before anything trips over it), remember each
+        image's distortion and size source; returns the cameras and images (nerfstudio's records) and the images
+        file."""
         camera_models = validate_colmap_cameras(recon_dir)
         images_file = model_file(recon_dir, "images")
         if not images_file.exists():
@@ -128,7 +153,7 @@ class ValidatingColmapDataParser(ColmapDataParser):
         self.size_source = {
             image.name: f"its COLMAP camera {image.camera_id} in {cameras_file}" for image in images.values()
         }
-        return images_file
+        return cameras, images, images_file
 
     def _check_images_on_disk(self, frames: list[dict], images_file: Path) -> None:
         """Every listed image in the folder read; remembers each one's full size."""

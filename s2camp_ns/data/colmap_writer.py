@@ -1,7 +1,7 @@
 """nerfstudio cameras to a COLMAP reconstruction (pycolmap): the model ``s2camp-export-cameras`` writes
-(``nerfstudio_to_reconstruction``: nerfstudio's normalization undone, OpenGL axes flipped to OpenCV) and the one the image tracks
-are made with. Distortion is written in COLMAP's meaning (``core.colmap_models``); nerfstudio's perspective k4 (r^8)
-has no COLMAP counterpart and is refused; skew is dropped.
+(``nerfstudio_to_reconstruction``: nerfstudio's normalization undone, OpenGL axes flipped to OpenCV) and the one the
+image tracks are made with. Distortion is written in COLMAP's meaning (``core.colmap_camera_models``); nerfstudio's
+perspective k4 (r^8) has no COLMAP counterpart and is refused; skew is dropped.
 """
 
 from __future__ import annotations

@@ -22,6 +22,7 @@ from pathlib import Path
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 
+from s2camp_ns.compat import refuse_removed_fields
 from s2camp_ns.core.camera import Intrinsics, camera_model_of
 from s2camp_ns.core.perturbation import PerturbationConfig
 from s2camp_ns.core.validation import check_range
@@ -63,13 +64,8 @@ class S2CampDataParser(DataParser):
         if isinstance(interval, bool) or not isinstance(interval, int) or interval < 1:
             raise ValueError(f"eval_interval must be an integer in [1, inf), got {config.eval_interval!r}")
         config.perturbation.validate()
-        saved = vars(config).get("reference_model")  # an old run's config.yml
-        if saved is not None and not hasattr(type(config), "reference_model"):
-            raise ValueError(
-                f"reference_model {saved}: this run's config.yml takes its reference cameras from a COLMAP model, "
-                "which this version's s2camp-data no longer reads (s2camp-bench-data does); load the run with the "
-                "version that trained it"
-            )
+        if not hasattr(type(config), "reference_model"):  # the benchmarks' data parser still has the field
+            refuse_removed_fields("dataparser", config)
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         self._validate_config()

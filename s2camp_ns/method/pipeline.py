@@ -26,15 +26,15 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from torch.nn.parallel import DistributedDataParallel
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
+from s2camp_ns.compat import OLD_CAMERA_COUNT_KEYS
 from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.data.camera_fields import has_distortion, replace_cameras
 from s2camp_ns.method.datamanager import PixelRayGenerator
-from s2camp_ns.scripts import bundled_ffmpeg, render_path
 from s2camp_ns.tracks.undistorted_tracks import undistorted_track_evidence
 
 CAMERA_COUNT_KEYS = (
     "camera_optimizer.refiner.precond",  # S2CamP's P, one per training camera [N, K, K]
-    "camera_optimizer.precond",  # the same, in older checkpoints
+    *OLD_CAMERA_COUNT_KEYS,
     "camera_optimizer.pose_adjustment",  # nerfstudio's SO3xR3 / SE3 deltas [N, 6] (s2camp-so3xr3)
     "field.embedding_appearance.embedding.weight",  # nerfacto's appearance code per training image [N, d]
 )
@@ -81,8 +81,7 @@ class S2CampPipelineConfig(VanillaPipelineConfig):
 
 
 class S2CampPipeline(VanillaPipeline):
-    """VanillaPipeline + training cameras handed to the model + its own DDP + ``check_checkpoint_cameras`` +
-    ``render_path.install`` + ``bundled_ffmpeg.use_bundled_ffmpeg``."""
+    """VanillaPipeline + training cameras handed to the model + its own DDP + ``check_checkpoint_cameras``."""
 
     def __init__(
         self,
@@ -93,9 +92,6 @@ class S2CampPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: GradScaler | None = None,
     ):
-        # Before ns-render (eval_setup) checks for ffmpeg and computes its camera path.
-        render_path.install()
-        bundled_ffmpeg.use_bundled_ffmpeg()
         if str(device).startswith("cpu") and not torch.cuda.is_available():
             CONSOLE.print("[bold yellow]CUDA is not available: training on the CPU (expect about 1 s per iteration).")
         # world_size=1: VanillaPipeline must not wrap the model (its data manager uses it only for worker counts).

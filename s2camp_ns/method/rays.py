@@ -5,7 +5,7 @@ coordinates (``ray_bundle.metadata[PIXEL_KEY]``) without casting it through the 
 optimizer casts it here, through the refined cameras, differentiably (``cast_rays``). A step then costs one product
 for every image's deltas, one for their refined intrinsics and pose, and the per-ray unprojection of the cameras'
 declared form (``CameraRefiner.distortion_terms``: no Newton iteration without distortion), with no host read: the
-whole function captures as one graph (tests/test_graph_capture.py). Rays without pixels (a stock data manager) can
+whole function captures as one graph (tests/test_step_path.py). Rays without pixels (a stock data manager) can
 only follow the pose (``apply_pose_only``).
 """
 

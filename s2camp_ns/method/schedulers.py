@@ -93,8 +93,3 @@ class RunLengthSchedule(Scheduler):
             max_steps=max_steps,
         )
         return ExponentialDecayScheduler(steps).get_scheduler(optimizer, lr_init)
-
-
-# The config.yml of a run made before nerfstudio's schedule was used unwrapped names these.
-FloatExponentialDecaySchedulerConfig = ExponentialDecaySchedulerConfig
-FloatExponentialDecayScheduler = ExponentialDecayScheduler

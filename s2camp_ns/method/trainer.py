@@ -25,7 +25,8 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from s2camp_ns.method.checkpoint_compat import split_per_image_adam_state
+from s2camp_ns.compat import split_per_image_adam_state
+from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
 from s2camp_ns.method.pipeline import CheckpointCamerasError
 from s2camp_ns.method.schedulers import RunLengthScheduleConfig
 
@@ -234,7 +235,7 @@ class S2CampTrainer(Trainer):
             raise CheckpointCamerasError(f"checkpoint {path}: {error}") from None
         optimizers = dict(state["optimizers"])
         if "camera_opt" in optimizers:  # written while a per-image latent was one tensor
-            optimizers["camera_opt"] = split_per_image_adam_state(optimizers["camera_opt"])
+            optimizers["camera_opt"] = split_per_image_adam_state(optimizers["camera_opt"], NUM_POSE_PARAMS)
         self.optimizers.load_optimizers(optimizers)
         if "schedulers" in state and config.load_scheduler:
             self.optimizers.load_schedulers(state["schedulers"])

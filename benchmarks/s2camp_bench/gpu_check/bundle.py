@@ -3,10 +3,11 @@
 The machine reaches no package registry and holds its own Python 3.12 with torch (``device_image``). The bundle is
 exactly the packages the training path imports (``TRAINING_MODULES``, imported here in a fresh process) that the
 machine lacks, at this checkout's versions, as Python 3.12 x86_64 wheels; a package the registry has no such wheel of
-is built from its sdist with a Python 3.12 interpreter (``--python312``) or named as missing; plus a wheel of this
-package. Wheels are slimmed of folders nothing on the machine reads (``SLIM``). It goes into ``--output`` (``.whl/``,
-ignored by git) only when, with the files git tracks, it stays within ``--limit-mib`` (what one call to the machine
-carries); the sizes are printed either way. ``--dry-run`` lists what it would fetch and build, and fetches nothing.
+is built from its sdist with a Python 3.12 interpreter (``--python312``) or named as missing; plus a wheel of each of
+this repository's packages (``OWN_PROJECTS``: ``s2camp_ns`` from the root, ``s2camp_bench`` from ``benchmarks/``).
+Wheels are slimmed of folders nothing on the machine reads (``SLIM``). It goes into ``--output`` (``.whl/``, ignored
+by git) only when, with the files git tracks, it stays within ``--limit-mib`` (what one call to the machine carries);
+the sizes are printed either way. ``--dry-run`` lists what it would fetch and build, and fetches nothing.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ TRAINING_MODULES = (
     "s2camp_bench.gpu_check.measured_train",
 )  # fmt: skip
 """What the check, the regime command and the ``cuda`` tests import on the machine."""
-OWN_DISTRIBUTION = "s2camp-ns"
+OWN_PROJECTS = {"s2camp-ns": ".", "s2camp-bench": "benchmarks"}
+"""This repository's distributions and the folders of their project files: built here, never fetched."""
 SLIM = {
     "gsplat": ("gsplat/cuda/csrc/third_party/glm/doc/", "gsplat/cuda/csrc/third_party/glm/test/"),
     "tensorly": ("tensorly/datasets/data/",),
@@ -40,8 +42,7 @@ SLIM = {
     "torch-fidelity": ("tests/",),
 }
 """Folders left out of a wheel: glm's manual and tests (gsplat compiles with glm's headers only), tensorly's sample
-data sets, viser's client sources (it serves its built client, and checks the sources only to rebuild them),
-torch-fidelity's tests (installed as a top-level package ``tests``)."""
+data sets, viser's client sources (it serves its built client), torch-fidelity's tests (a top-level ``tests``)."""
 LISTING = """
 import importlib, importlib.metadata as metadata, json, sys
 for name in sys.argv[1:]:
@@ -73,24 +74,17 @@ class BundleConfig:
 
 def training_distributions() -> dict[str, str]:
     """Distribution -> version of everything ``TRAINING_MODULES`` import, read in a fresh process."""
-    result = subprocess.run(
-        [sys.executable, "-c", LISTING, *TRAINING_MODULES], capture_output=True, text=True, check=False
-    )
+    command = [sys.executable, "-c", LISTING, *TRAINING_MODULES]
+    result = subprocess.run(command, capture_output=True, text=True, check=False)
     if result.returncode != 0:
         raise SystemExit(f"importing the training path failed:\n{result.stderr[-3000:]}")
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
 def to_carry(distributions: dict[str, str]) -> dict[str, str]:
-    """Those the machine lacks, this package left out (its own wheel is built from the checkout)."""
-    present = {normalized(name) for name in DEVICE_PACKAGES} | {OWN_DISTRIBUTION}
+    """Those the machine lacks, this repository's own left out (their wheels are built from the checkout)."""
+    present = {normalized(name) for name in (*DEVICE_PACKAGES, *OWN_PROJECTS)}
     return {name: version for name, version in distributions.items() if normalized(name) not in present}
-
-
-def tracked_bytes(repository: Path) -> int:
-    listed = subprocess.run(["git", "ls-files", "-z"], cwd=repository, capture_output=True, check=True).stdout
-    paths = (repository / name for name in listed.decode().split("\0") if name)
-    return sum(path.stat().st_size for path in paths if path.is_file() and not path.is_symlink())
 
 
 def fetch(packages: dict[str, str], folder: Path, python312: str) -> list[str]:
@@ -120,27 +114,32 @@ def mib(size: int) -> str:
 
 
 def main(config: BundleConfig) -> int:
-    repository = Path(__file__).resolve().parents[2]
-    if not (repository / "setup.py").is_file():
-        raise SystemExit(f"the bundle is made from a checkout of this repository (editable install), not {repository}")
+    repository = Path(__file__).resolve().parents[3]
+    if not all((repository / folder / "pyproject.toml").is_file() for folder in OWN_PROJECTS.values()):
+        raise SystemExit(f"the bundle is made from a checkout of this repository (editable installs), not {repository}")
     packages = to_carry(training_distributions())
     print(f"the training path imports {len(packages)} packages the machine lacks:", flush=True)
     for name, version in packages.items():
         slim = f" (slimmed: without {', '.join(SLIM[normalized(name)])})" if normalized(name) in SLIM else ""
         print(f"  {name}=={version}{slim}")
-    print(f"  {OWN_DISTRIBUTION} (this checkout, built as a wheel)")
+    for name, folder in OWN_PROJECTS.items():
+        print(f"  {name} (this checkout's {folder}, built as a wheel)")
     if config.dry_run:
         return 0
     staging = config.output.with_name(config.output.name + ".partial")
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     missing = fetch(packages, staging, config.python312)
-    own_wheel(repository, staging)
+    for folder in OWN_PROJECTS.values():
+        own_wheel(repository, folder, staging)
     for wheel in staging.glob("*.whl"):
         drop = SLIM.get(normalized(wheel.name.split("-")[0]))
         if drop:
             print(f"  slimmed {wheel.name} by {mib(slim_wheel(wheel, drop))}", flush=True)
-    bundle, tree = sum(w.stat().st_size for w in staging.glob("*.whl")), tracked_bytes(repository)
+    listed = subprocess.run(["git", "ls-files", "-z"], cwd=repository, capture_output=True, check=True).stdout
+    tracked = (repository / name for name in listed.decode().split("\0") if name)
+    tree = sum(path.stat().st_size for path in tracked if path.is_file() and not path.is_symlink())
+    bundle = sum(wheel.stat().st_size for wheel in staging.glob("*.whl"))
     print(f"bundle: {len(list(staging.glob('*.whl')))} wheels, {mib(bundle)}; tracked files: {mib(tree)}; "
           f"together {mib(bundle + tree)} of {config.limit_mib:g} MiB", flush=True)  # fmt: skip
     if missing:

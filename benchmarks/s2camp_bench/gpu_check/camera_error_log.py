@@ -36,8 +36,8 @@ def camera_error_record(pipeline, label: str, step: int) -> ErrorRecord:
     """The errors of ``pipeline``'s training cameras now (``REFINED``) or as given (``START``)."""
     import torch
 
-    from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
     from s2camp_bench.evaluation import camera_metrics, estimated_cameras
+    from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
 
     model = pipeline.model
     points = pipeline.datamanager.train_dataparser_outputs.metadata["points3D_xyz"].to(torch.float64)

@@ -1,20 +1,16 @@
-"""What the machine offers the GPU check: CUDA devices, tiny-cuda-nn, a CUDA compiler, gsplat."""
+"""What the machine offers the GPU check (CUDA devices, tiny-cuda-nn, gsplat), and the refusal without CUDA."""
 
 from __future__ import annotations
 
 import importlib.util
 import os
-import shutil
-import subprocess
-import sys
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
 
 class GpuCheckError(RuntimeError):
-    """The check cannot run here (no CUDA device, a bad option); the message says why."""
+    """A command cannot run here (no CUDA device); the message says why."""
 
 
 @dataclass(frozen=True)
@@ -25,24 +21,7 @@ class Environment:
     torch_cuda: str | None
     """CUDA version torch was built for; None for a CPU-only build."""
     tinycudann: bool
-    nvcc: str | None
-    """Path of the CUDA compiler, if any (PATH, then $CUDA_HOME/bin)."""
     gsplat: bool
-
-    @property
-    def device_count(self) -> int:
-        return len(self.device_names)
-
-
-def find_nvcc() -> str | None:
-    found = shutil.which("nvcc")
-    if found is not None:
-        return found
-    for variable in ("CUDA_HOME", "CUDA_PATH"):
-        root = os.environ.get(variable)
-        if root and (Path(root) / "bin" / "nvcc").is_file():
-            return str(Path(root) / "bin" / "nvcc")
-    return None
 
 
 def detect_environment() -> Environment:
@@ -54,7 +33,6 @@ def detect_environment() -> Environment:
         torch_version=torch.__version__,
         torch_cuda=torch.version.cuda,
         tinycudann=importlib.util.find_spec("tinycudann") is not None,
-        nvcc=find_nvcc(),
         gsplat=importlib.util.find_spec("gsplat") is not None,
     )
 
@@ -76,36 +54,13 @@ def require_cuda(environment: Environment) -> None:
 def describe(environment: Environment) -> list[str]:
     """One line per fact, for the terminal and the report."""
     devices = ", ".join(f"cuda:{i} {name}" for i, name in enumerate(environment.device_names)) or "none"
+    tcnn = "installed" if environment.tinycudann else (
+        "not installed (not on the package registries): nerfacto runs nerfstudio's pure-torch fallback, and every "
+        "nerfacto time below is of that fallback"
+    )  # fmt: skip
     return [
         f"torch {environment.torch_version} (CUDA {environment.torch_cuda or 'none: CPU-only build'})",
         f"CUDA devices: {devices}",
-        tinycudann_line(environment),
-        f"CUDA compiler (nvcc): {environment.nvcc or 'not found'}",
-        f"gsplat: {'installed' if environment.gsplat else 'not installed'}",
+        f"tiny-cuda-nn: {tcnn}",
+        f"gsplat: {'installed' if environment.gsplat else 'not installed'} (its CUDA kernels compile on first use)",
     ]
-
-
-def tinycudann_line(environment: Environment) -> str:
-    if environment.tinycudann:
-        return "tiny-cuda-nn: installed; nerfacto's hash grids and MLPs run in its fused kernels"
-    return (
-        "tiny-cuda-nn: not installed. It is not on the package registries (it is built from its source tree with "
-        "nvcc), so it is not installed here; nerfacto runs on nerfstudio's pure-torch fallback (the same model, "
-        "slower hash grids and MLPs), and every time below is of that fallback. --tcnn-source PATH builds a local "
-        "checkout when nvcc exists."
-    )
-
-
-def install_tinycudann(source: Path, environment: Environment, log_path: Path, timeout_s: float) -> None:
-    """Build and install tiny-cuda-nn's torch bindings from a local checkout (no network); raise on failure."""
-    if environment.nvcc is None:
-        raise GpuCheckError(
-            f"tcnn_source {source} was given but no CUDA compiler was found (nvcc on PATH or in $CUDA_HOME/bin); "
-            "tiny-cuda-nn cannot be built here"
-        )
-    command = [sys.executable, "-m", "pip", "install", "--no-build-isolation", str(source / "bindings" / "torch")]
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(log_path, "w", encoding="utf8") as output:
-        result = subprocess.run(command, stdout=output, stderr=subprocess.STDOUT, timeout=timeout_s)
-    if result.returncode != 0:
-        raise GpuCheckError(f"building tiny-cuda-nn from {source} failed (status {result.returncode}); log {log_path}")

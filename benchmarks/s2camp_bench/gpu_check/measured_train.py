@@ -1,4 +1,4 @@
-"""Training runs of the GPU check, one after the other in one process, measured while they train.
+"""Training runs of the GPU check and the regime command, one after the other in one process, measured as they go.
 
     python -m s2camp_bench.gpu_check.measured_train PLAN.json
 
@@ -11,13 +11,9 @@ asked for by the run's ``TrainSpec``:
   steps in which S2CamP refreshed P marked; the run's peak CUDA memory; P's refresh timed apart after training;
 - the camera errors against the true cameras every ``errors_every`` steps (``camera_error_log``); ``setup_only``:
   those of the cameras as set up, without training (the tracks-alone placement);
-- a clean stop before the plan's ``stop_at`` (the time left shared evenly among the runs not yet started):
-  nerfstudio's loop stops after the current step (``stop_training``) and ends as after its last step, with
-  everything measured so far written;
-- the evaluation of the trained pipeline while it is in memory (camera errors, held-out PSNR after test-time
-  alignment), which spares loading a checkpoint nerfstudio 1.1.5 cannot load for a stock ``nerfacto`` run under
-  torch >= 2.6. Stock ``nerfacto`` and ``splatfacto`` build LPIPS from torchvision's AlexNet weights, which an
-  offline machine lacks; there LPIPS is left out (they use it for evaluation images only) and the result says so.
+- a clean stop before the plan's ``stop_at`` (with ``share``, the time left shared evenly among the runs not yet
+  started): nerfstudio's loop stops after the current step (``stop_training``) and ends as after its last step, with
+  everything measured so far written.
 """
 
 from __future__ import annotations
@@ -26,7 +22,7 @@ import gc
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -35,8 +31,9 @@ from .camera_error_log import REFINED, START, log_camera_errors
 from .records import as_record
 from .step_log import RunEnd, StepLog
 
-STOCK_METHODS = ("nerfacto", "splatfacto")
-"""nerfstudio's own methods: they build LPIPS unconditionally."""
+MINIMUM_RUN_S = 30.0
+"""Without ``share``, a run that trains is not started with less than this left before the plan's ``stop_at`` (its
+set-up alone takes a good part of it)."""
 
 
 @dataclass
@@ -53,13 +50,9 @@ class TrainSpec:
     errors_every: int = 0
     """Steps between camera errors (0: at the start and the end only)."""
     refresh_repeats: int = 0
-    """Times P's refresh is timed after training (S2CamP methods)."""
+    """Times P's refresh is timed after training (S2CamP methods; none for the others)."""
     setup_only: bool = False
     """Set up, log the camera errors, train nothing."""
-    result: str | None = None
-    """JSON file of the evaluated run (step seconds, peak memory, evaluation); None: no evaluation."""
-    alignment: dict = field(default_factory=dict)
-    """``AlignmentConfig`` fields of the evaluation."""
 
 
 @dataclass
@@ -67,6 +60,9 @@ class TrainPlan:
     runs: list[TrainSpec]
     stop_at: float | None = None
     """``time.time()`` by which training stops; a run not started by then is left out."""
+    share: bool = False
+    """Share the time left before ``stop_at`` evenly among the runs not yet started (so that a deadline cuts every
+    run of a timing group, not the last ones away); else each run may use all of it."""
 
     def write(self, path: Path) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -76,7 +72,12 @@ class TrainPlan:
     @classmethod
     def read(cls, path: Path) -> TrainPlan:
         values = json.loads(path.read_text())
-        return cls([as_record(TrainSpec, run) for run in values["runs"]], values.get("stop_at"))
+        return cls([as_record(TrainSpec, run) for run in values["runs"]], values.get("stop_at"), values.get("share"))
+
+
+def refiner_of(model):
+    """S2CamP's refiner of ``model`` (None for other camera optimizers)."""
+    return getattr(getattr(model, "camera_optimizer", None), "refiner", None)
 
 
 class StepWatch:
@@ -88,10 +89,8 @@ class StepWatch:
         device = torch.cuda.get_device_name() if synchronize else "cpu"
         method = trainer.config.method_name
         self.log = StepLog(Path(spec.steps_log), method, device, spec.log_every) if spec.steps_log else None
-        self.seconds: list[float] = []
-        self.last: float | None = None
-        self.last_refresh = refresh_marker(trainer.pipeline.model)
-        self.stopped_early = False
+        self.steps, self.last, self.stopped_early = 0, None, False
+        self.last_refresh = getattr(refiner_of(trainer.pipeline.model), "last_refresh", None)
 
     def begin(self, step: int) -> None:
         if self.last is None:
@@ -100,9 +99,9 @@ class StepWatch:
     def __call__(self, step: int) -> None:
         now = self._stamp()
         seconds = now - (self.last if self.last is not None else now)
-        marker = refresh_marker(self.trainer.pipeline.model)
+        marker = getattr(refiner_of(self.trainer.pipeline.model), "last_refresh", None)
         refresh, self.last_refresh = marker != self.last_refresh, marker
-        self.seconds.append(seconds)
+        self.steps += 1
         if self.log is not None:
             self.log.add(step, seconds, refresh)
         done = step + 1
@@ -122,16 +121,10 @@ class StepWatch:
         return time.perf_counter()
 
 
-def refresh_marker(model) -> int | None:
-    """The step of S2CamP's last refresh of P (None for other camera optimizers): it changes when P is refreshed."""
-    refiner = getattr(getattr(model, "camera_optimizer", None), "refiner", None)
-    return getattr(refiner, "last_refresh", None)
-
-
 def time_refreshes(trainer, repeats: int, synchronize: bool) -> list[float]:
-    """Seconds of ``repeats`` refreshes of P after training, through the optimizer's own ``refresh`` with the camera
+    """Seconds of ``repeats`` refreshes of P after training, through the refiner's own ``refresh`` with the camera
     optimizer's Adam state, as a scheduled refresh runs (none for other camera optimizers)."""
-    refiner = getattr(getattr(trainer.pipeline.model, "camera_optimizer", None), "refiner", None)
+    refiner = refiner_of(trainer.pipeline.model)
     if repeats == 0 or refiner is None:
         return []
     adam = trainer.optimizers.optimizers.get("camera_opt")
@@ -145,38 +138,6 @@ def time_refreshes(trainer, repeats: int, synchronize: bool) -> list[float]:
             torch.cuda.synchronize()
         seconds.append(time.perf_counter() - began)
     return seconds
-
-
-def lpips_loadable() -> bool:
-    """Whether torchmetrics' LPIPS can be built here (its AlexNet weights cached or downloadable)."""
-    from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
-
-    try:
-        LearnedPerceptualImagePatchSimilarity(normalize=True)
-    except (OSError, RuntimeError):
-        return False
-    return True
-
-
-def leave_out_stock_lpips() -> None:
-    """Let stock nerfacto and splatfacto build without LPIPS (their model then holds ``lpips = None``, which the
-    evaluation reads as unavailable); S2CamP's models have this fallback themselves. They import the class from
-    torchmetrics when they build their modules, so the stand-in goes there."""
-    import torchmetrics.image.lpip as lpip_module
-
-    lpip_module.LearnedPerceptualImagePatchSimilarity = lambda *args, **kwargs: None
-
-
-def evaluate(pipeline, alignment) -> dict:
-    """Camera errors (start and final) and held-out PSNR of a trained pipeline, S2CamP's or stock nerfacto's."""
-    from s2camp_ns.method.model import S2CampModel
-    from s2camp_bench.evaluation import evaluate_pipeline
-
-    from .stock_nerfacto import StockNerfactoPipeline
-
-    if not isinstance(pipeline.model, S2CampModel):
-        pipeline = StockNerfactoPipeline(pipeline)
-    return evaluate_pipeline(pipeline, alignment)
 
 
 def trainer_config(arguments: list[str]):
@@ -200,10 +161,6 @@ def train(spec: TrainSpec, stop_at: float | None) -> None:
     from nerfstudio.scripts.train import _set_random_seed
 
     config = trainer_config(spec.arguments)
-    lpips_left_out = config.method_name in STOCK_METHODS and not lpips_loadable()
-    if lpips_left_out:
-        print("LPIPS weights unavailable (offline): stock methods are built without LPIPS", flush=True)
-        leave_out_stock_lpips()
     on_cuda = config.machine.device_type == "cuda"
     _set_random_seed(config.machine.seed)
     trainer = config.setup(local_rank=0, world_size=1)
@@ -219,37 +176,12 @@ def train(spec: TrainSpec, stop_at: float | None) -> None:
     trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], watch.begin))
     trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], watch))
     trainer.train()
-    steps = len(watch.seconds)
-    peak = torch.cuda.max_memory_allocated() if on_cuda else None
-    if errors is not None and (not spec.errors_every or steps % spec.errors_every):
-        log_camera_errors(errors, trainer.pipeline, REFINED, steps)
+    if errors is not None and (not spec.errors_every or watch.steps % spec.errors_every):
+        log_camera_errors(errors, trainer.pipeline, REFINED, watch.steps)
     if watch.log is not None:
+        peak = torch.cuda.max_memory_allocated() if on_cuda else None
         refreshes = time_refreshes(trainer, spec.refresh_repeats, on_cuda)
-        watch.log.end(RunEnd(steps, peak, watch.stopped_early, refreshes))
-    if spec.result:
-        result = {
-            "method": config.method_name, "device": torch.cuda.get_device_name() if on_cuda else "cpu",
-            "step_seconds": watch.seconds[1:], "peak_memory_bytes": peak, "lpips_left_out": lpips_left_out,
-            "stopped_early": watch.stopped_early, "config": str(config.get_base_dir() / "config.yml"),
-        }  # fmt: skip
-        write_json(Path(spec.result), result)  # first without the evaluation: a failed one keeps the timing
-        result["evaluation"] = evaluate(trainer.pipeline, _alignment(spec.alignment))
-        write_json(Path(spec.result), result)
-
-
-def _alignment(fields: dict):
-    from s2camp_ns.scripts.test_time_alignment import AlignmentConfig
-
-    alignment = AlignmentConfig(**fields)
-    alignment.validate()
-    return alignment
-
-
-def write_json(path: Path, value: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_suffix(".tmp")
-    temporary.write_text(json.dumps(value, indent=2).replace("NaN", "null"))
-    temporary.replace(path)
+        watch.log.end(RunEnd(watch.steps, peak, watch.stopped_early, refreshes))
 
 
 def release() -> None:
@@ -263,26 +195,27 @@ def release() -> None:
         torch.cuda.reset_peak_memory_stats()
 
 
+def run_stop(plan: TrainPlan, runs_left: int) -> float | None:
+    """When the next run must stop: ``plan.stop_at``, or with ``share`` the time left shared evenly among the runs
+    left."""
+    if plan.stop_at is None or not plan.share:
+        return plan.stop_at
+    now = time.time()
+    return now + (plan.stop_at - now) / runs_left
+
+
 def main(argv: list[str]) -> None:
     if len(argv) != 1:
         raise SystemExit(f"usage: python -m {__spec__.name} PLAN.json (a TrainPlan), got {argv}")
     plan = TrainPlan.read(Path(argv[0]))
     for index, spec in enumerate(plan.runs):
-        if plan.stop_at is not None and time.time() >= plan.stop_at:
-            print(f"ns-train {spec.arguments[0]}: not started, the deadline is reached", flush=True)
+        reserve = 0.0 if spec.setup_only or plan.share else MINIMUM_RUN_S
+        if plan.stop_at is not None and time.time() >= plan.stop_at - reserve:
+            print(f"ns-train {spec.arguments[0]}: not started, too close to the deadline", flush=True)
             continue
         print(f">>> ns-train {' '.join(spec.arguments)}", flush=True)
-        train(spec, share_of_time(plan.stop_at, len(plan.runs) - index))
+        train(spec, run_stop(plan, len(plan.runs) - index))
         release()
-
-
-def share_of_time(stop_at: float | None, runs_left: int) -> float | None:
-    """When the next run must stop: the time left before ``stop_at`` shared evenly among the runs left, so that a
-    deadline cuts every run of a pair, not the second one away."""
-    if stop_at is None:
-        return None
-    now = time.time()
-    return now + (stop_at - now) / runs_left
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
-"""The check's commands as subprocesses: a log each, a time limit, and the deadline of the whole check.
+"""Commands as subprocesses with a log and a time limit, and the deadline of a whole command.
 
 Every command runs in its own process group with stdout and stderr in its log; one that outlives its limit is
-killed with its children (data-loader workers, the ranks of a 2-process run, nvcc's jobs).
+killed with its children (data-loader workers, COLMAP's threads).
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,45 +45,27 @@ class Deadline:
         """``timeout_s``, or the time left if that is shorter."""
         return min(timeout_s, self.remaining())
 
+    def stop_at(self, reserve_s: float) -> float | None:
+        """``reserve_s`` before the deadline (None without one): when training must stop to end in time."""
+        return None if self.end is None else self.end - reserve_s
 
-def run_logged(
-    command: list[str],
-    log_path: Path,
-    timeout_s: float,
-    env: dict[str, str] | None = None,
-    progress: Callable[[], str] | None = None,
-    every_s: float = 30.0,
-) -> int | None:
-    """Run ``command`` with its output in ``log_path``; its exit status, or None when it was killed for running past
-    ``timeout_s``. ``progress``: a line printed every ``every_s`` seconds while it runs."""
-    process = start_logged(command, log_path, env)
-    ends = time.monotonic() + max(timeout_s, 0.0)
+
+def run_logged(command: list[str], log_path: Path, timeout_s: float) -> int | None:
+    """Run ``command`` in its own session with its output in ``log_path`` (the training environment); its exit
+    status, or None when it was killed for running past ``timeout_s``."""
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "w", encoding="utf8") as output:
+        process = subprocess.Popen(
+            command, stdout=output, stderr=subprocess.STDOUT, env=training_environment(), start_new_session=True
+        )
     try:
-        while True:
-            try:
-                return process.wait(timeout=max(0.0, min(every_s, ends - time.monotonic())))
-            except subprocess.TimeoutExpired:
-                if time.monotonic() >= ends:
-                    stop(process)
-                    return None
-                if progress is not None:
-                    print(f"    {progress()}", flush=True)
+        return process.wait(timeout=max(timeout_s, 0.0))
+    except subprocess.TimeoutExpired:
+        stop(process)
+        return None
     except BaseException:  # Ctrl-C does not reach the command's own session: stop it here, then stop
         stop(process)
         raise
-
-
-def start_logged(command: list[str], log_path: Path, env: dict[str, str] | None = None) -> subprocess.Popen:
-    """Start ``command`` in its own session with its output in ``log_path`` (``env``: the training environment)."""
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(log_path, "w", encoding="utf8") as output:
-        return subprocess.Popen(
-            command,
-            stdout=output,
-            stderr=subprocess.STDOUT,
-            env=training_environment() if env is None else env,
-            start_new_session=True,
-        )
 
 
 def stop(process: subprocess.Popen) -> None:
@@ -92,10 +73,6 @@ def stop(process: subprocess.Popen) -> None:
     with contextlib.suppress(ProcessLookupError):
         os.killpg(process.pid, signal.SIGKILL)
     process.wait()
-
-
-def log_tail(log_path: Path, lines: int = 20) -> str:
-    return "\n".join(log_path.read_text(encoding="utf8", errors="replace").splitlines()[-lines:])
 
 
 def failure(what: str, status: int | None, log_path: Path, timeout_s: float) -> str:

@@ -1,8 +1,6 @@
-"""The records a check writes as it goes, one JSON object per line, and how they are read back.
-
-A line is appended and flushed as soon as its result exists, so a check cut at any moment leaves every finished
-result; a reader skips a last line cut in the middle of its writing.
-"""
+"""The records the GPU check and the regime command write as they go, one JSON object per line, and how they are
+read back. A line is appended and flushed as soon as its result exists, so a command cut at any moment leaves every
+finished result; a reader skips a last line cut in the middle of its writing."""
 
 from __future__ import annotations
 
@@ -18,11 +16,19 @@ T = TypeVar("T")
 
 
 def append_record(path: Path, record: Any) -> None:
-    """Append the dataclass ``record`` to the JSON-lines file ``path`` (created with its folder), flushed."""
+    """Append the dataclass ``record`` to the JSON-lines file ``path`` (created with its folder), flushed; every
+    non-finite float written as null (JSON has no NaN)."""
+
+    def finite(value: Any) -> Any:
+        if isinstance(value, float) and not math.isfinite(value):
+            return None
+        if isinstance(value, dict):
+            return {key: finite(item) for key, item in value.items()}
+        return [finite(item) for item in value] if isinstance(value, list) else value
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    line = json.dumps(_finite(dataclasses.asdict(record)))
     with open(path, "a", encoding="utf8") as file:
-        file.write(line + "\n")
+        file.write(json.dumps(finite(dataclasses.asdict(record))) + "\n")
         file.flush()
 
 
@@ -54,27 +60,15 @@ def read_records(path: Path, kind: type[T]) -> list[T]:
     return [as_record(kind, values) for values in read_lines(path)]
 
 
-def _finite(value: Any) -> Any:
-    """``value`` with every non-finite float as None (JSON has no NaN)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {key: _finite(item) for key, item in value.items()}
-    if isinstance(value, list):
-        return [_finite(item) for item in value]
-    return value
-
-
 @dataclass
 class StageResult:
-    """One stage of the check: ``passed`` None when it did not run (``detail`` says why: skipped for lack of time,
-    not applicable here)."""
+    """One stage of a command: ``passed`` None when it did not run (``detail`` says why)."""
 
     name: str
     passed: bool | None
     detail: str
     seconds: float | None = None
-    """Its wall time (None: not run, or not recorded)."""
+    """Its wall time (None: not run)."""
     finished: float = field(default_factory=time.time)
     """When it ended (``time.time()``)."""
 

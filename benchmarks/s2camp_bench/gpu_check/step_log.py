@@ -50,8 +50,7 @@ class StepLog:
     """Writes a run's ``RunStart`` at once, its ``StepTime`` lines every ``every`` steps, and its ``RunEnd``."""
 
     def __init__(self, path: Path, method: str, device: str, every: int) -> None:
-        self.path, self.every = path, every
-        self.pending: list[StepTime] = []
+        self.path, self.every, self.pending = path, every, []
         path.unlink(missing_ok=True)
         append_record(path, RunStart(method, device))
 
@@ -72,13 +71,12 @@ class StepLog:
 
 @dataclass
 class StepTimes:
-    """A run's step log as read back."""
+    """A run's step log as read back; ``end`` None: the run was cut before it ended (its steps so far are kept)."""
 
     method: str
     device: str
     steps: list[StepTime]
     end: RunEnd | None
-    """None: the run was cut before it ended (its steps so far are kept)."""
 
     def ordinary_seconds(self, warmup_steps: int) -> list[float]:
         """Seconds of the steps from ``warmup_steps`` on, without those that refreshed P."""
@@ -98,10 +96,9 @@ class StepTimes:
 def read_step_log(path: Path) -> StepTimes | None:
     """The step log at ``path``; None when there is none (the run never started)."""
     lines = read_lines(path)
-    starts = [line for line in lines if line.get("kind") == "start"]
+    starts = [as_record(RunStart, line) for line in lines if line.get("kind") == "start"]
     if not starts:
         return None
-    start = as_record(RunStart, starts[-1])
     steps = [as_record(StepTime, line) for line in lines if line.get("kind") == "step"]
     ends = [as_record(RunEnd, line) for line in lines if line.get("kind") == "end"]
-    return StepTimes(start.method, start.device, steps, ends[-1] if ends else None)
+    return StepTimes(starts[-1].method, starts[-1].device, steps, ends[-1] if ends else None)

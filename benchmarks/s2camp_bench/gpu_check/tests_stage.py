@@ -1,13 +1,12 @@
 """The ``cuda`` tests stage: ``pytest -m cuda`` on the files that hold them (``config.CUDA_TEST_FILES``).
 
 Passed only if pytest ran at least one test, and every test it collected ran and passed: on a CUDA machine none may
-skip. pytest writes its JUnit file at its end; a run stopped at the deadline is counted from its verbose log, one
-line per finished test.
+skip. The counts come from pytest's JUnit file, written at its end; a pytest stopped at its limit writes none and
+fails (its verbose log keeps the tests that finished).
 """
 
 from __future__ import annotations
 
-import re
 import sys
 import time
 import xml.etree.ElementTree as ElementTree
@@ -18,9 +17,6 @@ from .processes import Deadline, failure, run_logged
 from .records import StageResult
 
 STAGE = "`pytest -m cuda`"
-OUTCOME = re.compile(r"^\S+::\S+ (PASSED|FAILED|ERROR|SKIPPED)\b", re.MULTILINE)
-"""A finished test in pytest's ``-v`` output."""
-LOG_KEYS = {"PASSED": "passed", "FAILED": "failures", "ERROR": "errors", "SKIPPED": "skipped"}
 
 
 def pytest_command(junit_path: Path, files: tuple[str, ...] = CUDA_TEST_FILES) -> list[str]:
@@ -40,47 +36,25 @@ def junit_counts(junit_path: Path) -> dict[str, int]:
     return counts
 
 
-def log_counts(log_path: Path) -> dict[str, int]:
-    """The same totals from pytest's ``-v`` log, for a run stopped before its JUnit file was written."""
-    counts = dict.fromkeys(("tests", "failures", "errors", "skipped", "passed"), 0)
-    text = log_path.read_text(encoding="utf8", errors="replace") if log_path.is_file() else ""
-    for outcome in OUTCOME.findall(text):
-        counts[LOG_KEYS[outcome]] += 1
-        counts["tests"] += 1
-    return counts
-
-
-def progress(log_path: Path) -> str:
-    counts = log_counts(log_path)
-    return f"pytest: {counts['tests']} tests finished, {counts['passed']} passed"
-
-
-def cuda_tests_result(
-    status: int | None, counts: dict[str, int] | None, log_path: Path, timeout_s: float, seconds: float | None = None
-) -> StageResult:
+def cuda_tests_result(status: int | None, counts: dict[str, int] | None, log_path: Path, timeout_s: float,
+                      seconds: float | None = None) -> StageResult:  # fmt: skip
     """Passed only if pytest succeeded, ran at least one test and skipped none (on CUDA nothing may skip);
-    ``status`` None: stopped at its limit, ``counts`` then those of the tests that finished before."""
+    ``counts`` None: pytest wrote no JUnit file (stopped at its limit, or it failed before the end)."""
     if counts is None:
         return StageResult(STAGE, False, failure("pytest", status, log_path, timeout_s), seconds)
-    summary = ", ".join(f"{counts[key]} {key}" for key in ("passed", "failures", "errors", "skipped") if counts[key])
-    if status is None:
-        finished = summary or "no test finished"
-        stopped = f"{finished} before pytest was stopped after {timeout_s / 60:.3g} minutes; log {log_path}"
-        return StageResult(STAGE, False, stopped, seconds)
     if counts["tests"] == 0:
         return StageResult(STAGE, False, f"no test marked cuda was collected; log {log_path}", seconds)
+    summary = ", ".join(f"{counts[key]} {key}" for key in ("passed", "failures", "errors", "skipped") if counts[key])
     passed = status == 0 and counts["passed"] == counts["tests"]
     return StageResult(STAGE, passed, summary + ("" if passed else f"; log {log_path}"), seconds)
 
 
 def run_cuda_tests(config: GpuCheckConfig, deadline: Deadline) -> StageResult:
-    folder = config.folder
-    junit_path = folder.junit_path
+    junit_path = config.folder.junit_path
     junit_path.unlink(missing_ok=True)
-    log_path = folder.logs_dir / "cuda-tests.log"
+    log_path = junit_path.with_suffix(".log")
     timeout_s = deadline.limit(config.run_timeout_s)
     began = time.perf_counter()
-    status = run_logged(pytest_command(junit_path), log_path, timeout_s, progress=lambda: progress(log_path))
-    seconds = time.perf_counter() - began
-    counts = junit_counts(junit_path) if junit_path.is_file() else (log_counts(log_path) if status is None else None)
-    return cuda_tests_result(status, counts, log_path, timeout_s, seconds)
+    status = run_logged(pytest_command(junit_path), log_path, timeout_s)
+    counts = junit_counts(junit_path) if junit_path.is_file() else None
+    return cuda_tests_result(status, counts, log_path, timeout_s, time.perf_counter() - began)

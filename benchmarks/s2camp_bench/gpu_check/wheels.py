@@ -1,5 +1,6 @@
 """Wheels for the lent GPU machine (Python 3.12, x86_64 Linux): fetched from the package registry, built from an
-sdist where the registry has no such wheel, this package's own, and wheels slimmed of files nothing there reads."""
+sdist where the registry has no such wheel, this repository's own two packages, and wheels slimmed of files nothing
+there reads."""
 
 from __future__ import annotations
 
@@ -15,7 +16,6 @@ PLATFORMS = (
     "manylinux1_x86_64",
 )  # fmt: skip
 """The wheel platforms pip may pick (the machine's glibc is newer than 2.28)."""
-PYTHON_VERSION = "3.12"
 
 
 def download_command(requirement: str, folder: Path) -> list[str]:
@@ -23,7 +23,7 @@ def download_command(requirement: str, folder: Path) -> list[str]:
     platforms = [option for platform in PLATFORMS for option in ("--platform", platform)]
     return [
         sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
-        "--python-version", PYTHON_VERSION, "--implementation", "cp", *platforms, "--dest", str(folder), requirement,
+        "--python-version", "3.12", "--implementation", "cp", *platforms, "--dest", str(folder), requirement,
     ]  # fmt: skip
 
 
@@ -36,10 +36,8 @@ def build_command(python: str, requirement: str, folder: Path) -> list[str]:
 def python_version(python: str) -> str | None:
     """``major.minor`` of the interpreter ``python`` (a name on PATH or a path); None when it does not run."""
     try:
-        result = subprocess.run(
-            [python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"],
-            capture_output=True, text=True, timeout=60,
-        )  # fmt: skip
+        result = subprocess.run([python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"],
+                                capture_output=True, text=True, timeout=60)  # fmt: skip
     except (OSError, subprocess.TimeoutExpired):
         return None
     return result.stdout.strip() if result.returncode == 0 else None
@@ -54,11 +52,12 @@ def run_quietly(command: list[str]) -> str | None:
     return output.splitlines()[-1] if output else f"exit status {result.returncode}"
 
 
-def own_wheel(repository: Path, folder: Path) -> Path:
-    """A wheel of this package built from the files git tracks or would track (no build outputs, no local links),
-    copied aside first so that the working tree gets no build folders."""
+def own_wheel(repository: Path, project: str, folder: Path) -> Path:
+    """A wheel of the project in ``repository``'s folder ``project`` ("." for the repository root), built from the
+    files git tracks or would track (no build outputs, no local links) copied aside, so that the working tree gets
+    no build folders; written into ``folder``."""
     listed = subprocess.run(
-        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard", "--", project],
         cwd=repository, capture_output=True, check=True,
     ).stdout.decode().split("\0")  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="s2camp-wheel-") as temporary:
@@ -71,7 +70,7 @@ def own_wheel(repository: Path, folder: Path) -> Path:
         before = set(folder.glob("*.whl"))
         subprocess.run(
             [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation", "--wheel-dir",
-             str(folder), str(source)],
+             str(folder), str(source / project)],
             check=True, capture_output=True,
         )  # fmt: skip
     (built,) = set(folder.glob("*.whl")) - before
