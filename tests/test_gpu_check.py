@@ -1,4 +1,4 @@
-"""The GPU check and the regime command (benchmarks/s2camp_bench/gpu_check) on the CPU: options, the refusal
+"""The GPU check and its regime stage (benchmarks/s2camp_bench/gpu_check) on the CPU: options, the refusal
 without CUDA, the deadline, the records written as results are made and the reports rebuilt from them (also for a
 cut run), the ``cuda`` test selection and its collection from an installed package, the offline bundle."""
 
@@ -20,7 +20,6 @@ from hang_guard import HANG_GUARD_S
 
 from s2camp_bench.gpu_check import report
 from s2camp_bench.gpu_check.bundle import OWN_PROJECTS, SLIM, normalized, to_carry
-from s2camp_bench.gpu_check.camera_error_log import REFINED, START, ErrorRecord
 from s2camp_bench.gpu_check.cli import allowed
 from s2camp_bench.gpu_check.config import (
     CUDA_TEST_FILES,
@@ -34,8 +33,8 @@ from s2camp_bench.gpu_check.environment import Environment, GpuCheckError, descr
 from s2camp_bench.gpu_check.measured_train import TrainPlan, run_stop
 from s2camp_bench.gpu_check.processes import Deadline
 from s2camp_bench.gpu_check.records import StageResult, append_record, read_lines, read_records
-from s2camp_bench.gpu_check.regime import RegimeConfig, build_report, errors_log, variant_arguments
-from s2camp_bench.gpu_check.step_log import RunEnd, StepLog, read_step_log
+from s2camp_bench.gpu_check.regime import variant_arguments
+from s2camp_bench.gpu_check.run_logs import REFINED, START, ErrorRecord, RunEnd, StepLog, read_step_log
 from s2camp_bench.gpu_check.tests_stage import cuda_tests_result, junit_counts, pytest_command
 from s2camp_bench.gpu_check.timing import group_plan, timing_arguments, timing_rows
 from s2camp_bench.gpu_check.wheels import slim_wheel
@@ -84,8 +83,9 @@ def test_defaults_are_the_lease_scene_the_groups_and_the_stage_order() -> None:
     config = GpuCheckConfig()
     config.validate()
     assert config.scene == LEASE_SCENE and (config.scene.width, config.scene.height) == (640, 480)
-    assert config.stages == ("timing", "tests")
+    assert config.stages == ("timing", "regime", "tests")
     assert config.groups == (NERFACTO_GROUP, "splat-off/s2camp-splat-so3xr3/s2camp-splat") == GROUPS
+    assert config.regime_variants == ("tracks-alone", "s2camp", "images-alone")
     assert config.deadline is None
     assert config.folder.steps_log("s2camp") == Path("outputs/gpu-check/timing/s2camp.jsonl")
 
@@ -94,14 +94,16 @@ def test_defaults_are_the_lease_scene_the_groups_and_the_stage_order() -> None:
     ("overrides", "message"),
     [
         ({"stages": ("tests", "rest")}, "stages must be one of"),
+        ({"regime_variants": ("s2camp", "photometric")}, r"regime_variants must be one of .*got 'photometric'"),
+        ({"regime_passes": 0}, "regime_passes must be a number > 0, got 0"),
         ({"groups": ("off",)}, "groups must be 'baseline/method/...' with two or more different methods, got"),
         ({"groups": ("off/off",)}, "groups must be 'baseline/method/...' with two or more different methods"),
         ({"groups": ("off/nerfacto",)}, "groups' methods must be one of"),
         ({"warmup_steps": 199}, r"warmup_steps must be an integer in \[0, 199\)"),
         ({"timing_steps": 0}, "timing_steps"),
-        ({"deadline": -5.0}, r"deadline must be a number of seconds > 0 \(or None: no deadline\), got -5.0"),
+        ({"deadline": -5.0}, "deadline must be a number > 0, got -5.0"),
         ({"refresh_repeats": -1}, "refresh_repeats must be an integer >= 0, got -1"),
-        ({"run_timeout_minutes": 0.0}, "run_timeout_minutes must be > 0"),
+        ({"run_timeout_minutes": 0.0}, "run_timeout_minutes must be a number > 0, got 0.0"),
         ({"report_from": Path("/nonexistent/check")}, "report_from must be the folder of an earlier check"),
     ],
 )
@@ -113,7 +115,7 @@ def test_bad_options_are_refused_by_name(overrides: dict, message: str) -> None:
 def test_cpu_smoke_keeps_what_the_command_line_chose() -> None:
     smoke = GpuCheckConfig(cpu_smoke=True).effective()
     smoke.validate()
-    assert smoke.stages == ("timing",)  # the CPU cannot run the cuda tests
+    assert smoke.stages == ("timing", "regime")  # the CPU cannot run the cuda tests
     assert smoke.groups == (NERFACTO_GROUP,)  # splatting needs gsplat's CUDA kernels
     assert (smoke.timing_steps, smoke.scene.width, smoke.scene.height) == (8, 320, 240)
     chosen = GpuCheckConfig(cpu_smoke=True, timing_steps=500).effective()
@@ -173,7 +175,7 @@ def test_refuses_without_cuda_with_a_clear_message(monkeypatch: pytest.MonkeyPat
     require_cuda(replace(NO_GPU, cuda_available=True, device_names=("NVIDIA H200",)))  # no error
 
 
-@pytest.mark.parametrize("command", ["s2camp_bench.gpu_check", "s2camp_bench.gpu_check.regime"])
+@pytest.mark.parametrize("command", ["s2camp_bench.gpu_check"])
 def test_the_commands_exit_non_zero_without_cuda_and_write_nothing(tmp_path: Path, command: str) -> None:
     output = tmp_path / "out"
     result = subprocess.run(
@@ -235,34 +237,24 @@ def test_the_cuda_files_are_exactly_those_with_cuda_tests() -> None:
     assert "tests" not in command and "tests/" not in command  # never the whole folder
 
 
-COLLECT_AS_INSTALLED = """
-import sys, importlib.abc
-class NoBenchmarks(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
-        if name == "s2camp_bench" or name.startswith("s2camp_bench."):
-            raise ImportError(f"{name} is not installed here")
-sys.meta_path.insert(0, NoBenchmarks())
+COLLECT_WITH_TORCH_2_11 = """
+import sys
 import torch._subclasses.fake_tensor as fake_tensor
 if hasattr(fake_tensor, "FakeTensorDeviceMismatchError"):
     del fake_tensor.FakeTensorDeviceMismatchError  # as torch 2.11, the GPU machines' torch
-try:
-    import s2camp_bench
-except ImportError:
-    print("s2camp_bench blocked")
 import pytest
 sys.exit(pytest.main(["--collect-only", "-q", "-m", "cuda", "-p", "no:cacheprovider", *sys.argv[1:]]))
 """
 
 
-def test_the_cuda_tests_collect_without_the_benchmarks_and_with_torch_2_11s_fake_tensor() -> None:
-    """On the GPU machine the package comes from a wheel and torch 2.11 has no FakeTensorDeviceMismatchError: the
-    files of the ``cuda`` tests must collect without ``s2camp_bench`` and without that class."""
+def test_the_cuda_tests_collect_with_torch_2_11s_fake_tensor() -> None:
+    """On the GPU machine torch 2.11 has no FakeTensorDeviceMismatchError: the files of the ``cuda`` tests must
+    collect without that class, every ``cuda`` test of them."""
     result = subprocess.run(
-        [sys.executable, "-c", COLLECT_AS_INSTALLED, *CUDA_TEST_FILES],
+        [sys.executable, "-c", COLLECT_WITH_TORCH_2_11, *CUDA_TEST_FILES],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    assert result.stdout.startswith("s2camp_bench blocked\n")  # the hook works: the check can fail
     assert [line for line in result.stdout.splitlines() if "::" in line] == CUDA_TESTS
 
 
@@ -431,18 +423,12 @@ def test_a_report_is_rebuilt_from_the_folder_of_a_check_that_was_cut(tmp_path: P
 
 # ----------------------------------------------------------------------------------------------------- regime
 def test_the_regime_run_is_one_pass_over_the_lease_scene() -> None:
-    config = RegimeConfig()
-    config.validate()
-    assert config.iterations == 2625  # ceil(35 training images x 640 x 480 / 4096)
-    assert RegimeConfig(passes=0.5).iterations == 1313
-    with pytest.raises(ValueError, match=r"variants must be one of .*got 'photometric'"):
-        RegimeConfig(variants=("s2camp", "photometric")).validate()
-    with pytest.raises(ValueError, match="passes must be a number > 0, got 0"):
-        RegimeConfig(passes=0).validate()
+    assert GpuCheckConfig().regime_steps == 2625  # ceil(35 training images x 640 x 480 / 4096)
+    assert GpuCheckConfig(regime_passes=0.5).regime_steps == 1313
 
 
 def test_the_regime_variants_share_their_evidence_and_differ_only_in_their_options() -> None:
-    config = RegimeConfig()
+    config = GpuCheckConfig()
     runs = {v: variant_arguments(config, v, Path("scene")) for v in ("s2camp", "tracks-alone", "images-alone")}
     for arguments in runs.values():
         assert arguments[0] == "s2camp"
@@ -460,26 +446,27 @@ def _errors(path: Path, records: list[ErrorRecord]) -> None:
         append_record(path, record)
 
 
-def test_the_regime_report_has_its_figures_even_when_the_run_was_cut(tmp_path: Path) -> None:
-    config = RegimeConfig(output_dir=tmp_path)
-    _errors(errors_log(tmp_path, "tracks-alone"), [ErrorRecord(START, 0, 0.3, 4e-3, 22.0, 7.0),
-                                                   ErrorRecord(REFINED, 0, 0.08, 2e-3, 1.5, 1.2)])  # fmt: skip
-    _errors(errors_log(tmp_path, "s2camp"), [ErrorRecord(START, 0, 0.3, 4e-3, 22.0, 7.0),
-                                             ErrorRecord(REFINED, 0, 0.3, 4e-3, 22.0, 6.9),
-                                             ErrorRecord(REFINED, 250, 0.07, 1.9e-3, 1.2, 1.0)])  # fmt: skip
-    with open(errors_log(tmp_path, "s2camp"), "a") as file:
+def test_the_regime_section_has_its_figures_even_when_the_run_was_cut(tmp_path: Path) -> None:
+    folder = _cut_check_folder(tmp_path / "check")
+    _errors(folder.errors_log("tracks-alone"), [ErrorRecord(START, 0, 0.3, 4e-3, 22.0, 7.0),
+                                                ErrorRecord(REFINED, 0, 0.08, 2e-3, 1.5, 1.2)])  # fmt: skip
+    _errors(folder.errors_log("s2camp"), [ErrorRecord(START, 0, 0.3, 4e-3, 22.0, 7.0),
+                                          ErrorRecord(REFINED, 0, 0.3, 4e-3, 22.0, 6.9),
+                                          ErrorRecord(REFINED, 250, 0.07, 1.9e-3, 1.2, 1.0)])  # fmt: skip
+    with open(folder.errors_log("s2camp"), "a") as file:
         file.write('{"label": "refined", "step": 500, "rot')  # cut while writing
-    append_record(tmp_path / "runs.jsonl", StageResult("scene", True, "40 images 640x480", 20.0))
-    text = build_report(config, tmp_path, "python -m s2camp_bench.gpu_check.regime").read_text()
-    rows = [line for line in text.splitlines() if line.startswith("| ") and "evidence" not in line]
-    assert rows[:4] == [
+    config = GpuCheckConfig(output_dir=tmp_path / "report")
+    text = report.build(config, folder, "python -m s2camp_bench.gpu_check", rebuilt=True)[0].read_text()
+    section = text.split("## The regime at real resolution")[1]
+    rows = [line for line in section.splitlines() if line.startswith("| ") and "evidence" not in line]
+    assert rows == [
         "| start (CamP's perturbation) | - | - | 0.3000 | 4.00e-03 | 22.000 | 7.000 |",
         "| tracks alone (the track prior's anchor, no training) | - | - | 0.0800 | 2.00e-03 | 1.500 | 1.200 |",
         "| s2camp (tracks and images) | 0 | 0.00 | 0.3000 | 4.00e-03 | 22.000 | 6.900 |",
         "| s2camp (tracks and images) | 250 | 0.10 | 0.0700 | 1.90e-03 | 1.200 | 1.000 |",
     ]
-    assert "| scene | passed | 20 | 40 images 640x480 |" in text
-    assert "2625 steps of 4096 rays, 1 pass(es) over the training pixels" in text
+    assert "2625 steps of 4096 rays, 1 pass(es) over the training pixels" in section
+    assert "## The regime" not in report.build(config, _cut_check_folder(tmp_path / "none"), "c", False)[0].read_text()
 
 
 # ------------------------------------------------------------------------------------------------------ bundle
@@ -539,7 +526,7 @@ def test_a_cpu_check_cut_by_its_deadline_keeps_what_it_measured(tmp_path: Path) 
     output = tmp_path / "out"
     began = time.monotonic()
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_bench.gpu_check", "--cpu-smoke", "--timing-steps", "5000",
+        [sys.executable, "-m", "s2camp_bench.gpu_check", "--cpu-smoke", "--stages", "timing", "--timing-steps", "5000",
          "--deadline", "150", "--output-dir", str(output)],
         capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
@@ -564,44 +551,46 @@ def test_a_cpu_check_cut_by_its_deadline_keeps_what_it_measured(tmp_path: Path) 
 
 
 @pytest.mark.slow
-def test_the_regime_command_on_the_cpu_logs_errors_as_it_goes(tmp_path: Path) -> None:
-    """The regime command end to end on the CPU (``--cpu-smoke``): tracks alone read after set-up, s2camp's errors
+def test_the_regime_stage_on_the_cpu_logs_errors_as_it_goes(tmp_path: Path) -> None:
+    """The regime stage end to end on the CPU (``--cpu-smoke``): tracks alone read after set-up, s2camp's errors
     logged every few steps, images alone after it, the report with all three; then rebuilt by --report-from."""
-    output = tmp_path / "regime"
+    output = tmp_path / "check"
     result = subprocess.run(
-        [sys.executable, "-m", "s2camp_bench.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
-         "--output-dir", str(output)],
+        [sys.executable, "-m", "s2camp_bench.gpu_check", "--cpu-smoke", "--stages", "regime", "--regime-passes",
+         "0.01", "--output-dir", str(output)],
         capture_output=True, text=True, env={**NO_CUDA, "OMP_NUM_THREADS": "1"}, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    tracks = [r for r in read_records(errors_log(output, "tracks-alone"), ErrorRecord) if r.label == REFINED]
-    s2camp = [r for r in read_records(errors_log(output, "s2camp"), ErrorRecord) if r.label == REFINED]
-    start = next(r for r in read_records(errors_log(output, "s2camp"), ErrorRecord) if r.label == START)
+    folder = CheckFolder(output)
+    tracks = [r for r in read_records(folder.errors_log("tracks-alone"), ErrorRecord) if r.label == REFINED]
+    s2camp = [r for r in read_records(folder.errors_log("s2camp"), ErrorRecord) if r.label == REFINED]
+    start = next(r for r in read_records(folder.errors_log("s2camp"), ErrorRecord) if r.label == START)
     assert [r.step for r in s2camp] == list(range(0, 43, 3))  # 42 steps: ceil(0.01 x 14 x 320 x 240 / 256)
     assert tracks and tracks[0].focal_err != start.focal_err  # the anchor is not the start
     assert s2camp[-1].rot_err != s2camp[0].rot_err  # the cameras moved
-    assert [r.name for r in read_records(output / "runs.jsonl", StageResult)] == ["scene", "training"]
-    text = (output / "regime.md").read_text()
+    stages = [(s.name, s.passed) for s in read_records(folder.stages_path, StageResult)]
+    assert stages == [("machine", True), ("scene", True), ("regime", True)]
+    text = (output / "gpu-check.md").read_text()
     assert "| images alone | 42 |" in text and "| tracks alone (the track prior's anchor, no training) |" in text
     again = subprocess.run(
-        [sys.executable, "-m", "s2camp_bench.gpu_check.regime", "--cpu-smoke", "--passes", "0.01",
+        [sys.executable, "-m", "s2camp_bench.gpu_check", "--cpu-smoke", "--regime-passes", "0.01",
          "--report-from", str(output), "--output-dir", str(tmp_path / "rebuilt")],
         capture_output=True, text=True, env=NO_CUDA, cwd=REPOSITORY, timeout=HANG_GUARD_S,
     )  # fmt: skip
-    assert again.returncode == 0 and "| images alone | 42 |" in (tmp_path / "rebuilt" / "regime.md").read_text()
+    assert again.returncode == 0 and "| images alone | 42 |" in (tmp_path / "rebuilt" / "gpu-check.md").read_text()
 
 
 @pytest.mark.slow
 def test_the_lease_script_runs_the_commands_in_order_and_packs_their_results(tmp_path: Path) -> None:
-    """``benchmarks/s2camp_bench/gpu_check/lease.sh`` on the CPU (``SMOKE``: each command's ``--cpu-smoke``;
-    ``NO_INSTALL``: this checkout's packages): the check's timing, the regime's tracks alone, the tests step
-    (nothing to run on the CPU), each under its deadline, and after each the reports and the archive of records in
+    """``benchmarks/s2camp_bench/gpu_check/lease.sh`` on the CPU (``SMOKE``: the check's ``--cpu-smoke``;
+    ``NO_INSTALL``: this checkout's packages): the check's timing and the regime's tracks alone, then the tests step
+    (nothing to run on the CPU), each under its deadline, and after each the report and the archive of records in
     ``$OUT``."""
     work, out = tmp_path / "lease", tmp_path / "out"
     environment = {
         **NO_CUDA, "OMP_NUM_THREADS": "1", "SMOKE": "1", "NO_INSTALL": "1", "PYTHON": sys.executable,
         "PYTHONPATH": f"{REPOSITORY}:{REPOSITORY / 'benchmarks'}", "WORK": str(work), "OUT": str(out),
-        "CHECK_S": "250", "REGIME_S": "370", "TESTS_S": "450", "REGIME_VARIANTS": "tracks-alone",
+        "CHECK_S": "300", "TESTS_S": "380", "CHECK_ARGS": "--regime-variants tracks-alone",
     }  # fmt: skip
     result = subprocess.run(
         ["bash", "benchmarks/s2camp_bench/gpu_check/lease.sh"],
@@ -610,17 +599,18 @@ def test_the_lease_script_runs_the_commands_in_order_and_packs_their_results(tmp
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     lines = (work / "lease.log").read_text().splitlines()
     assert [line.split(" (")[0] for line in lines if line.startswith(">>> ")] == [
-        ">>> gpu-check", ">>> regime", ">>> cuda-tests"
+        ">>> gpu-check", ">>> cuda-tests"
     ]  # fmt: skip
     assert all(" exit status 0 at " in line for line in lines if line.startswith("    ")), lines
-    assert sorted(path.name for path in out.iterdir()) == ["cuda-tests.md", "gpu-check.md", "lease.tgz", "regime.md"]
-    assert f"| {NERFACTO_GROUP} | s2camp | cpu |" in (out / "gpu-check.md").read_text()
-    assert "| tracks alone (the track prior's anchor, no training) |" in (out / "regime.md").read_text()
+    assert sorted(path.name for path in out.iterdir()) == ["cuda-tests.md", "gpu-check.md", "lease.tgz"]
+    text = (out / "gpu-check.md").read_text()
+    assert f"| {NERFACTO_GROUP} | s2camp | cpu |" in text
+    assert "| tracks alone (the track prior's anchor, no training) |" in text
     import tarfile
 
     with tarfile.open(out / "lease.tgz") as archive:
         names = set(archive.getnames())
-    kept = {"./gpu-check/stages.jsonl", "./gpu-check/timing/s2camp.jsonl", "./regime/errors/tracks-alone.jsonl"}
+    kept = {"./gpu-check/stages.jsonl", "./gpu-check/timing/s2camp.jsonl", "./gpu-check/errors/tracks-alone.jsonl"}
     assert kept <= names
     assert not [name for name in names if "/scene/" in name or "/ns-train/" in name]
 

@@ -6,6 +6,7 @@ import dataclasses
 import io
 import math
 import re
+import warnings
 from contextlib import redirect_stdout
 from importlib.metadata import entry_points
 
@@ -277,3 +278,13 @@ def test_stock_optimizer_refined_cameras_follow_its_ray_correction():
     torch.testing.assert_close(bundle.directions.double(), expected, atol=1e-6, rtol=0)
     torch.testing.assert_close(bundle.origins.double(), refined[:, :, 3], atol=1e-6, rtol=0)
     assert model.update_camera_errors() == {}  # no reference cameras in this model's metadata
+
+
+def test_mode_so3xr3_warns_that_it_means_se3_and_names_the_baseline():
+    from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
+
+    with pytest.warns(UserWarning, match=r"mode SO3xR3 means SE3 .* train s2camp-so3xr3"):
+        S2CampCameraOptimizerConfig(mode="SO3xR3").setup(num_cameras=2, device="cpu")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        S2CampCameraOptimizerConfig(mode="SE3").setup(num_cameras=2, device="cpu")

@@ -27,7 +27,7 @@ def _moved(scene: Path) -> pycolmap.Reconstruction:
 
 
 def test_truth_in_another_frame_passes_with_zero_errors(tiny_scene: Path, tmp_path: Path):
-    result = compare_with_truth(tmp_path, _moved(tiny_scene), _truth(tiny_scene), 1, SfmCheck())
+    result = compare_with_truth(tmp_path, _moved(tiny_scene), _truth(tiny_scene), SfmCheck())
     assert result.failure is None
     assert result.registered == result.images == 12
     assert result.centre_err_max < 1e-9 and result.rot_err_max < 1e-9
@@ -37,7 +37,7 @@ def test_truth_in_another_frame_passes_with_zero_errors(tiny_scene: Path, tmp_pa
 def test_missing_image_fails(tiny_scene: Path, tmp_path: Path):
     sfm = _moved(tiny_scene)
     sfm.deregister_frame(next(iter(sfm.frames)))
-    result = compare_with_truth(tmp_path, sfm, _truth(tiny_scene), 1, SfmCheck())
+    result = compare_with_truth(tmp_path, sfm, _truth(tiny_scene), SfmCheck())
     assert result.failure is not None and "11 of 12 images registered" in result.failure
 
 
@@ -48,9 +48,9 @@ def test_displaced_camera_fails_the_centre_check(tiny_scene: Path, tmp_path: Pat
     # Move one centre by 0.2 x the ring radius along the camera's x axis (t = -R c).
     moved = pycolmap.Rigid3d(pose.rotation, pose.translation - np.array([0.2 * RING_RADIUS, 0.0, 0.0]))
     sfm.frames[image.frame_id].rig_from_world = moved
-    result = compare_with_truth(tmp_path, sfm, _truth(tiny_scene), 1, SfmCheck())
+    result = compare_with_truth(tmp_path, sfm, _truth(tiny_scene), SfmCheck())
     assert result.failure is not None and "camera centre error" in result.failure
-    loose = compare_with_truth(tmp_path, sfm, _truth(tiny_scene), 1, SfmCheck(max_centre_error=0.5))
+    loose = compare_with_truth(tmp_path, sfm, _truth(tiny_scene), SfmCheck(max_centre_error=0.5))
     assert loose.failure is None and 0.05 * RING_RADIUS < loose.centre_err_max < 0.2 * RING_RADIUS
 
 

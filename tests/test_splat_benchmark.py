@@ -236,7 +236,7 @@ def test_quick_splat_benchmark_trains_the_three_variants(tmp_path: Path) -> None
     assert s2camp["rot_err"] != s2camp["start_rot_err"]
     text = (tmp_path / "splat.md").read_text()
     assert "s2camp-bench splat --quick" in text and "passes over each training pixel" in text
-    assert "time ratio vs so3xr3" in text and (tmp_path / "splat.png").exists()
+    assert "time ratio vs so3xr3" in text
 
 
 REPORT_FIELDS = {"iterations": 1000, "train_seconds": 1.0, "eval_seconds": 1.0, "workers": 1}

@@ -335,3 +335,46 @@ def test_undistortion_scale_is_the_data_managers_focal_over_the_dataparsers():
     fx_scale, fy_scale = undistortion_scale(datamanager)
     torch.testing.assert_close(fx_scale, torch.tensor([[1.02], [1.0]]))
     torch.testing.assert_close(fy_scale, torch.tensor([[1.01], [1.0]]))
+
+
+def _built_splat_model(tiny_scene: Path, lpips) -> S2CampSplatModel:
+    """The s2camp-splat model of the tiny scene's training split, torchmetrics' LPIPS class replaced by ``lpips``
+    while it is built (the test's stand-in for the weights being or not being in torch's cache)."""
+    import torchmetrics.image.lpip as lpip_module
+
+    from s2camp_ns.data.dataparser import S2CampDataParserConfig
+
+    outputs = S2CampDataParserConfig(data=tiny_scene).setup().get_dataparser_outputs("train")
+    xyz, rgb = outputs.metadata["points3D_xyz"], outputs.metadata["points3D_rgb"]
+    config = S2CampSplatModelConfig(use_bilateral_grid=True)
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+    lpip_module.LearnedPerceptualImagePatchSimilarity = lpips
+    try:
+        torch.manual_seed(0)
+        return config.setup(
+            scene_box=outputs.scene_box, num_train_data=len(outputs.image_filenames), metadata=outputs.metadata,
+            seed_points=(xyz, rgb),
+        )  # fmt: skip
+    finally:
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+
+
+def test_without_lpips_the_splat_model_is_what_splatfacto_builds_with_it(tiny_scene: Path):
+    """Where LPIPS cannot load its weights, the splat model builds what nerfstudio 1.1.5's splatfacto builds after
+    LPIPS (``splat_model.finish_without_lpips``): the same step, crop box, background, bilateral grids, densification
+    strategy and state; its ``lpips`` is None and its image metrics leave LPIPS out."""
+
+    def offline(*args, **kwargs):
+        raise OSError("no network (simulated)")
+
+    online = _built_splat_model(tiny_scene, lambda *args, **kwargs: torch.nn.Identity())
+    without = _built_splat_model(tiny_scene, offline)
+    assert without.lpips is None and not without.lpips_available and online.lpips_available
+    assert (without.step, without.crop_box) == (online.step, online.crop_box) == (0, None)
+    assert torch.equal(without.background_color, online.background_color)
+    assert type(without.strategy) is type(online.strategy) and vars(without.strategy) == vars(online.strategy)
+    assert without.strategy_state.keys() == online.strategy_state.keys()
+    assert type(without.bil_grids) is type(online.bil_grids)
+    assert without.state_dict().keys() == online.state_dict().keys()
+    for name, value in online.state_dict().items():
+        assert without.state_dict()[name].shape == value.shape, name

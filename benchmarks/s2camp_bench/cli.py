@@ -19,13 +19,9 @@ from .splat_bench import SplatBenchConfig
 from .step_cost import StepCostConfig
 
 MODULES = {
-    StepCostConfig: "step_cost",
-    RobustnessConfig: "robustness",
-    SplatBenchConfig: "splat_bench",
-    GramErrorConfig: "gram_error",
-    DispersionConfig: "dispersion",
-    ImageTracksCostConfig: "image_tracks_cost",
-}
+    StepCostConfig: "step_cost", RobustnessConfig: "robustness", SplatBenchConfig: "splat_bench",
+    GramErrorConfig: "gram_error", DispersionConfig: "dispersion", ImageTracksCostConfig: "image_tracks_cost",
+}  # fmt: skip
 """Every benchmark, in the order ``s2camp-bench all`` runs them."""
 
 
@@ -70,6 +66,3 @@ def main(config) -> list[dict]:
 
 def entrypoint() -> None:
     main(tyro.cli(Command, description=__doc__))
-
-
-__all__ = ["entrypoint", "main"]

@@ -6,49 +6,26 @@ import json
 import math
 import sys
 import tempfile
+import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-
-import torch
 
 from s2camp_bench.scene.make_scene import MakeSceneConfig, config_record, make_scene
 from s2camp_ns import __version__ as s2camp_version
-from s2camp_ns.core.camera import Intrinsics
 
 from . import report
 
 DEFAULT_OUTPUT_DIR = Path("outputs/benchmarks")
-"""Where reports and plots go unless ``--output-dir`` says otherwise: beside ns-train's ``outputs/``, so that trying a
-benchmark never rewrites the committed tables. Those are rewritten only when asked, with ``--output-dir
-docs/benchmarks`` from the repository root."""
+"""Where reports go unless ``--output-dir`` says otherwise (``docs/benchmarks``: the committed ones)."""
 
 
-@dataclass(frozen=True)
-class FrustumPreset:
-    """A camera whose frustum the benchmarks sample."""
-
-    name: str
-    description: str
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    def intrinsics(self, device: torch.device | str = "cpu") -> Intrinsics:
-        return Intrinsics.create(
-            fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width, height=self.height, device=device
-        )
-
-
-FRUSTA: dict[str, FrustumPreset] = {
+FRUSTA: dict[str, dict[str, float]] = {
     # mip-NeRF 360 "room" at 1/4 resolution (docs/DESIGN-NOTES.md sec. 9): about 52 x 36 degrees.
-    "room": FrustumPreset("room", "mip-NeRF 360 room, 1/4 res", 793.13, 793.49, 389.25, 259.375, 778, 518),
+    "room": dict(fx=793.13, fy=793.49, cx=389.25, cy=259.375, width=778, height=518),
     # Outdoor-like wide field of view: 90 degrees horizontal, 3:2 aspect.
-    "wide": FrustumPreset("wide", "90 deg horizontal, 3:2", 384.0, 384.0, 384.0, 256.0, 768, 512),
+    "wide": dict(fx=384.0, fy=384.0, cx=384.0, cy=256.0, width=768, height=512),
 }
+"""The cameras whose frusta the proxy-point benchmarks sample: ``Intrinsics.create(**FRUSTA[name])``."""
 
 
 def regenerate_command(command: str, output_dir: Path) -> str:
@@ -72,10 +49,17 @@ def changed_options(config: object, default: object, names: Sequence[str]) -> li
     return options
 
 
-def write_report(output_dir: Path, name: str, title: str, command: str, sections: Iterable[str]) -> Path:
+def write_report(
+    output_dir: Path, name: str, title: str, command: str, sections: Iterable[str], rows_from: Path | None = None
+) -> Path:
     """Write ``<output_dir>/<name>.md`` (``report.write_report``) with the command that regenerates it where it is
-    (``regenerate_command``)."""
-    return report.write_report(output_dir, name, title, regenerate_command(command, output_dir), sections)
+    (``regenerate_command``); rendered from the rows file ``rows_from`` (its runs trained on a CPU, one thread each),
+    its machine line says so instead of naming this machine."""
+    measured_on = None
+    if rows_from is not None:
+        rendered = time.strftime("%Y-%m-%d")
+        measured_on = f"rows of `{Path(rows_from).name}`, measured on a CPU, one thread per run; rendered {rendered}"
+    return report.write_report(output_dir, name, title, regenerate_command(command, output_dir), sections, measured_on)
 
 
 def _json_safe(value: object) -> object:
@@ -107,11 +91,8 @@ def log(message: str) -> None:
 
 def generated_scene(config: MakeSceneConfig) -> Path:
     """The scene ``config`` generates, in ``config.output_dir``: the folder as it is when it already holds that scene
-    (its ``scene_info.json``, written last, records the same generator config and version), else generated there.
-
-    A grid that spans sessions starts several benchmark processes on one work folder. Regenerating the scene in
-    place while another run reads it (its evaluation reads the true cameras) made that run fail with "no COLMAP
-    model"; the scene is deterministic, so an identical one is kept instead."""
+    (its ``scene_info.json``, written last, records the same generator config and version), else generated there; an
+    identical scene is never regenerated in place under a run that reads it."""
     info_path = Path(config.output_dir) / "scene_info.json"
     if info_path.is_file():
         info = json.loads(info_path.read_text(encoding="utf8"))

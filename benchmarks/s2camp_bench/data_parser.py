@@ -74,14 +74,9 @@ class BenchDataParser(S2CampDataParser):
                 f"reference_model {config.reference_model} needs a COLMAP scene (images matched by name), but "
                 f"--data {config.data} is a {data_format} scene ({source})"
             )
-        return reference_from_model(
-            config.reference_model,
-            source,
-            parsed.image_names,
-            outputs.cameras,
-            outputs.dataparser_transform,
-            float(outputs.dataparser_scale),
-        )
+        transform, scale = outputs.dataparser_transform, float(outputs.dataparser_scale)
+        names = parsed.image_names
+        return reference_from_model(config.reference_model, source, names, outputs.cameras, transform, scale)
 
     def _perturb(self, cameras: Cameras) -> Cameras:
         """CamP's perturbation, then the drift where it is on."""

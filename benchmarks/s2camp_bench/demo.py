@@ -1,14 +1,9 @@
 """``make demo``: generate a scene, perturb its cameras (CamP protocol), train ``s2camp``, print camera errors.
 
-Offline, on the CPU, in minutes, on a small procedural scene in the mip-NeRF 360 layout. Two recipes:
-
-- ``default``: ``ns-train s2camp`` with its default options, from scratch. The scene's tracks were made with the true
-  cameras, so the track prior gets tracks made from the images with the perturbed cameras (``image_tracks``: SIFT,
-  triangulated, bundle-adjusted, cached); each camera starts where they put it and is held by what they know of it.
-- ``warm-start``: the photometric refinement alone (``PHOTOMETRIC_ONLY``): nerfacto fitted to the accurate cameras
-  (camera learning rate zero), then resumed on the perturbed ones with a raised camera learning rate, no warm-up,
-  and P recomputed for them. From scratch, a run this short would let the field absorb the camera errors.
-
+Offline, on the CPU, in minutes, on a small procedural scene in the mip-NeRF 360 layout. Recipe ``default``: ``ns-train
+s2camp`` with its default options, from scratch (the track prior gets tracks made from the images with the perturbed
+cameras, not the scene's). Recipe ``warm-start``: the photometric refinement alone (``PHOTOMETRIC_ONLY``), nerfacto
+fitted to the accurate cameras, then resumed on the perturbed ones with a raised camera learning rate and no warm-up.
 The errors of the start, the tracks alone and the refined cameras against the true ones, after a similarity
 alignment, are read from the final checkpoint and printed.
 """
@@ -34,15 +29,10 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from s2camp_bench.scene.make_scene import MakeSceneConfig, make_scene
-from s2camp_bench.train_commands import (
-    FROZEN_LR,
-    PHOTOMETRIC_ONLY,
-    camera_schedule_arguments,
-    ns_train_arguments,
-    perturbation_arguments,
-    training_environment,
-)
+from s2camp_bench import train_commands
+from s2camp_bench.common import generated_scene
+from s2camp_bench.scene.make_scene import MakeSceneConfig
+from s2camp_ns.core.validation import check_positive_int, check_range
 
 CONSOLE = Console()
 
@@ -101,19 +91,13 @@ WARM_START_RECIPE_OPTIONS = ("warm_start", "camera_lr", "camera_lr_final")
 
 def check_config(config: DemoConfig) -> None:
     """Reject settings that would only fail inside ns-train, with the parameter's name."""
-    for name in ("warm_start", "iterations", "rays_per_batch", "num_cameras", "width", "height", "perturbation_seed"):
-        value = getattr(config, name)
-        low = 0 if name in ("warm_start", "perturbation_seed") else 1
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    for name in ("camera_lr", "camera_lr_final"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    for name in ("sigma_position", "sigma_look_at", "sigma_focal_length", "sigma_dolly_z"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    for name in ("iterations", "rays_per_batch", "num_cameras", "width", "height"):
+        check_positive_int(name, getattr(config, name))
+    for name in ("warm_start", "perturbation_seed"):
+        check_range(name, getattr(config, name), low=0)
+    for name in ("camera_lr", "camera_lr_final", "sigma_position", "sigma_look_at", "sigma_focal_length"):
+        check_range(name, getattr(config, name), low=0.0, low_inclusive=name.startswith("sigma"))
+    check_range("sigma_dolly_z", config.sigma_dolly_z, low=0.0)
     if config.recipe == "default":  # the default recipe uses the method's own schedule: these would do nothing
         for name in WARM_START_RECIPE_OPTIONS:
             value, default = getattr(config, name), getattr(DemoConfig, name)
@@ -125,25 +109,16 @@ def check_config(config: DemoConfig) -> None:
 
 
 def ensure_scene(config: DemoConfig) -> Path:
-    """Generate the scene, or reuse the one in ``scene_dir`` if it was generated with the same size."""
-    info_path = config.scene_dir / "scene_info.json"
-    wanted = {"num_cameras": config.num_cameras, "width": config.width, "height": config.height}
-    if info_path.exists():
-        existing = json.loads(info_path.read_text()).get("config", {})
-        if all(existing.get(key) == value for key, value in wanted.items()):
-            CONSOLE.print(f"[dim]reusing the generated scene in {config.scene_dir}")
-            return config.scene_dir
-        CONSOLE.print(f"[dim]{config.scene_dir} holds a scene of another size: generating it again")
-    CONSOLE.print(
-        f"generating a {config.num_cameras}-camera {config.width}x{config.height} scene in {config.scene_dir} ..."
-    )
-    return make_scene(MakeSceneConfig(output_dir=config.scene_dir, **wanted))
+    """Generate the scene, or reuse the one in ``scene_dir`` generated with the same settings."""
+    CONSOLE.print(f"[dim]the {config.num_cameras}-camera {config.width}x{config.height} scene in {config.scene_dir}")
+    size = {"num_cameras": config.num_cameras, "width": config.width, "height": config.height}
+    return generated_scene(MakeSceneConfig(output_dir=config.scene_dir, **size))
 
 
 def _common_arguments(config: DemoConfig, scene: Path, timestamp: str, iterations: int) -> list[str]:
     """Options of both runs (the refinement run loads the warm start: the models must match)."""
     return [
-        *ns_train_arguments(
+        *train_commands.ns_train_arguments(
             config.method, scene, config.output_dir, EXPERIMENT, timestamp, iterations, iterations,
             config.rays_per_batch,
         ),
@@ -164,8 +139,8 @@ def warm_start_command(config: DemoConfig, scene: Path) -> list[str]:
     return [
         *_common_arguments(config, scene, WARM_START_TIMESTAMP, config.warm_start),
         "--vis", "tensorboard",
-        *camera_schedule_arguments(FROZEN_LR, FROZEN_LR),
-        *PHOTOMETRIC_ONLY,  # the photometric loss alone
+        *train_commands.camera_schedule_arguments(train_commands.FROZEN_LR, train_commands.FROZEN_LR),
+        *train_commands.PHOTOMETRIC_ONLY,  # the photometric loss alone
     ]  # fmt: skip
 
 
@@ -178,18 +153,18 @@ def refine_command(config: DemoConfig, scene: Path) -> list[str]:
         "--viewer.quit-on-train-completion", "True",
     ]  # fmt: skip
     if config.recipe == "default":
-        return [*command, *perturbation_arguments(config)]
+        return [*command, *train_commands.perturbation_arguments(config)]
     command += [
-        *camera_schedule_arguments(config.camera_lr, config.camera_lr_final, config.iterations),
+        *train_commands.camera_schedule_arguments(config.camera_lr, config.camera_lr_final, config.iterations),
         "--pipeline.model.camera-optimizer.refresh-every", str(max(config.iterations // 4, 1)),
-        *PHOTOMETRIC_ONLY,  # the photometric loss alone
+        *train_commands.PHOTOMETRIC_ONLY,  # the photometric loss alone
     ]  # fmt: skip
     if config.warm_start > 0:
         command += [
             "--load-dir", str(run_dir(config, WARM_START_TIMESTAMP) / "nerfstudio_models"),
             "--load-scheduler", "False",
         ]  # fmt: skip
-    return [*command, *perturbation_arguments(config)]
+    return [*command, *train_commands.perturbation_arguments(config)]
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
@@ -207,7 +182,7 @@ def run(command: list[str], what: str, log_path: Path, iterations: int, verbose:
     began = time.perf_counter()
     with open(log_path, "w", encoding="utf8") as log:
         piped = {} if verbose else {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT, "text": True}
-        process = subprocess.Popen(command, env=training_environment(), **piped)
+        process = subprocess.Popen(command, env=train_commands.training_environment(), **piped)
         try:
             if not verbose:
                 _follow(process, log, iterations)
@@ -372,22 +347,14 @@ def main(config: DemoConfig) -> dict[str, dict[str, float]]:
         shutil.rmtree(run_dir(config, timestamp), ignore_errors=True)
     seconds = 0.0
     if uses_warm_start(config):
-        seconds += run(
-            warm_start_command(config, scene),
-            f"1/2 warm start: nerfacto on the accurate cameras, {config.warm_start} iterations",
-            config.output_dir / f"{WARM_START_TIMESTAMP}.log",
-            config.warm_start,
-            config.verbose,
-        )
+        what = f"1/2 warm start: nerfacto on the accurate cameras, {config.warm_start} iterations"
+        log_path = config.output_dir / f"{WARM_START_TIMESTAMP}.log"
+        seconds += run(warm_start_command(config, scene), what, log_path, config.warm_start, config.verbose)
     step = "2/2 " if uses_warm_start(config) else ""
     what = "default options, from scratch" if config.recipe == "default" else "photometric refinement"
-    seconds += run(
-        refine_command(config, scene),
-        f"{step}{config.method} on perturbed cameras (CamP protocol): {what}, {config.iterations} iterations",
-        config.output_dir / f"{REFINE_TIMESTAMP}.log",
-        config.iterations,
-        config.verbose,
-    )
+    what = f"{step}{config.method} on perturbed cameras (CamP protocol): {what}, {config.iterations} iterations"
+    log_path = config.output_dir / f"{REFINE_TIMESTAMP}.log"
+    seconds += run(refine_command(config, scene), what, log_path, config.iterations, config.verbose)
     config_path = run_dir(config, REFINE_TIMESTAMP) / "config.yml"
     CONSOLE.rule("camera errors")
     results = camera_error_table(config_path)

@@ -1,13 +1,9 @@
 """``s2camp-bench dispersion`` (paper Table 1 and Fig. 4): the deterministic Frolov lattice against random points.
 
-For each reference frustum ("room": mip-NeRF 360 room camera at 1/4 resolution; "wide": 90 degree horizontal field
-of view, 3:2), each transform ("pyramid", "spherical") and each L, the dispersion (radius of the largest empty ball
-with centre in the contracted frustum, ``dispersion_bound.dispersion``: a lower bound attained in the frustum and an
-upper bound within the tolerance) of
-
-- ``deterministic``: the Frolov lattice of ``s2camp_ns.core.lattice.frolov_lattice`` through the transform;
-- ``random``: uniform random points in the cube through the same transform (uniform in the frustum volume), the
-  mean over the seeds (the baseline).
+For each reference frustum ("room": mip-NeRF 360 room at 1/4 resolution; "wide": 90 degrees, 3:2), transform and L,
+the dispersion (radius of the largest empty ball with centre in the contracted frustum, ``dispersion_bound``) of the
+Frolov lattice (``s2camp_ns.core.lattice.frolov_lattice``) and, the baseline, of uniform random points through the
+same transform (the mean over the seeds).
 """
 
 from __future__ import annotations
@@ -94,17 +90,17 @@ def plot(rows: list[dict], config: DispersionConfig, path: Path, num_points: int
     import matplotlib.pyplot as plt
 
     bounds = reference_tangent_bounds("room")
-    units = {"deterministic (Frolov)": frolov_lattice(num_points), "random": random_points(num_points, 0)}
+    units = {"deterministic (Frolov)": frolov_lattice(num_points), "random (seed 0)": random_points(num_points, 0)}
     room = [r for r in rows if (r["frustum"], r["transform"]) == ("room", "pyramid")]
     measured = {(r["sampler"], r["L"]): r["dispersion"] for r in room}
     figure, axes = plt.subplots(1, 2, figsize=(9, 4.5), sharey=True)
     for axis, (label, unit) in zip(axes, units.items(), strict=True):
         points = sample_frustum(unit, bounds, config.t_near, config.t_far, "pyramid").contracted[0]
         axis.scatter(points[:, 0], points[:, 2], s=4, color="red")
-        value = measured.get((label.split(" ")[0], num_points))
-        axis.set_title(f"{label}, L = {num_points}" + ("" if value is None else f"\ndispersion {value:.3f}"))
-        axis.set_xlabel("x (contracted)")
-        axis.set_aspect("equal")
+        sampler = label.split(" ")[0]
+        value, mean = measured.get((sampler, num_points)), " (mean of the seeds)" if sampler == "random" else ""
+        axis.set_title(f"{label}, L = {num_points}" + ("" if value is None else f"\ndispersion {value:.3f}{mean}"))
+        axis.set(xlabel="x (contracted)", aspect="equal")
     axes[0].set_ylabel("z, depth (contracted)")
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -148,13 +148,8 @@ def _half_diagonal(vertices: Tensor) -> Tensor:
 
 
 def dispersion(
-    points_contracted: Float[Tensor, "n l 3"] | Float[Tensor, "l 3"],
-    tangent_bounds: Float[Tensor, "n 4"],
-    t_near: float,
-    t_far: float,
-    transform: str = "pyramid",
-    tol: float = 1e-3,
-    max_levels: int = 200,
+    points_contracted: Float[Tensor, "n l 3"] | Float[Tensor, "l 3"], tangent_bounds: Float[Tensor, "n 4"],
+    t_near: float, t_far: float, transform: str = "pyramid", tol: float = 1e-3, max_levels: int = 200,
 ) -> DispersionResult:
     """Largest empty ball with centre in the contracted frustum of ``transform`` (paper Table 1).
 

@@ -1,9 +1,8 @@
 """Reprojection drift: how far refined cameras move the images of the scene's 3D points, in pixels.
 
-It measures pose and focal errors together, in pixels: every 3D point a true image sees (in front of it, inside it;
-no occlusion test) is projected through the true and the refined camera (paper eq. 2, distortion included), and the
-RMS of the pixel displacement over these (image, point) pairs is reported. The refined poses are first aligned to the
-true ones by the similarity of their centres (``core.alignment``). Cameras are OpenCV (x right, y down, z forward).
+Pose and focal errors together: every 3D point a true image sees (in front of it, inside it; no occlusion test) is
+projected through the true and the refined camera (paper eq. 2, distortion included), the refined poses aligned to the
+true ones by the similarity of their centres; the RMS of the pixel displacement over these pairs. OpenCV cameras.
 """
 
 from __future__ import annotations
@@ -48,12 +47,8 @@ def _check_cameras(name: str, c2w: Tensor, intrinsics: Intrinsics, n: int) -> No
 
 
 def reprojection_drift(
-    points: Float[Tensor, "p 3"],
-    true_c2w: Float[Tensor, "n 3 4"],
-    true_intrinsics: Intrinsics,
-    refined_c2w: Float[Tensor, "n 3 4"],
-    refined_intrinsics: Intrinsics,
-    align: bool = True,
+    points: Float[Tensor, "p 3"], true_c2w: Float[Tensor, "n 3 4"], true_intrinsics: Intrinsics,
+    refined_c2w: Float[Tensor, "n 3 4"], refined_intrinsics: Intrinsics, align: bool = True,
 ) -> Drift:
     """Reprojection displacement (px) of ``points`` between the true and the refined cameras (module docstring);
     ``align``: refined poses first mapped onto the true ones (needs 3 distinct centres). Raises ``ValueError`` for
@@ -95,8 +90,6 @@ def reprojection_drift(
         raise ValueError("refined cameras: every visible point lies behind its refined camera")
     displacement = torch.linalg.norm(refined_pixels - true_pixels, dim=-1)[measured]
     return Drift(
-        rms_px=float(torch.sqrt(torch.mean(displacement**2))),
-        max_px=float(displacement.max()),
-        pairs=int(measured.sum()),
-        behind=int(behind.sum()),
+        rms_px=float(torch.sqrt(torch.mean(displacement**2))), max_px=float(displacement.max()),
+        pairs=int(measured.sum()), behind=int(behind.sum()),
     )

@@ -1,10 +1,9 @@
 """A trained run's evaluation, the same for every method: camera errors, drift, held-out PSNR / SSIM, step time.
 
 Start and final training cameras against the true ones (``reference_cameras``, else as given) after a similarity
-alignment, the reprojection drift of the sparse points (``points3D_xyz``), then the held-out views after test-time
-alignment. The model needs S2CampModel's camera interface: ``_train_cameras``, ``reference_cameras()``,
-``uses_s2camp_optimizer`` and (nerfstudio's pose optimizer) ``refined_train_cameras()``. ``load_pipeline`` loads a
-finished ``ns-train`` run and ``seconds_per_iteration`` reads its step time from its tensorboard events.
+alignment, the reprojection drift of the sparse points, then the held-out views after test-time alignment; the model
+needs S2CampModel's camera interface. ``load_pipeline`` loads a finished ``ns-train`` run, ``seconds_per_iteration``
+reads its step time from its tensorboard events.
 """
 
 from __future__ import annotations
@@ -44,12 +43,9 @@ def camera_metrics(
         points, opengl_to_opencv(true_c2w), true_intrinsics, opengl_to_opencv(c2w_gl), intrinsics, align=True
     )
     return {
-        "rot_err": math.degrees(errors["rot_err_mean"]),
-        "pos_err": errors["pos_err_mean"],
-        "focal_err": errors["focal_err_mean"],
-        "drift_px": drift.rms_px,
-        "drift_behind": drift.behind,
-    }
+        "rot_err": math.degrees(errors["rot_err_mean"]), "pos_err": errors["pos_err_mean"],
+        "focal_err": errors["focal_err_mean"], "drift_px": drift.rms_px, "drift_behind": drift.behind,
+    }  # fmt: skip
 
 
 def estimated_cameras(model) -> tuple[Float[Tensor, "n 3 4"], Intrinsics]:

@@ -1,13 +1,10 @@
-"""Gram-matrix estimation error against L: deterministic lattice vs random sampling.
+"""``s2camp-bench gram-error``: Gram-matrix estimation error against L, the deterministic lattice against random
+points (paper eq. 5; why integration accuracy is the criterion: docs/DESIGN-NOTES.md sec. 2).
 
-Paper eq. 5; why integration accuracy is the criterion: docs/DESIGN-NOTES.md sec. 2.
-
-For each frustum, the relative Frobenius error of Sigma_L against a 2^20-point reference, for the deterministic
-Frolov lattice (S2CamP), scrambled Sobol points, uniform random points in the same frustum (the paper's random
-baseline) and CamP's own random sampler (its published configuration ``CAMP_SAMPLING``: random pixel, power-ladder
-distance along the ray in [0.4, 1000], no contraction; measured against a reference of its own density, which differs
-from the volume-uniform one, and listed under t_near 0.4, its own near distance). Random samplers are averaged over
-seeds.
+For each frustum, the relative Frobenius error of Sigma_L against a 2^20-point reference (``gram_reference``) for the
+Frolov lattice (S2CamP), scrambled Sobol points, uniform random points in the same frustum (the baseline) and CamP's
+own random sampler (``CAMP_SAMPLING``, against a reference of its own density, listed under its own t_near 0.4).
+Random samplers are averaged over seeds.
 """
 
 from __future__ import annotations
@@ -16,7 +13,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from s2camp_bench.report import markdown_table
-from s2camp_ns.core.camera import ParameterLayout
+from s2camp_ns.core.camera import Intrinsics, ParameterLayout
 from s2camp_ns.core.jacobian import relative_gram_error
 from s2camp_ns.core.preconditioner import CAMP_SAMPLING, SamplingConfig
 
@@ -47,11 +44,8 @@ class GramErrorConfig:
     quick: bool = False
     """Small run for CI: one frustum, two values of L, two seeds, 10^6-point reference."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
-    """Folder of the report and plots (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
-    """Write <output_dir>/gram-error.md and gram-error.png."""
     json: bool = False
-    """Print one JSON object {"rows": [...]} on stdout."""
 
     def effective(self) -> GramErrorConfig:
         if not self.quick:
@@ -66,7 +60,7 @@ def run(config: GramErrorConfig) -> list[dict]:
     layout = ParameterLayout()
     rows: list[dict] = []
     for frustum_name in config.frusta:
-        intrinsics = FRUSTA[frustum_name].intrinsics()
+        intrinsics = Intrinsics.create(**FRUSTA[frustum_name])
         for t_near in config.t_near:
             base = SamplingConfig(t_near=t_near, t_far=config.t_far, transform=config.transform)  # type: ignore[arg-type]
             uniform_ref = reference_gram(intrinsics, base, layout, num_points=config.reference_points)
@@ -90,25 +84,14 @@ def run(config: GramErrorConfig) -> list[dict]:
                 for num_points in config.num_points:
                     sampling = replace(panel, sampler=kind, num_points=num_points)  # type: ignore[arg-type]
                     errors = gram_estimation_error(intrinsics, sampling, reference, layout, seeds)[:, 0]
-                    rows.append(
-                        {
-                            "frustum": frustum_name,
-                            "sampler": label,
-                            "transform": config.transform,
-                            "t_near": t_near,
-                            "t_far": sampling.t_far,
-                            "L": num_points,
-                            "rel_error": float(errors.mean()),
-                            "rel_error_std": float(errors.std()) if len(seeds) > 1 else 0.0,
-                            "seeds": len(seeds),
-                            "reference_points": config.reference_points,
-                            "reference_error": reference_error,
-                        }
-                    )
-                    log(
-                        f"gram-error {frustum_name} t_near={t_near} {label:13s} L={num_points:5d} "
-                        f"err={rows[-1]['rel_error']:.3e}"
-                    )
+                    rows.append({
+                        "frustum": frustum_name, "sampler": label, "transform": config.transform, "t_near": t_near,
+                        "t_far": sampling.t_far, "L": num_points, "rel_error": float(errors.mean()),
+                        "rel_error_std": float(errors.std()) if len(seeds) > 1 else 0.0, "seeds": len(seeds),
+                        "reference_points": config.reference_points, "reference_error": reference_error,
+                    })  # fmt: skip
+                    log(f"gram-error {frustum_name} t_near={t_near} {label:13s} L={num_points:5d} "
+                        f"err={rows[-1]['rel_error']:.3e}")  # fmt: skip
     return rows
 
 
@@ -124,15 +107,8 @@ def summary(rows: list[dict]) -> list[dict]:
             det = _cell(rows, frustum=frustum, t_near=t_near, sampler="deterministic", L=500)
             rnd = _cell(rows, frustum=frustum, t_near=t_near, sampler="random", L=5000)
             if det and rnd:
-                out.append(
-                    {
-                        "frustum": frustum,
-                        "t_near": t_near,
-                        "deterministic_500": det["rel_error"],
-                        "random_5000": rnd["rel_error"],
-                        "ratio": det["rel_error"] / rnd["rel_error"],
-                    }
-                )
+                out.append({"frustum": frustum, "t_near": t_near, "deterministic_500": det["rel_error"],
+                            "random_5000": rnd["rel_error"], "ratio": det["rel_error"] / rnd["rel_error"]})  # fmt: skip
     return out
 
 
@@ -164,11 +140,8 @@ def report(rows: list[dict], config: GramErrorConfig) -> Path:
     plot(rows, config.output_dir / "gram-error.png")
     columns = ["frustum", "t_near", "sampler", "L", "rel_error", "rel_error_std", "seeds"]
     table = markdown_table(rows, columns)
-    claim = markdown_table(
-        summary(rows),
-        ["frustum", "t_near", "deterministic_500", "random_5000", "ratio"],
-        ["frustum", "t_near", "deterministic, L=500", "random, L=5000 (mean)", "ratio"],
-    )
+    claim = markdown_table(summary(rows), ["frustum", "t_near", "deterministic_500", "random_5000", "ratio"],
+                           ["frustum", "t_near", "deterministic, L=500", "random, L=5000 (mean)", "ratio"])  # fmt: skip
     reference_note = (
         f"Reference: {rows[0]['reference_points']} scrambled Sobol points through the {rows[0]['transform']} "
         f"transform (CamP's sampler, its published configuration listed under t_near 0.4, its own near distance: as "
@@ -176,17 +149,9 @@ def report(rows: list[dict], config: GramErrorConfig) -> Path:
         f"scrambles differ by {rows[0]['reference_error']:.1e} (relative), a floor below which errors are not "
         "resolved. All 12 camera parameters, pinhole intrinsics, pixels divided by max(W, H)."
     )
-    return write_report(
-        config.output_dir,
-        "gram-error",
-        "Gram-matrix estimation error",
-        "s2camp-bench gram-error",
-        [
-            "## The claim: 500 deterministic points vs 5000 random points",
-            claim,
-            reference_note,
-            "![gram error](gram-error.png)",
-            "## All cells",
-            table,
-        ],
-    )
+    sections = [
+        "## The claim: 500 deterministic points vs 5000 random points", claim, reference_note,
+        "![gram error](gram-error.png)", "## All cells", table,
+    ]  # fmt: skip
+    command, title = "s2camp-bench gram-error", "Gram-matrix estimation error"
+    return write_report(config.output_dir, "gram-error", title, command, sections)

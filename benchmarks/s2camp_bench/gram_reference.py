@@ -26,22 +26,13 @@ REFERENCE_POINTS = 2**20
 
 
 def reference_gram(
-    intrinsics: Intrinsics,
-    sampling: SamplingConfig,
-    layout: ParameterLayout | None = None,
-    num_points: int = REFERENCE_POINTS,
-    seed: int = 12345,
-    chunk: int = 2**16,
-    min_points: int = 10**6,
+    intrinsics: Intrinsics, sampling: SamplingConfig, layout: ParameterLayout | None = None,
+    num_points: int = REFERENCE_POINTS, seed: int = 12345, chunk: int = 2**16,
 ) -> Float[Tensor, "n k k"]:
-    """Sigma from ``num_points`` points of the same distribution as ``sampling`` describes.
-
-    ``min_points`` (10^6) guards the benchmark protocol; internal rankings such as the lattice search may lower it.
-    Volume-uniform samplers (lattice, Sobol, Halton, random) share one reference, made from scrambled Sobol points
-    through ``sampling.transform``; CamP's random sampler has its own (non-uniform) density, so its reference is made
-    from ``num_points`` of its own random draws.
-    """
-    check_range("num_points", num_points, low=min_points)
+    """Sigma from ``num_points`` (at least 10^6) points of the distribution ``sampling`` describes, in chunks of
+    ``chunk``: volume-uniform samplers (lattice, Sobol, random) share one reference, scrambled Sobol points through
+    ``sampling.transform``; CamP's random sampler, of another density, gets ``num_points`` of its own random draws."""
+    check_range("num_points", num_points, low=10**6)
     sampling.validate()
     intrinsics = intrinsics.detach().to(dtype=torch.float64)
     bounds = tangent_bounds(intrinsics)
@@ -71,11 +62,8 @@ def reference_gram(
 
 
 def gram_estimation_error(
-    intrinsics: Intrinsics,
-    sampling: SamplingConfig,
-    reference: Float[Tensor, "n k k"],
-    layout: ParameterLayout | None = None,
-    seeds: tuple[int, ...] = (0,),
+    intrinsics: Intrinsics, sampling: SamplingConfig, reference: Float[Tensor, "n k k"],
+    layout: ParameterLayout | None = None, seeds: tuple[int, ...] = (0,),
 ) -> Float[Tensor, "s n"]:
     """Relative Frobenius error ||Sigma_L - Sigma_ref||_F / ||Sigma_ref||_F for each seed and camera."""
     errors = []

@@ -1,13 +1,12 @@
 """A grid of ``ns-train`` runs (scene x start x variant x seed) on generated scenes, shared by ``s2camp-bench
-robustness`` and ``s2camp-bench splat``: the scenes, the data parser's options of each start, runs side by side on
-one CPU thread each, and the rows file a grid continues from across sessions.
+robustness`` and ``s2camp-bench splat``: the data parser's options of each start, runs side by side on one CPU thread
+each, their rows, and the rows file a grid continues from across sessions.
 
-Starts (no start feeds the method anything made from the true cameras): "accurate" the generated scene's true
-cameras; "perturbed" the data parser's CamP perturbation (CamP's sigmas, one perturbation seed per scene); "phone"
-``PHONE_PROFILE``; "sfm" pycolmap SfM of the full-size images with ``SFM_FOCAL_PRIOR`` (``sfm.run_sfm``, once per
-work folder), measured against the true cameras (``--reference-model``). The generated scene's own tracks are exact
-projections through the true cameras, so every start but sfm trains with tracks made from its images with its start
-cameras (``--image-tracks always``), and sfm with SfM's tracks.
+Starts (none feeds the method anything made from the true cameras): "accurate" the true cameras; "perturbed" CamP's
+perturbation (one seed per scene); "phone" ``PHONE_PROFILE``; "sfm" pycolmap SfM of the full-size images with
+``SFM_FOCAL_PRIOR`` (once per work folder), measured against the true cameras (``--reference-model``). Every start but
+sfm trains with tracks made from its images with its start cameras (``--image-tracks always``: the scene's own are
+exact projections through the true cameras), sfm with SfM's.
 """
 
 from __future__ import annotations
@@ -30,6 +29,10 @@ from .common import log
 from .data_parser import SUBCOMMAND as BENCH_DATAPARSER
 from .data_parser import ns_train_environment
 
+METRICS = ("rot_err", "pos_err", "focal_err", "drift_px", "psnr", "ssim", "psnr_unaligned")
+ERRORS = ("rot_err", "pos_err", "focal_err", "drift_px")
+"""A row's metrics of the final cameras and held-out views (``evaluation.evaluate_pipeline``; ``start_<error>``: of
+the start cameras)."""
 EVAL_INTERVAL = 8
 """The data parser's default held-out interval (every 8th image, the mip-NeRF 360 protocol)."""
 SFM_FOCAL_PRIOR = 1.05
@@ -39,12 +42,9 @@ PHONE_PROFILE = {
     "perturbation.sigma_focal_length": 0.0, "drift.enabled": True, "drift.position_drift": 0.01,
     "drift.yaw_drift_deg": 1.5, "drift.tilt_deg": 0.3, "drift.focal_error": 0.015,
 }  # fmt: skip
-"""The phone-pose start: visual-inertial odometry poses (ARKit / ARCore, as Polycam or Record3D export them), the
-benchmarks' data parser's VIO drift (``benchmarks/s2camp_bench/phone_drift.py``, where each size's source or
-assumption is stated) with CamP's own steps off. Along the capture: the centres a random walk whose RMS grows to 1% of
-the distance travelled, the yaw a random walk to 1.5 degrees RMS, roll and pitch within 0.3 degrees of gravity, one
-focal length for every image 1.5% off. Run seed s of a scene with perturbation seed p draws with seed p + s (the
-variants of one seed share the draw). These exports carry no SfM tracks: tracks are made from the images."""
+"""The phone-pose start: a phone's visual-inertial odometry poses, the data parser's VIO drift with CamP's own steps
+off (``phone_drift``; the sizes: docs/benchmarks/phone-drift.md). Run seed s of a scene with perturbation seed p draws
+with seed p + s (the variants of one seed share the draw)."""
 
 
 def focal_for_fov(width: int, fov_degrees: float) -> float:
@@ -94,12 +94,26 @@ def run_specs(config) -> list[RunSpec]:
     """Every run of ``config`` (``scenes``, ``starts``, ``variants``, ``first_seed``, ``seeds``), seeds outermost: a
     grid cut short still leaves whole seeds of every scene, start and variant."""
     return [
-        RunSpec(scene, start, variant, seed)
-        for seed in range(config.first_seed, config.first_seed + config.seeds)
-        for scene in config.scenes
-        for start in config.starts
-        for variant in config.variants
+        RunSpec(scene, start, variant, seed) for seed in range(config.first_seed, config.first_seed + config.seeds)
+        for scene in config.scenes for start in config.starts for variant in config.variants
     ]
+
+
+def validate_grid(config, scenes: tuple[str, ...], starts: tuple[str, ...], variants: tuple[str, ...]) -> None:
+    """Raise ``ValueError`` naming the option unless ``config``'s scenes, starts and variants are non-empty choices of
+    those given, its seeds, iterations and workers positive, its first seed >= 0 and its alignment valid."""
+    from s2camp_ns.core.validation import check_choice, check_positive_int
+
+    for name, allowed in (("scenes", scenes), ("starts", starts), ("variants", variants)):
+        if not getattr(config, name):
+            raise ValueError(f"{name} must name at least one of {', '.join(allowed)}, got none")
+        for value in getattr(config, name):
+            check_choice(name, value, allowed)
+    for name in ("seeds", "iterations", "workers"):
+        check_positive_int(name, getattr(config, name))
+    if config.first_seed < 0:
+        raise ValueError(f"first_seed must be >= 0, got {config.first_seed}")
+    config.alignment.validate()
 
 
 def start_arguments(spec: RunSpec, scene: GridScene, truth: Path | None) -> list[str]:
@@ -145,20 +159,35 @@ def read_rows(path: Path) -> list[dict]:
     return [json.loads(line) for line in Path(path).read_text(encoding="utf8").splitlines() if line.strip()]
 
 
+def evaluated_row(spec: RunSpec, result: dict, iterations: int, train_seconds: float, folder: Path) -> dict:
+    """The row of a trained run evaluated as ``result`` (``evaluation.evaluate_pipeline`` and ``eval_seconds``): its
+    spec, ``METRICS``, start errors, length, timings and seconds per step (``evaluation.seconds_per_iteration``)."""
+    from .evaluation import seconds_per_iteration
+
+    row = {"scene": spec.scene, "start": spec.start, "variant": spec.variant, "seed": spec.seed}
+    row |= {key: result[key] for key in (*METRICS, "drift_behind")}
+    row |= {f"start_{key}": result[f"start_{key}"] for key in (*ERRORS, "drift_behind")}
+    row |= {"iterations": iterations, "eval_views": result["eval_views"], "train_seconds": train_seconds}
+    return row | {"eval_seconds": result["eval_seconds"], "sec_per_iter": seconds_per_iteration(folder)}
+
+
 def record_row(row: dict, folder: Path, root: Path) -> None:
-    """A finished run's row appended to ``root``'s ``ROWS_FILE`` (so a grid can span sessions), after its checkpoints
-    are removed (the trainer's atomic-save folder too): the row is all that is kept of an evaluated run."""
+    """A finished run's row appended to ``root``'s ``ROWS_FILE`` (so a grid can span sessions) and logged, after its
+    checkpoints are removed (the trainer's atomic-save folder too): the row is all that is kept of an evaluated run."""
     import shutil
 
     for checkpoints in ("nerfstudio_models", "nerfstudio_models.partial"):
         shutil.rmtree(folder / checkpoints, ignore_errors=True)
     with _ROWS_LOCK, open(root / ROWS_FILE, "a", encoding="utf8") as rows_file:
         rows_file.write(json.dumps(row) + "\n")
+    errors = " ".join(f"{key} {row[key]:.3g} (start {row[f'start_{key}']:.3g})" for key in ERRORS)
+    log(f"{row['scene']} {row['start']} {row['variant']} seed {row['seed']}: {errors}, psnr {row['psnr']:.2f}")
 
 
 def resume(specs: list[RunSpec], root: Path) -> tuple[list[dict], list[RunSpec]]:
-    """The rows of ``specs`` already in ``root``'s ``ROWS_FILE`` (a grid continued in its work folder, possibly by
-    another session) and the specs still to run. Rows of other runs stay in the file, untouched."""
+    """The rows of ``specs`` already in ``root``'s ``ROWS_FILE`` (each finished run's row is appended there as soon as
+    it is evaluated, so a grid continues in its work folder, possibly in another session) and the specs still to
+    run. Rows of other runs stay in the file, untouched."""
     path = root / ROWS_FILE
     rows = read_rows(path) if path.exists() else []
     finished = {(row["scene"], row["start"], row["variant"], row["seed"]): row for row in rows}
@@ -203,8 +232,3 @@ def sfm_scene(name: str, truth: Path, root: Path) -> Path:
                 raise RuntimeError(f"SfM of scene {name} failed: {result.failure}")
     return output
 
-
-__all__ = [
-    "PHONE_PROFILE", "ROWS_FILE", "SFM_FOCAL_PRIOR", "GridScene", "RunSpec", "focal_for_fov", "read_rows",
-    "record_row", "resume", "run_side_by_side", "run_specs", "sfm_scene", "start_arguments", "train_logged",
-]  # fmt: skip

@@ -2,15 +2,12 @@
 several image counts of 1080p images, per stage.
 
 One generated scene (``scene``: 300 images of 1920x1080 on a ring, 80 degrees wide, JPEG) is made once in ``scene_dir``
-and kept there (its generation, slow on one CPU core, is not timed; its cost: docs/IMAGE-TRACKS.md, "Cost"). Each count
-takes evenly spaced images of it (every 6th of 300 for 50, every 2nd for 150), gives them the true cameras turned and
-moved as a phone's visual-inertial poses are (``rotation_deg``, ``centre_noise``; one focal length ``focal_error`` long)
-and builds their tracks into a fresh cache folder, as the data parser does before training. Up to ``EXHAUSTIVE_LIMIT``
-images every pair is matched, beyond it each image with its ``NEIGHBOURS`` (``neighbour_pairs``), so the matching's
-pairs grow quadratically up to 100 images and linearly after. A row records the build's wall time, its stages'
-(``ImageTracks.stage_seconds``), the pairs matched, the summary (points, observations, reprojection error, how far the
-adjusted cameras lie from the given ones) and the load average before and after: the build shares the machine with
-whatever else runs on it, and its CPU stages use every core.
+(not timed). Each count takes evenly spaced images of it, gives them the true cameras turned and moved as a phone's
+visual-inertial poses are (``rotation_deg``, ``centre_noise``; one focal length ``focal_error`` long) and builds their
+tracks into a fresh cache folder, as the data parser does before training (every pair matched up to
+``EXHAUSTIVE_LIMIT`` images, else each image with its ``NEIGHBOURS``). A row records the build's wall time, its
+stages', the pairs matched, the build's summary and the load average before and after (the CPU stages use every
+core: a loaded machine slows them).
 """
 
 from __future__ import annotations
@@ -28,21 +25,9 @@ import pycolmap
 
 from s2camp_bench.report import markdown_table
 from s2camp_bench.scene.make_scene import MakeSceneConfig
-from s2camp_ns.tracks.image_tracks import (
-    EXHAUSTIVE_LIMIT,
-    NEIGHBOURS,
-    feature_device,
-    image_tracks,
-    neighbour_pairs,
-)
+from s2camp_ns.tracks.image_tracks import EXHAUSTIVE_LIMIT, NEIGHBOURS, feature_device, image_tracks, neighbour_pairs
 
-from .common import (
-    DEFAULT_OUTPUT_DIR,
-    generated_scene,
-    in_work_folder,
-    log,
-    write_report,
-)
+from .common import DEFAULT_OUTPUT_DIR, generated_scene, in_work_folder, log, write_report
 
 STAGES = ("SIFT", "matching", "triangulation", "adjustment")
 """The build's kinds of stage (``image_tracks``' progress), the report's columns."""
@@ -131,17 +116,12 @@ def _run(config: ImageTracksCostConfig, root: Path) -> list[dict]:
         seconds = time.perf_counter() - start
         pairs = count * (count - 1) // 2 if count <= EXHAUSTIVE_LIMIT else len(neighbour_pairs(given))
         row = {
-            "images": count,
-            "size": f"{config.scene.width}x{config.scene.height}",
-            "pairs": pairs,
-            "seconds": seconds,
+            "images": count, "size": f"{config.scene.width}x{config.scene.height}", "pairs": pairs, "seconds": seconds,
             **{f"{stage}_seconds": result.stage_seconds.get(stage, 0.0) for stage in STAGES},
             "summary": result.summary or result.reason,
             "device": "GPU" if feature_device()[0] == pycolmap.Device.cuda else "CPU",
-            "load_before": round(load_before[0], 2),
-            "load_after": round(os.getloadavg()[0], 2),
-            "cpus": os.cpu_count(),
-        }
+            "load_before": round(load_before[0], 2), "load_after": round(os.getloadavg()[0], 2), "cpus": os.cpu_count(),
+        }  # fmt: skip
         log(f"image-tracks: {count} images in {seconds:.0f} s: {row['summary']}")
         rows.append(row)
     return rows
@@ -162,13 +142,6 @@ def report(rows: list[dict], config: ImageTracksCostConfig) -> Path:
     columns = ["images", "pairs", "seconds", *(f"{stage}_seconds" for stage in STAGES), "device", "load_before"]
     headers = ["images", "pairs", "total s", *(f"{stage} s" for stage in STAGES), "device", "load before"]
     summaries = "\n".join(f"- {row['images']} images: {row['summary']}" for row in rows)
-    return write_report(
-        config.output_dir,
-        "image-tracks",
-        "Image tracks: the cost of a build",
-        "s2camp-bench image-tracks" + (" --quick" if config.quick else ""),
-        [setup, markdown_table(rows, columns, headers), "## What each build made", summaries],
-    )
-
-
-__all__ = ["ImageTracksCostConfig", "given_cameras", "report", "run"]
+    command = "s2camp-bench image-tracks" + (" --quick" if config.quick else "")
+    sections = [setup, markdown_table(rows, columns, headers), "## What each build made", summaries]
+    return write_report(config.output_dir, "image-tracks", "Image tracks: the cost of a build", command, sections)

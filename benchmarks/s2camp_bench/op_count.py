@@ -1,24 +1,13 @@
 """What a piece of torch code costs on a launch-bound device, counted without one: its aten ops and host syncs.
 
-On a GPU every aten op that computes is a kernel launch (about 5-15 us of launch latency whatever its size) and every
-op whose result the host must read before it can go on is a synchronisation: the CPU waits for the GPU queue to drain.
-``OpCounter`` is a ``TorchDispatchMode`` that sees every aten op below autograd, forward and backward (the backward
-of code run under it included), and sorts the ops that synchronise a CUDA device into ``syncs``:
-
-- a tensor read on the host: ``_local_scalar_dense`` (``.item()``, ``bool(t)``, ``int(t)``, ``float(t)``), ``equal``
-  and ``is_nonzero`` (their answer is a Python bool);
-- ops whose output size depends on the data: ``nonzero``, ``unique`` and its variants, ``masked_select``,
-  ``repeat_interleave`` without ``output_size``, ``bincount`` (its length is the largest value), and advanced
-  indexing with a boolean mask (``index``, ``index_put`` with a bool index: a ``nonzero`` inside);
-- copies from a CUDA tensor to the CPU (none can happen on the CPU, where this is usually run: counted when it runs
-  on a CUDA device or under an emulation whose tensors say ``cuda``).
-
-Counted on the CPU, every tensor is a CPU tensor, including those that stay on the CPU when a model trains on a GPU:
-torch's Adam keeps each parameter's step count in a CPU scalar and reads it every step. Reads of the tensors named in
-``host_resident`` (their storage addresses) are not syncs.
-
-Views (``view``, ``select``, ``slice``, ``expand`` ...) launch nothing on a GPU; they are counted apart (``views``), so
-``launches`` = ops - views is the closer proxy of kernel launches.
+On a GPU every aten op that computes is a kernel launch, and every op whose result the host must read before it can
+go on is a synchronisation (the CPU waits for the GPU queue to drain). ``OpCounter`` is a ``TorchDispatchMode`` that
+sees every aten op below autograd, forward and backward, and counts as ``syncs``: host reads (``_local_scalar_dense``:
+``.item()``, ``bool(t)``; ``equal``, ``is_nonzero``), ops whose output size depends on the data (``nonzero``,
+``unique`` and its variants, ``masked_select``, ``repeat_interleave`` without ``output_size``, ``bincount``, indexing
+with a boolean mask) and copies from a CUDA tensor to the CPU. Reads of the tensors in ``host_resident`` (storage
+addresses of tensors that stay on the CPU when a model trains on a GPU, as Adam's step counts) are not syncs. Views
+launch nothing: they are counted apart, and ``launches`` = ops - views is the closer proxy of kernel launches.
 """
 
 from __future__ import annotations
@@ -33,18 +22,9 @@ from torch.utils._pytree import tree_flatten
 aten = torch.ops.aten
 
 SYNC_PACKETS = {
-    aten._local_scalar_dense,
-    aten.equal,
-    aten.is_nonzero,
-    aten.nonzero,
-    aten.argwhere,
-    aten._unique,
-    aten._unique2,
-    aten.unique_dim,
-    aten.unique_consecutive,
-    aten.masked_select,
-    aten.bincount,
-}
+    aten._local_scalar_dense, aten.equal, aten.is_nonzero, aten.nonzero, aten.argwhere, aten._unique, aten._unique2,
+    aten.unique_dim, aten.unique_consecutive, aten.masked_select, aten.bincount,
+}  # fmt: skip
 """Ops that synchronise a CUDA device whatever their arguments."""
 
 MASK_INDEX_PACKETS = {aten.index, aten.index_put, aten.index_put_, aten._index_put_impl_}

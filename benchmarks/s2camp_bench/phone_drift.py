@@ -31,26 +31,7 @@ roll), n_f. CamP's draws, and so its result, are the same whether the drift is o
 does not run. For the drift alone, set CamP's four sigmas to zero (its steps then return the cameras to rounding).
 The benchmarks' data parser (``data_parser``) applies it to the training cameras of the "phone" start.
 
-Default sizes (``DriftConfig``; measured figures are named as such, the rest are assumptions):
-
-- ``position_drift`` 1%. Figures checked: about 17 m per 120 m (14%) for ARKit, ARCore and HoloLens walked through a
-  1,600 m^2 dynamic industrial hall (Feigl et al., "Localization Limitations of ARCore, ARKit, and Hololens in Dynamic
-  Large-scale Industry Environments", VISIGRAPP 2020); about 0.5 m (ARCore, 2.6%) and 1.5 m (ARKit, 8%) after a
-  19.1 m corridor walk, in a single blog test (Zhongyu Wang, "Drifting Error Comparision of ARCore and ARKit Visual
-  Odometry", Medium, 2020). Both are long walks through hard scenes; 1% for one loop around a textured object is an
-  ASSUMPTION, at the favourable end of those figures.
-- ``yaw_drift_deg`` 1.5. Figure checked: in the same blog test the heading was about 0.06 rad (ARCore) and 0.15 rad
-  (ARKit) off after three and a half turns in place, about 1 and 2.5 degrees per turn; a ring capture turns once. 1.5
-  degrees between the two is an ASSUMPTION (that the per-turn figure holds for a walk around an object).
-- ``tilt_deg`` 0.3. Derivation: an accelerometer bias b tilts the gravity a VIO estimates by atan(b / g), 0.057
-  degrees per mg; 0.3 degrees is a residual bias of about 5 mg after VIO's online bias estimation, an ASSUMPTION (not
-  measured here).
-- ``focal_error`` 1.5%. Derivation: a phone's autofocus moves its lens, so the principal distance
-  f u / (u - f) ~ f (1 + f / u) of a lens of focal f focused at distance u differs from a calibration at infinity by
-  f / u: 0.9% to 1.4% for a 4.3 mm phone lens focused at 0.5 m to 0.3 m. 1.5% (factory tolerance on top) is an
-  ASSUMPTION of that order.
-- ``up`` +z: the frame the S2CamP data parser perturbs in (nerfstudio's ``orientation_method`` "up" turns the cameras'
-  mean up vector to +z; ``perturb_nerfstudio_cameras`` converts the camera axes only, OpenGL to OpenCV, not the world).
+The default sizes (``DriftConfig``) and what each rests on: docs/benchmarks/phone-drift.md.
 """
 
 from __future__ import annotations
@@ -71,8 +52,8 @@ from s2camp_ns.core.validation import check_range
 @dataclass
 class DriftConfig(DefaultsOnLoad):
     """Visual-inertial odometry drift (module docstring); off by default. Sizes are RMS values at the last camera,
-    except ``tilt_deg`` (a bound) and ``focal_error`` (a log-normal sigma). The defaults stand for a phone's ARKit /
-    ARCore poses; what each rests on: the module docstring, "Default sizes"."""
+    except ``tilt_deg`` (a bound) and ``focal_error`` (a log-normal sigma); the defaults stand for a phone's ARKit /
+    ARCore poses (docs/benchmarks/phone-drift.md)."""
 
     enabled: bool = False
     """Add the drift to the perturbed cameras (needs ``perturbation.enabled``; after CamP's steps)."""
@@ -121,11 +102,8 @@ def _horizontal_axes(rotation: Float[Tensor, "n 3 3"], up: Float[Tensor, " 3"]) 
 
 
 def vio_drift(
-    rotation: Float[Tensor, "n 3 3"],
-    centre: Float[Tensor, "n 3"],
-    given_centre: Float[Tensor, "n 3"],
-    config: DriftConfig,
-    generator: torch.Generator,
+    rotation: Float[Tensor, "n 3 3"], centre: Float[Tensor, "n 3"], given_centre: Float[Tensor, "n 3"],
+    config: DriftConfig, generator: torch.Generator,
 ) -> tuple[Float[Tensor, "n 3 3"], Float[Tensor, "n 3"], Float[Tensor, " n"]]:
     """The visual-inertial drift of the module docstring applied to float64 CPU cameras [rotation | centre], in
     capture order; ``given_centre`` (the cameras before any perturbation) sets the distance travelled L. Returns the
@@ -157,10 +135,7 @@ def vio_drift(
 
 
 def perturb_with_drift(
-    c2w: Float[Tensor, "n 3 4"],
-    fx: Float[Tensor, " n"],
-    fy: Float[Tensor, " n"],
-    config: PerturbationConfig,
+    c2w: Float[Tensor, "n 3 4"], fx: Float[Tensor, " n"], fy: Float[Tensor, " n"], config: PerturbationConfig,
     drift: DriftConfig,
 ) -> PerturbedCameras:
     """CamP's perturbation of OpenCV cameras (``perturb_cameras``, seeded with ``config.seed``), then the drift drawn
@@ -176,8 +151,7 @@ def perturb_with_drift(
         c2w=torch.cat([rotation, centre[:, :, None]], dim=-1),
         fx=fx.detach().to(device="cpu", dtype=torch.float64) * focal_scale,
         fy=fy.detach().to(device="cpu", dtype=torch.float64) * focal_scale,
-        focal_scale=focal_scale,
-        dolly_scale=camp.dolly_scale.cpu(),
+        focal_scale=focal_scale, dolly_scale=camp.dolly_scale.cpu(),
     )
 
 

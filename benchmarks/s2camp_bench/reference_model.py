@@ -25,12 +25,8 @@ def _read_colmap_model(folder: Path) -> tuple[dict, dict, Path]:
         raise FileNotFoundError(
             f"no COLMAP model in {folder}: expected cameras.bin + images.bin or cameras.txt + images.txt"
         )
-    images_file = model_file(folder, "images")
-    return (
-        read_model_file(model_file(folder, "cameras"), "cameras"),
-        read_model_file(images_file, "images"),
-        images_file,
-    )
+    cameras, images_file = read_model_file(model_file(folder, "cameras"), "cameras"), model_file(folder, "images")
+    return cameras, read_model_file(images_file, "images"), images_file
 
 
 def _world_poses(images: dict, names: list[str]) -> torch.Tensor:
@@ -61,11 +57,7 @@ def colmap_world_to_c2w(
 
 
 def reference_from_model(
-    reference_model: Path,
-    input_model: Path,
-    names: list[str],
-    cameras: Cameras,
-    dataparser_transform: torch.Tensor,
+    reference_model: Path, input_model: Path, names: list[str], cameras: Cameras, dataparser_transform: torch.Tensor,
     dataparser_scale: float,
 ) -> Cameras:
     """The split's cameras (``names``, in order) taken from the COLMAP model ``reference_model``, in the input's
@@ -99,16 +91,11 @@ def reference_from_model(
     world = similarity.apply_to_poses(_world_poses(reference_images, names))
     c2w = colmap_world_to_c2w(world, dataparser_transform, dataparser_scale)
     pinhole, distortion = _reference_intrinsics(reference_cameras, reference_images, reference_file, names, cameras)
-    dtype = cameras.fx.dtype
+    values = {name: pinhole[:, i : i + 1].to(cameras.fx.dtype) for i, name in enumerate(("fx", "fy", "cx", "cy"))}
     return replace_cameras(
-        cameras,
-        camera_to_worlds=c2w.to(cameras.camera_to_worlds.dtype),
-        fx=pinhole[:, 0:1].to(dtype),
-        fy=pinhole[:, 1:2].to(dtype),
-        cx=pinhole[:, 2:3].to(dtype),
-        cy=pinhole[:, 3:4].to(dtype),
+        cameras, camera_to_worlds=c2w.to(cameras.camera_to_worlds.dtype), **values,
         distortion_params=distortion.to(cameras.distortion_params.dtype),
-    )
+    )  # fmt: skip
 
 
 def _reference_intrinsics(

@@ -53,6 +53,3 @@ def write_report(
     temporary.write_text("\n".join(body))
     temporary.replace(path)
     return path
-
-
-__all__ = ["environment_line", "format_value", "markdown_table", "write_report"]

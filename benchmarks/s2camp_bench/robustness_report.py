@@ -1,6 +1,6 @@
 """The report of ``s2camp-bench robustness``: rows summarized over seeds, the scene table, the results (rows of names
-that no longer run apart), the plot, and the cameras' paths of traced runs. It renders any committed row, of a
-variant, start or scene that no longer runs included."""
+that no longer run apart), and the cameras' paths of committed rows traced by an option that no longer runs. It
+renders any committed row, of a variant, start or scene that no longer runs included."""
 
 from __future__ import annotations
 
@@ -10,20 +10,10 @@ from pathlib import Path
 
 from s2camp_bench.report import markdown_table
 
+from . import grid, robustness
 from .common import write_report
 from .grid import SFM_FOCAL_PRIOR
-from .grid_report import Spread, in_report_order, no_longer_run_section, plot, seeds_cell, split_runnable
-from .robustness import (
-    ERRORS,
-    METRICS,
-    OFF_REFERENCE_START,
-    RECOVERY_STARTS,
-    RETIRED_SCENES,
-    SCENES,
-    STARTS,
-    VARIANTS,
-    RobustnessConfig,
-)
+from .grid_report import Spread, in_report_order, no_longer_run_section, seeds_cell, split_runnable
 
 TITLE = "Robustness: default camera refinement from accurate and perturbed cameras"
 TRACE_COLUMNS = (
@@ -48,15 +38,15 @@ def summarize(rows: list[dict]) -> list[dict]:
         entry["seed_list"] = sorted(row["seed"] for row in chosen)
         entry["passes_key"] = passes
         entry["passes"] = statistics.fmean(row.get("passes", math.nan) for row in chosen)
-        entry |= {key: Spread.of([row[key] for row in chosen]) for key in METRICS}
-        for key in ERRORS:
+        entry |= {key: Spread.of([row[key] for row in chosen]) for key in grid.METRICS}
+        for key in grid.ERRORS:
             start_value = entry[f"start_{key}"] = statistics.fmean(row[f"start_{key}"] for row in chosen)
-            removable = start in RECOVERY_STARTS and start_value > 0
+            removable = start in robustness.RECOVERY_STARTS and start_value > 0
             entry[f"removed_{key}"] = 1.0 - entry[key].mean / start_value if removable else math.nan
         summary.append(entry)
     by_key = {_summary_key(entry): entry for entry in reversed(summary)}
     for entry in summary:
-        start = OFF_REFERENCE_START.get(entry["start"], entry["start"])
+        start = robustness.OFF_REFERENCE_START.get(entry["start"], entry["start"])
         off = by_key.get((entry["scene"], start, "off", entry["build"], entry["passes_key"]))
         entry["psnr_vs_off"] = math.nan if off is None else entry["psnr"].mean - off["psnr"].mean
         entry["psnr_vs_off_label"] = _difference_label(entry, off)
@@ -66,7 +56,7 @@ def summarize(rows: list[dict]) -> list[dict]:
 def report_order(entries: list[dict], then: tuple[str, ...] = ()) -> list[dict]:
     """``entries`` by scene, start and variant in the order the benchmark lists them (names no longer run after
     them), then by the keys ``then``."""
-    return in_report_order(entries, tuple(SCENES), STARTS, VARIANTS, then)
+    return in_report_order(entries, tuple(robustness.SCENES), robustness.STARTS, robustness.VARIANTS, then)
 
 
 def _summary_key(entry: dict) -> tuple[str, ...]:
@@ -93,7 +83,7 @@ def _difference_label(entry: dict, off: dict | None) -> str:
 def _scene_table(summary: list[dict]) -> str:
     rows = []
     for name in dict.fromkeys(entry["scene"] for entry in summary):
-        preset = {**SCENES, **RETIRED_SCENES}[name]
+        preset = {**robustness.SCENES, **robustness.RETIRED_SCENES}[name]
         s = preset.scene
         perturbed = {e["start"]: e for e in summary if e["scene"] == name}.get("perturbed")
         start = "" if perturbed is None else (
@@ -115,17 +105,18 @@ def _summary_rows(summary: list[dict]) -> list[dict]:
     for entry in summary:
         row = {key: entry[key] for key in ("scene", "start", "variant")}
         row["seeds"] = seeds_cell(entry["seed_list"])
-        row |= {key: entry[key].cell() for key in METRICS}
+        row |= {key: entry[key].cell() for key in grid.METRICS}
         row["psnr_vs_off"] = entry["psnr_vs_off_label"]
         row["passes"] = f"{entry['passes']:.2f}"
-        row["start_errors"] = " / ".join(f"{entry[f'start_{key}']:.3g}" for key in ERRORS)
-        removed = (f"{key.replace('_err', '').replace('_px', '')} {entry[f'removed_{key}']:.0%}" for key in ERRORS)
-        row["removed"] = ", ".join(removed) if entry["start"] in RECOVERY_STARTS else ""
+        row["start_errors"] = " / ".join(f"{entry[f'start_{key}']:.3g}" for key in grid.ERRORS)
+        short = {key: key.replace("_err", "").replace("_px", "") for key in grid.ERRORS}
+        removed = (f"{short[key]} {entry[f'removed_{key}']:.0%}" for key in grid.ERRORS)
+        row["removed"] = ", ".join(removed) if entry["start"] in robustness.RECOVERY_STARTS else ""
         table.append(row)
     return table
 
 
-def _setup_text(rows: list[dict], config: RobustnessConfig) -> str:
+def _setup_text(rows: list[dict], config: robustness.RobustnessConfig) -> str:
     """How every run trained and was measured, and what each column means."""
     iterations = ", ".join(str(value) for value in sorted({row["iterations"] for row in rows}))
     seeds = ", ".join(str(value) for value in sorted({row["seed"] for row in rows}))
@@ -154,7 +145,7 @@ def _setup_text(rows: list[dict], config: RobustnessConfig) -> str:
     )
 
 
-def _timing_text(rows: list[dict], config: RobustnessConfig) -> str:
+def _timing_text(rows: list[dict], config: robustness.RobustnessConfig) -> str:
     def average(key: str) -> float:
         return statistics.fmean(row[key] for row in rows)
 
@@ -171,18 +162,16 @@ def _timing_text(rows: list[dict], config: RobustnessConfig) -> str:
     return timing + "."
 
 
-def write(rows: list[dict], config: RobustnessConfig) -> Path:
-    """Write ``<output_dir>/<preset>.md`` and its plot from ``rows``; return the report's path."""
-    summary = summarize(rows)
-    name = config.preset
-    plot(summary, config.output_dir / f"{name}.png")
-    columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *METRICS, "psnr_vs_off", "removed"]
+def write(rows: list[dict], config: robustness.RobustnessConfig) -> Path:
+    """Write ``<output_dir>/<preset>.md`` from ``rows``; return its path."""
+    summary, name, metrics = summarize(rows), config.preset, grid.METRICS
+    columns = ["scene", "start", "variant", "seeds", "passes", "start_errors", *metrics, "psnr_vs_off", "removed"]
     headers = [
         "scene", "start", "variant", "seeds", "passes", "start rot / pos / focal / drift", "rot err (deg)",
         "pos err", "focal err (px)", "drift (px)", "PSNR", "SSIM", "PSNR unaligned", "PSNR vs off",
         "start error removed",
     ]  # fmt: skip
-    current, old = split_runnable(_summary_rows(summary), VARIANTS, STARTS)
+    current, old = split_runnable(_summary_rows(summary), robustness.VARIANTS, robustness.STARTS)
     sections = [
         "Does camera refinement with each method's default options help or hurt, from accurate and from perturbed "
         "cameras? Protocol and metrics: `benchmarks/s2camp_bench/robustness.py`. passes = steps x rays / training "
@@ -192,16 +181,16 @@ def write(rows: list[dict], config: RobustnessConfig) -> Path:
         "## Results",
         _setup_text(rows, config),
         markdown_table(current, columns, headers),
-        f"![PSNR and drift per variant]({name}.png)",
         _timing_text(rows, config),
         *(no_longer_run_section(markdown_table(old, columns, headers)) if old else []),
         *trace_sections(rows),
     ]
-    return write_report(config.output_dir, name, TITLE, config.command(), sections)
+    return write_report(config.output_dir, name, TITLE, config.command(), sections, config.rows_from)
 
 
 def trace_sections(rows: list[dict]) -> list[str]:
-    """One table per traced run: the cameras' path through training (``regime_trace``)."""
+    """One table per committed row with a "trace": the cameras' path through its training, recorded by an option
+    that no longer runs (its columns: docs/RESULTS.md, "Names that no longer run")."""
     sections = []
     for row in report_order(rows, then=("seed",)):
         if not row.get("trace"):
@@ -210,6 +199,7 @@ def trace_sections(rows: list[dict]) -> list[str]:
         cells = [{key: f"{point.get(key, math.nan):.4g}" for key in TRACE_COLUMNS} for point in row["trace"]]
         sections += [title, markdown_table(cells, list(TRACE_COLUMNS), list(TRACE_COLUMNS))]
     if sections:
-        heading = "## The mechanism: camera paths (`--trace-every`; columns: `benchmarks/s2camp_bench/regime_trace.py`)"
+        columns = 'columns: docs/RESULTS.md, "Names that no longer run"'
+        heading = f"## The mechanism: camera paths (`--trace-every`, an option that no longer runs; {columns})"
         sections.insert(0, heading)
     return sections

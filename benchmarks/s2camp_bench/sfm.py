@@ -16,6 +16,7 @@ into several models, or whose centres or rotations are far from the truth is a f
 
 from __future__ import annotations
 
+import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,12 +30,9 @@ from s2camp_ns.tracks.colmap_log import colmap_log_to
 
 CAMERA_MODEL = "SIMPLE_RADIAL"
 """The shared camera model of the SfM start (it maps onto S2CamP's intrinsics)."""
-
-SFM_THREADS = 1
-"""One thread and a fixed seed: COLMAP's multi-threaded mapper registers images in a run-dependent order (two runs of
-one 24-image scene registered different numbers of images); with both, the SfM start is bit-identical from run to
-run (docs/SPLAT.md sec. 6)."""
-SFM_SEED = 0
+SFM_THREADS, SFM_SEED = 1, 0
+"""One thread and a fixed seed: the SfM start is then bit-identical from run to run (COLMAP's multi-threaded mapper
+registers images in a run-dependent order)."""
 MIN_POSE_INLIERS = 15
 """Absolute-pose inliers needed to register an image (COLMAP's default 30 is meant for megapixel images; the
 generated images have a few hundred SIFT features)."""
@@ -50,39 +48,36 @@ def _mapping_options():
 
 @dataclass(frozen=True)
 class SfmCheck:
-    """Limits a reconstruction must meet to count as a successful scene."""
+    """Limits a reconstruction must meet to count as a successful scene: loose enough for an inaccurate but
+    consistent reconstruction (the wide scene mapped from COLMAP's focal-length guess stays below them in every
+    camera, docs/benchmarks/recovery.md, tier 3), tight enough to reject a broken one (a mirrored or folded ring is off
+    by about 100%)."""
 
     max_centre_error: float = 0.1
-    """Largest camera-centre error after similarity alignment, as a fraction of the ring radius. Loose enough for an
-    inaccurate but consistent reconstruction (the wide scene mapped from COLMAP's focal-length guess without EXIF
-    stays below it in every camera), tight enough to reject a broken one (a mirrored or folded ring is off by ~100%).
-    The centre errors of both starts: docs/benchmarks/recovery.md, tier 3."""
+    """Largest camera-centre error after similarity alignment, as a fraction of the ring radius."""
     max_rotation_error: float = 0.1
-    """Largest rotation error after alignment (rad, about 6 degrees), above the worst camera of the wide scene mapped
-    from COLMAP's guess (docs/benchmarks/recovery.md, tier 3)."""
+    """Largest rotation error after alignment (rad, about 6 degrees)."""
 
 
 @dataclass
 class SfmResult:
-    """One SfM run on one scene, compared with the truth."""
+    """One SfM run on one scene, compared with the truth (errors NaN when it failed before the comparison)."""
 
     scene: Path
     """The SfM scene folder (images/, images_2/, sparse/0)."""
     registered: int
     images: int
-    models: int
-    points: int
-    rot_err_max: float
-    """Largest rotation error after alignment (rad)."""
-    centre_err_max: float
-    """Largest centre error after alignment, in the truth's world units."""
-    rot_err_mean: float
-    centre_err_mean: float
-    focal: float
-    """SfM's shared focal length (full-resolution px)."""
     true_focal: float
-    failure: str | None
+    failure: str | None = None
     """Why the reconstruction is not usable (None: it is)."""
+    rot_err_max: float = math.nan
+    """Largest rotation error after alignment (rad)."""
+    centre_err_max: float = math.nan
+    """Largest centre error after alignment, in the truth's world units."""
+    rot_err_mean: float = math.nan
+    centre_err_mean: float = math.nan
+    focal: float = math.nan
+    """SfM's shared focal length (full-resolution px)."""
 
 
 def initial_camera_params(focal: float, width: int, height: int) -> str:
@@ -112,29 +107,21 @@ def run_sfm(scene: Path, output: Path, check: SfmCheck = SfmCheck(), focal_prior
         camera = next(iter(truth.cameras.values()))
         reader.camera_params = initial_camera_params(focal_prior * camera.focal_length_x, camera.width, camera.height)
     with colmap_log_to(output / "sfm.log"):
-        pycolmap.extract_features(
-            database,
-            images,
-            camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader,
-            extraction_options=pycolmap.FeatureExtractionOptions(num_threads=SFM_THREADS),
-            device=pycolmap.Device.cpu,
-        )
-        pycolmap.match_exhaustive(
-            database,
-            matching_options=pycolmap.FeatureMatchingOptions(num_threads=SFM_THREADS),
-            device=pycolmap.Device.cpu,
-        )
+        extraction = pycolmap.FeatureExtractionOptions(num_threads=SFM_THREADS)
+        pycolmap.extract_features(database, images, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)  # fmt: skip
+        matching = pycolmap.FeatureMatchingOptions(num_threads=SFM_THREADS)
+        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
         models = pycolmap.incremental_mapping(database, images, work / "sparse", options=_mapping_options())
     if not models:
-        return _failed(output, truth, "incremental mapping produced no model")
+        return SfmResult(output, 0, truth.num_images(), _focal(truth), "incremental mapping produced no model")
     best = max(models.values(), key=lambda model: model.num_reg_images())
     sparse = output / "sparse" / "0"
     sparse.mkdir(parents=True)
     best.write_binary(sparse)
     for extra in ("rigs.bin", "frames.bin"):  # the mip-NeRF 360 layout has three files
         (sparse / extra).unlink(missing_ok=True)
-    return compare_with_truth(output, best, truth, len(models), check)
+    return compare_with_truth(output, best, truth, check)
 
 
 def _centres_and_rotations(reconstruction, names: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -153,61 +140,30 @@ def _focal(reconstruction) -> float:
     return float(camera.focal_length_x)
 
 
-def compare_with_truth(output: Path, sfm, truth, models: int, check: SfmCheck) -> SfmResult:
+def compare_with_truth(output: Path, sfm, truth, check: SfmCheck) -> SfmResult:
     """Registration and similarity-aligned centre / rotation errors of ``sfm`` against ``truth``."""
     names = sorted(image.name for image in truth.images.values())
     registered = sorted(image.name for image in sfm.images.values() if image.has_pose)
-    failure = None
+    result = SfmResult(output, len(registered), len(names), _focal(truth))
     if registered != names:
-        missing = sorted(set(names) - set(registered))
-        failure = f"{len(registered)} of {len(names)} images registered (missing e.g. {missing[:3]})"
-    elif len(sfm.cameras) != 1:
-        failure = f"{len(sfm.cameras)} cameras instead of one shared camera"
-    if failure is not None:
-        return _failed(output, truth, failure, registered=len(registered), models=models, points=sfm.num_points3D())
+        result.failure = f"{len(registered)} of {len(names)} images registered (missing e.g. "
+        result.failure += f"{sorted(set(names) - set(registered))[:3]})"
+        return result
+    if len(sfm.cameras) != 1:
+        result.failure = f"{len(sfm.cameras)} cameras instead of one shared camera"
+        return result
     sfm_centres, sfm_rotations = _centres_and_rotations(sfm, names)
     true_centres, true_rotations = _centres_and_rotations(truth, names)
     similarity = umeyama(sfm_centres, true_centres)
-    aligned_centres = similarity.apply_to_points(sfm_centres)
-    centre_errors = (aligned_centres - true_centres).norm(dim=1)
+    centre_errors = (similarity.apply_to_points(sfm_centres) - true_centres).norm(dim=1)
     rotation_errors = rotation_angle(similarity.rotation @ sfm_rotations, true_rotations)
     radius = float((true_centres[:, :2] - true_centres[:, :2].mean(dim=0)).norm(dim=1).mean())
-    if float(centre_errors.max()) > check.max_centre_error * radius:
-        failure = (
-            f"camera centre error {float(centre_errors.max()):.3g} after alignment exceeds "
-            f"{check.max_centre_error:g} x ring radius {radius:.3g}"
-        )
-    elif float(rotation_errors.max()) > check.max_rotation_error:
-        failure = f"rotation error {float(rotation_errors.max()):.3g} rad exceeds {check.max_rotation_error:g} rad"
-    return SfmResult(
-        scene=output,
-        registered=len(registered),
-        images=len(names),
-        models=models,
-        points=sfm.num_points3D(),
-        rot_err_max=float(rotation_errors.max()),
-        centre_err_max=float(centre_errors.max()),
-        rot_err_mean=float(rotation_errors.mean()),
-        centre_err_mean=float(centre_errors.mean()),
-        focal=_focal(sfm),
-        true_focal=_focal(truth),
-        failure=failure,
-    )
-
-
-def _failed(output: Path, truth, failure: str, registered: int = 0, models: int = 0, points: int = 0) -> SfmResult:
-    nan = float("nan")
-    return SfmResult(
-        scene=output,
-        registered=registered,
-        images=truth.num_images(),
-        models=models,
-        points=points,
-        rot_err_max=nan,
-        centre_err_max=nan,
-        rot_err_mean=nan,
-        centre_err_mean=nan,
-        focal=nan,
-        true_focal=_focal(truth),
-        failure=failure,
-    )
+    result.rot_err_max, result.centre_err_max = float(rotation_errors.max()), float(centre_errors.max())
+    result.rot_err_mean, result.centre_err_mean = float(rotation_errors.mean()), float(centre_errors.mean())
+    result.focal = _focal(sfm)
+    if result.centre_err_max > check.max_centre_error * radius:
+        result.failure = (f"camera centre error {result.centre_err_max:.3g} after alignment exceeds "
+                          f"{check.max_centre_error:g} x ring radius {radius:.3g}")  # fmt: skip
+    elif result.rot_err_max > check.max_rotation_error:
+        result.failure = f"rotation error {result.rot_err_max:.3g} rad exceeds {check.max_rotation_error:g} rad"
+    return result

@@ -1,35 +1,21 @@
 """``s2camp-bench splat``: S2CamP for Gaussian splatting (``ns-train s2camp-splat``) against splatfacto with
 nerfstudio's SO3xR3 pose optimizer (``s2camp-splat-so3xr3``) and without camera refinement, from accurate cameras,
-the CamP perturbation and an SfM start, on a generated scene.
+the CamP perturbation and an SfM start (``grid``), on a generated scene.
 
-Protocol (every run alike): start {accurate, perturbed, sfm} (``grid``) x variant x seeds. Every run is one
-``ns-train`` FROM SCRATCH with the method's default options except:
-
-- what a CPU run needs: ``--machine.device-type cpu`` (the model then picks the reference rasterizer, docs/SPLAT.md
-  sec. 4), tensorboard instead of the viewer, no evaluation and no camera-error logging during training (errors are
-  computed afterwards, identically for every variant), ``--machine.seed`` the seed. None of the nerfacto runs'
-  options (``train_commands.SMALL_MODEL``, the ray batch): splatfacto renders whole images and has neither;
-- the run length: ``--max-num-iterations`` ``iterations``, and splatfacto's step-counted schedule
-  (``SCHEDULE_STEPS``: warm-up, densification interval and stop, resolution doubling, SH degree interval, the means'
-  and SO3xR3's learning-rate schedules) scaled by ``iterations`` / 30000, so that the run goes through the phases of
-  a 30k-step splatfacto run. S2CamP's camera schedule is stated in fractions of the run already
-  (``method_config.camera_schedule_for``) except its 2500-step warm-up floor, scaled likewise
-  (``S2CAMP_SCHEDULE_STEPS``);
-- densification off (``--pipeline.model.stop-split-at 0``: gsplat's strategy then neither grows, prunes nor resets
-  opacities): the Gaussians are those of the start's sparse points, trained in position, shape, colour and opacity.
-  With it on, at splatfacto's initial 1/4 resolution nearly every Gaussian passes the gradient threshold at every
-  refinement and their number doubles each time: beyond a CPU run (docs/SPLAT.md sec. 6, "Densification off").
-
-Regime: each splatfacto step renders one whole training image, so passes over each training pixel = steps /
-training images. A real splatfacto run is 30k steps over ~300 images, ~100 passes; the default scene and
-``iterations`` put a run in that range (``DEFAULT_ITERATIONS``). Every row records its passes.
-
-Metrics (``evaluation.evaluate_pipeline``, as robustness's, identical for every variant): rotation / position /
-focal errors of the final training cameras after a similarity alignment to the true ones, drift, held-out PSNR /
-SSIM after test-time alignment (docs/SPLAT.md sec. 5) and before it (unaligned); the same errors of the start
-cameras; the number of Gaussians at the end; training seconds per iteration from nerfstudio's per-step timing. The
-report: ``splat_report``.
+Every run is one ``ns-train`` FROM SCRATCH with the method's default options and only what a CPU run needs
+(``--machine.device-type cpu``: the reference rasterizer, docs/SPLAT.md sec. 4; tensorboard, no evaluation or
+camera-error logging during training; ``--machine.seed`` the seed), plus the run length: ``iterations`` steps with
+splatfacto's step-counted schedule (``SCHEDULE_STEPS``, SO3xR3's and S2CamP's camera schedules) scaled by
+``iterations`` / 30000, so that a run goes through the phases of a 30k-step splatfacto run, and densification off
+(``--pipeline.model.stop-split-at 0``: the Gaussians stay those of the start's sparse points; with it on their number
+doubles at every refinement at this resolution, beyond a CPU run: docs/SPLAT.md sec. 6). Each step renders one whole
+training image: passes over each training pixel = steps / training images (a 30k-step run over ~300 images makes
+~100). Metrics (``evaluation.evaluate_pipeline``, as robustness's): camera errors after a similarity alignment,
+drift, held-out PSNR / SSIM after test-time alignment (docs/SPLAT.md sec. 5) and before it, the start cameras'
+errors, the number of Gaussians, and seconds per iteration from nerfstudio's per-step timing. The report:
+``splat_report``.
 """
+
 
 from __future__ import annotations
 
@@ -40,53 +26,30 @@ from pathlib import Path
 
 from s2camp_bench.scene.make_scene import MakeSceneConfig
 from s2camp_bench.train_commands import ns_train_base_arguments
-from s2camp_ns.core.validation import check_choice, check_positive_int
 from s2camp_ns.scripts.test_time_alignment import AlignmentConfig
 
+from . import grid
 from .common import DEFAULT_OUTPUT_DIR, changed_options, generated_scene, in_work_folder, log
-from .grid import (
-    EVAL_INTERVAL,
-    ROWS_FILE,
-    GridScene,
-    RunSpec,
-    focal_for_fov,
-    read_rows,
-    record_row,
-    resume,
-    run_side_by_side,
-    run_specs,
-    sfm_scene,
-    start_arguments,
-    train_logged,
-)
-from .robustness import ERRORS, METRICS
 
-SCENES: dict[str, GridScene] = {
-    "splat-ring": GridScene(
-        MakeSceneConfig(
-            num_cameras=24, width=256, height=192, focal=focal_for_fov(256, 70.0), ring_radius=4.0, k1=0.0, k2=0.0,
-            points_per_image=100, seed=4,
-        ),
-        70.0,
-        4,
+SCENES: dict[str, grid.GridScene] = {
+    "splat-ring": grid.GridScene(
+        MakeSceneConfig(num_cameras=24, width=256, height=192, focal=grid.focal_for_fov(256, 70.0), ring_radius=4.0,
+                        k1=0.0, k2=0.0, points_per_image=100, seed=4), 70.0, 4,
         "24 images (21 training, every 8th held out) trained at 64x48 (SfM on 256x192), 70 deg, pinhole, cameras 4 "
         "units from the centre; splatfacto starts from the start's sparse points (about 2.4k; SfM's own for sfm)",
         downscale=4,
     ),
 }  # fmt: skip
-"""Small enough for the reference rasterizer on one CPU thread: 64x48 training images (``images_4``,
-``add_quarter_images``). SfM needs the full-size images (at 128x96 pycolmap registered a few of the 24), and makes far
-fewer points than the generated scene: the sfm start's runs train fewer Gaussians (compare PSNR within a start)."""
+"""Small enough for the reference rasterizer on one CPU thread: 64x48 training images (``images_4``); SfM on the
+full-size images makes fewer points than the generated scene (compare PSNR within a start)."""
 STARTS = ("accurate", "perturbed", "sfm")
 RECOVERY_STARTS = ("perturbed",)
 """Starts that refinement must correct (the report gives the fraction of the start error removed); from the others
 it must do no harm (the report gives final - start)."""
 VARIANTS = ("splat-off", "s2camp-splat-so3xr3", "s2camp-splat")
 """The default grid's variants."""
-EVIDENCE_VARIANTS = ("s2camp-splat-tracks", "s2camp-splat-photometric")
-"""What each evidence gives alone, run by name (``--variants``): the tracks alone and the images alone."""
-RUNNABLE_VARIANTS = VARIANTS + EVIDENCE_VARIANTS
-"""Every variant this code runs; committed rows under other names are reported apart."""
+RUNNABLE_VARIANTS = (*VARIANTS, "s2camp-splat-tracks", "s2camp-splat-photometric")
+"""Every variant this code runs: with the tracks alone and the images alone, by name (``--variants``)."""
 METHODS = {
     "splat-off": "s2camp-splat", "s2camp-splat-so3xr3": "s2camp-splat-so3xr3", "s2camp-splat": "s2camp-splat",
     "s2camp-splat-tracks": "s2camp-splat", "s2camp-splat-photometric": "s2camp-splat",
@@ -97,35 +60,28 @@ VARIANT_ARGUMENTS = {
     "s2camp-splat-tracks": [f"{_OPTIMIZER}.photometric", "False", f"{_OPTIMIZER}.track-prior", "True"],
     "s2camp-splat-photometric": [f"{_OPTIMIZER}.track-prior", "False"],
 }  # fmt: skip
-"""Method options per variant: "splat-off" is s2camp-splat without camera refinement; "s2camp-splat" its defaults;
-"s2camp-splat-tracks" every camera at its track prior's anchor, the images move none; "s2camp-splat-photometric" the
-defaults without the prior. Committed rows under other names were recorded with settings that no longer run: the
-report lists them apart (docs/RESULTS.md, "Names that no longer run")."""
+"""Method options per variant beyond s2camp-splat's defaults. Committed rows under other names are reported apart
+(docs/RESULTS.md, "Names that no longer run")."""
 BASELINE = "s2camp-splat-so3xr3"
 """The variant whose seconds per iteration the others are compared with."""
 REFERENCE_STEPS = 30000
 """splatfacto's ``max_num_iterations``: the run length its step-counted schedule is written for."""
 SCHEDULE_STEPS = {
-    "--pipeline.model.warmup-length": 500,
-    "--pipeline.model.refine-every": 100,
-    "--pipeline.model.resolution-schedule": 3000,
-    "--pipeline.model.sh-degree-interval": 1000,
-    "--pipeline.model.stop-split-at": 15000,
-    "--pipeline.model.stop-screen-size-at": 4000,
+    "--pipeline.model.warmup-length": 500, "--pipeline.model.refine-every": 100,
+    "--pipeline.model.resolution-schedule": 3000, "--pipeline.model.sh-degree-interval": 1000,
+    "--pipeline.model.stop-split-at": 15000, "--pipeline.model.stop-screen-size-at": 4000,
     "--optimizers.means.scheduler.max-steps": 30000,
-}
-"""splatfacto's (nerfstudio 1.1.5) step-counted options, scaled by iterations / ``REFERENCE_STEPS``.
-``reset_alpha_every`` counts refinements, so it follows ``refine_every``."""
+}  # fmt: skip
+"""splatfacto's (nerfstudio 1.1.5) step-counted options (``reset_alpha_every`` counts refinements)."""
 SO3XR3_SCHEDULE_STEPS = {
     "--optimizers.camera-opt.scheduler.warmup-steps": 1000,
     "--optimizers.camera-opt.scheduler.max-steps": 30000,
 }
-"""The SO3xR3 baseline's camera schedule (splatfacto's own, ``method_config.make_splat_trainer_config``)."""
+"""The SO3xR3 baseline's camera schedule (splatfacto's own)."""
 S2CAMP_SCHEDULE_STEPS = {"--optimizers.camera-opt.scheduler.min-warmup-steps": 2500}
-"""S2CamP's warm-up floor (``RunLengthScheduleConfig``), 2500 steps whatever the run length: unscaled, a 1000-step run
-would stay inside the warm-up."""
+"""S2CamP's camera schedule is in fractions of the run but for its warm-up floor (``RunLengthScheduleConfig``)."""
 DEFAULT_ITERATIONS = 1000
-"""1000 steps over the default scene's 21 training images: 48 passes (a 30k-step splatfacto run makes ~100)."""
+"""48 passes over the default scene's 21 training images."""
 QUICK = {"iterations": 30, "seeds": 1, "starts": ("perturbed",), "variants": VARIANTS}
 """``--quick``: a CI-sized run, the three variants from the perturbed start, 5 test-time alignment steps."""
 QUICK_ALIGNMENT_STEPS = 5
@@ -142,9 +98,7 @@ class SplatBenchConfig:
     seeds: int = 3
     """Runs per scene, start and variant, ``--machine.seed`` first_seed .. first_seed + seeds - 1."""
     first_seed: int = 0
-    """The first seed: a grid that spans sessions adds seeds later without re-running the first ones."""
     iterations: int = DEFAULT_ITERATIONS
-    """``--max-num-iterations`` of every run."""
     workers: int = 2
     """Runs training (then evaluating) side by side, one CPU thread each."""
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
@@ -152,13 +106,10 @@ class SplatBenchConfig:
     quick: bool = False
     """Small run for CI (``QUICK``)."""
     work_dir: Path | None = None
-    """Where scenes and runs go (a temporary /tmp/splat-* folder by default, removed afterwards). Each finished run's
-    row is appended to ``rows.jsonl`` there as soon as it is evaluated; a run whose row is already there is not run
-    again (its row is reused), so a grid continues in its folder across sessions."""
+    """Where scenes, runs and ``rows.jsonl`` go (``grid.resume``; a temporary folder by default, removed after)."""
     rows_from: Path | None = None
     """Train nothing: report the rows of a ``rows.jsonl`` written by an earlier (possibly interrupted) run."""
     output_dir: Path = DEFAULT_OUTPUT_DIR
-    """Folder of the report and plot (``--output-dir docs/benchmarks`` rewrites the committed ones)."""
     write: bool = True
     json: bool = False
 
@@ -169,17 +120,7 @@ class SplatBenchConfig:
         return replace(self, scenes=self.scenes[:1], alignment=alignment, **QUICK)
 
     def validate(self) -> None:
-        for name, allowed in (("scenes", tuple(SCENES)), ("starts", STARTS), ("variants", RUNNABLE_VARIANTS)):
-            values = getattr(self, name)
-            if not values:
-                raise ValueError(f"{name} must name at least one of {', '.join(allowed)}, got none")
-            for value in values:
-                check_choice(name, value, allowed)
-        for name in ("seeds", "iterations", "workers"):
-            check_positive_int(name, getattr(self, name))
-        if self.first_seed < 0:
-            raise ValueError(f"first_seed must be >= 0, got {self.first_seed}")
-        self.alignment.validate()
+        grid.validate_grid(self, tuple(SCENES), STARTS, RUNNABLE_VARIANTS)
 
     def command(self) -> str:
         """The ``s2camp-bench`` command line that regenerates this report."""
@@ -192,7 +133,7 @@ class SplatBenchConfig:
 def passes(iterations: int, scene: str) -> float:
     """Passes over each training pixel: one whole training image per step."""
     preset = SCENES[scene]
-    held_out = -(-preset.scene.num_cameras // EVAL_INTERVAL)
+    held_out = -(-preset.scene.num_cameras // grid.EVAL_INTERVAL)
     return iterations / (preset.scene.num_cameras - held_out)
 
 
@@ -211,7 +152,7 @@ def schedule_arguments(variant: str, iterations: int) -> list[str]:
 
 
 def train_command(
-    spec: RunSpec, scene_dir: Path, runs: Path, config: SplatBenchConfig, truth: Path | None = None
+    spec: grid.RunSpec, scene_dir: Path, runs: Path, config: SplatBenchConfig, truth: Path | None = None
 ) -> list[str]:
     """``ns-train`` of one run (module docstring) and the start's data parser (``grid.start_arguments``). ``truth``:
     the generated scene, the reference cameras of an sfm start (``scene_dir`` is then SfM's)."""
@@ -226,11 +167,11 @@ def train_command(
         "--pipeline.model.camera-error-every", "0",
         *schedule_arguments(spec.variant, config.iterations),
         *VARIANT_ARGUMENTS.get(spec.variant, []),
-        *start_arguments(spec, SCENES[spec.scene], truth),
+        *grid.start_arguments(spec, SCENES[spec.scene], truth),
     ]  # fmt: skip
 
 
-def run_folder(spec: RunSpec, runs: Path) -> Path:
+def run_folder(spec: grid.RunSpec, runs: Path) -> Path:
     return runs / spec.experiment / METHODS[spec.variant] / spec.timestamp
 
 
@@ -257,7 +198,7 @@ _SFM_FOLDER_LOCK = threading.Lock()
 
 def _sfm_start(name: str, truth: Path, root: Path) -> Path:
     """The grid's SfM of the scene (once, shared by its runs), with the true scene's images_4 linked in."""
-    output = sfm_scene(name, truth, root)
+    output = grid.sfm_scene(name, truth, root)
     with _SFM_FOLDER_LOCK:
         link = output / "images_4"
         if (truth / "images_4").is_dir() and not link.exists():
@@ -282,32 +223,19 @@ def evaluate_splat_run(run: Path, alignment: AlignmentConfig) -> dict:
     return result
 
 
-def _run_one(spec: RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, pool, invocation: str) -> dict:
+def _run_one(spec: grid.RunSpec, scene_dir: Path, root: Path, config: SplatBenchConfig, pool, invocation: str) -> dict:
     """Train, evaluate and record one run; its row."""
-    from .evaluation import seconds_per_iteration
-
     truth = None
     if spec.start == "sfm":
         truth, scene_dir = scene_dir, _sfm_start(spec.scene, scene_dir, root)
     log_path = root / "logs" / f"{spec.experiment}-{spec.timestamp}.log"
-    train_seconds = train_logged(train_command(spec, scene_dir, root / "runs", config, truth), log_path, spec)
+    train_seconds = grid.train_logged(train_command(spec, scene_dir, root / "runs", config, truth), log_path, spec)
     folder = run_folder(spec, root / "runs")
     result = pool.submit(evaluate_splat_run, folder, config.alignment).result()
-    row = {"scene": spec.scene, "start": spec.start, "variant": spec.variant, "seed": spec.seed}
-    row["passes"] = passes(config.iterations, spec.scene)
-    row |= {key: result[key] for key in (*METRICS, "drift_behind", "gaussians")}
-    row |= {f"start_{key}": result[f"start_{key}"] for key in (*ERRORS, "drift_behind")}
-    row |= {"iterations": config.iterations, "workers": config.workers, "invocation": invocation}
-    row |= {"eval_views": result["eval_views"], "train_seconds": train_seconds, "eval_seconds": result["eval_seconds"]}
-    row["sec_per_iter"] = seconds_per_iteration(folder)
-    record_row(row, folder, root)
-    log(
-        f"splat {spec.scene} {spec.start:9s} {spec.variant:19s} seed {spec.seed}: rot {row['rot_err']:.3f} deg "
-        f"pos {row['pos_err']:.2e} focal {row['focal_err']:.3f} px drift {row['drift_px']:.3f} px "
-        f"psnr {row['psnr']:.2f} ssim {row['ssim']:.3f} (start rot {row['start_rot_err']:.3f} focal "
-        f"{row['start_focal_err']:.3f}); {row['gaussians']} Gaussians; {train_seconds:.0f} s "
-        f"({row['sec_per_iter']:.3f} s/step) + {row['eval_seconds']:.0f} s"
-    )
+    row = grid.evaluated_row(spec, result, config.iterations, train_seconds, folder)
+    row |= {"passes": passes(config.iterations, spec.scene), "gaussians": result["gaussians"]}
+    row |= {"workers": config.workers, "invocation": invocation}
+    grid.record_row(row, folder, root)
     return row
 
 
@@ -315,7 +243,7 @@ def run(config: SplatBenchConfig) -> list[dict]:
     config = config.effective()
     config.validate()
     if config.rows_from is not None:
-        return read_rows(config.rows_from)
+        return grid.read_rows(config.rows_from)
     return in_work_folder(config.work_dir, "splat-", lambda root: _run(config, root))
 
 
@@ -326,15 +254,15 @@ def _run(config: SplatBenchConfig, root: Path) -> list[dict]:
         scene_dirs[name] = generated_scene(replace(SCENES[name].scene, output_dir=root / "scenes" / name))
         if SCENES[name].downscale == 4:  # make_scene writes images and images_2
             add_quarter_images(scene_dirs[name])
-    done, specs = resume(run_specs(config), root)
-    already = f"; {len(done)} already in {ROWS_FILE}" if done else ""
+    done, specs = grid.resume(grid.run_specs(config), root)
+    already = f"; {len(done)} already in {grid.ROWS_FILE}" if done else ""
     log(
         f"splat: {len(specs)} runs of {config.iterations} iterations ({passes(config.iterations, config.scenes[0]):.0f}"
         f" passes), {config.workers} at a time (work: {root}){already}"
     )
     invocation = time.strftime("%Y-%m-%dT%H:%M:%S")  # the rows of one invocation share the machine's load
     run_one = lambda spec, pool: _run_one(spec, scene_dirs[spec.scene], root, config, pool, invocation)  # noqa: E731
-    return done + run_side_by_side(specs, run_one, config.workers)
+    return done + grid.run_side_by_side(specs, run_one, config.workers)
 
 
 def report(rows: list[dict], config: SplatBenchConfig) -> Path:

@@ -1,6 +1,6 @@
 """The report of ``s2camp-bench splat``: rows summarized over seeds (errors against the start, PSNR against SO3xR3
-and refinement off, time per step against SO3xR3's), the results (rows of names that no longer run apart) and the
-plot. It renders any committed row, of a variant that no longer runs included."""
+and refinement off, time per step against SO3xR3's) and the results (rows of names that no longer run apart). It
+renders any committed row, of a variant that no longer runs included."""
 
 from __future__ import annotations
 
@@ -10,14 +10,14 @@ from pathlib import Path
 
 from s2camp_bench.report import markdown_table
 
+from . import grid
 from .common import write_report
 from .grid import SFM_FOCAL_PRIOR
-from .grid_report import Spread, in_report_order, no_longer_run_section, plot, seeds_cell, split_runnable
-from .robustness import ERRORS, METRICS
+from .grid_report import Spread, in_report_order, no_longer_run_section, seeds_cell, split_runnable
 from .splat_bench import BASELINE, RECOVERY_STARTS, RUNNABLE_VARIANTS, SCENES, STARTS, SplatBenchConfig
 
 TITLE = "Splatting: s2camp-splat against splatfacto with SO3xR3 and without refinement"
-SUMMARY_METRICS = (*METRICS, "sec_per_iter", "gaussians")
+SUMMARY_METRICS = (*grid.METRICS, "sec_per_iter", "gaussians")
 
 
 def summarize(rows: list[dict]) -> list[dict]:
@@ -35,7 +35,7 @@ def summarize(rows: list[dict]) -> list[dict]:
         entry["seed_list"] = sorted(row["seed"] for row in chosen)
         entry["passes"] = statistics.fmean(row["passes"] for row in chosen)
         entry |= {key: Spread.of([float(row[key]) for row in chosen]) for key in SUMMARY_METRICS}
-        for key in ERRORS:
+        for key in grid.ERRORS:
             start_value = entry[f"start_{key}"] = statistics.fmean(row[f"start_{key}"] for row in chosen)
             removable = start in RECOVERY_STARTS and start_value > 0
             entry[f"removed_{key}"] = 1.0 - entry[key].mean / start_value if removable else math.nan
@@ -65,8 +65,8 @@ def time_ratio(rows: list[dict], baseline: list[dict]) -> float:
 
 def _errors_cell(entry: dict) -> str:
     if entry["start"] in RECOVERY_STARTS:
-        return ", ".join(f"{key.split('_')[0]} {entry[f'removed_{key}']:.0%}" for key in ERRORS)
-    return ", ".join(f"{key.split('_')[0]} {entry[f'change_{key}']:+.3g}" for key in ERRORS)
+        return ", ".join(f"{key.split('_')[0]} {entry[f'removed_{key}']:.0%}" for key in grid.ERRORS)
+    return ", ".join(f"{key.split('_')[0]} {entry[f'change_{key}']:+.3g}" for key in grid.ERRORS)
 
 
 def _signed(value: float) -> str:
@@ -78,13 +78,13 @@ def _summary_rows(summary: list[dict]) -> list[dict]:
     for entry in summary:
         row = {key: entry[key] for key in ("scene", "start", "variant")}
         row["seeds"] = seeds_cell(entry["seed_list"])
-        row |= {key: entry[key].cell() for key in METRICS}
+        row |= {key: entry[key].cell() for key in grid.METRICS}
         gaussians = entry["gaussians"]
         spread = f" [{gaussians.low:.0f}, {gaussians.high:.0f}]" if gaussians.count > 1 else ""
         row["gaussians"] = f"{gaussians.mean:.0f}{spread}"
         row["sec_per_iter"] = entry["sec_per_iter"].cell(2)
         row["passes"] = f"{entry['passes']:.1f}"
-        row["start_errors"] = " / ".join(f"{entry[f'start_{key}']:.3g}" for key in ERRORS)
+        row["start_errors"] = " / ".join(f"{entry[f'start_{key}']:.3g}" for key in grid.ERRORS)
         row["against_start"] = _errors_cell(entry)
         row["psnr_vs"] = " / ".join(_signed(entry[f"psnr_vs_{label}"]) for label in ("so3xr3", "off"))
         row["time_ratio"] = "" if math.isnan(entry["time_ratio"]) else f"{entry['time_ratio']:.2f}"
@@ -148,9 +148,8 @@ def _timing_text(rows: list[dict], config: SplatBenchConfig) -> str:
 
 
 def write(rows: list[dict], config: SplatBenchConfig) -> Path:
-    """Write ``<output_dir>/splat.md`` and its plot from ``rows``; return the report's path."""
+    """Write ``<output_dir>/splat.md`` from ``rows``; return its path."""
     summary = summarize(rows)
-    plot(summary, config.output_dir / "splat.png")
     scene_rows = [
         {
             "scene": name, "images": SCENES[name].scene.num_cameras, "fov": f"{SCENES[name].fov_degrees:g} deg",
@@ -160,7 +159,7 @@ def write(rows: list[dict], config: SplatBenchConfig) -> Path:
         for name in dict.fromkeys(row["scene"] for row in rows)
     ]  # fmt: skip
     columns = [
-        "start", "variant", "seeds", "passes", "start_errors", *METRICS, "against_start", "psnr_vs", "gaussians",
+        "start", "variant", "seeds", "passes", "start_errors", *grid.METRICS, "against_start", "psnr_vs", "gaussians",
         "sec_per_iter", "time_ratio",
     ]  # fmt: skip
     headers = [
@@ -178,8 +177,7 @@ def write(rows: list[dict], config: SplatBenchConfig) -> Path:
         "## Results",
         _setup_text(rows, config),
         markdown_table(current, columns, headers),
-        "![PSNR and drift per variant](splat.png)",
         _timing_text(rows, config),
         *(no_longer_run_section(markdown_table(old, columns, headers)) if old else []),
     ]
-    return write_report(config.output_dir, "splat", TITLE, config.command(), sections)
+    return write_report(config.output_dir, "splat", TITLE, config.command(), sections, config.rows_from)

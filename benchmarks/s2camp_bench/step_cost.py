@@ -1,28 +1,18 @@
 """``s2camp-bench step-cost``: what the camera path adds to a training step on a launch-bound device (a GPU).
 
-On a GPU each aten op that computes is a kernel launch and each op whose result the host reads is a synchronisation, so
-a step's cost there follows its counts, measured here without a GPU (``benchmarks/s2camp_bench/op_count.py``): every
-method's ``ns-train`` configuration is built in-process with nerfstudio's Trainer on a generated scene (the small
-nerfacto field of the CPU runs, ``train_commands.SMALL_MODEL``: the field's size changes no camera op), a few steps are
-run, and one later training step is counted phase by phase:
-
-- ``before``: the callbacks before the step (S2CamP: a stale P's recomputation, a no-op);
-- ``rays``: the data manager's batch and rays (pixel sampling, ray casting);
-- ``forward``: the model's forward pass (S2CamP: the rays cast again through the refined cameras, or not at all);
-- ``metrics``, ``loss``: the model's metrics and loss dicts;
-- ``backward``: the backward pass;
-- ``optimizer``: zeroing the gradients, the optimizers' and schedulers' steps;
-- ``after``: the callbacks after the step (S2CamP: the track prior's step, the common rotation removed, the refresh
-  schedule; with the viewer its panel's per-step check).
-
-The counted step is not a logging step (nerfstudio logs every 10) and not a refresh of P. Rows: methods x camera
-models (PINHOLE, OPENCV, OPENCV_FISHEYE) x intrinsics layout (per physical camera, per image: S2CamP's methods only)
-x viewer (off, on: S2CamP's panel attached). "off" is ``s2camp`` with ``--pipeline.model.camera-optimizer.mode off``
-(``splat-off`` likewise for ``s2camp-splat``); added ops and syncs are a row's minus its model's "off" row.
-
-Beside the counts, the CPU time of the camera path alone: the data manager's rays of one 4096-ray batch through
-the camera optimizer, forward and backward (splatting: the view matrix of one training camera), median of repeats.
+On a GPU each aten op that computes is a kernel launch and each op whose result the host reads is a synchronisation,
+so a step's cost there follows its counts (``op_count``). Every method's ``ns-train`` configuration is built
+in-process with nerfstudio's Trainer on a generated scene (the small nerfacto field, ``train_commands.SMALL_MODEL``: the
+field's size changes no camera op), a few steps run, and one later step (not a logging step, not a refresh of P) is
+counted phase by phase (``PHASES``: the callbacks before it; the batch and rays; the forward pass, where S2CamP casts
+the rays through the refined cameras; metrics; loss; backward; the optimizers' steps; the callbacks after it, where
+S2CamP's prior step, rotation removal, refresh schedule and viewer panel check run). Rows: methods x camera models x
+intrinsics layout (S2CamP's methods) x viewer (S2CamP's panel attached or not); "off" is ``s2camp`` with
+``--pipeline.model.camera-optimizer.mode off`` ("splat-off" likewise), and added ops and syncs are a row's minus its
+model's "off" row. Beside the counts, the CPU time of the camera path alone (one batch's rays through the camera
+optimizer, or one camera's view matrix, forward and backward), median of repeats.
 """
+
 
 from __future__ import annotations
 
@@ -90,7 +80,7 @@ class StepCostConfig:
     json: bool = False
 
     def command(self) -> str:
-        """The ``s2camp-bench`` command line that regenerates this report (the options changed from the defaults)."""
+        """The ``s2camp-bench`` command line that regenerates this report."""
         if self.quick:
             return "s2camp-bench step-cost --quick"
         names = ("methods", "camera_models", "intrinsics", "viewer", "rays_per_batch", "timing_repeats")
@@ -100,30 +90,21 @@ class StepCostConfig:
         if not self.quick:
             return self
         return replace(
-            self,
-            methods=("off", "s2camp-so3xr3", "s2camp"),
-            camera_models=("PINHOLE",),
-            intrinsics=("per-camera",),
-            viewer=(False,),
-            rays_per_batch=512,
-            counted_step=3,
-            timing_repeats=3,
+            self, methods=("off", "s2camp-so3xr3", "s2camp"), camera_models=("PINHOLE",), intrinsics=("per-camera",),
+            viewer=(False,), rays_per_batch=512, counted_step=3, timing_repeats=3,
             scene=replace(self.scene, num_cameras=6, width=48, height=36),
-        )
+        )  # fmt: skip
 
 
 def _method_config(method: str):
     from s2camp_ns import method_config
 
     specifications = {
-        "off": method_config.s2camp_method,
-        "s2camp": method_config.s2camp_method,
-        "s2camp-camp": method_config.s2camp_camp_method,
-        "s2camp-so3xr3": method_config.s2camp_so3xr3_method,
-        "splat-off": method_config.s2camp_splat_method,
-        "s2camp-splat": method_config.s2camp_splat_method,
+        "off": method_config.s2camp_method, "s2camp": method_config.s2camp_method,
+        "s2camp-camp": method_config.s2camp_camp_method, "s2camp-so3xr3": method_config.s2camp_so3xr3_method,
+        "splat-off": method_config.s2camp_splat_method, "s2camp-splat": method_config.s2camp_splat_method,
         "s2camp-splat-so3xr3": method_config.s2camp_splat_so3xr3_method,
-    }
+    }  # fmt: skip
     config = copy.deepcopy(specifications[method].config)
     if method.endswith("off"):
         config.pipeline.model.camera_optimizer.mode = "off"
@@ -137,9 +118,7 @@ def build_trainer(method: str, scene: Path, work: Path, intrinsics: str, rays_pe
     config.pipeline.datamanager.data = scene
     config.output_dir = work
     config.timestamp = f"{method}-{intrinsics}"
-    config.vis = "tensorboard"
-    config.max_num_iterations = 1000
-    config.steps_per_save = 1000
+    config.vis, config.max_num_iterations, config.steps_per_save = "tensorboard", 1000, 1000
     config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 0
     config.logging.steps_per_log = 10
     model = config.pipeline.model
@@ -296,17 +275,12 @@ def _row(method: str, camera_model: str, intrinsics: str, viewer: bool, counts: 
     for count in counts.values():
         whole.add(count)
     row = {
-        "method": method,
-        "model": "splatfacto" if method in SPLAT_METHODS else "nerfacto",
-        "camera_model": camera_model,
-        "intrinsics": intrinsics,
-        "viewer": "on" if viewer else "off",
-        "ops": whole.total,
-        "launches": whole.launches,
-        "syncs": whole.num_syncs,
+        "method": method, "model": "splatfacto" if method in SPLAT_METHODS else "nerfacto",
+        "camera_model": camera_model, "intrinsics": intrinsics, "viewer": "on" if viewer else "off",
+        "ops": whole.total, "launches": whole.launches, "syncs": whole.num_syncs,
         "sync_ops": ", ".join(f"{name} x{n}" for name, n in sorted(whole.syncs.items())) or "-",
         "camera_path_ms": 1e3 * seconds,
-    }
+    }  # fmt: skip
     for phase in PHASES:
         count = counts.get(phase, OpCount())
         row[f"ops_{phase}"] = count.total

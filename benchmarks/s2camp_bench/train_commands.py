@@ -54,15 +54,8 @@ def ns_train_base_arguments(
 
 
 def ns_train_arguments(
-    method: str,
-    scene: Path,
-    output_dir: Path,
-    experiment: str,
-    timestamp: str,
-    iterations: int,
-    steps_per_save: int,
-    rays_per_batch: int,
-    small_model: bool = True,
+    method: str, scene: Path, output_dir: Path, experiment: str, timestamp: str, iterations: int, steps_per_save: int,
+    rays_per_batch: int, small_model: bool = True,
 ) -> list[str]:
     """``ns_train_base_arguments`` of a nerfacto method, its ray batch and (``small_model``) ``SMALL_MODEL``."""
     return [
@@ -87,15 +80,10 @@ def camera_schedule_arguments(lr: float, lr_final: float, max_steps: int | None 
 def perturbation_arguments(config) -> list[str]:
     """The dataparser subcommand with CamP's perturbation on, seed and sigmas from ``config`` (``perturbation_seed``
     and ``sigma_*`` fields, as ``DemoConfig``)."""
-    return [
-        DATAPARSER_SUBCOMMAND,
-        "--perturbation.enabled", "True",
-        "--perturbation.seed", str(config.perturbation_seed),
-        "--perturbation.sigma-position", str(config.sigma_position),
-        "--perturbation.sigma-look-at", str(config.sigma_look_at),
-        "--perturbation.sigma-focal-length", str(config.sigma_focal_length),
-        "--perturbation.sigma-dolly-z", str(config.sigma_dolly_z),
-    ]  # fmt: skip
+    names = ("seed", "sigma_position", "sigma_look_at", "sigma_focal_length", "sigma_dolly_z")
+    values = {name: getattr(config, name if name != "seed" else "perturbation_seed") for name in names}
+    options = [part for key, v in values.items() for part in (f"--perturbation.{key}".replace("_", "-"), str(v))]
+    return [DATAPARSER_SUBCOMMAND, "--perturbation.enabled", "True", *options]
 
 
 def training_environment() -> dict[str, str]:

@@ -4,8 +4,8 @@ Run from the repository root with the project's environment (see tools/camp_chec
 
     .venv/bin/python tools/camp_check/ours.py --out /tmp/camp_check/ours.npz
 
-For every check camera (room intrinsics at 1/4 resolution and the 90 degree "wide" camera of benchmarks/s2camp_bench/common.py,
-each at the identity pose and at a generic world pose) it writes
+For every check camera (room intrinsics at 1/4 resolution and the 90 degree "wide" camera of
+benchmarks/s2camp_bench/common.py, each at the identity pose and at a generic world pose) it writes
 
 - the cameras (OpenCV c2w, fx, fy, cx, cy, W, H),
 - Sigma of ``CAMP_SAMPLING`` (5000 points) for ``--seeds`` seeds and a ``--reference-points`` reference of the

@@ -1,13 +1,8 @@
-"""``python -m s2camp_bench.gpu_check.bundle``: the wheels a lent GPU machine needs to run the check offline.
-
-The machine reaches no package registry and holds its own Python 3.12 with torch (``device_image``). The bundle is
-exactly the packages the training path imports (``TRAINING_MODULES``, imported here in a fresh process) that the
-machine lacks, at this checkout's versions, as Python 3.12 x86_64 wheels; a package the registry has no such wheel of
-is built from its sdist with a Python 3.12 interpreter (``--python312``) or named as missing; plus a wheel of each of
-this repository's packages (``OWN_PROJECTS``: ``s2camp_ns`` from the root, ``s2camp_bench`` from ``benchmarks/``).
-Wheels are slimmed of folders nothing on the machine reads (``SLIM``). It goes into ``--output`` (``.whl/``, ignored
-by git) only when, with the files git tracks, it stays within ``--limit-mib`` (what one call to the machine carries);
-the sizes are printed either way. ``--dry-run`` lists what it would fetch and build, and fetches nothing.
+"""``python -m s2camp_bench.gpu_check.bundle``: the wheels a lent GPU machine (no registry, its own Python 3.12 and
+torch: ``DEVICE_IMAGE``) needs to run the check offline: the packages the training path imports (``TRAINING_MODULES``,
+in a fresh process) that it lacks, at this checkout's versions (``wheels``), slimmed (``SLIM``), and a wheel of each
+of this repository's packages (``OWN_PROJECTS``). Written to ``--output`` (``.whl/``, ignored by git) only within
+``--limit-mib`` with the files git tracks (what one call carries); ``--dry-run`` lists it and fetches nothing.
 """
 
 from __future__ import annotations
@@ -22,25 +17,25 @@ from pathlib import Path
 
 import tyro
 
-from .device_image import DEVICE_PACKAGES
-from .wheels import build_command, download_command, own_wheel, python_version, run_quietly, slim_wheel
+from .wheels import fetch, own_wheel, slim_wheel
+
+DEVICE_IMAGE = Path(__file__).with_name("device_image.txt")
+"""The packages the lent machines' image holds, one a line (``#``: a comment)."""
 
 TRAINING_MODULES = (
     "nerfstudio.scripts.train", "nerfstudio.configs.method_configs", "nerfstudio.engine.trainer",
     "nerfstudio.models.splatfacto", "nerfstudio.data.datamanagers.full_images_datamanager", "torch.utils.tensorboard",
     "torchmetrics.image.lpip", "gsplat.rendering", "pycolmap", "pytest", "s2camp_ns.method_config",
-    "s2camp_bench.evaluation", "s2camp_bench.gpu_check.cli", "s2camp_bench.gpu_check.regime",
-    "s2camp_bench.gpu_check.measured_train",
+    "s2camp_bench.evaluation", "s2camp_bench.gpu_check.cli", "s2camp_bench.gpu_check.measured_train",
 )  # fmt: skip
-"""What the check, the regime command and the ``cuda`` tests import on the machine."""
+"""What the check and its ``cuda`` tests import on the machine."""
 OWN_PROJECTS = {"s2camp-ns": ".", "s2camp-bench": "benchmarks"}
 """This repository's distributions and the folders of their project files: built here, never fetched."""
 SLIM = {
     "gsplat": ("gsplat/cuda/csrc/third_party/glm/doc/", "gsplat/cuda/csrc/third_party/glm/test/"),
-    "tensorly": ("tensorly/datasets/data/",),
-    "viser": ("viser/client/src/", "viser/client/public/"),
+    "tensorly": ("tensorly/datasets/data/",), "viser": ("viser/client/src/", "viser/client/public/"),
     "torch-fidelity": ("tests/",),
-}
+}  # fmt: skip
 """Folders left out of a wheel: glm's manual and tests (gsplat compiles with glm's headers only), tensorly's sample
 data sets, viser's client sources (it serves its built client), torch-fidelity's tests (a top-level ``tests``)."""
 LISTING = """
@@ -72,60 +67,28 @@ class BundleConfig:
     """List the packages and what would be done with each; fetch and build nothing."""
 
 
-def training_distributions() -> dict[str, str]:
-    """Distribution -> version of everything ``TRAINING_MODULES`` import, read in a fresh process."""
-    command = [sys.executable, "-c", LISTING, *TRAINING_MODULES]
-    result = subprocess.run(command, capture_output=True, text=True, check=False)
-    if result.returncode != 0:
-        raise SystemExit(f"importing the training path failed:\n{result.stderr[-3000:]}")
-    return json.loads(result.stdout.strip().splitlines()[-1])
-
-
 def to_carry(distributions: dict[str, str]) -> dict[str, str]:
-    """Those the machine lacks, this repository's own left out (their wheels are built from the checkout)."""
-    present = {normalized(name) for name in (*DEVICE_PACKAGES, *OWN_PROJECTS)}
+    """Of ``distributions`` (name -> version), those the machine lacks, this repository's own left out."""
+    listed = [line.strip() for line in DEVICE_IMAGE.read_text().splitlines() if not line.startswith("#")]
+    present = {normalized(name) for name in (*filter(None, listed), *OWN_PROJECTS)}
     return {name: version for name, version in distributions.items() if normalized(name) not in present}
 
 
-def fetch(packages: dict[str, str], folder: Path, python312: str) -> list[str]:
-    """Download each package's wheel into ``folder``, building it from its sdist where there is none; what could
-    not be had, and why."""
-    missing = []
-    for name, version in packages.items():
-        requirement = f"{name}=={version}"
-        if run_quietly(download_command(requirement, folder)) is None:
-            print(f"  fetched {requirement}", flush=True)
-            continue
-        found = python_version(python312)
-        if found != "3.12":
-            missing.append(f"{requirement}: no Python 3.12 wheel on the registry, and {python312!r} is not Python 3.12 "
-                           f"({found or 'does not run'}) to build one; pass --python312")  # fmt: skip
-            continue
-        problem = run_quietly(build_command(python312, requirement, folder))
-        if problem is None:
-            print(f"  built {requirement} from its sdist with {python312}", flush=True)
-        else:
-            missing.append(f"{requirement}: no Python 3.12 wheel on the registry, and building it failed: {problem}")
-    return missing
+def training_packages() -> dict[str, str]:
+    """Name -> version of what ``TRAINING_MODULES`` import (read in a fresh process) that the machine lacks."""
+    result = subprocess.run([sys.executable, "-c", LISTING, *TRAINING_MODULES], capture_output=True, text=True)
+    if result.returncode != 0:
+        raise SystemExit(f"importing the training path failed:\n{result.stderr[-3000:]}")
+    return to_carry(json.loads(result.stdout.strip().splitlines()[-1]))
 
 
 def mib(size: int) -> str:
     return f"{size / 2**20:.1f} MiB"
 
 
-def main(config: BundleConfig) -> int:
-    repository = Path(__file__).resolve().parents[3]
-    if not all((repository / folder / "pyproject.toml").is_file() for folder in OWN_PROJECTS.values()):
-        raise SystemExit(f"the bundle is made from a checkout of this repository (editable installs), not {repository}")
-    packages = to_carry(training_distributions())
-    print(f"the training path imports {len(packages)} packages the machine lacks:", flush=True)
-    for name, version in packages.items():
-        slim = f" (slimmed: without {', '.join(SLIM[normalized(name)])})" if normalized(name) in SLIM else ""
-        print(f"  {name}=={version}{slim}")
-    for name, folder in OWN_PROJECTS.items():
-        print(f"  {name} (this checkout's {folder}, built as a wheel)")
-    if config.dry_run:
-        return 0
+def build(config: BundleConfig, repository: Path, packages: dict[str, str]) -> int:
+    """Fetch, build and slim the wheels into a staging folder, then into ``config.output`` if within the limit;
+    the exit status."""
     staging = config.output.with_name(config.output.name + ".partial")
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
@@ -133,9 +96,8 @@ def main(config: BundleConfig) -> int:
     for folder in OWN_PROJECTS.values():
         own_wheel(repository, folder, staging)
     for wheel in staging.glob("*.whl"):
-        drop = SLIM.get(normalized(wheel.name.split("-")[0]))
-        if drop:
-            print(f"  slimmed {wheel.name} by {mib(slim_wheel(wheel, drop))}", flush=True)
+        if normalized(wheel.name.split("-")[0]) in SLIM:
+            print(f"  slimmed {wheel.name} by {mib(slim_wheel(wheel, SLIM[normalized(wheel.name.split('-')[0])]))}")
     listed = subprocess.run(["git", "ls-files", "-z"], cwd=repository, capture_output=True, check=True).stdout
     tracked = (repository / name for name in listed.decode().split("\0") if name)
     tree = sum(path.stat().st_size for path in tracked if path.is_file() and not path.is_symlink())
@@ -152,6 +114,20 @@ def main(config: BundleConfig) -> int:
     staging.rename(config.output)
     print(f"bundle ready in {config.output}", flush=True)
     return 0
+
+
+def main(config: BundleConfig) -> int:
+    repository = Path(__file__).resolve().parents[3]
+    if not all((repository / folder / "pyproject.toml").is_file() for folder in OWN_PROJECTS.values()):
+        raise SystemExit(f"the bundle is made from a checkout of this repository (editable installs), not {repository}")
+    packages = training_packages()
+    print(f"the training path imports {len(packages)} packages the machine lacks:", flush=True)
+    for name, version in packages.items():
+        slim = f" (slimmed: without {', '.join(SLIM[normalized(name)])})" if normalized(name) in SLIM else ""
+        print(f"  {name}=={version}{slim}")
+    for name, folder in OWN_PROJECTS.items():
+        print(f"  {name} (this checkout's {folder}, built as a wheel)")
+    return 0 if config.dry_run else build(config, repository, packages)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,11 @@
 """``make gpu-check`` / ``python -m s2camp_bench.gpu_check``: the stages in order within a deadline.
 
-1. the machine (refused without CUDA), written first;
-2. the scene and its image tracks, then the timing of each group at the methods' defaults (refinement off against
-   s2camp-so3xr3 and s2camp; splat-off against s2camp-splat-so3xr3 and s2camp-splat), one process per group;
-3. ``pytest -m cuda`` on the files that hold the ``cuda`` tests.
+1. the machine (refused without CUDA), written first; the scene before the first training (its image tracks are
+   built by the first run's set-up and cached in the scene folder: no step is timed while they are built);
+2. ``timing``: each group at the methods' defaults (refinement off against s2camp-so3xr3 and s2camp; splat-off
+   against s2camp-splat-so3xr3 and s2camp-splat), one process per group;
+3. ``regime``: s2camp at real resolution beside the tracks alone and the images alone (``regime``);
+4. ``tests``: ``pytest -m cuda`` on the files that hold the ``cuda`` tests.
 
 Every stage's result is appended to ``stages.jsonl`` as it ends and the report is rebuilt from the folder after each
 stage; ``--report-from FOLDER`` rebuilds it for a check that was cut. A stage that would start with too little time
@@ -15,15 +17,19 @@ from __future__ import annotations
 
 import shutil
 import time
+from dataclasses import replace
+from pathlib import Path
 
 import tyro
 
+from s2camp_bench.common import generated_scene
+
 from . import report
-from .config import STAGE_MINIMUM_S, GpuCheckConfig
+from .config import STAGE_MINIMUM_S, STOP_RESERVE_S, GpuCheckConfig
 from .environment import GpuCheckError, describe, detect_environment, require_cuda
 from .processes import Deadline
 from .records import StageResult, append_record, skipped
-from .scene_stage import prepare_scene
+from .regime import run_regime
 from .tests_stage import run_cuda_tests
 from .timing import run_group
 
@@ -44,17 +50,31 @@ def allowed(config: GpuCheckConfig, deadline: Deadline, stage: str, name: str) -
     return False
 
 
+def prepare_scene(config: GpuCheckConfig, scene: Path) -> StageResult:
+    """The generated scene in ``scene``, reused when generated there with the same settings."""
+    began, s = time.perf_counter(), config.scene
+    try:
+        generated_scene(replace(s, output_dir=scene))
+    except (ValueError, RuntimeError) as error:
+        return StageResult("scene", False, f"s2camp-make-scene failed: {error}", time.perf_counter() - began)
+    return StageResult("scene", True, f"{s.num_cameras} images {s.width}x{s.height}", time.perf_counter() - began)
+
+
 def run_stages(config: GpuCheckConfig, deadline: Deadline) -> bool:
-    """The scene and the timing groups (if asked for), then the tests; whether every stage that ran passed."""
-    passed = True
-    if "timing" in config.stages:
-        print(">>> scene and image tracks", flush=True)
-        scene_dir, logs = config.output_dir / "scene", config.output_dir / "logs"
-        stage = prepare_scene(config.scene, scene_dir, logs / "tracks.log", deadline)
-        passed = record(config, stage)
-        for group in config.groups if stage.passed else ():
-            if allowed(config, deadline, "timing", f"timing {group}"):
-                passed = record(config, run_group(config, group, scene_dir, deadline))
+    """The scene (if a stage trains), the timing groups, the regime, the tests, as asked for; whether every stage
+    that ran passed."""
+    passed, scene = True, config.output_dir / "scene"
+    if {"timing", "regime"} & set(config.stages):
+        print(">>> scene", flush=True)
+        passed = record(config, prepare_scene(config, scene))
+        if not passed:
+            return False
+    for group in config.groups if "timing" in config.stages else ():
+        if allowed(config, deadline, "timing", f"timing {group}"):
+            passed = record(config, run_group(config, group, scene, deadline))
+    if "regime" in config.stages and allowed(config, deadline, "regime", "regime"):
+        reserve = STOP_RESERVE_S + (STAGE_MINIMUM_S["tests"] if "tests" in config.stages else 0.0)
+        passed = record(config, run_regime(config, scene, deadline, reserve))
     if "tests" in config.stages and allowed(config, deadline, "tests", "`pytest -m cuda`"):
         passed = record(config, run_cuda_tests(config, deadline))
     return passed
@@ -75,9 +95,9 @@ def run(config: GpuCheckConfig) -> bool:
         require_cuda(environment)
     folder = config.folder
     folder.root.mkdir(parents=True, exist_ok=True)
-    shutil.rmtree(folder.root / "timing", ignore_errors=True)  # an earlier check's, which this report must not show
-    for path in (folder.stages_path, folder.junit_path):
-        path.unlink(missing_ok=True)
+    for records in ("timing", "errors"):  # an earlier check's, which this report must not show
+        shutil.rmtree(folder.root / records, ignore_errors=True)
+    folder.stages_path.unlink(missing_ok=True)
     began = time.perf_counter()
     lines = describe(environment)
     folder.environment_path.write_text("\n".join(lines) + "\n", encoding="utf8")

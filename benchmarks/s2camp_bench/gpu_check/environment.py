@@ -28,10 +28,7 @@ def detect_environment() -> Environment:
     available = torch.cuda.is_available()
     names = tuple(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())) if available else ()
     return Environment(
-        cuda_available=available,
-        device_names=names,
-        torch_version=torch.__version__,
-        torch_cuda=torch.version.cuda,
+        cuda_available=available, device_names=names, torch_version=torch.__version__, torch_cuda=torch.version.cuda,
         tinycudann=importlib.util.find_spec("tinycudann") is not None,
         gsplat=importlib.util.find_spec("gsplat") is not None,
     )
@@ -44,11 +41,9 @@ def require_cuda(environment: Environment) -> None:
     build = f"built for CUDA {environment.torch_cuda}" if environment.torch_cuda else "a CPU-only build"
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
     hint = f"; CUDA_VISIBLE_DEVICES={visible!r}" if visible is not None else ""
-    raise GpuCheckError(
-        f"gpu-check needs a CUDA device, and torch.cuda.is_available() is False here (torch "
-        f"{environment.torch_version}, {build}{hint}). Nothing was checked. Run it on a machine with an NVIDIA GPU "
-        "and a driver for that CUDA version; the CPU-side tests run with `make test`."
-    )
+    raise GpuCheckError(f"gpu-check needs a CUDA device, and torch.cuda.is_available() is False here (torch "
+                        f"{environment.torch_version}, {build}{hint}). Nothing was checked. Run it on a machine with "
+                        "an NVIDIA GPU and a driver for that CUDA version; the CPU-side tests run with `make test`.")
 
 
 def describe(environment: Environment) -> list[str]:

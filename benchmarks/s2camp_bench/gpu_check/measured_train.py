@@ -1,19 +1,13 @@
-"""Training runs of the GPU check and the regime command, one after the other in one process, measured as they go.
+"""Training runs of the GPU check, one after the other in one process, measured as they go.
 
     python -m s2camp_bench.gpu_check.measured_train PLAN.json
 
-``PLAN.json`` is a ``TrainPlan``. Each run is nerfstudio's own ``ns-train`` path (its ``main``: the ``--data`` alias,
-timestamp, saved config.yml; its ``train_loop``: seed, ``Trainer`` setup and training) with these additions, each
-asked for by the run's ``TrainSpec``:
-
-- the time of every step, stamped after ``torch.cuda.synchronize()`` (CUDA queues work asynchronously: without it a
-  stamp says when a step's work was queued, not done), appended to a step log every few steps (``step_log``), the
-  steps in which S2CamP refreshed P marked; the run's peak CUDA memory; P's refresh timed apart after training;
-- the camera errors against the true cameras every ``errors_every`` steps (``camera_error_log``); ``setup_only``:
-  those of the cameras as set up, without training (the tracks-alone placement);
-- a clean stop before the plan's ``stop_at`` (with ``share``, the time left shared evenly among the runs not yet
-  started): nerfstudio's loop stops after the current step (``stop_training``) and ends as after its last step, with
-  everything measured so far written.
+``PLAN.json`` is a ``TrainPlan``. Each run is nerfstudio's own ``ns-train`` path (``main``'s config preparation,
+``train_loop``'s seed, set-up and training) plus what its ``TrainSpec`` asks for (``run_logs``): every step's time,
+stamped after ``torch.cuda.synchronize()`` (CUDA queues work: without it a stamp says when a step was queued), the
+steps that refreshed P marked, the peak CUDA memory and P's refresh timed apart after training; the camera errors
+every ``errors_every`` steps (``setup_only``: of the cameras as set up, no training); and a clean stop before the
+plan's ``stop_at``: nerfstudio's loop ends after the current step as after its last, everything measured written.
 """
 
 from __future__ import annotations
@@ -27,9 +21,8 @@ from pathlib import Path
 
 import torch
 
-from .camera_error_log import REFINED, START, log_camera_errors
 from .records import as_record
-from .step_log import RunEnd, StepLog
+from .run_logs import REFINED, START, RunEnd, StepLog, log_camera_errors
 
 MINIMUM_RUN_S = 30.0
 """Without ``share``, a run that trains is not started with less than this left before the plan's ``stop_at`` (its
@@ -42,11 +35,11 @@ class TrainSpec:
 
     arguments: list[str]
     steps_log: str | None = None
-    """Step log file (``step_log``); None: none."""
+    """Step log file (``run_logs.StepLog``); None: none."""
     log_every: int = 10
     """Steps between appends to the step log."""
     errors_log: str | None = None
-    """Camera-error log file (``camera_error_log``); None: none."""
+    """Camera-error log file (``run_logs.log_camera_errors``); None: none."""
     errors_every: int = 0
     """Steps between camera errors (0: at the start and the end only)."""
     refresh_repeats: int = 0
@@ -61,8 +54,8 @@ class TrainPlan:
     stop_at: float | None = None
     """``time.time()`` by which training stops; a run not started by then is left out."""
     share: bool = False
-    """Share the time left before ``stop_at`` evenly among the runs not yet started (so that a deadline cuts every
-    run of a timing group, not the last ones away); else each run may use all of it."""
+    """Share the time left before ``stop_at`` evenly among the runs not yet started (a deadline cuts every run of a
+    timing group, not the last ones away); else each run may use all of it."""
 
     def write(self, path: Path) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -76,8 +69,9 @@ class TrainPlan:
 
 
 def refiner_of(model):
-    """S2CamP's refiner of ``model`` (None for other camera optimizers)."""
-    return getattr(getattr(model, "camera_optimizer", None), "refiner", None)
+    """S2CamP's refiner of ``model`` (None for other camera optimizers, and with camera refinement off)."""
+    optimizer = getattr(model, "camera_optimizer", None)
+    return getattr(optimizer, "refiner", None) if getattr(optimizer, "enabled", True) else None
 
 
 class StepWatch:

@@ -38,7 +38,6 @@ class Deadline:
         return math.inf if self.end is None else max(0.0, self.end - time.time())
 
     def allows(self, seconds: float) -> bool:
-        """Whether at least ``seconds`` are left."""
         return self.remaining() >= seconds
 
     def limit(self, timeout_s: float) -> float:
@@ -46,7 +45,7 @@ class Deadline:
         return min(timeout_s, self.remaining())
 
     def stop_at(self, reserve_s: float) -> float | None:
-        """``reserve_s`` before the deadline (None without one): when training must stop to end in time."""
+        """When training must stop to end in time: ``reserve_s`` before the deadline (None without one)."""
         return None if self.end is None else self.end - reserve_s
 
 

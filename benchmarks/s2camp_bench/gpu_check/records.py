@@ -1,6 +1,5 @@
-"""The records the GPU check and the regime command write as they go, one JSON object per line, and how they are
-read back. A line is appended and flushed as soon as its result exists, so a command cut at any moment leaves every
-finished result; a reader skips a last line cut in the middle of its writing."""
+"""The records the GPU check writes as it goes, one JSON object per line, appended and flushed as soon as a result
+exists (a check cut at any moment leaves every finished result), and how they are read back."""
 
 from __future__ import annotations
 

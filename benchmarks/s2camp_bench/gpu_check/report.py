@@ -1,6 +1,7 @@
 """The GPU check's report, built from what its folder holds: rebuilt after every stage of a running check, and by
 ``--report-from`` for the folder of a check that was cut. Sections: the machine (``environment.txt``), the stages
-(``stages.jsonl``), the time per step of each group at the methods' defaults (``timing/<method>.jsonl``)."""
+(``stages.jsonl``), the time per step of each group at the methods' defaults (``timing/<method>.jsonl``), the regime
+(``errors/<variant>.jsonl``)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from s2camp_bench.report import markdown_table, write_report
 
 from .config import CheckFolder, GpuCheckConfig
 from .records import StageResult, read_records
+from .regime import regime_section
 from .timing import TimingRow, timing_rows
 
 MISSING = "-"
@@ -32,13 +34,10 @@ def timing_table(rows: list[TimingRow]) -> str:
     """Per method of each group: median ms per ordinary step after the warm-up, its ratio to the group's baseline,
     P's refresh, peak CUDA memory and how the run ended."""
     cells = [
-        {
-            "group": row.group, "method": row.method, "device": row.device or MISSING, "steps": row.timed_steps,
-            "ms": _number(row.median_s, "{:.2f}", 1e3), "ratio": _number(row.ratio, "{:.3f}"),
-            "refresh": _number(row.refresh_s, "{:.1f}", 1e3),
-            "memory": _number(row.peak_memory_bytes, "{:.2f}", 2**-30),
-            "state": row.state,
-        }
+        {"group": row.group, "method": row.method, "device": row.device or MISSING, "steps": row.timed_steps,
+         "ms": _number(row.median_s, "{:.2f}", 1e3), "ratio": _number(row.ratio, "{:.3f}"),
+         "refresh": _number(row.refresh_s, "{:.1f}", 1e3), "memory": _number(row.peak_memory_bytes, "{:.2f}", 2**-30),
+         "state": row.state}
         for row in rows
     ]  # fmt: skip
     headers = [
@@ -50,23 +49,16 @@ def timing_table(rows: list[TimingRow]) -> str:
 
 
 def timing_text(config: GpuCheckConfig) -> str:
-    smoke = (
-        "**CPU smoke run of the command itself (`--cpu-smoke`): small scene and nerfacto field, a few steps on the "
-        "CPU. Not a GPU check; the numbers mean nothing.** "
-        if config.cpu_smoke
-        else ""
-    )
-    s = config.scene
-    return smoke + (
+    s, smoke = config.scene, "**CPU smoke run (`--cpu-smoke`): not a GPU check; the numbers mean nothing.** "
+    return (smoke if config.cpu_smoke else "") + (
         f"Each group trains in one process, the baseline (camera refinement off) first, {config.timing_steps} steps "
-        f"each with the methods' default options (ray batch, mixed precision, P's refresh interval) on a generated "
-        f"scene of {s.num_cameras} images {s.width}x{s.height} (every 8th held out) whose training cameras are "
-        "perturbed by CamP's protocol (`s2camp-data --perturbation.enabled True`, tracks made from the images). "
-        f"ms / step: median of the steps after the first {config.warmup_steps} without a refresh of P, each stamped "
-        "after `torch.cuda.synchronize()`. P refresh: median of the refreshes timed apart after training (and of any "
-        "step that held one); s2camp refreshes P every 1000 steps by default, so its share of a step is that time / "
-        "1000. Peak memory: `torch.cuda.max_memory_allocated()` of the run. run: ended, stopped at the deadline (its "
-        "steps so far timed), cut (the process was stopped: its steps so far are kept) or not run."
+        "each at the methods' defaults (ray batch, mixed precision, P's refresh interval) on the scene "
+        f"({s.num_cameras} images {s.width}x{s.height}), its training cameras perturbed by CamP's protocol. ms / step: "
+        "median of the "
+        f"steps after the first {config.warmup_steps} without a refresh of P, each stamped after "
+        "`torch.cuda.synchronize()`. P refresh: median of the refreshes timed apart after training (s2camp refreshes "
+        "every 1000 steps). Peak memory: `torch.cuda.max_memory_allocated()`. run: ended, stopped at the deadline, cut "
+        "(the process was stopped: its steps so far are kept) or not run."
     )
 
 
@@ -95,6 +87,7 @@ def build(config: GpuCheckConfig, folder: CheckFolder, command: str, rebuilt: bo
         sections += [timing_text(config), timing_table(timing)]
     else:
         sections.append("No timing run left a step log in this folder.")
+    sections += regime_section(config, folder)
     measured_on = None
     if rebuilt:  # not this machine: write_report's environment line would name the one it is rebuilt on
         measured_on = f"measured on the machine listed below; report rebuilt {time.strftime('%Y-%m-%d')}"

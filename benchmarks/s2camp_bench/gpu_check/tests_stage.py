@@ -1,8 +1,6 @@
-"""The ``cuda`` tests stage: ``pytest -m cuda`` on the files that hold them (``config.CUDA_TEST_FILES``).
-
-Passed only if pytest ran at least one test, and every test it collected ran and passed: on a CUDA machine none may
-skip. The counts come from pytest's JUnit file, written at its end; a pytest stopped at its limit writes none and
-fails (its verbose log keeps the tests that finished).
+"""The ``cuda`` tests stage: ``pytest -m cuda`` on the files that hold them (``config.CUDA_TEST_FILES``), passed only
+if every test it collected (one at least) ran and passed: on a CUDA machine none may skip. The counts come from
+pytest's JUnit file, written at its end (a pytest stopped at its limit writes none; its verbose log keeps the rest).
 """
 
 from __future__ import annotations
@@ -50,7 +48,7 @@ def cuda_tests_result(status: int | None, counts: dict[str, int] | None, log_pat
 
 
 def run_cuda_tests(config: GpuCheckConfig, deadline: Deadline) -> StageResult:
-    junit_path = config.folder.junit_path
+    junit_path = config.output_dir / "logs" / "cuda-tests.xml"
     junit_path.unlink(missing_ok=True)
     log_path = junit_path.with_suffix(".log")
     timeout_s = deadline.limit(config.run_timeout_s)

@@ -1,9 +1,7 @@
 """The timing stage: each group ``baseline/method/...`` trained in one process at the methods' defaults, one after
-the other on the perturbed scene, every step timed (``measured_train``, ``step_log``).
-
-Each method's time per step is the median of its ordinary steps after the warm-up, and its ratio to the baseline's
-(refinement off) from the same process on the same card; the steps in which P was refreshed are kept apart, and P's
-refresh is also timed after training, since the runs are shorter than its default interval.
+the other on the perturbed scene, every step timed (``measured_train``, ``run_logs``): each method's median time per
+ordinary step after the warm-up and its ratio to the baseline's (refinement off) from the same process on the same
+card; P's refresh timed apart after training (the runs are shorter than its default interval).
 """
 
 from __future__ import annotations
@@ -14,13 +12,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from s2camp_bench.train_commands import DATAPARSER_SUBCOMMAND, SMALL_MODEL
+from s2camp_bench.train_commands import DATAPARSER_SUBCOMMAND, SMALL_MODEL, ns_train_base_arguments
 
 from .config import METHODS, STOP_RESERVE_S, CheckFolder, GpuCheckConfig, parse_group
 from .measured_train import TrainPlan, TrainSpec
 from .processes import Deadline, failure, run_logged
 from .records import StageResult
-from .step_log import read_step_log
+from .run_logs import read_step_log
 
 PERTURBED = [DATAPARSER_SUBCOMMAND, "--perturbation.enabled", "True"]
 """The data parser with CamP's perturbation of the training cameras (its default seed and sigmas): the tracks of the
@@ -28,14 +26,10 @@ perturbed start are made from the images (the parser's ``image_tracks`` "auto").
 
 
 def run_arguments(scene: Path, output_dir: Path, experiment: str, timestamp: str, iterations: int) -> list[str]:
-    """What every run shares: its data and output places, its length (one checkpoint, at the end), no evaluation
-    during training, tensorboard instead of the viewer."""
-    return [
-        "--data", str(scene), "--output-dir", str(output_dir), "--experiment-name", experiment,
-        "--timestamp", timestamp, "--max-num-iterations", str(iterations), "--steps-per-save", str(iterations),
-        "--steps-per-eval-batch", "0", "--steps-per-eval-image", "0", "--steps-per-eval-all-images", "0",
-        "--vis", "tensorboard",
-    ]  # fmt: skip
+    """What every run shares (``train_commands.ns_train_base_arguments`` without the executable: data and output
+    places, one checkpoint at the end, no evaluation during training) and tensorboard instead of the viewer."""
+    base = ns_train_base_arguments("-", scene, output_dir, experiment, timestamp, iterations, iterations)
+    return [*base[2:], "--vis", "tensorboard"]
 
 
 def cpu_arguments(cpu_smoke: bool) -> list[str]:
@@ -69,21 +63,19 @@ def group_plan(config: GpuCheckConfig, group: str, scene: Path, stop_at: float |
 
 @dataclass
 class TimingRow:
-    """One method of a group, as its step log says."""
+    """One method of a group, as its step log says: its ordinary steps after the warm-up and their median, the ratio
+    of that median to the baseline's, P's median refresh, peak memory, and whether the run "ended", was "stopped at
+    the deadline", "cut" (the process died: its steps so far kept) or "not run"."""
 
     group: str
     method: str
     device: str | None = None
     timed_steps: int = 0
-    """Ordinary steps after the warm-up."""
     median_s: float | None = None
     ratio: float | None = None
-    """Median over the baseline's median (None for the baseline, or without both)."""
     refresh_s: float | None = None
-    """Median seconds of P's refreshes (None: none timed)."""
     peak_memory_bytes: int | None = None
     state: str = "not run"
-    """"ended", "stopped at the deadline", "cut" (the process died: steps so far kept) or "not run"."""
 
 
 def timing_rows(folder: CheckFolder, group: str, warmup_steps: int) -> list[TimingRow]:

@@ -1,5 +1,5 @@
 """Wheels for the lent GPU machine (Python 3.12, x86_64 Linux): fetched from the package registry, built from an
-sdist where the registry has no such wheel, this repository's own two packages, and wheels slimmed of files nothing
+sdist where the registry has no such wheel, this repository's own packages, and wheels slimmed of files nothing
 there reads."""
 
 from __future__ import annotations
@@ -11,45 +11,44 @@ import tempfile
 import zipfile
 from pathlib import Path
 
-PLATFORMS = (
-    "manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
-    "manylinux1_x86_64",
-)  # fmt: skip
+PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
+             "manylinux1_x86_64")  # fmt: skip
 """The wheel platforms pip may pick (the machine's glibc is newer than 2.28)."""
-
-
-def download_command(requirement: str, folder: Path) -> list[str]:
-    """``pip download`` of one binary wheel for the machine's Python, without its dependencies."""
-    platforms = [option for platform in PLATFORMS for option in ("--platform", platform)]
-    return [
-        sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
-        "--python-version", "3.12", "--implementation", "cp", *platforms, "--dest", str(folder), requirement,
-    ]  # fmt: skip
-
-
-def build_command(python: str, requirement: str, folder: Path) -> list[str]:
-    """``pip wheel`` of one requirement from its sdist with a Python 3.12 interpreter (for a package with no wheel)."""
-    return [python, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-binary", ":all:", "--wheel-dir", str(folder),
-            requirement]  # fmt: skip
-
-
-def python_version(python: str) -> str | None:
-    """``major.minor`` of the interpreter ``python`` (a name on PATH or a path); None when it does not run."""
-    try:
-        result = subprocess.run([python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"],
-                                capture_output=True, text=True, timeout=60)  # fmt: skip
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return result.stdout.strip() if result.returncode == 0 else None
 
 
 def run_quietly(command: list[str]) -> str | None:
     """Run ``command``; None when it succeeded, else the end of its output."""
-    result = subprocess.run(command, capture_output=True, text=True)
-    if result.returncode == 0:
-        return None
+    try:
+        result = subprocess.run(command, capture_output=True, text=True)
+    except OSError as error:
+        return str(error)
     output = (result.stdout + result.stderr).strip()
-    return output.splitlines()[-1] if output else f"exit status {result.returncode}"
+    return None if result.returncode == 0 else (output.splitlines()[-1] if output else f"status {result.returncode}")
+
+
+def fetch(packages: dict[str, str], folder: Path, python312: str) -> list[str]:
+    """Download each package's Python 3.12 wheel into ``folder`` (``pip download``, no dependencies), or build it from
+    its sdist with the interpreter ``python312`` where the registry has none; what could not be had, and why."""
+    platforms = [option for platform in PLATFORMS for option in ("--platform", platform)]
+    download = [sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
+                "--python-version", "3.12", "--implementation", "cp", *platforms, "--dest", str(folder)]  # fmt: skip
+    missing = []
+    for name, version in packages.items():
+        requirement = f"{name}=={version}"
+        if run_quietly([*download, requirement]) is None:
+            print(f"  fetched {requirement}", flush=True)
+            continue
+        is_312 = [python312, "-c", "import sys; assert sys.version_info[:2] == (3, 12), sys.version"]
+        problem = run_quietly(is_312) or run_quietly(
+            [python312, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-binary", ":all:", "--wheel-dir",
+             str(folder), requirement]
+        )  # fmt: skip
+        if problem is None:
+            print(f"  built {requirement} from its sdist with {python312}", flush=True)
+        else:
+            missing.append(f"{requirement}: no Python 3.12 wheel on the registry, and no build with {python312!r} "
+                           f"(a Python 3.12: --python312): {problem}")  # fmt: skip
+    return missing
 
 
 def own_wheel(repository: Path, project: str, folder: Path) -> Path:

@@ -5,12 +5,10 @@ Output (``output_dir``)::
     images/            full-resolution images (PNG by default)
     images_2/          the same images at half resolution (exact 2x2 box downsample)
     sparse/0/          COLMAP model written by pycolmap: cameras.bin, images.bin, points3D.bin
-    poses_bounds.npy   LLFF poses [N, 17]: 3x5 [R | t | hwf] with columns (down, right, backwards), near, far
     scene_info.json    ground-truth cameras and the generator config
 
-Rays go through the COLMAP camera model itself (``pycolmap.Camera.cam_from_img``), so the images agree exactly with
-the written intrinsics, distortion included. Every 3D point is a visible surface point whose track holds every image
-that sees it unoccluded, observed through ``img_from_cam``.
+Rays go through the COLMAP camera model itself (``cam_from_img``): the images agree exactly with the written
+intrinsics. Every 3D point is a visible surface point tracked in every image that sees it unoccluded.
 """
 
 from __future__ import annotations
@@ -30,8 +28,6 @@ import pycolmap
 import torch
 import tyro
 from PIL import Image as PILImage
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from s2camp_bench.scene import procedural
 from s2camp_ns import __version__
@@ -44,6 +40,7 @@ FOV_PRESETS = {"narrow": 52.0, "wide": 80.0}
 """Horizontal field of view in degrees ("narrow": mip-NeRF 360's room)."""
 
 _OUTPUTS = ("images", "images_2", "sparse", "poses_bounds.npy", "scene_info.json")
+"""What a scene folder may hold from an earlier generation (poses_bounds.npy: written by earlier versions)."""
 
 CameraModelName = Literal[
     "auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"
@@ -222,7 +219,7 @@ def sample_points(
     config: MakeSceneConfig, camera: pycolmap.Camera, poses: list[np.ndarray], rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, list[list[tuple[int, np.ndarray]]]]:
     """Visible surface points seen by >= 2 images: xyz [P, 3], rgb uint8 [P, 3] and per point its track, a list of
-    (image index, observed pixel [2])."""
+    (image index, observed pixel [2]). RuntimeError if an image sees none of them."""
     candidates, surfaces = [], []
     for pose in poses:
         pixels = rng.uniform([0.0, 0.0], [config.width, config.height], (config.points_per_image, 2))
@@ -248,25 +245,14 @@ def sample_points(
         for point in candidates_idx[visible]:
             observations[point].append((index, pixels[point]))
     keep = np.array([i for i, obs in enumerate(observations) if len(obs) >= 2], dtype=np.int64)
+    seen = {index for i in keep for index, _ in observations[i]}
+    if len(seen) < len(poses):
+        raise RuntimeError(f"image {min(set(range(len(poses))) - seen)} sees no 3D point; raise points_per_image")
     hits = procedural.Hits(
         *(np.concatenate([getattr(h, f) for h in surfaces])[keep] for f in ("t", "material", "normal"))
     )
     rgb = _to_uint8(procedural.shade(xyz[keep], hits, config.seed))
     return xyz[keep], rgb, [observations[i] for i in keep]
-
-
-def llff_poses_bounds(camera: pycolmap.Camera, poses: list[np.ndarray], depths: list[np.ndarray]) -> np.ndarray:
-    """poses_bounds.npy rows: 3x5 [R | t | hwf] in LLFF axes (down, right, backwards), then near, far."""
-    rows = []
-    for pose, z in zip(poses, depths, strict=True):
-        rotation, translation = pose[:, :3], pose[:, 3]
-        c2w_rotation, centre = rotation.T, -rotation.T @ translation
-        llff = np.stack([c2w_rotation[:, 1], c2w_rotation[:, 0], -c2w_rotation[:, 2]], axis=1)
-        hwf = np.array([camera.height, camera.width, camera.focal_length_x])
-        matrix = np.concatenate([llff, centre[:, None], hwf[:, None]], axis=1)
-        near, far = np.percentile(z, 0.1), np.percentile(z, 99.9)
-        rows.append(np.concatenate([matrix.reshape(-1), [near, far]]))
-    return np.stack(rows)
 
 
 def _prepare_output(output_dir: Path) -> None:
@@ -295,11 +281,7 @@ def config_record(config: MakeSceneConfig) -> dict:
 
 
 def _write_images(
-    config: MakeSceneConfig,
-    camera: pycolmap.Camera,
-    names: list[str],
-    poses: list[np.ndarray],
-    output_dir: Path,
+    config: MakeSceneConfig, camera: pycolmap.Camera, names: list[str], poses: list[np.ndarray], output_dir: Path,
     progress: Callable[[int, int], None] | None = None,
 ) -> None:
     """Render each image at its pose into ``images/`` and its 2x2 box-averaged half into ``images_2/``;
@@ -314,13 +296,8 @@ def _write_images(
 
 
 def _write_sparse(
-    camera: pycolmap.Camera,
-    names: list[str],
-    poses: list[np.ndarray],
-    xyz: np.ndarray,
-    rgb: np.ndarray,
-    tracks: list[list[tuple[int, np.ndarray]]],
-    output_dir: Path,
+    camera: pycolmap.Camera, names: list[str], poses: list[np.ndarray], xyz: np.ndarray, rgb: np.ndarray,
+    tracks: list[list[tuple[int, np.ndarray]]], output_dir: Path,
 ) -> None:
     """The binary COLMAP model (cameras, images with keypoints, points3D with tracks) in ``sparse/0``, image ids 1..n
     in ``names`` order."""
@@ -335,10 +312,8 @@ def _write_sparse(
             keypoints[index].append(pixel)
     for index, (name, pose) in enumerate(zip(names, poses, strict=True)):
         image = pycolmap.Image(
-            name=name,
-            keypoints=np.asarray(keypoints[index], dtype=np.float64).reshape(-1, 2),
-            camera_id=camera.camera_id,
-            image_id=index + 1,
+            name=name, keypoints=np.asarray(keypoints[index], dtype=np.float64).reshape(-1, 2),
+            camera_id=camera.camera_id, image_id=index + 1,
         )
         reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pose))
     for point, colour, track in zip(xyz, rgb, elements, strict=True):
@@ -350,62 +325,23 @@ def _write_sparse(
         (sparse / extra).unlink(missing_ok=True)
 
 
-def _write_poses_bounds(
-    camera: pycolmap.Camera,
-    names: list[str],
-    poses: list[np.ndarray],
-    xyz: np.ndarray,
-    tracks: list[list[tuple[int, np.ndarray]]],
-    output_dir: Path,
-) -> None:
-    """``poses_bounds.npy`` from the depths of the points each image sees; RuntimeError if an image sees none."""
-    depths = [[] for _ in poses]
-    for point, track in zip(xyz, tracks, strict=True):
-        for index, _ in track:
-            pose = poses[index]
-            depths[index].append(pose[2, :3] @ point + pose[2, 3])
-    for index, z in enumerate(depths):
-        if not z:
-            raise RuntimeError(f"image {names[index]} sees no 3D point; raise points_per_image")
-    np.save(output_dir / "poses_bounds.npy", llff_poses_bounds(camera, poses, [np.asarray(z) for z in depths]))
-
-
 def _scene_info(
     config: MakeSceneConfig, camera: pycolmap.Camera, names: list[str], poses: list[np.ndarray], num_points: int
 ) -> dict:
-    """The ``scene_info.json`` record: generator, config, world frame, camera, images and their poses."""
+    """The ``scene_info.json`` record: generator, config, camera (COLMAP model and parameters, pinhole and distortion
+    values), images and their world-to-camera poses (COLMAP's pixel convention: pixel (i, j) centred at (i + 0.5,
+    j + 0.5))."""
+    coefficients = {name: getattr(config, name) for name in _COEFFICIENTS}
+    pinhole = dict(fx=camera.focal_length_x, fy=camera.focal_length_y, cx=camera.principal_point_x,
+                   cy=camera.principal_point_y)  # fmt: skip
+    images = [{"image_id": i + 1, "name": name, "cam_from_world": pose.tolist()} for i, (name, pose) in
+              enumerate(zip(names, poses, strict=True))]  # fmt: skip
     return {
-        "generator": "s2camp_bench.scene.make_scene",
-        "version": __version__,
-        "config": config_record(config),
-        "world_up": [0.0, 0.0, 1.0],
-        "look_at": procedural.LOOK_AT.tolist(),
-        "background_radius": procedural.BACKGROUND_RADIUS,
-        "camera": {
-            "model": camera.model.name,
-            "width": camera.width,
-            "height": camera.height,
-            "params": camera.params.tolist(),
-            "params_info": camera.params_info,
-            "fx": camera.focal_length_x,
-            "fy": camera.focal_length_y,
-            "cx": camera.principal_point_x,
-            "cy": camera.principal_point_y,
-            **{name: getattr(config, name) for name in _COEFFICIENTS},
-        },
-        "images_2": {"width": camera.width // 2, "height": camera.height // 2, "scale": 0.5},
-        "pixel_convention": "COLMAP: the image covers [0, W] x [0, H]; pixel (i, j) is centred at (i + 0.5, j + 0.5)",
-        "images": [
-            {
-                "image_id": index + 1,
-                "name": name,
-                "cam_from_world": pose.tolist(),
-                "camera_center": (-pose[:, :3].T @ pose[:, 3]).tolist(),
-            }
-            for index, (name, pose) in enumerate(zip(names, poses, strict=True))
-        ],
-        "num_points3D": num_points,
-    }
+        "generator": "s2camp_bench.scene.make_scene", "version": __version__, "config": config_record(config),
+        "camera": {"model": camera.model.name, "width": camera.width, "height": camera.height,
+                   "params": camera.params.tolist(), **pinhole, **coefficients},
+        "images": images, "num_points3D": num_points,
+    }  # fmt: skip
 
 
 def make_scene(config: MakeSceneConfig, progress: Callable[[int, int], None] | None = None) -> Path:
@@ -420,7 +356,6 @@ def make_scene(config: MakeSceneConfig, progress: Callable[[int, int], None] | N
     _write_images(config, camera, names, poses, output_dir, progress)
     xyz, rgb, tracks = sample_points(config, camera, poses, rng)
     _write_sparse(camera, names, poses, xyz, rgb, tracks, output_dir)
-    _write_poses_bounds(camera, names, poses, xyz, tracks, output_dir)
     info = _scene_info(config, camera, names, poses, len(xyz))
     (output_dir / "scene_info.json").write_text(json.dumps(info, indent=2) + "\n")
     return output_dir
@@ -430,14 +365,8 @@ def entrypoint() -> None:
     """Console script ``s2camp-make-scene``."""
     config = tyro.cli(MakeSceneConfig)
     start = time.perf_counter()
-    bar = Progress(
-        TextColumn(f"[dim]rendering {config.output_dir}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-        console=Console(stderr=True), transient=True,
-    )  # fmt: skip
     try:
-        with bar:
-            task = bar.add_task("render", total=config.num_cameras)
-            output_dir = make_scene(config, lambda done, total: bar.update(task, completed=done, total=total))
+        output_dir = make_scene(config, lambda done, total: print(f"rendered {done}/{total}", end="\r", flush=True))
     except ValueError as error:
         raise SystemExit(f"s2camp-make-scene: {error}") from None
     info = json.loads((output_dir / "scene_info.json").read_text())

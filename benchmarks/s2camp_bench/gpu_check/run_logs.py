@@ -1,19 +1,21 @@
-"""The per-step times of a training run, appended to a JSON-lines file while it trains, and read back.
-
-The file holds one ``RunStart`` line, ``StepTime`` lines appended every few steps (a run cut at any moment leaves
-the steps written before), and one ``RunEnd`` line when the run stops. A step's time runs from the end of the
-previous step (or the start of training) to its own end, stamped once the device has finished its work. Steps in
-which S2CamP refreshed P are marked and kept apart from the ordinary ones.
+"""What a training run appends to JSON-lines files while it trains (``records``), and how they are read back: a step
+log (one ``RunStart``, ``StepTime`` lines every few steps, so a cut run keeps the steps written before, one ``RunEnd``;
+a step's time runs from the end of the previous step to its own end; steps that refreshed P are kept apart) and a
+camera-error log (``ErrorRecord`` lines after a similarity alignment to the true cameras, ``evaluation``).
 """
 
 from __future__ import annotations
 
 import statistics
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .records import append_record, as_record, read_lines
+from .records import append_record, as_record, read_lines, read_records
+
+START = "start"
+REFINED = "refined"
 
 
 @dataclass
@@ -89,8 +91,7 @@ class StepTimes:
 
     def refresh_seconds(self) -> list[float]:
         """P's refreshes: the steps that held one, then those timed apart after training."""
-        inside = [s.seconds for s in self.steps if s.refresh]
-        return inside + (self.end.refresh_seconds if self.end is not None else [])
+        return [s.seconds for s in self.steps if s.refresh] + (self.end.refresh_seconds if self.end else [])
 
 
 def read_step_log(path: Path) -> StepTimes | None:
@@ -102,3 +103,38 @@ def read_step_log(path: Path) -> StepTimes | None:
     steps = [as_record(StepTime, line) for line in lines if line.get("kind") == "step"]
     ends = [as_record(RunEnd, line) for line in lines if line.get("kind") == "end"]
     return StepTimes(starts[-1].method, starts[-1].device, steps, ends[-1] if ends else None)
+
+
+@dataclass
+class ErrorRecord:
+    """Mean errors of the training cameras: rotation (deg), position (scene units), focal (px), drift (RMS px)."""
+
+    label: str
+    """``START``: the given cameras; ``REFINED``: the cameras as refined after ``step`` steps."""
+    step: int
+    rot_err: float | None
+    pos_err: float | None
+    focal_err: float | None
+    drift_px: float | None
+
+
+def log_camera_errors(path: Path, pipeline, label: str, step: int) -> None:
+    """Append the errors of ``pipeline``'s training cameras now (``REFINED``) or as given (``START``) to ``path``."""
+    import torch
+
+    from s2camp_bench.evaluation import camera_metrics, estimated_cameras
+    from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
+
+    model = pipeline.model
+    points = pipeline.datamanager.train_dataparser_outputs.metadata["points3D_xyz"].to(torch.float64)
+    given = model._train_cameras
+    start = (given.camera_to_worlds.to(torch.float64).cpu(), intrinsics_from_cameras(given.to("cpu")))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # points behind a camera: left out of the drift, as in the evaluation
+        metrics = camera_metrics(model, points, *(start if label == START else estimated_cameras(model)))
+    errors = [metrics[key] for key in ("rot_err", "pos_err", "focal_err", "drift_px")]
+    append_record(path, ErrorRecord(label, step, *errors))
+
+
+def read_camera_errors(path: Path) -> list[ErrorRecord]:
+    return read_records(path, ErrorRecord)
