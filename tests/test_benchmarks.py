@@ -33,6 +33,7 @@ REQUIRED_KEYS = {
     },  # fmt: skip
     "image-tracks": {"images", "pairs", "seconds", "SIFT_seconds", "matching_seconds", "summary", "device"},
     "step-cost": {"method", "camera_model", "ops", "syncs", "added_ops", "added_syncs", "camera_path_ms"},
+    "anchors": {"start", "seed", "keypoints", "rot_err", "start_rot_err", "keypoint_median", "keypoint_pairs"},
 }
 REPORTS = {
     "dispersion": "dispersion.md",
@@ -40,6 +41,7 @@ REPORTS = {
     "robustness": "regime.md",
     "image-tracks": "image-tracks.md",
     "step-cost": "step-cost.md",
+    "anchors": "anchors.md",
 }
 
 
@@ -75,6 +77,10 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
         assert added["s2camp"] <= added["s2camp-so3xr3"], added
     if name == "robustness":
         _check_robustness_rows(rows, tmp_path)
+    if name == "anchors":  # the same tracks, detected then refined: the refined keypoints agree better
+        detected, refined = rows
+        assert (detected["keypoints"], refined["keypoints"]) == ("detected", "refined")
+        assert refined["keypoint_median"] < detected["keypoint_median"], rows
     if name == "image-tracks":
         assert [row["images"] for row in rows] == [12, 8]
         assert all(row["SIFT_seconds"] > 0.0 and row["matching_seconds"] > 0.0 for row in rows), rows

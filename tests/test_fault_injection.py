@@ -310,15 +310,15 @@ def test_a_damaged_readjusted_points_entry_is_adjusted_again_with_a_notice(
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     model = tiny_scene / "sparse" / "0"
     robust_adjustment._cached.cache_clear()
-    points = robust_adjustment.robustly_adjusted_points(model)
+    points = robust_adjustment.readjusted_tracks(model).points
     (entry,) = (tmp_path / "xdg" / "s2camp-ns" / robust_adjustment.CACHE_KIND).glob("*.npz")
     cut_short(entry, 0.8)
     robust_adjustment._cached.cache_clear()
     capsys.readouterr()
-    again = robust_adjustment.robustly_adjusted_points(model)
+    again = robust_adjustment.readjusted_tracks(model).points
     notice = " ".join(capsys.readouterr().err.split())
     assert f"Re-adjusted SfM points: the cache entry {entry} is damaged (" in notice, notice
     assert set(again) == set(points) and all(np.allclose(again[i], points[i], rtol=0, atol=1e-9) for i in points)
     robust_adjustment._cached.cache_clear()
-    assert robust_adjustment._read(entry).keys() == points.keys()  # rewritten whole
+    assert robust_adjustment._read(entry).points.keys() == points.keys()  # rewritten whole
     robust_adjustment._cached.cache_clear()

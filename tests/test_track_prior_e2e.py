@@ -25,6 +25,7 @@ def _train(scene: Path, output: Path, prior: bool) -> dict:
         # A large camera step with no warm-up: without the prior the accurate cameras move at once.
         *camera_schedule_arguments(1e-2, 1e-2),
         "--pipeline.model.camera-optimizer.track-prior", str(prior),
+        "s2camp-data", "--refine-keypoints", "False",  # exact tracks: refining them would move them
     ]  # fmt: skip
     result = _run(command)
     assert result.returncode == 0, _failure(result, "ns-train s2camp")

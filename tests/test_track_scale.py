@@ -82,7 +82,9 @@ def test_given_cameras_miss_their_tracks_by_the_full_size_noise_times_the_folder
     from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     scene, noise = rounded_scene
-    config = S2CampDataParserConfig(data=scene, downscale_factor=4, eval_mode="all", image_tracks="never")
+    config = S2CampDataParserConfig(
+        data=scene, downscale_factor=4, eval_mode="all", image_tracks="never", refine_keypoints=False  # exact tracks
+    )
     outputs = config.setup().get_dataparser_outputs("train")
     sx, sy = ROUNDED[0] / FULL[0], ROUNDED[1] / FULL[1]
     assert outputs.cameras.fx[:, 0].double() == pytest.approx(FOCAL * sx, rel=1e-6)  # the intrinsics kept
@@ -102,7 +104,9 @@ def test_the_anchor_keeps_the_given_intrinsics_of_a_rounded_folder(rounded_scene
     from s2camp_ns.data.dataparser import S2CampDataParserConfig
 
     scene, _ = rounded_scene
-    config = S2CampDataParserConfig(data=scene, downscale_factor=4, eval_mode="all", image_tracks="never")
+    config = S2CampDataParserConfig(
+        data=scene, downscale_factor=4, eval_mode="all", image_tracks="never", refine_keypoints=False  # exact tracks
+    )
     outputs = config.setup().get_dataparser_outputs("train")
     evidence = outputs.metadata["track_evidence"]
     intrinsics = intrinsics_from_cameras(outputs.cameras)
@@ -119,7 +123,9 @@ def test_a_model_whose_keypoints_are_at_another_scale_is_refused_by_name(tmp_pat
     scene = tmp_path / "edited"
     (scene / "images").mkdir(parents=True)
     _model(scene / "sparse" / "0", scene / "images_4", keypoint_scale=0.25)
-    config = S2CampDataParserConfig(data=scene, downscale_factor=4, eval_mode="all", image_tracks="never")
+    config = S2CampDataParserConfig(
+        data=scene, downscale_factor=4, eval_mode="all", image_tracks="never", refine_keypoints=False  # exact tracks
+    )
     with pytest.raises(ValueError) as refused:
         config.setup().get_dataparser_outputs("train")
     message = " ".join(str(refused.value).split())

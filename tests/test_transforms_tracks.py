@@ -28,6 +28,9 @@ def _ns_process_data_layout(scene: Path, data: Path, keep_original_world_coordin
 
 
 def _parse(data: Path, split: str = "train", **options):
+    """The data parser's outputs of ``split``; keypoints not refined unless asked: the generated tracks are exact, and
+    refining them against the images would move them by the refinement's own error."""
+    options.setdefault("refine_keypoints", False)
     return S2CampDataParserConfig(data=data, **options).setup().get_dataparser_outputs(split)
 
 
@@ -43,6 +46,7 @@ def perturbed_with_scene_tracks(data: Path, **options):
     from s2camp_ns.data.scene_formats import detect_format
     from s2camp_ns.tracks.track_evidence import colmap_track_evidence, transforms_track_evidence
 
+    options.setdefault("refine_keypoints", False)  # exact tracks (``_parse``)
     config = S2CampDataParserConfig(data=data, image_tracks="never", **options)
     parser = config.setup()
     outputs = parser.get_dataparser_outputs("train")

@@ -10,6 +10,7 @@ from typing import Annotated, Union
 
 import tyro
 
+from .anchors import AnchorsConfig
 from .common import DEFAULT_OUTPUT_DIR, emit_json, log
 from .dispersion import DispersionConfig
 from .gram_error import GramErrorConfig
@@ -21,6 +22,7 @@ from .step_cost import StepCostConfig
 MODULES = {
     StepCostConfig: "step_cost", RobustnessConfig: "robustness", SplatBenchConfig: "splat_bench",
     GramErrorConfig: "gram_error", DispersionConfig: "dispersion", ImageTracksCostConfig: "image_tracks_cost",
+    AnchorsConfig: "anchors",
 }  # fmt: skip
 """Every benchmark, in the order ``s2camp-bench all`` runs them."""
 
@@ -41,6 +43,7 @@ Command = Union[
     Annotated[GramErrorConfig, tyro.conf.subcommand("gram-error")],
     Annotated[DispersionConfig, tyro.conf.subcommand("dispersion")],
     Annotated[ImageTracksCostConfig, tyro.conf.subcommand("image-tracks")],
+    Annotated[AnchorsConfig, tyro.conf.subcommand("anchors")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]
 

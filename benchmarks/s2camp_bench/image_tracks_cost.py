@@ -29,8 +29,14 @@ from s2camp_ns.tracks.image_tracks import EXHAUSTIVE_LIMIT, NEIGHBOURS, feature_
 
 from .common import DEFAULT_OUTPUT_DIR, generated_scene, in_work_folder, log, write_report
 
-STAGES = ("SIFT", "matching", "triangulation", "adjustment")
+STAGES = ("SIFT", "matching", "triangulation", "adjustment", "keypoints", "refined adjustment")
 """The build's kinds of stage (``image_tracks``' progress), the report's columns."""
+REFINEMENT = ("keypoints", "refined adjustment")
+"""The stages keypoint refinement adds (``image_tracks``, step 4): the build without them is the build without it."""
+
+
+def _column(stage: str) -> str:
+    return f"{stage.replace(' ', '_')}_seconds"
 
 
 @dataclass
@@ -117,7 +123,8 @@ def _run(config: ImageTracksCostConfig, root: Path) -> list[dict]:
         pairs = count * (count - 1) // 2 if count <= EXHAUSTIVE_LIMIT else len(neighbour_pairs(given))
         row = {
             "images": count, "size": f"{config.scene.width}x{config.scene.height}", "pairs": pairs, "seconds": seconds,
-            **{f"{stage}_seconds": result.stage_seconds.get(stage, 0.0) for stage in STAGES},
+            **{_column(stage): result.stage_seconds.get(stage, 0.0) for stage in STAGES},
+            "ratio": seconds / (seconds - sum(result.stage_seconds.get(stage, 0.0) for stage in REFINEMENT)),
             "summary": result.summary or result.reason,
             "device": "GPU" if feature_device()[0] == pycolmap.Device.cuda else "CPU",
             "load_before": round(load_before[0], 2), "load_after": round(os.getloadavg()[0], 2), "cpus": os.cpu_count(),
@@ -136,11 +143,13 @@ def report(rows: list[dict], config: ImageTracksCostConfig) -> Path:
         f"the given cameras {config.rotation_deg:g} deg RMS and {config.centre_noise:g} units per axis off, the "
         f"focal length {config.focal_error:.0%} long (a phone's poses); every pair matched up to {EXHAUSTIVE_LIMIT} "
         f"images, else each image with its {NEIGHBOURS} nearest cameras that face alike. Wall seconds of the whole "
-        f"build and of each kind of stage; load = the 1-minute load average before the build (the CPU stages use "
+        f"build and of each kind of stage; keypoints and refined adjustment are what keypoint refinement adds (the "
+        f"refinement, then a last adjustment on its keypoints), and the ratio is the build's time over its time "
+        f"without them, in the same build; load = the 1-minute load average before the build (the CPU stages use "
         f"every core: a loaded machine slows them)."
     )
-    columns = ["images", "pairs", "seconds", *(f"{stage}_seconds" for stage in STAGES), "device", "load_before"]
-    headers = ["images", "pairs", "total s", *(f"{stage} s" for stage in STAGES), "device", "load before"]
+    columns = ["images", "pairs", "seconds", *(_column(stage) for stage in STAGES), "ratio", "device", "load_before"]
+    headers = ["images", "pairs", "total s", *(f"{stage} s" for stage in STAGES), "ratio", "device", "load before"]
     summaries = "\n".join(f"- {row['images']} images: {row['summary']}" for row in rows)
     command = "s2camp-bench image-tracks" + (" --quick" if config.quick else "")
     sections = [setup, markdown_table(rows, columns, headers), "## What each build made", summaries]

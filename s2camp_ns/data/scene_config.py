@@ -53,6 +53,9 @@ class SceneConfig(DataParserConfig):
     image_tracks: Literal["auto", "always", "never"] = "auto"
     """Tracks made from the scene's images, cached: auto where the scene has no SfM tracks or its cameras are
     perturbed, always in place of the scene's own, never only the scene's."""
+    refine_keypoints: bool = True
+    """Align each track's image patches to refine its keypoints before the tracks place the cameras (SfM's tracks and
+    those made from the images; docs/IMAGE-TRACKS.md); False: the detected keypoints."""
     image_tracks_cache: Path | None = None
     """Folder of the image tracks' cache; None: ``s2camp_image_tracks`` in the scene folder, or the user's cache
     folder where that cannot be written (``track_cache``)."""

@@ -18,6 +18,7 @@ from torch import Tensor
 
 from s2camp_ns.core.tracks import Tracks
 from s2camp_ns.data.colmap_files import model_file, read_model_file
+from s2camp_ns.tracks.robust_adjustment import ReadjustedTracks
 
 
 def pixel_scale_of(
@@ -66,11 +67,11 @@ def read_colmap_tracks(
     model: Path,
     names: list[str],
     image_size: Float[Tensor, "n 2"] | None = None,
-    points_xyz: dict[int, np.ndarray] | None = None,
+    adjusted: ReadjustedTracks | None = None,
 ) -> Tracks:
     """The tracks of the COLMAP model folder ``model`` seen by the images ``names`` (image i is ``names[i]``; a missing
     name is a ValueError). ``image_size`` [n, 2]: scale keypoints to these sizes (None: the model's pixels).
-    ``points_xyz``: point positions by id in place of the model's (``robust_adjustment``)."""
+    ``adjusted``: point positions and keypoints in place of the model's (``robust_adjustment``)."""
     images_file = model_file(model, "images")
     images = {image.name: image for image in read_model_file(images_file, "images").values()}
     points3d = read_model_file(model_file(model, "points3D"), "points3D")
@@ -83,7 +84,7 @@ def read_colmap_tracks(
         sizes = [(cameras[images[name].camera_id].width, cameras[images[name].camera_id].height) for name in names]
         size = torch.as_tensor(image_size, dtype=torch.float64).reshape(-1, 2)
         scale = pixel_scale_of(size[:, 0], size[:, 1], sizes)
-    return tracks_of_images(images, points3d, names, scale, images_file, points_xyz)
+    return tracks_of_images(images, points3d, names, scale, images_file, adjusted)
 
 
 def tracks_of_images(
@@ -92,16 +93,17 @@ def tracks_of_images(
     names: list[str],
     pixel_scale: Float[Tensor, "n 2"] | float,
     images_file: Path,
-    points_xyz: dict[int, np.ndarray] | None = None,
+    adjusted: ReadjustedTracks | None = None,
 ) -> Tracks:
     """``read_colmap_tracks`` on a model already read: ``images`` by name, ``points3d`` by id, ``pixel_scale`` [n, 2]
-    or scalar; ``images_file`` names the source in errors."""
+    or scalar; ``images_file`` names the source in errors; ``adjusted`` as ``read_colmap_tracks``'s."""
     scale = torch.as_tensor(pixel_scale, dtype=torch.float64)
     scale = scale.expand(len(names), 2) if scale.ndim == 0 else scale.reshape(-1, 2)
     if scale.shape[0] != len(names):
         raise ValueError(f"pixel_scale must hold one (sx, sy) per image ({len(names)}), got {scale.shape[0]}")
     ids = np.fromiter(points3d.keys(), dtype=np.int64, count=len(points3d))
-    positions = {int(i): points3d[int(i)].xyz for i in ids} if points_xyz is None else points_xyz
+    positions = {int(i): points3d[int(i)].xyz for i in ids} if adjusted is None else adjusted.points
+    keypoints = {} if adjusted is None else adjusted.keypoints
     xyz = np.stack([positions[int(i)] for i in ids]) if len(ids) else np.zeros((0, 3))
     row_of = {int(point_id): row for row, point_id in enumerate(ids)}
     image_index, point_index, pixels = [], [], []
@@ -109,7 +111,8 @@ def tracks_of_images(
         image = images.get(name)
         if image is None:
             raise ValueError(f"{images_file} holds no image named '{name}' (a training image of the scene)")
-        keep = [(row_of[int(p)], xy) for p, xy in zip(image.point3D_ids, image.xys, strict=True) if int(p) in row_of]
+        xys = keypoints.get(image.id, image.xys)
+        keep = [(row_of[int(p)], xy) for p, xy in zip(image.point3D_ids, xys, strict=True) if int(p) in row_of]
         image_index += [index] * len(keep)
         point_index += [row for row, _ in keep]
         pixels += [xy for _, xy in keep]

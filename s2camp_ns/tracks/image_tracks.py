@@ -7,7 +7,9 @@ images as it anchors SfM's (``core.track_fit``). Recipe (pycolmap; SIFT and matc
    ``neighbour_pairs``.
 3. Points triangulated with the given cameras, then ``REFINEMENT_ROUNDS`` rounds of bundle adjustment (points, poses,
    focal lengths, distortion; principal point fixed) and re-triangulation, and a last adjustment (``Thresholds``).
-4. A similarity (Umeyama on the camera centres) maps the result onto the given poses, whose world the images do not
+4. With ``refine_keypoints``: every track's keypoints aligned to its reference observation's patch
+   (``keypoint_refinement``), then a last adjustment on them.
+5. A similarity (Umeyama on the camera centres) maps the result onto the given poses, whose world the images do not
    fix.
 
 The result is a COLMAP model in the world of the given poses, cached in ``<cache>/<cache_key>``: built in a
@@ -39,6 +41,7 @@ from s2camp_ns.data.image_check import decoded_sizes
 from s2camp_ns.tracks.build_progress import BuildProgress, DatabaseCounter, database_count, duration_text
 from s2camp_ns.tracks.colmap_log import colmap_log_to
 from s2camp_ns.tracks.feature_database import given_with_database_ids, names_by_camera, number_images, open_database
+from s2camp_ns.tracks.keypoint_refinement import KEYPOINT_RECIPE, refine_keypoints
 from s2camp_ns.tracks.robust_adjustment import cauchy_adjustment_options
 from s2camp_ns.tracks.track_cache import (
     DamagedEntryError,
@@ -51,7 +54,7 @@ from s2camp_ns.tracks.track_cache import (
     user_cache_folder,
 )
 
-RECIPE_VERSION = 4
+RECIPE_VERSION = 5
 """Part of the cache key: raise it when the recipe changes, so that older entries are not read."""
 MAX_IMAGE_SIZE = 1600
 """Longest image side SIFT sees (px); larger images are downsampled for extraction, keypoints stay in full-size px."""
@@ -101,15 +104,17 @@ class ImageTracks:
     """Wall seconds of the build that made the entry, per kind of stage (``SIFT``, ``matching``, ...)."""
 
 
-def cache_key(given: pycolmap.Reconstruction, image_root: Path) -> str:
+def cache_key(given: pycolmap.Reconstruction, image_root: Path, refine_keypoints: bool = True) -> str:
     """The cache entry's name: a hash of ``RECIPE_VERSION``, pycolmap's version, each image's name, size, mtime and
-    pose, and the given cameras (every bit)."""
+    pose, the given cameras (every bit) and whether the keypoints are refined."""
     images = sorted(given.images.values(), key=lambda image: image.name)
     cameras = [
         [camera_id, camera.model.name, camera.width, camera.height, [float(v) for v in camera.params]]
         for camera_id, camera in sorted(given.cameras.items())
     ]
     record = {"recipe": RECIPE_VERSION, "pycolmap": pycolmap.__version__, "images": [], "cameras": cameras}
+    if refine_keypoints:
+        record["keypoints"] = f"refined {KEYPOINT_RECIPE}"
     for image in images:
         stat = (image_root / image.name).stat()
         pose = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
@@ -118,12 +123,16 @@ def cache_key(given: pycolmap.Reconstruction, image_root: Path) -> str:
 
 
 def image_tracks(
-    given: pycolmap.Reconstruction, image_root: Path, cache: Path, user_fallback: bool = False
+    given: pycolmap.Reconstruction,
+    image_root: Path,
+    cache: Path,
+    user_fallback: bool = False,
+    refine_keypoints: bool = True,
 ) -> ImageTracks:
     """Tracks of ``given``'s images (names relative to ``image_root``; given cameras and poses, no points), read from
     the folder ``cache`` or built there, once among processes (``track_cache.entry_lock``). ``user_fallback``: also
     read from, and built in where ``cache`` cannot be written, the user's cache folder; without it an unwritable
-    ``cache`` raises OSError. FileNotFoundError for a missing image."""
+    ``cache`` raises OSError. ``refine_keypoints``: step 4 of the recipe. FileNotFoundError for a missing image."""
     missing = sorted(image.name for image in given.images.values() if not (image_root / image.name).is_file())
     if missing:
         raise FileNotFoundError(
@@ -133,7 +142,7 @@ def image_tracks(
     if given.num_images() < MIN_CAMERAS_FOR_ALIGNMENT:
         reason = f"{given.num_images()} images: tracks need at least {MIN_CAMERAS_FOR_ALIGNMENT}"
         return ImageTracks(None, reason=reason)
-    key = cache_key(given, image_root)
+    key = cache_key(given, image_root, refine_keypoints)
     for folder in (cache, user_cache_folder()) if user_fallback else (cache,):
         if (folder / key).exists():  # read even where it cannot be written (a shipped cache)
             try:
@@ -149,16 +158,16 @@ def image_tracks(
                 discard(final)
         remove_stale_builds(final)
         decoded_sizes([image_root / image.name for image in given.images.values()], "the scene (image tracks)")
-        return _store(given, image_root, final)
+        return _store(given, image_root, final, refine_keypoints)
 
 
-def _store(given: pycolmap.Reconstruction, image_root: Path, final: Path) -> ImageTracks:
+def _store(given: pycolmap.Reconstruction, image_root: Path, final: Path, refine_keypoints: bool) -> ImageTracks:
     """Build the cache entry ``final`` in a temporary sibling renamed to it when finished; the caller holds its
     ``entry_lock``."""
     work = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".building", dir=final.parent))
     try:
         started = time.perf_counter()
-        reconstruction, reason = _build(given, image_root, work)
+        reconstruction, reason = _build(given, image_root, work, refine_keypoints)
         result = {"reason": reason}
         stages = work / STAGES_FILE
         if stages.is_file():
@@ -221,8 +230,10 @@ def _result(folder: Path) -> dict:
     return result
 
 
-def _build(given: pycolmap.Reconstruction, image_root: Path, work: Path) -> tuple[pycolmap.Reconstruction, str | None]:
-    """The adjusted, aligned reconstruction (module docstring, steps 1-4) and why it cannot anchor the cameras (None
+def _build(
+    given: pycolmap.Reconstruction, image_root: Path, work: Path, refine_keypoints: bool
+) -> tuple[pycolmap.Reconstruction, str | None]:
+    """The adjusted, aligned reconstruction (module docstring, steps 1-5) and why it cannot anchor the cameras (None
     when it can); writes the stages' times to ``STAGES_FILE``."""
     pycolmap.set_random_seed(COLMAP_SEED)
     device, notice = feature_device()
@@ -234,13 +245,18 @@ def _build(given: pycolmap.Reconstruction, image_root: Path, work: Path) -> tupl
         )
         if notice is not None:
             progress.note(f"[yellow]{escape(notice)}")
-        built = _build_stages(given, image_root, work, device, progress)
+        built = _build_stages(given, image_root, work, device, progress, refine_keypoints)
     (work / STAGES_FILE).write_text(json.dumps(progress.seconds_by_kind()), encoding="utf8")
     return built
 
 
 def _build_stages(
-    given: pycolmap.Reconstruction, image_root: Path, work: Path, device: pycolmap.Device, progress: BuildProgress
+    given: pycolmap.Reconstruction,
+    image_root: Path,
+    work: Path,
+    device: pycolmap.Device,
+    progress: BuildProgress,
+    refine_keypoints: bool,
 ) -> tuple[pycolmap.Reconstruction, str | None]:
     """``_build``'s steps, then the plausibility checks (``_implausible``)."""
     database = work / "database.db"
@@ -257,6 +273,8 @@ def _build_stages(
     reconstruction = _triangulate_and_adjust(reconstruction, database, image_root, thresholds, progress)
     if reconstruction.num_points3D() == 0:
         return reconstruction, "no point could be triangulated from the images' matched features"
+    if refine_keypoints:
+        _refine_and_adjust(reconstruction, image_root, work / "colmap.log", progress)
     _align_to_given(reconstruction, given)
     return reconstruction, _implausible(given, reconstruction)
 
@@ -384,6 +402,26 @@ def _triangulate_and_adjust(
                 reconstruction, database, image_root, thresholds.keypoint_px, position, progress
             )
     return reconstruction
+
+
+def _refine_and_adjust(
+    reconstruction: pycolmap.Reconstruction, image_root: Path, log: Path, progress: BuildProgress
+) -> None:
+    """Step 4: the keypoints refined against the images (``keypoint_refinement``), then a last adjustment (stage
+    kinds ``keypoints`` and ``refined adjustment``: the refinement's own cost in ``ImageTracks.stage_seconds``)."""
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    done = [0]
+
+    def advance(count: int, _total: int) -> None:
+        done[0] = count
+
+    total = sum(point.track.length() - 1 for point in reconstruction.points3D.values())
+    with progress.stage("keypoint refinement", "keypoints", total, "keypoints", lambda: done[0]) as stage:
+        stage.outcome = refine_keypoints(reconstruction, image_root, device, progress=advance).describe()
+    with progress.stage("bundle adjustment on the refined keypoints", "refined adjustment") as stage:
+        with colmap_log_to(log):
+            pycolmap.bundle_adjustment(reconstruction, cauchy_adjustment_options(refine_principal_point=False))
+        stage.outcome = f"points' reprojection error median {_median_point_error(reconstruction):.3g} px"
 
 
 def _median_point_error(reconstruction: pycolmap.Reconstruction) -> float:

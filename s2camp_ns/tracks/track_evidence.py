@@ -24,7 +24,7 @@ from s2camp_ns.core.track_fit import TrackEvidence
 from s2camp_ns.core.tracks import track_reprojection_rms
 from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.data.camera_fields import physical_camera_means
-from s2camp_ns.data.colmap_files import model_file
+from s2camp_ns.data.colmap_files import model_file, read_model_file
 from s2camp_ns.data.colmap_scene import has_points
 from s2camp_ns.data.colmap_world import c2w_to_colmap_world
 from s2camp_ns.data.colmap_writer import nerfstudio_to_reconstruction
@@ -33,7 +33,7 @@ from s2camp_ns.data.scene_formats import ParsedSplit
 from s2camp_ns.data.transforms_scene import transforms_declared_sizes
 from s2camp_ns.tracks.colmap_tracks import check_sfm_track_rms, read_colmap_tracks
 from s2camp_ns.tracks.image_tracks import image_tracks
-from s2camp_ns.tracks.robust_adjustment import robustly_adjusted_points
+from s2camp_ns.tracks.robust_adjustment import readjusted_tracks
 from s2camp_ns.tracks.transforms_tracks import colmap_model_of_transforms, full_size_images, transforms_track_rms
 
 Evidence = tuple[Float[Tensor, " n"], TrackEvidence]
@@ -107,7 +107,12 @@ def scene_track_evidence(
     if data_format == "colmap":
         if not (config.load_3D_points and has_points(source)):
             return None
-        evidence = colmap_track_evidence(cameras, source, parsed.image_names, outputs)
+        images = None
+        if config.refine_keypoints:
+            full = Path(config.data) / config.images_path  # else the training images' folder, images_k
+            k = parsed.downscale_factor
+            images = keypoint_images(source, [full] + ([full.with_name(f"{full.name}_{k}")] if k > 1 else []))
+        evidence = colmap_track_evidence(cameras, source, parsed.image_names, outputs, image_root=images)
         model = source
     else:
         evidence = transforms_track_evidence(config, source, cameras, outputs, parsed.downscale_factor)
@@ -119,12 +124,38 @@ def scene_track_evidence(
     return evidence
 
 
+def keypoint_images(model: Path, folders: list[Path]) -> Path | None:
+    """The first of ``folders`` that holds every registered image of the COLMAP model ``model`` (by name): the images
+    its keypoints are refined against (``keypoint_refinement``, at whatever size they are there); None, said once,
+    when none does, or None when there is no model (the caller says why)."""
+    images_file = model_file(model, "images")
+    if not images_file.is_file():
+        return None
+    names = [image.name for image in read_model_file(images_file, "images").values()]
+    for folder in folders:
+        if all((folder / name).is_file() for name in names):
+            return folder
+    missing = next(name for name in names if not (folders[0] / name).is_file())
+    _show_once(
+        (model.resolve(), "keypoint-images"),
+        f"[bold yellow]Keypoints not refined: '{escape(str(folders[0] / missing))}' does not exist (nor do the images "
+        f"of {model} in {', '.join(escape(str(folder)) for folder in folders[1:]) or 'another folder'})",
+    )
+    return None
+
+
 def colmap_track_evidence(
-    cameras: Cameras, model: Path, names: list[str], outputs: DataparserOutputs, readjust: bool = True
+    cameras: Cameras,
+    model: Path,
+    names: list[str],
+    outputs: DataparserOutputs,
+    readjust: bool = True,
+    image_root: Path | None = None,
 ) -> Evidence:
     """Reprojection RMS (px, float64 [N]) of the COLMAP model's tracks under ``cameras`` (normalized; image i is the
     model's ``names[i]``), in COLMAP's world, against the model's own points; and the tracks with the cameras in that
-    world, points re-adjusted (``robust_adjustment``) unless ``readjust`` is False (a model adjusted so already)."""
+    world, re-adjusted (``robust_adjustment``, keypoints refined against the images under ``image_root`` unless it is
+    None) unless ``readjust`` is False (a model adjusted so already)."""
     # Keypoints from the model's camera size to the training images' (a rounded images_k folder included).
     size = torch.stack([cameras.width.reshape(-1), cameras.height.reshape(-1)], dim=-1)
     tracks = read_colmap_tracks(model, names, image_size=size)
@@ -132,7 +163,7 @@ def colmap_track_evidence(
     c2w = c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, scale)
     rms = track_reprojection_rms(tracks, c2w, intrinsics_from_cameras(cameras))
     if readjust:
-        tracks = read_colmap_tracks(model, names, image_size=size, points_xyz=robustly_adjusted_points(model))
+        tracks = read_colmap_tracks(model, names, image_size=size, adjusted=readjusted_tracks(model, image_root))
     return rms, TrackEvidence(tracks, c2w, scale)
 
 
@@ -151,6 +182,7 @@ def transforms_track_evidence(
         c2w_given=c2w_to_colmap_world(cameras.camera_to_worlds, outputs.dataparser_transform, scale),
         c2w_reference=c2w_to_colmap_world(outputs.cameras.camera_to_worlds, outputs.dataparser_transform, scale),
         intrinsics=intrinsics_from_cameras(cameras), world_scale=scale,
+        image_root=keypoint_images(model, [source.parent / config.images_path]) if config.refine_keypoints else None,
     )  # fmt: skip
     if result.rms is None or result.evidence is None:
         # A transforms.json that disagrees with its COLMAP model is a warning; a scene without one is normal.
@@ -186,7 +218,9 @@ def image_track_evidence(
         full_image_size=parsed.full_image_size, camera_ids=camera_ids.tolist(),
     )  # fmt: skip
     cache = config.image_tracks_cache or scene / IMAGE_TRACKS_CACHE
-    result = image_tracks(given, root, cache, user_fallback=config.image_tracks_cache is None)
+    result = image_tracks(
+        given, root, cache, user_fallback=config.image_tracks_cache is None, refine_keypoints=config.refine_keypoints
+    )
     if result.model is None:
         _show_once((source.resolve(), "image-tracks"), f"[bold yellow]No track prior: {escape(result.reason)}")
         return None
@@ -202,6 +236,7 @@ __all__ = [
     "IMAGE_TRACKS_CACHE",
     "colmap_track_evidence",
     "image_track_evidence",
+    "keypoint_images",
     "scene_track_evidence",
     "track_evidence",
     "transforms_track_evidence",

@@ -27,7 +27,7 @@ from s2camp_ns.core.tracks import Tracks, track_reprojection_rms
 from s2camp_ns.data.colmap_files import model_file, read_model_file
 from s2camp_ns.data.transforms_file import read_transforms
 from s2camp_ns.tracks.colmap_tracks import pixel_scale_of, tracks_of_images
-from s2camp_ns.tracks.robust_adjustment import robustly_adjusted_points
+from s2camp_ns.tracks.robust_adjustment import readjusted_tracks
 
 COLMAP_MODEL_OF_TRANSFORMS = Path("colmap/sparse/0")
 """Where ``ns-process-data`` writes the COLMAP model, relative to the transforms.json's folder."""
@@ -159,13 +159,15 @@ def transforms_track_rms(
     c2w_reference: Float[Tensor, "n 3 4"],
     intrinsics: Intrinsics,
     world_scale: float = 1.0,
+    image_root: Path | None = None,
 ) -> TransformsTracks:
     """Each image's track reprojection RMS for the transforms.json ``source`` against the COLMAP model ``model``.
 
     ``c2w_given``: the cameras to measure (after any perturbation); ``c2w_reference``: as the json gives them; both
     OpenCV camera-to-world [n, 3, 4] in the un-normalized world (``colmap_world.c2w_to_colmap_world``).
-    ``declared_sizes``: full-size ``w``, ``h``; ``world_scale``: ``dataparser_scale``. ``rms`` None, with the reason,
-    when the model is missing or the cameras fail the check (module docstring).
+    ``declared_sizes``: full-size ``w``, ``h``; ``world_scale``: ``dataparser_scale``; ``image_root``: the model's
+    images, its keypoints refined against them (``robust_adjustment``; None: not refined). ``rms`` None, with the
+    reason, when the model is missing or the cameras fail the check (module docstring).
     """
     if not _has_model(model):
         return TransformsTracks(None, "no-model", f"no COLMAP model with points (cameras, images, points3D) in {model}")
@@ -222,7 +224,8 @@ def transforms_track_rms(
     given = _world_from_json(c2w_given, rotation)
     rms[index] = track_reprojection_rms(tracks, given[index], intrinsics[index])
     # Tracks by training image for the anchor fit, points re-adjusted (robust_adjustment); the RMS above is a check.
-    adjusted = tracks_of_images(images, points3d, matched_names, scale, images_file, robustly_adjusted_points(model))
+    readjusted = readjusted_tracks(model, image_root)
+    adjusted = tracks_of_images(images, points3d, matched_names, scale, images_file, readjusted)
     all_images = Tracks(adjusted.points, index[adjusted.image], adjusted.point, adjusted.pixels)
     return TransformsTracks(rms, evidence=TrackEvidence(all_images, given, world_scale))
 
