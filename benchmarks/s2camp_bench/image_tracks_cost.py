@@ -151,6 +151,7 @@ def report(rows: list[dict], config: ImageTracksCostConfig) -> Path:
     columns = ["images", "pairs", "seconds", *(_column(stage) for stage in STAGES), "ratio", "device", "load_before"]
     headers = ["images", "pairs", "total s", *(f"{stage} s" for stage in STAGES), "ratio", "device", "load before"]
     summaries = "\n".join(f"- {row['images']} images: {row['summary']}" for row in rows)
-    command = "s2camp-bench image-tracks" + (" --quick" if config.quick else "")
+    counts = "" if config.counts == ImageTracksCostConfig().counts else " --counts " + " ".join(map(str, config.counts))
+    command = "s2camp-bench image-tracks" + (" --quick" if config.quick else counts)
     sections = [setup, markdown_table(rows, columns, headers), "## What each build made", summaries]
     return write_report(config.output_dir, "image-tracks", "Image tracks: the cost of a build", command, sections)
