@@ -409,7 +409,6 @@ def _refine_and_adjust(
 ) -> None:
     """Step 4: the keypoints refined against the images (``keypoint_refinement``), then a last adjustment (stage
     kinds ``keypoints`` and ``refined adjustment``: the refinement's own cost in ``ImageTracks.stage_seconds``)."""
-    device = "cuda" if torch.cuda.is_available() else "cpu"
     done = [0]
 
     def advance(count: int, _total: int) -> None:
@@ -417,7 +416,7 @@ def _refine_and_adjust(
 
     total = sum(point.track.length() - 1 for point in reconstruction.points3D.values())
     with progress.stage("keypoint refinement", "keypoints", total, "keypoints", lambda: done[0]) as stage:
-        stage.outcome = refine_keypoints(reconstruction, image_root, device, progress=advance).describe()
+        stage.outcome = refine_keypoints(reconstruction, image_root, progress=advance).describe()
     with progress.stage("bundle adjustment on the refined keypoints", "refined adjustment") as stage:
         with colmap_log_to(log):
             pycolmap.bundle_adjustment(reconstruction, cauchy_adjustment_options(refine_principal_point=False))

@@ -38,7 +38,7 @@ from PIL import Image
 from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics, pixel_to_ray_direction, project
-from s2camp_ns.core.colmap_camera_models import colmap_to_values
+from s2camp_ns.core.colmap_camera_models import intrinsics_from_colmap
 from s2camp_ns.tracks.patch_alignment import align_patches
 
 KEYPOINT_RECIPE = 1
@@ -91,15 +91,16 @@ class _Pairs:
 
 def _cameras(reconstruction: pycolmap.Reconstruction, image_ids: list[int]) -> tuple[Intrinsics, Tensor]:
     """``Intrinsics`` [n] and OpenCV camera-to-world [n, 3, 4] (float64) of the images ``image_ids``."""
-    values = []
-    for image_id in image_ids:
-        camera = reconstruction.cameras[reconstruction.images[image_id].camera_id]
-        values.append(
-            {**colmap_to_values(camera.model.name, camera.params), "width": camera.width, "height": camera.height}
-        )
-    model = reconstruction.cameras[reconstruction.images[image_ids[0]].camera_id].model.name
-    fields = {key: torch.tensor([v[key] for v in values], dtype=torch.float64) for key in values[0]}
-    intrinsics = Intrinsics.create(**fields, model="fisheye" if model == "OPENCV_FISHEYE" else "perspective")
+    camera_ids = [reconstruction.images[i].camera_id for i in image_ids]
+    per_camera = {}
+    for camera_id in dict.fromkeys(camera_ids):
+        camera = reconstruction.cameras[camera_id]
+        per_camera[camera_id] = intrinsics_from_colmap(camera.model.name, camera.params, camera.width, camera.height)
+    projections = {intrinsics.model for intrinsics in per_camera.values()}
+    if len(projections) > 1:
+        raise ValueError(f"keypoint refinement needs one projection for all cameras, got {sorted(projections)}")
+    values = torch.cat([per_camera[camera_id].tensors() for camera_id in camera_ids])  # [n, 13]
+    intrinsics = Intrinsics.from_tensors(values, model=projections.pop())
     w2c = np.stack([np.asarray(reconstruction.images[i].cam_from_world().matrix()) for i in image_ids])
     rotation = torch.as_tensor(w2c[:, :, :3], dtype=torch.float64).transpose(1, 2)
     centre = -(rotation @ torch.as_tensor(w2c[:, :, 3:], dtype=torch.float64))
@@ -205,10 +206,11 @@ def _read_images(reconstruction: pycolmap.Reconstruction, image_ids: list[int], 
 
 
 def refine_keypoints(
-    reconstruction: pycolmap.Reconstruction, image_root: Path, device: torch.device | str = "cpu", progress=None
+    reconstruction: pycolmap.Reconstruction, image_root: Path, device: torch.device | str | None = None, progress=None
 ) -> KeypointRefinement:
     """Refine the keypoints of ``reconstruction``'s tracks in place (module docstring) from its images under
-    ``image_root`` (by name). ``progress``: called as ``progress(done, total)`` after each chunk of pairs."""
+    ``image_root`` (by name), on ``device`` (None: CUDA where torch sees it, else the CPU). ``progress``: called as
+    ``progress(done, total)`` after each chunk of pairs."""
     began = time.perf_counter()
     image_ids = sorted(reconstruction.reg_image_ids())
     row_of = {image_id: row for row, image_id in enumerate(image_ids)}
@@ -220,7 +222,7 @@ def refine_keypoints(
     images, scale = _read_images(reconstruction, image_ids, image_root)
     affine, projected = initial_affine(pairs, intrinsics, c2w)
     refined = torch.full((total, 2), float("nan"), dtype=torch.float64)
-    device = torch.device(device)
+    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     for start in range(0, total, CHUNK):
         rows = torch.arange(start, min(start + CHUNK, total))
         refined[rows] = _align_chunk(pairs, rows, affine, images, scale, device)

@@ -4,7 +4,8 @@ fitted to.
 The anchor (``core.track_fit``) fits cameras to fixed points, and COLMAP's last bundle adjustment is plain least
 squares, which a few bad keypoints pull. Here, with the images, each track's keypoints are first refined against its
 reference patch (``keypoint_refinement``); then a bundle adjustment of the whole model with Ceres' Cauchy loss
-(``LOSS_SCALE_PX``), poses and points free, intrinsics held; the points are kept, mapped back into the model's world by
+(``LOSS_SCALE_PX``), poses and points free, the intrinsics held, or, on refined keypoints, which pin them, adjusted too
+(focal length and distortion; the principal point held); the points are kept, mapped back into the model's world by
 the similarity from the adjusted camera centres to the model's (``core.alignment.umeyama``), with the keypoints.
 
 The result is cached in ``<key>.npz`` in the user's cache folder (``CACHE_KIND``; the key hashes the model files,
@@ -212,7 +213,6 @@ def _adjusted(folder: Path, image_root: Path | None) -> ReadjustedTracks:
 
 def _refine(reconstruction: pycolmap.Reconstruction, image_root: Path) -> None:
     """The model's keypoints refined in place against its images (``keypoint_refinement``), with progress."""
-    device = "cuda" if torch.cuda.is_available() else "cpu"
     LOG.print(f"[dim]Track prior: refining the keypoints of the model's tracks against the images of {image_root}...")
     every = max(1, sum(point.track.length() for point in reconstruction.points3D.values()) // 10)
     shown = [0]
@@ -222,7 +222,7 @@ def _refine(reconstruction: pycolmap.Reconstruction, image_root: Path) -> None:
             shown[0] = done
             LOG.print(f"[dim]  {done}/{total} keypoints aligned")
 
-    LOG.print(f"[dim]Track prior: {refine_keypoints(reconstruction, image_root, device, progress).describe()}")
+    LOG.print(f"[dim]Track prior: {refine_keypoints(reconstruction, image_root, progress=progress).describe()}")
 
 
 def _centres(reconstruction: pycolmap.Reconstruction, image_ids: list[int]) -> Float[Tensor, "n 3"]:
