@@ -22,6 +22,7 @@ from rich.console import Console
 from torch import Tensor, nn
 
 from s2camp_ns.compat import DefaultsOnLoad, refiner_keys
+from s2camp_ns.core.anchor_tracks import AnchorTracks, fitted_anchor_tracks
 from s2camp_ns.core.camera import PARAMETER_NAMES, ParameterLayout, opengl_to_opencv
 from s2camp_ns.core.preconditioner import DampingConfig, SamplingConfig
 from s2camp_ns.core.proxy_range import describe_proxy_ranges
@@ -120,6 +121,8 @@ class S2CampCameraOptimizer(CameraOptimizer):
         self.refiner.cameras_required = (
             "S2CampCameraOptimizer.set_train_cameras must be called before use (the pipeline does)"
         )
+        self.anchor_tracks: AnchorTracks | None = None
+        """The tracks the anchor was fitted to (``set_track_prior``; None: no fit), for the export."""
         self.metrics_due = True
         """Whether ``get_metrics_dict`` computes the metrics: the model sets it before each step to whether the
         trainer logs that step."""
@@ -156,7 +159,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
         ``track_observations``. Call after ``set_train_cameras``."""
         refiner = self.refiner
         refiner.require_cameras()
-        prior = None
+        prior, self.anchor_tracks = None, None
         if self.config.track_prior and evidence is not None:
             shared = refiner.factorisation == "block"
             fit = fit_anchor(
@@ -164,6 +167,7 @@ class S2CampCameraOptimizer(CameraOptimizer):
                 camera_of_image=refiner.camera_of_image if shared else None,
             )  # fmt: skip
             prior = evidence_from_fit(fit, evidence.world_scale, refiner.layout)
+            self.anchor_tracks = fitted_anchor_tracks(evidence, fit, refiner.base_intrinsics_struct())
             if (note := describe_anchor_fit(fit)) is not None:
                 LOG.print(note)
         elif self.config.track_prior and track_rms_px is not None:

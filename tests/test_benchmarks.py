@@ -34,6 +34,8 @@ REQUIRED_KEYS = {
     "image-tracks": {"images", "pairs", "seconds", "SIFT_seconds", "matching_seconds", "summary", "device"},
     "step-cost": {"method", "camera_model", "ops", "syncs", "added_ops", "added_syncs", "camera_path_ms"},
     "anchors": {"start", "seed", "keypoints", "rot_err", "start_rot_err", "keypoint_median", "keypoint_pairs"},
+    "export-load": {"scene", "images", "observations", "export_seconds_with_file", "export_seconds_with_track_work",
+                    "anchor_rms_px", "exported_rms_px"},  # fmt: skip
 }
 REPORTS = {
     "dispersion": "dispersion.md",
@@ -42,6 +44,7 @@ REPORTS = {
     "image-tracks": "image-tracks.md",
     "step-cost": "step-cost.md",
     "anchors": "anchors.md",
+    "export-load": "export-load.md",
 }
 
 
@@ -71,6 +74,8 @@ def test_quick_benchmark_prints_json_and_writes_report(name: str, tmp_path: Path
         assert REQUIRED_KEYS[name] <= row.keys(), f"{name} row misses {REQUIRED_KEYS[name] - row.keys()}"
     report = tmp_path / REPORTS[name]
     assert report.exists() and "Regenerate with" in report.read_text()
+    if name == "export-load":  # the exported points agree with the exported cameras at least as well as at the anchors
+        assert all(0 < row["exported_rms_px"] <= row["anchor_rms_px"] for row in rows), rows
     if name == "step-cost":  # the camera path adds no host read nerfstudio's own pose optimizer does not
         added = {row["method"]: row["added_syncs"] for row in rows}
         assert set(added) == {"off", "s2camp-so3xr3", "s2camp"}

@@ -713,7 +713,7 @@ def test_unsupported_camera_types_are_rejected():
         make_optimizer(cameras)
 
 
-def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
+def test_checkpoint_holds_exactly_the_latent_p_schedule_and_prior():
     optimizer = make_optimizer()
     assert {key.removeprefix("refiner.") for key in optimizer.state_dict()} == {
         "whitened_delta",
@@ -725,6 +725,9 @@ def test_checkpoint_holds_exactly_the_latent_p_and_schedule():
         "precond_base_intrinsics",  # what P was computed for: a resume onto other cameras recomputes it
         "precond_proxy_range",  # and the proxy range it was computed with
         "undistortion_steps",  # the undistortion's Newton steps: a resumed run casts its rays as it did
+        "prior_radius",  # the track prior: a loaded run has it without making tracks
+        "prior_radius_intrinsics",
+        "prior_anchor",
     }
     # Buffers move with the module (.to(device)), the base cameras and the Gram included.
     assert {name.removeprefix("refiner.") for name, _ in optimizer.named_buffers()} == {

@@ -148,8 +148,8 @@ def test_both_ranks_end_with_bit_identical_cameras_and_p(runs) -> None:
     # The camera optimizer's whole state: latents (pose per image, intrinsics per physical camera), P, P^-1, counters.
     names = {"whitened_delta", "whitened_intrinsics", "precond", "precond_inv"}
     assert {f"refiner.{name}" for name in names} <= rank0["camera_state"].keys()
-    for name, value in rank0["camera_state"].items():
-        assert torch.equal(value, rank1["camera_state"][name]), f"{name} differs between the ranks"
+    for name, value in rank0["camera_state"].items():  # NaN where a state has none (the prior's radii, no tracks)
+        torch.testing.assert_close(value, rank1["camera_state"][name], rtol=0, atol=0, equal_nan=True, msg=name)
     assert torch.equal(rank0["camera_deltas"], rank1["camera_deltas"])
     for name, value in rank0["field"].items():
         assert torch.equal(value, rank1["field"][name]), f"field parameter {name} differs between the ranks"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
@@ -219,6 +220,32 @@ def test_cli_main_writes_a_readable_model(scene: Path, tmp_path: Path, monkeypat
         export.main(ExportCamerasConfig(load_config=tmp_path / "missing.yml", output_dir=tmp_path / "x"))
 
 
+def test_an_export_never_replaces_a_scenes_own_files(scene: Path, tmp_path: Path, monkeypatch):
+    """--output-dir <input scene>/sparse/0 (the earlier form) must not replace the scene's transforms.json; a folder an
+    export wrote is rewritten (its transforms.json says so), with the image links replaced."""
+    import nerfstudio.utils.eval_utils as eval_utils
+
+    out = S2CampDataParserConfig(data=scene, downscale_factor=2).setup().get_dataparser_outputs("train")
+    optimizer = CameraOptimizerConfig(mode="off").setup(num_cameras=len(out.image_filenames), device="cpu")
+    monkeypatch.setattr(eval_utils, "eval_setup", lambda *a, **k: (None, stub_pipeline(out, optimizer), None, 0))
+    config_file = tmp_path / "config.yml"
+    config_file.write_text("stub")
+    own = '{"frames": []}'
+    (scene / "transforms.json").write_text(own)
+    before = (scene / "sparse" / "0" / "images.bin").read_bytes()
+    with pytest.raises(FileExistsError, match="transforms.json exists and was not written by s2camp-export-cameras"):
+        export.main(ExportCamerasConfig(load_config=config_file, output_dir=scene / "sparse" / "0"))
+    assert (scene / "transforms.json").read_text() == own
+    assert (scene / "sparse" / "0" / "images.bin").read_bytes() == before
+    for _ in range(2):  # the second export rewrites the first
+        export.main(ExportCamerasConfig(load_config=config_file, output_dir=tmp_path / "refined"))
+    written = json.loads((tmp_path / "refined" / "transforms.json").read_text())
+    assert written["s2camp_export"]["load_config"] == str(config_file.resolve())
+    assert len(written["frames"]) == len(out.image_filenames)
+    assert (tmp_path / "refined" / "images").resolve() == (scene / "images").resolve()
+    assert (tmp_path / "refined" / "images_2").resolve() == (scene / "images_2").resolve()
+
+
 @pytest.mark.parametrize("optimizer_config", ["off", "pose", "so3xr3"])
 def test_unrefined_intrinsics_export_one_camera_per_physical_camera(scene: Path, tmp_path: Path, monkeypatch,
                                                                     optimizer_config: str):  # fmt: skip
@@ -245,7 +272,7 @@ def test_unrefined_intrinsics_export_one_camera_per_physical_camera(scene: Path,
         config_file.write_text("stub")
         folder = tmp_path / f"{optimizer_config}-{perturbed}"
         export.main(ExportCamerasConfig(load_config=config_file, output_dir=folder))
-        loaded = pycolmap.Reconstruction(str(folder))
+        loaded = pycolmap.Reconstruction(str(folder / "sparse" / "0"))
         assert loaded.num_images() == n
         assert loaded.num_cameras() == (n if expected is None else expected)
 

@@ -166,7 +166,11 @@ def test_progress_counts_every_render_and_step_up_to_the_announced_total(views_p
     views = [HeldOutView(image, truth, _intrinsics(), index) for index in range(3)]
     config = AlignmentConfig(steps=steps, rays=32, views_per_batch=views_per_batch)
     told: list[tuple[int, int]] = []
-    align_and_evaluate_views(field, views, config, lambda done, total: told.append((done, total)))
+    done_views: list = []
+    results = align_and_evaluate_views(
+        field, views, config, lambda done, total: told.append((done, total)), done_views.append
+    )
+    assert done_views == results and [view.index for view in done_views] == [0, 1, 2]  # s2camp-eval's line per view
     batches = -(-3 // views_per_batch)
     total = 2 * 3 + batches * steps
     assert alignment_work(3, config) == total
@@ -224,7 +228,7 @@ def test_held_out_cameras_are_the_evaluation_reference_when_given(monkeypatch, w
     reference = _cameras(torch.tensor([[0.6, 0.4, 0.5], [0.1, 0.3, 0.5]]), FOCAL + 2.0)
     metadata = {"reference_cameras": reference} if with_reference else {}
     pipeline = SimpleNamespace(model=model, datamanager=SimpleNamespace(eval_dataset=_EvalDataset(given, metadata)))
-    monkeypatch.setattr(module, "align_and_evaluate_views", lambda model, views, config, progress: views)
+    monkeypatch.setattr(module, "align_and_evaluate_views", lambda model, views, config, *callbacks: views)
     views = module.evaluate_held_out_views(pipeline, AlignmentConfig())
     expected = reference if with_reference else given
     for index, view in enumerate(views):

@@ -235,7 +235,7 @@ def test_several_processes_keep_their_own_random_streams_on_resume(tmp_path: Pat
     assert not torch.equal(torch.rand(4), rank0_draws)
 
 
-def _tiny_pipeline(scene: Path, eval_interval: int):
+def _tiny_pipeline(scene: Path, eval_interval: int, test_mode: str = "val"):
     from conftest import lpips_offline, tiny_model_config
 
     from s2camp_ns.camera_optimizer import S2CampCameraOptimizerConfig
@@ -253,7 +253,35 @@ def _tiny_pipeline(scene: Path, eval_interval: int):
         model=tiny_model_config(S2CampCameraOptimizerConfig(sampling=SamplingConfig(num_points=32))),
     )
     with lpips_offline():
-        return config.setup(device="cpu", test_mode="val")
+        return config.setup(device="cpu", test_mode=test_mode)
+
+
+@pytest.mark.parametrize("test_mode", ["test", "inference"])
+def test_a_loaded_pipeline_makes_no_tracks_and_fits_no_anchor(tiny_scene: Path, test_mode: str, monkeypatch):
+    """eval_setup's modes (ns-eval, ns-viewer: test; ns-render, the export: inference) skip the data parser's tracks and
+    the anchor fit; the checkpoint gives the same refined cameras as the trained pipeline had."""
+    import s2camp_ns.camera_optimizer as camera_optimizer
+    import s2camp_ns.tracks.track_evidence as track_evidence
+
+    trained = _tiny_pipeline(tiny_scene, eval_interval=8)
+    assert trained.anchor_tracks is not None and trained.anchor_tracks.tracks is not None
+    with torch.no_grad():
+        trained.model.camera_optimizer.refiner.whitened_delta.add_(0.01)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("track work in a loaded pipeline")
+
+    for module, name in ((track_evidence, "scene_track_evidence"), (track_evidence, "image_track_evidence"),
+                         (camera_optimizer, "fit_anchor")):  # fmt: skip
+        monkeypatch.setattr(module, name, refuse)
+    loaded = _tiny_pipeline(tiny_scene, eval_interval=8, test_mode=test_mode)
+    assert loaded.anchor_tracks is None
+    assert trained.datamanager.config.dataparser.tracks  # the config it was given is unchanged
+    loaded.load_pipeline(trained.state_dict(), step=5)
+    refined = loaded.model.camera_optimizer.refiner.deltas().detach()
+    assert torch.equal(refined, trained.model.camera_optimizer.refiner.deltas().detach())
+    with pytest.raises(AssertionError, match="track work"):  # a pipeline built for training does it
+        _tiny_pipeline(tiny_scene, eval_interval=8)
 
 
 def test_checkpoint_of_another_scene_is_refused_with_both_camera_counts(tiny_scene: Path, tmp_path: Path):

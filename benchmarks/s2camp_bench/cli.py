@@ -13,6 +13,7 @@ import tyro
 from .anchors import AnchorsConfig
 from .common import DEFAULT_OUTPUT_DIR, emit_json, log
 from .dispersion import DispersionConfig
+from .export_load import ExportLoadConfig
 from .gram_error import GramErrorConfig
 from .image_tracks_cost import ImageTracksCostConfig
 from .robustness import RobustnessConfig
@@ -22,7 +23,7 @@ from .step_cost import StepCostConfig
 MODULES = {
     StepCostConfig: "step_cost", RobustnessConfig: "robustness", SplatBenchConfig: "splat_bench",
     GramErrorConfig: "gram_error", DispersionConfig: "dispersion", ImageTracksCostConfig: "image_tracks_cost",
-    AnchorsConfig: "anchors",
+    AnchorsConfig: "anchors", ExportLoadConfig: "export_load",
 }  # fmt: skip
 """Every benchmark, in the order ``s2camp-bench all`` runs them."""
 
@@ -44,6 +45,7 @@ Command = Union[
     Annotated[DispersionConfig, tyro.conf.subcommand("dispersion")],
     Annotated[ImageTracksCostConfig, tyro.conf.subcommand("image-tracks")],
     Annotated[AnchorsConfig, tyro.conf.subcommand("anchors")],
+    Annotated[ExportLoadConfig, tyro.conf.subcommand("export-load")],
     Annotated[AllConfig, tyro.conf.subcommand("all")],
 ]
 

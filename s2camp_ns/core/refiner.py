@@ -46,6 +46,8 @@ from s2camp_ns.core.track_prior import (
 )
 
 ROTATION_COLUMNS = [3, 4, 5]  # omega in the twist (rho_x, rho_y, rho_z, omega_x, omega_y, omega_z)
+PRIOR_KEYS = ("prior_radius", "prior_radius_intrinsics", "prior_anchor")
+"""The track prior's buffers, in checkpoints since the anchors' tracks are kept with the run (older ones lack them)."""
 FACTORISATIONS = {"block": compute_shared_preconditioner, "symmetric": compute_preconditioner}  # each row's P
 
 
@@ -102,7 +104,7 @@ class CameraRefiner(nn.Module):
         self._stale_preconditioner: str | None = None  # why a loaded P does not fit the base cameras
 
     def _register_state(self, device: torch.device | str) -> None:
-        """Persistent: P, P^-1, the schedule, P's fingerprint; the rest comes from the scene on every run."""
+        """Persistent: P, P^-1, the schedule, P's fingerprint, the track prior; the rest comes from the scene."""
         n, k = self.num_images, self.layout.num_params
         eye = torch.eye(k, dtype=torch.float64, device=device).expand(n, k, k).clone()
         self.register_buffer("precond", eye.clone())
@@ -120,9 +122,10 @@ class CameraRefiner(nn.Module):
         self.register_buffer("precond_proxy_range", no_range.clone())
         self.register_buffer("camera_of_image", torch.arange(n, device=device), persistent=False)
         no_prior = torch.full((n,), float("nan"), dtype=torch.float64, device=device)
-        self.register_buffer("prior_radius", no_prior, persistent=False)  # pose radius per image, NaN: no prior
-        self.register_buffer("prior_radius_intrinsics", no_prior.clone(), persistent=False)  # per intrinsics row
-        self.register_buffer("prior_anchor", torch.zeros(n, k, dtype=torch.float64, device=device), persistent=False)
+        # The track prior, kept in checkpoints: a loaded run has it without making tracks (``PRIOR_KEYS``).
+        self.register_buffer("prior_radius", no_prior)  # pose radius per image, NaN: no prior
+        self.register_buffer("prior_radius_intrinsics", no_prior.clone())  # per intrinsics row
+        self.register_buffer("prior_anchor", torch.zeros(n, k, dtype=torch.float64, device=device))
 
     def _latent(self, values: Tensor, device: torch.device | str) -> nn.Parameter:
         """A latent on ``device``; with ``photometric`` False its gradient is zeroed."""
@@ -494,6 +497,10 @@ class CameraRefiner(nn.Module):
                 f"the camera optimizer's checkpoint holds {saved.shape[0]} training cameras, but this model has "
                 f"{self.num_images}: it is a checkpoint of another scene or of another train/eval split"
             )
+        for name in PRIOR_KEYS:  # data, not structure: take the saved shape (intrinsics rows as the run had them)
+            value = state_dict.get(prefix + name)
+            if value is not None and value.shape != getattr(self, name).shape:
+                setattr(self, name, torch.empty(value.shape, dtype=value.dtype, device=self.precond.device))
         latent = state_dict.get(prefix + "whitened_delta")
         if latent is not None and latent.shape[-1] > NUM_POSE_PARAMS:  # a single per-image latent [n, K]
             state_dict[prefix + "whitened_delta"] = latent[:, :NUM_POSE_PARAMS]
@@ -509,6 +516,12 @@ class CameraRefiner(nn.Module):
             if prefix + name not in state_dict:
                 missing_keys.remove(prefix + name)
                 getattr(self, name).fill_(value)
+        if all(prefix + name in state_dict for name in PRIOR_KEYS):
+            self.has_track_prior = bool(torch.isfinite(self.prior_radius).any())
+        else:  # an older checkpoint: the prior set from the scene stays
+            for name in PRIOR_KEYS:
+                if prefix + name in missing_keys:
+                    missing_keys.remove(prefix + name)
         self.after_load()
         if self.has_cameras:
             self.check_fingerprint()  # the warning names this line

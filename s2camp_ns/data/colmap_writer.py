@@ -6,6 +6,7 @@ perspective k4 (r^8) has no COLMAP counterpart and is refused; skew is dropped.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,11 +14,13 @@ from typing import Literal
 
 import numpy as np
 import pycolmap
+import torch
 from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from s2camp_ns.core.colmap_camera_models import colmap_model_for, values_to_colmap
+from s2camp_ns.core.tracks import Tracks
 from s2camp_ns.data.camera_conversion import projection_of
 from s2camp_ns.data.colmap_world import c2w_to_colmap_world
 
@@ -54,9 +57,12 @@ def cameras_to_reconstruction(
     p2=0.0,
     projection: str = "perspective",
     camera_ids: Sequence[int] | None = None,
+    tracks: Tracks | None = None,
 ) -> pycolmap.Reconstruction:
     """COLMAP reconstruction from OpenCV camera-to-world poses [N, 3, 4] and intrinsics (px; scalars or length N):
     one COLMAP camera per distinct ``camera_ids`` entry (their images' intrinsics must agree), or per image when None.
+    ``tracks`` (pixels in these cameras) become the images' keypoints and points with their tracks (black: see
+    ``Reconstruction.extract_colors_for_all_images``); else ``points_xyz`` are added without tracks.
 
     Distortion means what it means in ``core.camera`` for ``projection`` ("perspective" or "fisheye"). ``camera_model``
     auto picks the simplest model that holds every camera: OPENCV_FISHEYE for fisheye, else RADIAL, OPENCV or
@@ -71,10 +77,40 @@ def cameras_to_reconstruction(
     if len(groups) != n:
         raise ValueError(f"camera_ids must have {n} entries (one per image), got {len(groups)}")
     reconstruction = pycolmap.Reconstruction()
-    _add_cameras_and_images(reconstruction, c2w, per_camera, groups, image_names, camera_model, projection)
-    if points_xyz is not None:
+    keypoints = None if tracks is None else _keypoints(tracks, n)
+    _add_cameras_and_images(reconstruction, c2w, per_camera, groups, image_names, camera_model, projection, keypoints)
+    if tracks is not None:
+        _add_tracks(reconstruction, tracks)
+    elif points_xyz is not None:
         _add_points(reconstruction, points_xyz, points_rgb)
     return reconstruction
+
+
+def _keypoints(tracks: Tracks, n: int) -> list[np.ndarray]:
+    """Per image [m_i, 2], its observations' pixels in observation order (keypoint j of image i: its j-th)."""
+    tracks.validate(n)
+    image = tracks.image.cpu().numpy()
+    pixels = tracks.pixels.detach().cpu().double().numpy()
+    return [pixels[image == i].reshape(-1, 2) for i in range(n)]
+
+
+def _add_tracks(reconstruction: pycolmap.Reconstruction, tracks: Tracks) -> None:
+    """Points 1.. in ``tracks.points`` order, each with its observations as track elements (image i + 1, its keypoint
+    index in ``_keypoints``' order)."""
+    image = tracks.image.cpu().numpy()
+    point = tracks.point.cpu().numpy()
+    keypoint = np.zeros_like(image)
+    for i in np.unique(image):
+        mask = image == i
+        keypoint[mask] = np.arange(int(mask.sum()))
+    order = np.argsort(point, kind="stable")
+    starts = np.searchsorted(point[order], np.arange(tracks.points.shape[0] + 1))
+    xyz = tracks.points.detach().cpu().double().numpy()
+    black = np.zeros(3, dtype=np.uint8)
+    for index in range(xyz.shape[0]):
+        rows = order[starts[index] : starts[index + 1]]
+        elements = [pycolmap.TrackElement(int(image[r]) + 1, int(keypoint[r])) for r in rows]
+        reconstruction.add_point3D(xyz[index], pycolmap.Track(elements), black)
 
 
 def _checked_poses(c2w_opencv: Float[Tensor, "n 3 4"] | np.ndarray, image_names: list[str]) -> np.ndarray:
@@ -123,9 +159,10 @@ def _add_cameras_and_images(
     image_names: list[str],
     camera_model: str,
     projection: str,
+    keypoints: list[np.ndarray] | None = None,
 ) -> None:
     """One COLMAP camera per distinct ``groups`` entry (ids 1.. in first-seen order; its images' intrinsics must
-    agree, else ValueError) and image i + 1 posed by ``c2w[i]``."""
+    agree, else ValueError) and image i + 1 posed by ``c2w[i]``, with ``keypoints[i]``."""
     n = len(per_camera)
     colmap_id: dict[int, int] = {}
     for i in range(n):
@@ -152,7 +189,8 @@ def _add_cameras_and_images(
                 camera_id=colmap_id[groups[i]],
             )
             reconstruction.add_camera_with_trivial_rig(camera)
-        image = pycolmap.Image(name=image_names[i], camera_id=colmap_id[groups[i]], image_id=i + 1)
+        points2d = np.zeros((0, 2)) if keypoints is None else keypoints[i]
+        image = pycolmap.Image(name=image_names[i], keypoints=points2d, camera_id=colmap_id[groups[i]], image_id=i + 1)
         reconstruction.add_image_with_trivial_frame(image, _cam_from_world(c2w[i], i, image_names[i]))
 
 
@@ -196,10 +234,11 @@ def nerfstudio_to_reconstruction(
     points_rgb: np.ndarray | None = None,
     camera_model: CameraModel = "auto",
     camera_ids: Sequence[int] | None = None,
+    tracks: Tracks | None = None,
 ) -> pycolmap.Reconstruction:
     """The COLMAP reconstruction of (refined) training cameras with nerfstudio's normalization undone (one COLMAP
     camera per ``camera_ids`` entry, or per image); intrinsics rescaled to ``full_image_size`` [N, 2] (w, h) if given.
-    """
+    ``tracks``: in COLMAP's world, pixels in the cameras' images (rescaled with them)."""
     cameras = cameras.to("cpu")
     n = cameras.shape[0]
     c2w = c2w_to_colmap_world(cameras.camera_to_worlds, dataparser_transform, dataparser_scale)
@@ -209,13 +248,17 @@ def nerfstudio_to_reconstruction(
         full = np.asarray(full_image_size, dtype=np.float64).reshape(n, 2)
         sx, sy = full[:, 0] / width, full[:, 1] / height
         width, height = full[:, 0], full[:, 1]
+    if tracks is not None:
+        image = tracks.image.cpu().long()
+        scale = torch.from_numpy(np.stack([sx, sy], axis=-1))[image]  # [o, 2]
+        tracks = dataclasses.replace(tracks, pixels=tracks.pixels.detach().cpu().double() * scale)
     # nerfstudio's [k1, k2, k3, k4, p1, p2] are core.camera's coefficients for both projections.
     distortion = {name: _column(cameras.distortion_params, n, i) for i, name in enumerate(DISTORTION)}
     return cameras_to_reconstruction(
         c2w, fx=_column(cameras.fx, n) * sx, fy=_column(cameras.fy, n) * sy, cx=_column(cameras.cx, n) * sx,
         cy=_column(cameras.cy, n) * sy, width=width, height=height, image_names=image_names, camera_model=camera_model,
         points_xyz=points_xyz, points_rgb=points_rgb, projection=projection_of(cameras), camera_ids=camera_ids,
-        **distortion,
+        tracks=tracks, **distortion,
     )  # fmt: skip
 
 

@@ -4,6 +4,11 @@ The model is built before it knows any camera, but the preconditioner and the ra
 pipeline, owning data manager and model, hands them over. Where a full-image data manager (splatfacto's) undistorted
 the training images, the model gets the pinhole cameras it wrote and the tracks moved into those images.
 
+Only a pipeline built for training (``test_mode`` "val", as nerfstudio's Trainer builds it) makes the track evidence
+and fits the anchors: a loaded run (``eval_setup``: export, evaluation, rendering, the viewer) has its refined cameras
+and track prior in the checkpoint and the anchors' tracks in its folder (``core.anchor_tracks``), and its data parser
+skips the tracks.
+
 With several processes the pipeline wraps the model in DDP itself: ``broadcast_buffers=False`` (every rank computes
 the same P; rank 0's P, P^-1 and Sigma would be sent every step, to ranks whose latent was not re-expressed with it)
 and ``device_ids`` only on CUDA (a CPU module and gloo reject them; ``s2camp_ns.method.distributed``).
@@ -11,6 +16,7 @@ and ``device_ids`` only on CUDA (a CPU module and gloo reject them; ``s2camp_ns.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,8 +33,10 @@ from torch.nn.parallel import DistributedDataParallel
 
 from s2camp_ns.camera_optimizer import S2CampCameraOptimizer
 from s2camp_ns.compat import OLD_CAMERA_COUNT_KEYS
+from s2camp_ns.core.anchor_tracks import AnchorTracks, given_anchor_tracks
 from s2camp_ns.data.camera_conversion import intrinsics_from_cameras
 from s2camp_ns.data.camera_fields import has_distortion, replace_cameras
+from s2camp_ns.data.scene_config import SceneConfig
 from s2camp_ns.method.datamanager import PixelRayGenerator
 from s2camp_ns.tracks.undistorted_tracks import undistorted_track_evidence
 
@@ -73,6 +81,22 @@ def undistortion_scale(datamanager) -> tuple[Float[Tensor, "n 1"], Float[Tensor,
     return seen.fx / given.fx, seen.fy / given.fy
 
 
+TRAINING_MODE = "val"
+"""The ``test_mode`` nerfstudio's Trainer builds the pipeline with: the only one that makes tracks and fits anchors."""
+
+
+def without_track_work(config: VanillaPipelineConfig) -> VanillaPipelineConfig:
+    """``config`` with its data parser's tracks off (copies; the given config is unchanged)."""
+    dataparser = getattr(config.datamanager, "dataparser", None)
+    if not isinstance(dataparser, SceneConfig) or not dataparser.tracks:
+        return config
+    dataparser, datamanager, config = copy.copy(dataparser), copy.copy(config.datamanager), copy.copy(config)
+    dataparser.tracks = False
+    datamanager.dataparser = dataparser
+    config.datamanager = datamanager
+    return config
+
+
 @dataclass
 class S2CampPipelineConfig(VanillaPipelineConfig):
     """VanillaPipeline that gives the S2CamP camera optimizer its training cameras."""
@@ -94,6 +118,8 @@ class S2CampPipeline(VanillaPipeline):
     ):
         if str(device).startswith("cpu") and not torch.cuda.is_available():
             CONSOLE.print("[bold yellow]CUDA is not available: training on the CPU (expect about 1 s per iteration).")
+        if test_mode != TRAINING_MODE:
+            config = without_track_work(config)
         # world_size=1: VanillaPipeline must not wrap the model (its data manager uses it only for worker counts).
         super().__init__(config, device, test_mode, 1, local_rank, grad_scaler)
         assert self.datamanager.train_dataset is not None
@@ -117,6 +143,9 @@ class S2CampPipeline(VanillaPipeline):
         elif isinstance(getattr(self.model, "camera_optimizer", None), S2CampCameraOptimizer):
             self.model.camera_optimizer.set_train_cameras(cameras, points=points)
             self.model.camera_optimizer.set_track_prior(tracks["track_rms_px"], tracks["track_evidence"])
+        training = test_mode == TRAINING_MODE
+        self.anchor_tracks = self._anchor_tracks(cameras, tracks["track_evidence"]) if training else None
+        """The tracks of the anchors (``core.anchor_tracks``); None where the pipeline was not built for training."""
         # The S2CamP camera optimizer casts the training rays itself, through the refined cameras.
         camera_optimizer = getattr(self.model, "camera_optimizer", None)
         generator = getattr(self.datamanager, "train_ray_generator", None)
@@ -134,6 +163,15 @@ class S2CampPipeline(VanillaPipeline):
                 broadcast_buffers=False,
             )
             comms.synchronize()
+
+    def _anchor_tracks(self, cameras, evidence) -> AnchorTracks:
+        """The camera optimizer's fitted anchor tracks, else the tracks at the given ``cameras``, else none."""
+        fitted = getattr(getattr(self.model, "camera_optimizer", None), "anchor_tracks", None)
+        if fitted is not None:
+            return fitted
+        if evidence is not None:
+            return given_anchor_tracks(evidence, intrinsics_from_cameras(cameras))
+        return AnchorTracks(cameras.shape[0])
 
     def load_pipeline(self, loaded_state: dict[str, Any], step: int) -> None:
         """VanillaPipeline's loading, after ``check_checkpoint_cameras``."""

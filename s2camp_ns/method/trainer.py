@@ -4,7 +4,8 @@ Atomic: a checkpoint is written into ``nerfstudio_models.partial/`` (nerfstudio 
 ``nerfstudio_models/`` as a checkpoint), fsynced, renamed onto ``step-N.ckpt`` and the folder fsynced; only then are
 older checkpoints deleted. It also holds torch's, numpy's and Python's generator states and the step counters of
 nerfstudio's ``ProposalNetworkSampler``, so a resumed one-process CPU run is bit-identical to the uninterrupted one.
-A run resumed with ``--load-dir`` records the checkpoint it loaded as ``load_checkpoint`` in its config.yml
+When training starts it writes the anchors' tracks beside config.yml (``core.anchor_tracks``). A run resumed with
+``--load-dir`` records the checkpoint it loaded as ``load_checkpoint`` in its config.yml
 (``eval_setup`` keeps ``load_step`` but not ``load_dir``).
 """
 
@@ -14,7 +15,7 @@ import os
 import random
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -26,6 +27,7 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from s2camp_ns.compat import split_per_image_adam_state
+from s2camp_ns.core.anchor_tracks import ANCHOR_TRACKS_FILE
 from s2camp_ns.core.shared_intrinsics import NUM_POSE_PARAMS
 from s2camp_ns.method.pipeline import CheckpointCamerasError
 from s2camp_ns.method.schedulers import RunLengthScheduleConfig
@@ -180,6 +182,21 @@ class S2CampTrainer(Trainer):
     """nerfstudio's Trainer: atomic checkpoints with the random state; run-length schedules learn the run's length."""
 
     config: S2CampTrainerConfig
+
+    def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        """nerfstudio's setup, then the anchors' tracks written beside config.yml (``save_anchor_tracks``)."""
+        super().setup(test_mode)
+        self.save_anchor_tracks()
+
+    @check_main_thread
+    def save_anchor_tracks(self) -> None:
+        """The pipeline's ``anchor_tracks`` as ``ANCHOR_TRACKS_FILE`` in the run's folder: what the export of a loaded
+        run reads instead of making the tracks and fitting the anchors again."""
+        pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+        tracks = getattr(pipeline, "anchor_tracks", None)
+        if tracks is not None:
+            self.base_dir.mkdir(parents=True, exist_ok=True)
+            tracks.save(self.base_dir / ANCHOR_TRACKS_FILE)
 
     def setup_optimizers(self) -> Optimizers:
         """nerfstudio's optimizers, with ``--max-num-iterations`` as the length of every run-length schedule."""

@@ -3,7 +3,8 @@
 After joint refinement the field's frame differs from the given cameras' (a similarity, plus what the field
 absorbed), which ``ns-eval`` would measure too. This aligns every held-out camera first (``test_time_alignment``) and
 reports the metrics before and after, for runs of s2camp, s2camp-camp, s2camp-so3xr3, s2camp-splat and
-s2camp-splat-so3xr3. Progress goes to stderr, the table of results to stdout.
+s2camp-splat-so3xr3. Progress goes to stderr (a line per view), the table of results and the protocol (``protocol``,
+also in the JSON) to stdout. Loading does no track work (``method.pipeline``).
 
     s2camp-eval --load-config outputs/room/s2camp/<timestamp>/config.yml --output-path aligned.json
 """
@@ -44,6 +45,19 @@ class EvalAlignedConfig:
     """Camera-only optimisation of each held-out view."""
 
 
+def protocol(alignment: AlignmentConfig) -> str:
+    """The evaluation protocol in words (``test_time_alignment``), with the run's settings."""
+    focal = " and a log focal scale" if alignment.refine_focal else ""
+    return (
+        "every held-out view: its camera mapped into the field's frame by the similarity taking the reference "
+        "training-camera centres onto the refined ones (focal length scaled by their median ratio), then "
+        f"{alignment.steps} seeded Adam steps (lr {alignment.lr:g} to {alignment.lr_final:g}) on a local se(3) "
+        f"twist{focal} minimising the photometric MSE of that view against the frozen field; PSNR / SSIM / LPIPS "
+        "of the full image through the aligned camera ('PSNR before': through the mapped camera, no steps). "
+        "ns-eval scores the views unaligned."
+    )
+
+
 def _mean(values: list[float]) -> float:
     finite = [value for value in values if not math.isnan(value)]
     return sum(finite) / len(finite) if finite else math.nan
@@ -51,7 +65,7 @@ def _mean(values: list[float]) -> float:
 
 def _load(load_config: Path):
     """(pipeline, checkpoint, step) of the run by ``eval_setup`` (its output hidden)."""
-    LOG.print(f"[dim]s2camp-eval: loading {load_config} (scene, tracks, checkpoint)", highlight=False)
+    LOG.print(f"[dim]s2camp-eval: loading {load_config} (scene, checkpoint)", highlight=False)
     began = time.perf_counter()
     captured = io.StringIO()
     with contextlib.redirect_stdout(captured), warnings.catch_warnings():
@@ -69,17 +83,28 @@ def _load(load_config: Path):
 
 
 def _aligned_views(pipeline, alignment: AlignmentConfig) -> list[AlignedView]:
-    """``evaluate_held_out_views`` with a bar of its work on ``LOG``."""
+    """``evaluate_held_out_views`` with a line per view done (and a bar on a terminal) on ``LOG``."""
     began = time.perf_counter()
     LOG.print(f"[dim]aligning the held-out views: {alignment.steps} camera-only steps each", highlight=False)
     progress = Progress(
         TextColumn("[dim]aligning"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
         console=LOG, transient=True, disable=not LOG.is_terminal,
     )  # fmt: skip
+    total = len(pipeline.datamanager.eval_dataset)
+    scored: list[AlignedView] = []
+
+    def view_done(view: AlignedView) -> None:
+        scored.append(view)
+        LOG.print(
+            f"[dim]  view {len(scored)}/{total} (eval image {view.index}): PSNR {view.psnr_unaligned:.2f} -> "
+            f"{view.psnr:.2f} dB aligned ({duration_text(time.perf_counter() - began)})",
+            highlight=False,
+        )
+
     with progress:
         task = progress.add_task("align", total=None)
         views = evaluate_held_out_views(
-            pipeline, alignment, lambda done, total: progress.update(task, completed=done, total=total)
+            pipeline, alignment, lambda done, all_work: progress.update(task, completed=done, total=all_work), view_done
         )
     LOG.print(f"[dim]aligned {len(views)} views in {duration_text(time.perf_counter() - began)}", highlight=False)
     return views
@@ -103,14 +128,12 @@ def main(config: EvalAlignedConfig) -> dict:
     table.add_row("mean", f"{summary['psnr_unaligned']:.2f}", f"{summary['psnr']:.2f}", f"{summary['ssim']:.4f}",
                   f"{summary['lpips']:.4f}", end_section=True)  # fmt: skip
     CONSOLE.print(table)
-    CONSOLE.print(
-        f"[dim]{config.alignment.steps} camera-only steps per view; 'PSNR before' = through the similarity-mapped "
-        "camera. LPIPS is NaN where its weights are not cached."
-    )
+    CONSOLE.print(f"[dim]Protocol: {protocol(config.alignment)} LPIPS is NaN where its weights are not cached.")
     result = {
         "config": str(config.load_config),
         "checkpoint": str(checkpoint),
         "step": step,
+        "protocol": protocol(config.alignment),
         "alignment": asdict(config.alignment),
         "mean": summary,
         "views": [asdict(view) for view in views],

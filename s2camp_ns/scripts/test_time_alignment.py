@@ -164,10 +164,15 @@ def renderer_for(model, config: AlignmentConfig) -> ViewRenderer:
 
 
 def align_and_evaluate_views(
-    model, views: list[HeldOutView], config: AlignmentConfig, progress: Progress | None = None
+    model,
+    views: list[HeldOutView],
+    config: AlignmentConfig,
+    progress: Progress | None = None,
+    view_done: Callable[[AlignedView], None] | None = None,
 ) -> list[AlignedView]:
     """Align held-out views to the frozen ``model`` and evaluate them, ``config.views_per_batch`` at a time (each
-    follows exactly the steps it would alone: own variables and pixel stream, elementwise Adam)."""
+    follows exactly the steps it would alone: own variables and pixel stream, elementwise Adam); ``view_done`` is
+    called with each view's result as its batch ends."""
     config.validate()
     renderer = renderer_for(model, config)
     total, done = alignment_work(len(views), config), 0
@@ -178,12 +183,13 @@ def align_and_evaluate_views(
         if progress is not None:
             progress(done, total)
 
-    step = config.views_per_batch
-    return [
-        aligned
-        for start in range(0, len(views), step)
-        for aligned in _align_batch(model, renderer, views[start : start + step], config, advance)
-    ]
+    step, results = config.views_per_batch, []
+    for start in range(0, len(views), step):
+        for aligned in _align_batch(model, renderer, views[start : start + step], config, advance):
+            results.append(aligned)
+            if view_done is not None:
+                view_done(aligned)
+    return results
 
 
 def _target_image(image: Tensor) -> Float[Tensor, "h w 3"]:
@@ -261,10 +267,13 @@ def _ray_held_out_views(dataset) -> list[tuple[Tensor, Float[Tensor, "3 4"], Int
 
 
 def evaluate_held_out_views(
-    pipeline, config: AlignmentConfig = AlignmentConfig(), progress: Progress | None = None
+    pipeline,
+    config: AlignmentConfig = AlignmentConfig(),
+    progress: Progress | None = None,
+    view_done: Callable[[AlignedView], None] | None = None,
 ) -> list[AlignedView]:
     """Align and evaluate every evaluation image of a pipeline with an S2CamP model, in the frame of the reference
-    training cameras (else the given ones)."""
+    training cameras (else the given ones); ``view_done`` as in ``align_and_evaluate_views``."""
     model = pipeline.model
     renderer = renderer_for(model, config)  # refuses a model it cannot render before any work
     splat = not isinstance(renderer, RayRenderer)
@@ -286,4 +295,4 @@ def evaluate_held_out_views(
         HeldOutView(image, map_camera(similarity, c2w), scale_focal(intrinsics, focal_ratio), index)
         for index, (image, c2w, intrinsics) in enumerate(held_out)
     ]
-    return align_and_evaluate_views(model, views, config, progress)
+    return align_and_evaluate_views(model, views, config, progress, view_done)
