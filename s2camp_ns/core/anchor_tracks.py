@@ -90,34 +90,30 @@ def _kept(tracks: Tracks, keep: Bool[Tensor, " o"]) -> tuple[Tracks, Bool[Tensor
 def fitted_anchor_tracks(evidence: TrackEvidence, fit: TrackFit, intrinsics: Intrinsics) -> AnchorTracks:
     """The observations ``fit`` (``fit_anchor`` of ``evidence`` under the given ``intrinsics``) counted, and the
     images' RMS at the anchor over those kept."""
-    tracks, n = evidence.tracks, evidence.c2w.shape[0]
-    image = tracks.image.to("cpu", torch.long)
-    deltas = fit.deltas.to("cpu", torch.float64)[image]  # [o, 16]
-    per_observation = intrinsics.to(device="cpu", dtype=torch.float64)[image]
-    residual, margin = reprojection_residuals(
-        deltas, points_in_given_cameras(tracks, evidence.c2w), per_observation,
-        tracks.pixels.detach().to("cpu", torch.float64),
-    )  # fmt: skip
-    keep = (margin > 0) & (fit.observations.to("cpu")[image] > 0)
-    return _with_rms(tracks, keep, residual.square().sum(dim=-1), n)
+    return _anchor_tracks(evidence, fit.deltas, intrinsics, fitted=fit.observations > 0)
 
 
 def given_anchor_tracks(evidence: TrackEvidence, intrinsics: Intrinsics) -> AnchorTracks:
     """The observations in front of the given cameras (no fit), and the images' RMS there over those kept."""
+    n = evidence.c2w.shape[0]
+    no_deltas = torch.zeros(n, NUM_CAMERA_PARAMS, dtype=torch.float64)
+    return _anchor_tracks(evidence, no_deltas, intrinsics, fitted=torch.ones(n, dtype=torch.bool))
+
+
+def _anchor_tracks(
+    evidence: TrackEvidence, deltas: Float[Tensor, "n 16"], intrinsics: Intrinsics, fitted: Bool[Tensor, " n"]
+) -> AnchorTracks:
+    """The observations in front of the cameras ``deltas`` move the given ones to, of the ``fitted`` images, kept with
+    ``_kept``; each image's RMS there over those kept."""
     tracks, n = evidence.tracks, evidence.c2w.shape[0]
     image = tracks.image.to("cpu", torch.long)
     residual, margin = reprojection_residuals(
-        torch.zeros(image.shape[0], NUM_CAMERA_PARAMS, dtype=torch.float64),
-        points_in_given_cameras(tracks, evidence.c2w), intrinsics.to(device="cpu", dtype=torch.float64)[image],
-        tracks.pixels.detach().to("cpu", torch.float64),
+        deltas.to("cpu", torch.float64)[image], points_in_given_cameras(tracks, evidence.c2w),
+        intrinsics.to(device="cpu", dtype=torch.float64)[image], tracks.pixels.detach().to("cpu", torch.float64),
     )  # fmt: skip
-    return _with_rms(tracks, margin > 0, residual.square().sum(dim=-1), n)
-
-
-def _with_rms(tracks: Tracks, keep: Bool[Tensor, " o"], squared: Float[Tensor, " o"], n: int) -> AnchorTracks:
-    kept, final = _kept(tracks, keep)
-    rms = per_image_rms(squared[final], torch.ones_like(squared[final]), kept.image, n)
-    return AnchorTracks(n, kept, rms)
+    kept, final = _kept(tracks, (margin > 0) & fitted.to("cpu")[image])
+    squared = residual.square().sum(dim=-1)[final]
+    return AnchorTracks(n, kept, per_image_rms(squared, torch.ones_like(squared), kept.image, n))
 
 
 __all__ = ["ANCHOR_TRACKS_FILE", "AnchorTracks", "fitted_anchor_tracks", "given_anchor_tracks"]

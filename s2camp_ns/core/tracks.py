@@ -68,6 +68,17 @@ def track_reprojection_rms(tracks: Tracks, c2w: Float[Tensor, "n 3 4"], intrinsi
     return per_image_rms(squared, (margin[:, 0] > 0).to(torch.float64), image, n)
 
 
+def index_in_image(image: Int[Tensor, " o"], num_images: int) -> tuple[Int[Tensor, " o"], int]:
+    """Each observation's index among its image's observations, in observation order ([o], on ``image``'s device:
+    its keypoint index in a COLMAP image, or its slot in a per-camera [n, l, ...] batch), and the largest count l."""
+    count = torch.bincount(image, minlength=num_images)
+    order = torch.argsort(image, stable=True)
+    first = (torch.cumsum(count, 0) - count)[image[order]]  # where each observation's image begins in ``order``
+    index = torch.empty_like(image)
+    index[order] = torch.arange(image.shape[0], device=image.device) - first
+    return index, int(count.max()) if num_images else 0
+
+
 def per_image_rms(
     squared: Float[Tensor, " o"], weight: Float[Tensor, " o"], image: Int[Tensor, " o"], num_images: int
 ) -> Float[Tensor, " n"]:
@@ -78,4 +89,4 @@ def per_image_rms(
     return torch.where(count > 0, rms, torch.full_like(rms, float("nan")))
 
 
-__all__ = ["Tracks", "per_image_rms", "track_reprojection_rms"]
+__all__ = ["Tracks", "index_in_image", "per_image_rms", "track_reprojection_rms"]

@@ -16,7 +16,7 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from s2camp_ns.core.camera import Intrinsics, project
-from s2camp_ns.core.tracks import Tracks
+from s2camp_ns.core.tracks import Tracks, index_in_image
 
 ITERATIONS = 20
 """Levenberg-Marquardt iterations (each point stops improving within a few)."""
@@ -38,14 +38,11 @@ class _Observations:
 
     @classmethod
     def of(cls, tracks: Tracks, c2w: Float[Tensor, "n 3 4"], intrinsics: Intrinsics) -> _Observations:
-        device, n = c2w.device, c2w.shape[0]
+        device = c2w.device
         image = tracks.image.to(device=device, dtype=torch.long)
-        count = torch.bincount(image, minlength=n)
-        order = torch.argsort(image, stable=True)
-        slot = torch.empty_like(image)
-        slot[order] = torch.arange(image.shape[0], device=device) - (torch.cumsum(count, 0) - count)[image[order]]
+        slot, slots = index_in_image(image, c2w.shape[0])
         return cls(
-            image, slot, int(count.max()) if n else 0, c2w[image, :, :3], c2w[image, :, 3],
+            image, slot, slots, c2w[image, :, :3], c2w[image, :, 3],
             intrinsics.to(device=device, dtype=torch.float64), tracks.pixels.to(device=device, dtype=torch.float64),
         )  # fmt: skip
 

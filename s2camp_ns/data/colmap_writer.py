@@ -20,7 +20,7 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from s2camp_ns.core.colmap_camera_models import colmap_model_for, values_to_colmap
-from s2camp_ns.core.tracks import Tracks
+from s2camp_ns.core.tracks import Tracks, index_in_image
 from s2camp_ns.data.camera_conversion import projection_of
 from s2camp_ns.data.colmap_world import c2w_to_colmap_world
 
@@ -80,29 +80,27 @@ def cameras_to_reconstruction(
     keypoints = None if tracks is None else _keypoints(tracks, n)
     _add_cameras_and_images(reconstruction, c2w, per_camera, groups, image_names, camera_model, projection, keypoints)
     if tracks is not None:
-        _add_tracks(reconstruction, tracks)
+        _add_tracks(reconstruction, tracks, n)
     elif points_xyz is not None:
         _add_points(reconstruction, points_xyz, points_rgb)
     return reconstruction
 
 
 def _keypoints(tracks: Tracks, n: int) -> list[np.ndarray]:
-    """Per image [m_i, 2], its observations' pixels in observation order (keypoint j of image i: its j-th)."""
+    """Per image [m_i, 2], its observations' pixels in observation order (keypoint j of image i: its j-th,
+    ``core.tracks.index_in_image``)."""
     tracks.validate(n)
     image = tracks.image.cpu().numpy()
-    pixels = tracks.pixels.detach().cpu().double().numpy()
-    return [pixels[image == i].reshape(-1, 2) for i in range(n)]
+    pixels = tracks.pixels.detach().cpu().double().numpy()[np.argsort(image, kind="stable")]
+    return np.split(pixels, np.cumsum(np.bincount(image, minlength=n))[:-1])
 
 
-def _add_tracks(reconstruction: pycolmap.Reconstruction, tracks: Tracks) -> None:
+def _add_tracks(reconstruction: pycolmap.Reconstruction, tracks: Tracks, n: int) -> None:
     """Points 1.. in ``tracks.points`` order, each with its observations as track elements (image i + 1, its keypoint
-    index in ``_keypoints``' order)."""
-    image = tracks.image.cpu().numpy()
-    point = tracks.point.cpu().numpy()
-    keypoint = np.zeros_like(image)
-    for i in np.unique(image):
-        mask = image == i
-        keypoint[mask] = np.arange(int(mask.sum()))
+    index ``core.tracks.index_in_image``, as ``_keypoints`` placed it)."""
+    image = tracks.image.cpu().long()
+    keypoint = index_in_image(image, n)[0].numpy()
+    image, point = image.numpy(), tracks.point.cpu().numpy()
     order = np.argsort(point, kind="stable")
     starts = np.searchsorted(point[order], np.arange(tracks.points.shape[0] + 1))
     xyz = tracks.points.detach().cpu().double().numpy()

@@ -128,12 +128,13 @@ def main(config: EvalAlignedConfig) -> dict:
     table.add_row("mean", f"{summary['psnr_unaligned']:.2f}", f"{summary['psnr']:.2f}", f"{summary['ssim']:.4f}",
                   f"{summary['lpips']:.4f}", end_section=True)  # fmt: skip
     CONSOLE.print(table)
-    CONSOLE.print(f"[dim]Protocol: {protocol(config.alignment)} LPIPS is NaN where its weights are not cached.")
+    stated = protocol(config.alignment)
+    CONSOLE.print(f"[dim]Protocol: {stated} LPIPS is NaN where its weights are not cached.")
     result = {
         "config": str(config.load_config),
         "checkpoint": str(checkpoint),
         "step": step,
-        "protocol": protocol(config.alignment),
+        "protocol": stated,
         "alignment": asdict(config.alignment),
         "mean": summary,
         "views": [asdict(view) for view in views],

@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -47,7 +46,7 @@ from s2camp_ns.data.camera_fields import has_distortion
 from s2camp_ns.data.colmap_world import c2w_to_colmap_world
 from s2camp_ns.data.colmap_writer import CameraModel, nerfstudio_to_reconstruction, read_points
 from s2camp_ns.method.pipeline import TRAINING_MODE
-from s2camp_ns.tracks.transforms_tracks import full_size_images
+from s2camp_ns.tracks.transforms_tracks import full_size_images, image_folder_and_names
 
 LOG = Console(stderr=True)
 """What the command is doing while it loads the run (stderr)."""
@@ -173,8 +172,7 @@ def image_folders(pipeline, resolution: str) -> ImageFolders:
         paths = [Path(p) for p in outputs.image_filenames]
         if resolution == "original":
             paths = full_size_images(Path(metadata["source_path"]), outputs.image_filenames, k)
-        root = Path(os.path.commonpath([p.parent for p in paths]))
-        names = [p.relative_to(root).as_posix() for p in paths]
+        root, names = image_folder_and_names(paths)
     downscaled = {}
     if resolution == "original":
         for factor in DOWNSCALED:

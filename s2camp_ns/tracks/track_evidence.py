@@ -34,7 +34,12 @@ from s2camp_ns.data.transforms_scene import transforms_declared_sizes
 from s2camp_ns.tracks.colmap_tracks import check_sfm_track_rms, read_colmap_tracks
 from s2camp_ns.tracks.image_tracks import image_tracks
 from s2camp_ns.tracks.robust_adjustment import readjusted_tracks
-from s2camp_ns.tracks.transforms_tracks import colmap_model_of_transforms, full_size_images, transforms_track_rms
+from s2camp_ns.tracks.transforms_tracks import (
+    colmap_model_of_transforms,
+    full_size_images,
+    image_folder_and_names,
+    transforms_track_rms,
+)
 
 Evidence = tuple[Float[Tensor, " n"], TrackEvidence]
 """``track_rms_px`` (float64 [N], NaN for an image without tracks) and ``track_evidence``."""
@@ -209,9 +214,7 @@ def image_track_evidence(
         root, names = scene / config.images_path, parsed.image_names
     else:
         scene = source.parent
-        paths = full_size_images(source, outputs.image_filenames, parsed.downscale_factor)
-        root = Path(os.path.commonpath([path.parent for path in paths]))
-        names = [path.relative_to(root).as_posix() for path in paths]
+        root, names = image_folder_and_names(full_size_images(source, outputs.image_filenames, parsed.downscale_factor))
     scale = float(outputs.dataparser_scale)
     given = nerfstudio_to_reconstruction(
         physical_camera_means(cameras, camera_ids), outputs.dataparser_transform, scale, names,

@@ -80,6 +80,13 @@ def full_size_images(source: Path, image_filenames: list[Path], downscale_factor
     return [Path(by_read_path[os.path.normpath(path)][0]) for path in image_filenames]
 
 
+def image_folder_and_names(paths: list[Path]) -> tuple[Path, list[str]]:
+    """The deepest folder holding every one of ``paths`` (images a transforms.json lists) and each path's name under
+    it (``/``-separated): how the image tracks and the export name a transforms.json scene's images."""
+    root = Path(os.path.commonpath([path.parent for path in paths]))
+    return root, [path.relative_to(root).as_posix() for path in paths]
+
+
 def frame_names(
     source: Path, image_filenames: list[Path], downscale_factor: int, images_path: Path
 ) -> list[tuple[str, int | None] | None]:
@@ -237,5 +244,6 @@ __all__ = [
     "colmap_model_of_transforms",
     "frame_names",
     "full_size_images",
+    "image_folder_and_names",
     "transforms_track_rms",
 ]
